@@ -1,0 +1,1 @@
+"""M4World-Gym: Gymnasium environments whose dynamics are the M4World world model."""
