@@ -12,11 +12,21 @@ def _frame(t=0.0, idx=0, ego_x=0.0):
         drivable_area=(np.array([[0.0, -2.0], [100.0, -2.0], [100.0, 6.0], [0.0, 6.0]]),),
     )
     obj = SceneObject(
-        track_id="a", category="car", box=Box3D(center=(20.0, 4.0, 0.8), size=(4.5, 1.9, 1.6), yaw=0.0),
-        color=(200, 30, 30), color_name="red", description="a red sedan",
+        track_id="a",
+        category="car",
+        box=Box3D(center=(20.0, 4.0, 0.8), size=(4.5, 1.9, 1.6), yaw=0.0),
+        color=(200, 30, 30),
+        color_name="red",
+        description="a red sedan",
     )
-    return SceneFrame(time=t, frame_index=idx, ego=EgoState(x=ego_x, y=0.0, yaw=0.0, speed=20.0),
-                      objects=(obj,), map=road, prompt=ScenePrompt("highway", "rain", "night"))
+    return SceneFrame(
+        time=t,
+        frame_index=idx,
+        ego=EgoState(x=ego_x, y=0.0, yaw=0.0, speed=20.0),
+        objects=(obj,),
+        map=road,
+        prompt=ScenePrompt("highway", "rain", "night"),
+    )
 
 
 def test_box_corner_order_front_face_first():

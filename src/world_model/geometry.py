@@ -41,9 +41,18 @@ BOX_CORNER_SIGNS = np.array(
 
 # The 12 edges and 6 faces of a box, as indices into the corner order above.
 BOX_EDGES = (
-    (0, 1), (1, 2), (2, 3), (3, 0),
-    (4, 5), (5, 6), (6, 7), (7, 4),
-    (0, 4), (1, 5), (2, 6), (3, 7),
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 0),
+    (4, 5),
+    (5, 6),
+    (6, 7),
+    (7, 4),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
 )
 BOX_FACES = {
     "front": (0, 1, 2, 3),
@@ -92,9 +101,7 @@ def ego_to_world_xy(points_xy: np.ndarray, ego_xy: np.ndarray, ego_yaw: float) -
     """Inverse of :func:`world_to_ego_xy`. points_xy: (..., 2) -> (..., 2)."""
     c, s = np.cos(ego_yaw), np.sin(ego_yaw)
     p = np.asarray(points_xy, dtype=np.float64)
-    return np.stack(
-        [c * p[..., 0] - s * p[..., 1] + ego_xy[0], s * p[..., 0] + c * p[..., 1] + ego_xy[1]], axis=-1
-    )
+    return np.stack([c * p[..., 0] - s * p[..., 1] + ego_xy[0], s * p[..., 0] + c * p[..., 1] + ego_xy[1]], axis=-1)
 
 
 def highway_to_world(x: float, y: float, heading: float) -> tuple[float, float, float]:

@@ -218,9 +218,7 @@ class MapGeometry:
         return cls(
             lane_lines=tuple(LaneLine.from_dict(x) for x in d.get("lane_lines", [])),
             road_edges=tuple(np.asarray(e, dtype=np.float64).reshape(-1, 2) for e in d.get("road_edges", [])),
-            drivable_area=tuple(
-                np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d.get("drivable_area", [])
-            ),
+            drivable_area=tuple(np.asarray(p, dtype=np.float64).reshape(-1, 2) for p in d.get("drivable_area", [])),
             lane_width=float(d.get("lane_width", 4.0)),
         )
 
@@ -242,8 +240,10 @@ class ScenePrompt:
     def full_text(self) -> str:
         """The text the text encoder sees: the prompt plus explicit weather and time."""
         base = self.text.strip()
-        tail = f"{self.weather} weather, {self.time_of_day}time" if self.time_of_day != "night" else (
-            f"{self.weather} weather, at night"
+        tail = (
+            f"{self.weather} weather, {self.time_of_day}time"
+            if self.time_of_day != "night"
+            else (f"{self.weather} weather, at night")
         )
         return f"{base}. {tail}" if base else tail
 

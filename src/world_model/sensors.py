@@ -182,9 +182,7 @@ class LidarSpec:
         """(beams, azimuth, 3) unit ray directions in the LiDAR frame."""
         el = self.elevations()[:, None]
         az = self.azimuths()[None, :]
-        return np.stack(
-            np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), axis=-1
-        )
+        return np.stack(np.broadcast_arrays(np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)), axis=-1)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

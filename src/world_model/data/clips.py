@@ -126,7 +126,9 @@ def write_clip(
 
 def _register(root: Path, name: str) -> None:
     index_path = root / "dataset.json"
-    index = _read_index(root) if index_path.exists() else {"format": FORMAT_NAME, "version": FORMAT_VERSION, "clips": []}
+    index = (
+        _read_index(root) if index_path.exists() else {"format": FORMAT_NAME, "version": FORMAT_VERSION, "clips": []}
+    )
     if name not in index["clips"]:
         index["clips"].append(name)
     write_json_atomic(index_path, index)
@@ -167,8 +169,16 @@ def read_clip(root: str | Path, name: str, mmap: bool = True) -> Clip:
     meta = json.loads(meta_path.read_text())
     static = meta["static"]
     # Parse the shared parts once; every frame then references the same objects.
-    shared = SceneFrame.from_dict({"time": 0, "frame_index": 0, "ego": {"x": 0, "y": 0, "yaw": 0}, "objects": []}, static)
-    static_objs = {"map": shared.map, "prompt": shared.prompt, "rig": shared.rig, "lidar": shared.lidar, "bev": shared.bev}
+    shared = SceneFrame.from_dict(
+        {"time": 0, "frame_index": 0, "ego": {"x": 0, "y": 0, "yaw": 0}, "objects": []}, static
+    )
+    static_objs = {
+        "map": shared.map,
+        "prompt": shared.prompt,
+        "rig": shared.rig,
+        "lidar": shared.lidar,
+        "bev": shared.bev,
+    }
     with open(clip_dir / "frames.jsonl") as f:
         frames = [SceneFrame.from_dict(json.loads(line), static_objs) for line in f if line.strip()]
     mode = "r" if mmap else None

@@ -1,0 +1,108 @@
+"""Env configuration: one dataclass per concern, every default visible, unknown keys refused.
+
+``gym.make("M4World-v0", config={...})`` takes a plain dict; :func:`EnvConfig.from_dict` turns
+it into these dataclasses and names any key it does not know (with the closest valid one).
+"""
+
+from __future__ import annotations
+
+import difflib
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Any
+
+ACTION_TYPES = ("continuous", "discrete_meta")
+OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
+BACKENDS = ("procedural", "world_model")
+
+
+class UnknownOptionError(KeyError):
+    """A config/option key the env does not know. The message names it and suggests the closest."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; show it plainly
+        return str(self.args[0])
+
+
+class InvalidOptionError(ValueError):
+    """A known option with a value the env cannot use."""
+
+
+@dataclass
+class RewardConfig:
+    """highway-env style reward terms and weights (see :mod:`m4world_env.rewards`)."""
+
+    collision: float = -1.0
+    high_speed: float = 0.4
+    right_lane: float = 0.1
+    on_road: float = 0.0
+    progress: float = 0.0
+    speed_range: tuple[float, float] = (20.0, 30.0)  # m/s mapped to high_speed term 0..1
+    normalize: bool = True  # map the weighted sum to [0, 1] like highway-env
+    on_road_gate: bool = True  # multiply the reward by on_road (highway-env does)
+
+
+@dataclass
+class ModelBackendConfig:
+    """Options of the world-model backend (ignored by the procedural one)."""
+
+    denoising_steps: int = 4
+    context_refresh: bool = True
+    guidance_scale: float = 1.0
+    device: str = "cpu"
+    dtype: str = "float32"  # float32 | bfloat16
+
+
+@dataclass
+class EnvConfig:
+    action_type: str = "continuous"
+    observation_keys: tuple[str, ...] = ("cameras", "lidar")
+    # Rig resolution for the procedural backend; the world-model backend uses its checkpoint's.
+    height: int = 64
+    width: int = 112
+    state_objects: int = 8  # nearest objects in the "state" observation
+    offroad_terminal: bool = True
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    model: ModelBackendConfig = field(default_factory=ModelBackendConfig)
+
+    def __post_init__(self) -> None:
+        if self.action_type not in ACTION_TYPES:
+            raise InvalidOptionError(f"config.action_type must be one of {ACTION_TYPES}, got {self.action_type!r}")
+        self.observation_keys = tuple(self.observation_keys)
+        bad = [k for k in self.observation_keys if k not in OBSERVATION_KEYS]
+        if bad or not self.observation_keys:
+            raise InvalidOptionError(
+                f"config.observation_keys must be a non-empty subset of {OBSERVATION_KEYS}, got {self.observation_keys}"
+            )
+        for name in ("height", "width", "state_objects"):
+            if int(getattr(self, name)) <= 0:
+                raise InvalidOptionError(f"config.{name} must be a positive integer, got {getattr(self, name)!r}")
+        lo, hi = self.reward.speed_range
+        if not lo < hi:
+            raise InvalidOptionError(f"config.reward.speed_range must be (low, high) with low < high, got {(lo, hi)}")
+        if self.model.dtype not in ("float32", "bfloat16"):
+            raise InvalidOptionError(f"config.model.dtype must be float32 or bfloat16, got {self.model.dtype!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> EnvConfig:
+        return _build(cls, d or {}, "config")
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _build(cls: type, d: dict[str, Any], path: str) -> Any:
+    if not isinstance(d, dict):
+        raise InvalidOptionError(f"{path} must be a dict, got {type(d).__name__}")
+    known = {f.name: f for f in fields(cls)}
+    kwargs: dict[str, Any] = {}
+    for key, value in d.items():
+        if key not in known:
+            close = difflib.get_close_matches(key, list(known), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            raise UnknownOptionError(f"unknown option {path}.{key}{hint} Valid keys: {sorted(known)}")
+        factory = known[key].default_factory
+        nested_cls = factory if isinstance(factory, type) and is_dataclass(factory) else None
+        kwargs[key] = _build(nested_cls, value, f"{path}.{key}") if nested_cls else value
+    try:
+        return cls(**kwargs)
+    except TypeError as e:
+        raise InvalidOptionError(f"{path}: {e}") from e

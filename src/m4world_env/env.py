@@ -1,0 +1,272 @@
+"""``M4World-v0``: a Gymnasium env whose observations are multi-view cameras + LiDAR.
+
+Each ``step(action)`` applies the ego action and the scenario's traffic for one policy step (one
+causal chunk of ``sensor_frequency / policy_frequency`` frames) and returns the sensors of the
+newest frame, rendered by the chosen backend. Rewards and termination come from the traffic
+state, highway-env style (:mod:`m4world_env.rewards`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from gymnasium.error import ResetNeeded
+
+from m4world_env.backends import ProceduralBackend, SensorBackend
+from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError, UnknownOptionError
+from m4world_env.metrics import EpisodeMetrics
+from m4world_env.rewards import combine_reward, reward_terms
+from m4world_env.scenario import Scenario, load_scenario
+from m4world_env.traffic import TrafficBridge
+from world_model.geometry import world_to_ego_xy, wrap_angle
+from world_model.observation import Observation
+from world_model.scene import SceneFrame
+from world_model.sensors import BevSpec, LidarSpec, default_rig
+
+STATE_FEATURES = ("presence", "x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "length", "width")
+RESET_OPTIONS = ("reference",)
+
+
+class ActionError(ValueError):
+    """An action the env cannot apply (wrong shape or type, NaN/inf, out of range)."""
+
+
+def state_from_frame(frame: SceneFrame, n_objects: int) -> np.ndarray:
+    """highway-env Kinematics-style state: row 0 the ego, then the nearest objects, ego frame.
+
+    Returns float32 (1 + n_objects, len(STATE_FEATURES)); absent rows are all zero.
+    """
+    out = np.zeros((1 + n_objects, len(STATE_FEATURES)), dtype=np.float32)
+    ego = frame.ego
+    out[0] = (1.0, 0.0, 0.0, ego.speed, 0.0, 1.0, 0.0, ego.size[0], ego.size[1])
+    if not frame.objects:
+        return out
+    ego_xy = np.array([ego.x, ego.y])
+    centers = world_to_ego_xy(np.array([o.box.center[:2] for o in frame.objects]), ego_xy, ego.yaw)
+    vel = world_to_ego_xy(np.array([o.velocity for o in frame.objects]), np.zeros(2), ego.yaw)
+    order = np.argsort(np.hypot(centers[:, 0], centers[:, 1]), kind="stable")[:n_objects]
+    for row, i in enumerate(order, start=1):
+        o = frame.objects[i]
+        rel_yaw = float(wrap_angle(o.box.yaw - ego.yaw))
+        out[row] = (1.0, *centers[i], *vel[i], np.cos(rel_yaw), np.sin(rel_yaw), o.box.size[0], o.box.size[1])
+    return out
+
+
+class M4WorldEnv(gym.Env):
+    """The M4World driving env. See the README for options; ``config`` keys in :class:`EnvConfig`."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(
+        self,
+        scenario: str | Scenario = "highway_sunny_day",
+        backend: str = "procedural",
+        checkpoint: str | None = None,
+        render_mode: str | None = None,
+        config: dict[str, Any] | EnvConfig | None = None,
+        shared_backend: SensorBackend | None = None,
+        backend_index: int = 0,
+    ) -> None:
+        """``shared_backend``/``backend_index`` are for :class:`M4WorldVectorEnv`, which batches one
+        backend over its sub-envs; users leave them unset."""
+        if backend not in BACKENDS:
+            raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise InvalidOptionError(
+                f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
+            )
+        self.cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        self.render_mode = render_mode
+        self.backend_name = backend
+        self.rig = default_rig(width=self.cfg.width, height=self.cfg.height)
+        self.lidar_spec = LidarSpec()
+        self.bev_spec = BevSpec()
+        self.backend: SensorBackend = shared_backend or self._make_backend(backend, checkpoint)
+        self.backend_index = backend_index
+        self.bridge = TrafficBridge(
+            self.scenario, action_type=self.cfg.action_type, rig=self.rig, lidar=self.lidar_spec, bev=self.bev_spec
+        )
+        self.metadata = {**self.metadata, "render_fps": self.scenario.policy_frequency}
+        self.action_space = self._make_action_space()
+        self.observation_space = self._make_observation_space()
+        self._frame: SceneFrame | None = None
+        self._obs: Observation | None = None
+        self._needs_reset = True
+        self._metrics: EpisodeMetrics | None = None
+
+    # -- construction helpers --
+
+    def _make_backend(self, backend: str, checkpoint: str | None) -> SensorBackend:
+        if backend == "procedural":
+            if checkpoint is not None:
+                raise InvalidOptionError("checkpoint is only used by backend='world_model'")
+            needs_bev = "bev" in self.cfg.observation_keys or self.render_mode is not None
+            return ProceduralBackend(with_bev=needs_bev)
+        raise InvalidOptionError(
+            "backend='world_model' needs the causal student's streaming engine, which this version does not "
+            "ship yet; use backend='procedural'"
+        )
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return self.rig.names
+
+    def _make_action_space(self) -> spaces.Space:
+        if self.cfg.action_type == "continuous":
+            return spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        return spaces.Discrete(5)
+
+    def _make_observation_space(self) -> spaces.Dict:
+        h, w = self.rig.resolution
+        bh, bw, bc = self.bev_spec.shape
+        all_spaces = {
+            "cameras": spaces.Box(0, 255, shape=(self.rig.num_views, h, w, 3), dtype=np.uint8),
+            "lidar": spaces.Box(
+                0.0, self.lidar_spec.max_range, shape=(self.lidar_spec.beams, self.lidar_spec.azimuth), dtype=np.float32
+            ),
+            "bev": spaces.Box(0, 1, shape=(bh, bw, bc), dtype=np.uint8),
+            "state": spaces.Box(
+                -np.inf, np.inf, shape=(1 + self.cfg.state_objects, len(STATE_FEATURES)), dtype=np.float32
+            ),
+        }
+        return spaces.Dict({k: all_spaces[k] for k in self.cfg.observation_keys})
+
+    # -- gymnasium API --
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - set(RESET_OPTIONS)
+        if unknown:
+            raise UnknownOptionError(f"unknown reset option(s) {sorted(unknown)}; valid: {list(RESET_OPTIONS)}")
+        bridge_seed = int(self.np_random.integers(0, 2**31 - 1))
+        self._frame = self.bridge.reset(seed=bridge_seed)
+        self._obs = self.backend.reset(self.backend_index, self._frame, options)
+        self._metrics = EpisodeMetrics(
+            dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.cfg.reward.speed_range[1]
+        )
+        self._metrics.add_frame(self._frame)
+        self._needs_reset = False
+        return self._observation(), self._info({})
+
+    def validate_action(self, action: Any) -> Any:
+        """Check an action against the action space; returns it in canonical form or raises ActionError."""
+        if self.cfg.action_type == "discrete_meta":
+            arr = np.asarray(action)
+            if arr.shape not in ((), (1,)) or not np.issubdtype(arr.dtype, np.integer):
+                raise ActionError(f"discrete_meta action must be one integer in [0, 4], got {action!r}")
+            value = int(arr.reshape(()))
+            if not 0 <= value < 5:
+                raise ActionError(
+                    f"discrete_meta action must be in [0, 4] (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER), got {value}"
+                )
+            return value
+        try:
+            arr = np.asarray(action, dtype=np.float64)
+        except (TypeError, ValueError) as e:
+            raise ActionError(f"continuous action must be numeric [acceleration, steering], got {action!r}") from e
+        if arr.shape != (2,):
+            raise ActionError(
+                f"continuous action must have shape (2,) = [acceleration, steering], got shape {arr.shape}"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise ActionError(f"continuous action contains NaN or inf: {arr.tolist()}")
+        if np.any(np.abs(arr) > 1.0 + 1e-6):
+            raise ActionError(f"continuous action must lie in [-1, 1]^2, got {arr.tolist()}")
+        return np.clip(arr, -1.0, 1.0).astype(np.float32)
+
+    def step(self, action: Any):
+        frames = self.advance(action)
+        (observations,) = self.backend.step([frames])
+        return self.finish_step(frames, observations)
+
+    def advance(self, action: Any) -> list[SceneFrame]:
+        """First half of a step: validate the action and run the traffic for one chunk."""
+        if self._needs_reset:
+            raise ResetNeeded("call env.reset() before env.step() (the episode ended or never started)")
+        return self.bridge.step(self.validate_action(action))
+
+    def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):
+        """Second half of a step: given the chunk's observations, compute reward, flags and info."""
+        self._frame, self._obs = frames[-1], observations[-1]
+        for fr in frames:
+            self._metrics.add_frame(fr)
+        terms = self._reward_terms(frames)
+        reward = combine_reward(terms, self.cfg.reward)
+        crashed, on_road = bool(self.bridge.crashed), bool(self.bridge.on_road)
+        self._metrics.add_step(reward, crashed, on_road)
+        terminated = crashed or (self.cfg.offroad_terminal and not on_road)
+        truncated = bool(self.bridge.truncated) and not terminated
+        self._needs_reset = terminated or truncated
+        return self._observation(), reward, terminated, truncated, self._info(terms)
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array' to gym.make")
+            return None
+        from world_model.sim import mosaic
+
+        if self._obs is None:
+            raise ResetNeeded("call env.reset() before env.render()")
+        return mosaic(self._obs, self._frame)
+
+    # -- interactive object manipulation (the paper's "M"anipulation) --
+
+    def insert_object(self, spec: dict[str, Any]) -> str:
+        """Add an object (scenario ``objects`` entry syntax); it appears from the next step. Returns its id."""
+        return self.bridge.insert_object(spec)
+
+    def remove_object(self, track_id: str) -> None:
+        """Remove an object (scripted or IDM traffic) by track id, from the next step on."""
+        self.bridge.remove_object(track_id)
+
+    def edit_object(self, track_id: str, **changes: Any) -> None:
+        """Change an object's category, colour, description, image or track from the next step on."""
+        self.bridge.edit_object(track_id, **changes)
+
+    # -- internals --
+
+    def _reward_terms(self, frames: list[SceneFrame]) -> dict[str, float]:
+        dt = len(frames) / self.scenario.sensor_frequency
+        ego = self.bridge.ego
+        first = frames[0]
+        progress = float(np.hypot(ego.x - first.ego.x, ego.y - first.ego.y))
+        return reward_terms(
+            crashed=bool(self.bridge.crashed),
+            speed=float(ego.speed),
+            lane_index=int(self.bridge.lane_index),
+            num_lanes=int(self.bridge.num_lanes),
+            on_road=bool(self.bridge.on_road),
+            progress_m=progress,
+            max_progress_m=self.cfg.reward.speed_range[1] * dt,
+            cfg=self.cfg.reward,
+        )
+
+    def _observation(self) -> dict[str, np.ndarray]:
+        out: dict[str, np.ndarray] = {}
+        keys = self.cfg.observation_keys
+        if "cameras" in keys:
+            out["cameras"] = self._obs.cameras
+        if "lidar" in keys:
+            out["lidar"] = self._obs.lidar
+        if "bev" in keys:
+            out["bev"] = self._obs.bev
+        if "state" in keys:
+            out["state"] = state_from_frame(self._frame, self.cfg.state_objects)
+        return out
+
+    def _info(self, terms: dict[str, float]) -> dict[str, Any]:
+        ego = self.bridge.ego
+        return {
+            "time": float(self.bridge.time),
+            "speed": float(ego.speed),
+            "crashed": bool(self.bridge.crashed),
+            "on_road": bool(self.bridge.on_road),
+            "lane_index": int(self.bridge.lane_index),
+            "rewards": dict(terms),
+            "episode_metrics": self._metrics.summary(),
+        }

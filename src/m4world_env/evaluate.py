@@ -1,0 +1,142 @@
+"""Scoring harness: run a driving policy over scenarios and report NAVSIM-style metrics.
+
+``m4world eval --policy idm --scenarios highway_sunny_day merge_cut_in --episodes 5`` prints a table
+per scenario and overall (collision rate, off-road rate, progress, TTC violations, comfort, PDMS) and
+writes JSON. Every episode's seed is recorded: ``m4world demo --scenario S --seed SEED --policy P``
+replays it with a video.
+
+A policy is ``callable(observation: dict, info: dict) -> action``. ``--policy`` takes a built-in name
+(:data:`BUILTIN_POLICIES`) or ``module:attr``; when ``attr`` is a class or a factory taking the env
+(``attr(env)``), it is called once per env to build the policy.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from m4world_env.scenario import load_scenario
+
+Policy = Callable[[dict, dict], Any]
+AGGREGATED = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "return", "distance_m")
+
+
+def _builtin_policy(name: str, env) -> Policy:
+    from m4world_env import policies
+
+    base = env.unwrapped
+    action_type = base.cfg.action_type
+    if name == "random":
+        space = base.action_space
+        space.seed(int(base.np_random.integers(2**31 - 1)))
+        return lambda obs, info: space.sample()
+    if name == "idm":
+        auto = policies.IDMAutopilot(action_type=action_type, seed=int(base.np_random.integers(2**31 - 1)))
+        return lambda obs, info: auto(base.bridge)
+    if name == "lane_keeping":
+        keep = policies.ConstantSpeedLaneKeeping(action_type=action_type)
+        return lambda obs, info: keep(base.bridge)
+    raise ValueError(f"unknown built-in policy {name!r}; choose one of {BUILTIN_POLICIES} or give module:callable")
+
+
+BUILTIN_POLICIES = ("random", "lane_keeping", "idm")
+
+
+def make_policy(spec: str, env) -> Policy:
+    """Build a policy for ``env`` from a built-in name or a ``module:attr`` spec."""
+    if spec in BUILTIN_POLICIES:
+        return _builtin_policy(spec, env)
+    if ":" not in spec:
+        raise ValueError(f"policy {spec!r} is neither a built-in {BUILTIN_POLICIES} nor 'module:callable'")
+    module_name, attr = spec.split(":", 1)
+    try:
+        obj = getattr(importlib.import_module(module_name), attr)
+    except (ImportError, AttributeError) as e:
+        raise ValueError(f"cannot load policy {spec!r}: {e}") from e
+    if inspect.isclass(obj):
+        return obj(env)
+    params = list(inspect.signature(obj).parameters)
+    return obj(env) if params == ["env"] else obj
+
+
+def run_episode(env, policy: Policy, seed: int, max_steps: int | None = None) -> dict[str, float]:
+    """One episode; returns the env's final ``episode_metrics`` plus the seed."""
+    obs, info = env.reset(seed=seed)
+    steps = 0
+    while True:
+        obs, _reward, terminated, truncated, info = env.step(policy(obs, info))
+        steps += 1
+        if terminated or truncated or (max_steps is not None and steps >= max_steps):
+            break
+    return {**info["episode_metrics"], "seed": seed}
+
+
+def aggregate(episodes: Sequence[dict[str, float]]) -> dict[str, float]:
+    """Means of the reported metrics over episodes (rates for the indicator metrics)."""
+    if not episodes:
+        return {}
+    out = {k: float(np.mean([e[k] for e in episodes])) for k in AGGREGATED}
+    out["episodes"] = float(len(episodes))
+    return out
+
+
+def evaluate(
+    policy: str,
+    scenarios: Sequence[str],
+    episodes: int = 1,
+    seed: int = 0,
+    backend: str = "procedural",
+    checkpoint: str | None = None,
+    config: dict | None = None,
+    max_steps: int | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run ``policy`` for ``episodes`` episodes on each scenario. Seeds: ``seed + episode``."""
+    import gymnasium as gym
+    from tqdm import tqdm
+
+    per_scenario: dict[str, dict] = {}
+    records: list[dict] = []
+    for name in scenarios:
+        scenario = load_scenario(name)
+        env = gym.make("M4World-v0", scenario=scenario, backend=backend, checkpoint=checkpoint, config=config)
+        pol = make_policy(policy, env)
+        eps = []
+        for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress):
+            metrics = run_episode(env, pol, seed=seed + e, max_steps=max_steps)
+            eps.append(metrics)
+            records.append({"scenario": scenario.name, "episode": e, **metrics})
+        env.close()
+        per_scenario[scenario.name] = aggregate(eps)
+    return {
+        "policy": policy,
+        "backend": backend,
+        "seed": seed,
+        "per_scenario": per_scenario,
+        "overall": aggregate(records),
+        "episodes": records,
+    }
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """A plain-text table of the per-scenario and overall figures."""
+    cols = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "episodes")
+    rows = [("scenario", *cols)]
+    for name, agg in [*report["per_scenario"].items(), ("OVERALL", report["overall"])]:
+        rows.append((name, *(f"{agg[c]:.3f}" if c != "episodes" else f"{int(agg[c])}" for c in cols)))
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = ["  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)) for r in rows]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def write_report(report: dict[str, Any], path: str | Path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(report, indent=1, default=float))

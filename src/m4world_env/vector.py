@@ -1,0 +1,123 @@
+"""Batched vector env: N scenes, one backend call per step.
+
+``gym.make_vec("M4World-v0", num_envs=N, vectorization_mode="vector_entry_point")`` builds this.
+Each sub-env owns its traffic bridge; the sensor backend is shared and called once per step with
+every sub-env's chunk, so the world model runs one batched forward for all N rollouts.
+
+Autoreset: :attr:`AutoresetMode.NEXT_STEP` (Gymnasium's default): the step after an episode ends
+resets that sub-env and returns its first observation with reward 0 and both flags False.
+Seeding: ``reset(seed=s)`` seeds sub-env ``i`` with ``s + i``, so the vector env equals N single envs
+reset with those seeds.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from m4world_env.config import EnvConfig, InvalidOptionError
+from m4world_env.env import M4WorldEnv
+
+
+class M4WorldVectorEnv(VectorEnv):
+    """N :class:`M4WorldEnv` sharing one batched sensor backend."""
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        scenario: Any = "highway_sunny_day",
+        backend: str = "procedural",
+        checkpoint: str | None = None,
+        render_mode: str | None = None,
+        config: dict[str, Any] | EnvConfig | None = None,
+        **kwargs: Any,
+    ) -> None:
+        if kwargs:
+            raise InvalidOptionError(f"unknown M4World vector env option(s) {sorted(kwargs)}")
+        if num_envs < 1:
+            raise InvalidOptionError(f"num_envs must be >= 1, got {num_envs}")
+        first = M4WorldEnv(scenario, backend, checkpoint, render_mode, config)
+        self.envs = [first] + [
+            M4WorldEnv(
+                first.scenario,
+                backend,
+                checkpoint,
+                render_mode,
+                first.cfg,
+                shared_backend=first.backend,
+                backend_index=i,
+            )
+            for i in range(1, num_envs)
+        ]
+        self.backend = first.backend
+        self.num_envs = num_envs
+        self.render_mode = render_mode
+        self.metadata = {**first.metadata, "autoreset_mode": AutoresetMode.NEXT_STEP}
+        self.single_observation_space = first.observation_space
+        self.single_action_space = first.action_space
+        self.observation_space = batch_space(self.single_observation_space, num_envs)
+        self.action_space = batch_space(self.single_action_space, num_envs)
+        self._autoreset = np.zeros(num_envs, dtype=bool)
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return self.envs[0].camera_names
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
+        if seed is None or isinstance(seed, int | np.integer):
+            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise InvalidOptionError(f"reset(seed=list) needs {self.num_envs} seeds, got {len(seeds)}")
+        if seed is not None:
+            self._np_random_seed = seeds[0]
+        results = [env.reset(seed=s, options=options) for env, s in zip(self.envs, seeds, strict=True)]
+        self._autoreset[:] = False
+        infos: dict[str, Any] = {}
+        for i, (_obs, info) in enumerate(results):
+            infos = self._add_info(infos, info, i)
+        return self._stack([obs for obs, _ in results]), infos
+
+    def step(self, actions: Any):
+        actions = self._split_actions(actions)
+        chunks: list[list | None] = []
+        for i, env in enumerate(self.envs):
+            chunks.append(None if self._autoreset[i] else env.advance(actions[i]))
+        observations = self.backend.step(chunks)
+        obs_list, rewards = [], np.zeros(self.num_envs, dtype=np.float64)
+        terminated = np.zeros(self.num_envs, dtype=bool)
+        truncated = np.zeros(self.num_envs, dtype=bool)
+        infos: dict[str, Any] = {}
+        for i, env in enumerate(self.envs):
+            if chunks[i] is None:
+                obs, info = env.reset()
+            else:
+                obs, rewards[i], terminated[i], truncated[i], info = env.finish_step(chunks[i], observations[i])
+            obs_list.append(obs)
+            infos = self._add_info(infos, info, i)
+        self._autoreset = terminated | truncated
+        return self._stack(obs_list), rewards, terminated, truncated, infos
+
+    def render(self) -> tuple[np.ndarray, ...] | None:
+        if self.render_mode is None:
+            return None
+        return tuple(env.render() for env in self.envs)
+
+    def close_extras(self, **kwargs: Any) -> None:
+        for env in self.envs:
+            env.close()
+
+    def _split_actions(self, actions: Any) -> list[Any]:
+        arr = np.asarray(actions)
+        if arr.shape[:1] != (self.num_envs,):
+            raise InvalidOptionError(
+                f"vector env expects one action per sub-env (leading dimension {self.num_envs}), got shape {arr.shape}"
+            )
+        return list(arr)
+
+    def _stack(self, obs_list: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+        return {k: np.stack([o[k] for o in obs_list]) for k in obs_list[0]}
