@@ -19,13 +19,15 @@ class ActionError(ValueError):
 
 @dataclass(frozen=True)
 class ActionConfig:
-    """highway-env's defaults: ContinuousAction ranges, MDPVehicle's 3 target speeds (20, 25, 30
-    m/s for a 30 m/s limit, i.e. ``linspace(2/3, 1) * speed_limit``)."""
+    """ContinuousAction ranges are highway-env's. Meta-action target speeds are MDPVehicle's
+    mechanism with a wider grid: ``linspace(0, 1, 5) * speed_limit`` (0, 7.5, ..., 30 m/s for a
+    30 m/s limit) instead of highway-env's fixed (20, 25, 30), so that a meta-action ego can
+    stop for pedestrians and queues and slow down on 12 m/s junction roads."""
 
     acceleration_range: tuple[float, float] = (-5.0, 5.0)  # m/s^2 for action[0] = -1 .. +1
     steering_range: tuple[float, float] = (-math.pi / 4, math.pi / 4)  # rad for action[1] = -1 .. +1
-    target_speed_fractions: tuple[float, float] = (2.0 / 3.0, 1.0)  # of the ego lane's speed limit
-    target_speed_count: int = 3
+    target_speed_fractions: tuple[float, float] = (0.0, 1.0)  # of the ego lane's speed limit
+    target_speed_count: int = 5
 
     def target_speeds(self, speed_limit: float) -> np.ndarray:
         lo, hi = self.target_speed_fractions

@@ -110,8 +110,14 @@ class TrafficBridge:
         else:
             speeds = self.config.actions.target_speeds(lane.speed_limit)
             ego = EgoMetaVehicle(self.road, pos, heading, s.ego.speed, target_speeds=speeds)
-        if self.layout.ego_destination and hasattr(ego, "plan_route_to"):
-            ego.plan_route_to(self.layout.ego_destination)
+        # The planned route (highway-env's ControlledVehicle.plan_route_to), also kept for
+        # continuous control so that policies know which way to turn at junctions.
+        self.route: list[tuple[str, str, int | None]] = [(frm, to, s.ego.lane)]
+        if self.layout.ego_destination:
+            path = net.shortest_path(to, self.layout.ego_destination)
+            self.route += [(a, b, None) for a, b in zip(path, path[1:], strict=False)]
+        if hasattr(ego, "route"):
+            ego.route = list(self.route)
         size_object(ego, *CATEGORY_SIZES[self.config.ego_category][:2])
         return ego
 
