@@ -35,7 +35,8 @@ def bridge_of(state: object) -> TrafficBridge:
     if isinstance(getattr(state, "bridge", None), TrafficBridge):
         return state.bridge
     raise TypeError(
-        f"a policy needs a TrafficBridge, an object with .bridge, or a dict with 'bridge'; got {type(state).__name__}"
+        "a policy needs a TrafficBridge, an object with .bridge, or a dict with 'bridge'; "
+        f"got {type(state).__name__}"
     )
 
 

@@ -318,13 +318,24 @@ class Scenario(_Strict):
 # ------------------------------------------------------------------------------------- loading
 
 
-def _format_validation_error(source: str, err: ValidationError) -> str:
-    lines = []
-    for e in err.errors():
-        # Drop pydantic's union-branch tags (e.g. "HighwayRoad") so the path is the YAML path.
-        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p[:1].isupper()))
-        lines.append(f"{source}: {loc or '<root>'}: {e['msg']}")
-    return "\n".join(lines)
+def _yaml_path(loc: tuple, data: object) -> str:
+    """pydantic's error location as a path in the user's YAML: union tags are dropped."""
+    parts, cur = [], data
+    for p in loc:
+        if isinstance(cur, dict) and p in cur or isinstance(cur, list) and isinstance(p, int) and 0 <= p < len(cur):
+            cur = cur[p]
+        elif isinstance(cur, dict) and p in (cur.get("type"), cur.get("kind")):
+            continue  # the discriminated-union branch pydantic went into, not a YAML key
+        elif isinstance(p, str) and p[:1].isupper():
+            continue  # a model-class branch of a plain union
+        else:
+            cur = None
+        parts.append(str(p))
+    return ".".join(parts) or "<root>"
+
+
+def _format_validation_error(source: str, err: ValidationError, data: object = None) -> str:
+    return "\n".join(f"{source}: {_yaml_path(e['loc'], data)}: {e['msg']}" for e in err.errors())
 
 
 def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
@@ -334,7 +345,7 @@ def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
     try:
         return Scenario.model_validate(data)
     except ValidationError as err:
-        raise ScenarioError(_format_validation_error(source, err)) from None
+        raise ScenarioError(_format_validation_error(source, err, data)) from None
 
 
 def _resolve(name_or_path: str | Path) -> Path:

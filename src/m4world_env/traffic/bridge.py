@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from m4world_env.scenario import Scenario, ScenarioError
+from m4world_env.scenario import Scenario, ScenarioError, scenario_from_dict
 from m4world_env.traffic import population
 from m4world_env.traffic.actions import (
     ACTION_TYPES,
@@ -55,7 +55,9 @@ class TrafficBridge:
     ) -> None:
         if action_type not in ACTION_TYPES:
             raise ActionError(f"action_type must be one of {ACTION_TYPES}, got {action_type!r}")
-        self.scenario = scenario
+        # model_copy(update=...) does not validate: re-validate so that updates given as plain
+        # dicts (e.g. traffic={"count": 0}) become models and bad values fail here, by name.
+        self.scenario = scenario_from_dict(scenario.model_dump(by_alias=True, warnings=False), scenario.name)
         self.action_type = action_type
         self.config = config
         self.rig = rig if rig is not None else default_rig()

@@ -152,7 +152,7 @@ def parse_spec(spec: object, source: str) -> ObjectSpec:
     try:
         return ObjectSpec.model_validate(spec)
     except ValidationError as err:
-        raise ScenarioError(_format_validation_error(source, err)) from None
+        raise ScenarioError(_format_validation_error(source, err, spec)) from None
 
 
 def departed(road: Road, ego, cfg: PopulationConfig) -> list:
