@@ -322,7 +322,8 @@ def _yaml_path(loc: tuple, data: object) -> str:
     """pydantic's error location as a path in the user's YAML: union tags are dropped."""
     parts, cur = [], data
     for p in loc:
-        if isinstance(cur, dict) and p in cur or isinstance(cur, list) and isinstance(p, int) and 0 <= p < len(cur):
+        in_dict = isinstance(cur, dict) and p in cur
+        if in_dict or (isinstance(cur, list) and isinstance(p, int) and 0 <= p < len(cur)):
             cur = cur[p]
         elif isinstance(cur, dict) and p in (cur.get("type"), cur.get("kind")):
             continue  # the discriminated-union branch pydantic went into, not a YAML key

@@ -68,26 +68,73 @@ def lane_headings(lane: AbstractLane, s: np.ndarray) -> np.ndarray:
 
 
 class FastNetwork(RoadNetwork):
-    """A RoadNetwork whose closest-lane search handles many positions at once."""
+    """A RoadNetwork whose closest-lane search handles many positions and lanes at once."""
 
-    def _indexed_lanes(self) -> tuple[list[LaneIndex], list[AbstractLane]]:
-        # Same order as RoadNetwork.get_closest_lane_index, so argmin ties resolve the same way.
+    _tables: tuple | None = None
+
+    def _lane_tables(self) -> tuple:
+        """Lane parameters stacked per lane family, in RoadNetwork's lane order (so that argmin
+        ties resolve as in highway-env). Rebuilt if lanes were added."""
         idx = [
             (f, t, i) for f, tos in self.graph.items() for t, lanes in tos.items() for i in range(len(lanes))
         ]
-        return idx, [self.graph[f][t][i] for f, t, i in idx]
+        if self._tables is not None and self._tables[0] == idx:
+            return self._tables
+        lanes = [self.graph[f][t][i] for f, t, i in idx]
+        straight = [k for k, ln in enumerate(lanes) if isinstance(ln, StraightLane)]
+        circular = [k for k, ln in enumerate(lanes) if isinstance(ln, CircularLane)]
+        other = [k for k in range(len(lanes)) if k not in set(straight) | set(circular)]
+        st = [lanes[k] for k in straight]
+        sine = [
+            (ln.amplitude, ln.pulsation, ln.phase) if isinstance(ln, SineLane) else (0.0, 0.0, 0.0)
+            for ln in st
+        ]
+        st_arr = {
+            "start": np.array([ln.start for ln in st]).reshape(-1, 2),
+            "dir": np.array([ln.direction for ln in st]).reshape(-1, 2),
+            "lat": np.array([ln.direction_lateral for ln in st]).reshape(-1, 2),
+            "heading": np.array([ln.heading for ln in st]),
+            "sine": np.array(sine).reshape(-1, 3),
+        }
+        ci = [lanes[k] for k in circular]
+        ci_arr = {
+            "center": np.array([ln.center for ln in ci]).reshape(-1, 2),
+            "radius": np.array([ln.radius for ln in ci]),
+            "phase": np.array([ln.start_phase for ln in ci]),
+            "dir": np.array([ln.direction for ln in ci], dtype=np.float64),
+        }
+        lengths = np.array([ln.length for ln in lanes])
+        self._tables = (idx, lanes, lengths, (straight, st_arr), (circular, ci_arr), other)
+        return self._tables
 
     def closest_lane_indices(self, positions: np.ndarray, headings: np.ndarray | None) -> list[LaneIndex]:
         """``get_closest_lane_index`` for (N, 2) positions and (N,) headings (or None)."""
-        indexes, lanes = self._indexed_lanes()
-        cost = np.empty((len(lanes), len(positions)))
-        for k, lane in enumerate(lanes):
-            s, r = lane_coordinates(lane, positions)
-            c = np.abs(r) + np.maximum(s - lane.length, 0) + np.maximum(-s, 0)
-            if headings is not None:
-                c = c + np.abs(_wrap(headings - lane_headings(lane, s)))
-            cost[k] = c
-        return [indexes[k] for k in np.argmin(cost, axis=0)]
+        idx, lanes, lengths, (straight, st), (circular, ci), other = self._lane_tables()
+        n = len(positions)
+        s_all, r_all, h_all = np.empty((len(lanes), n)), np.empty((len(lanes), n)), np.empty((len(lanes), n))
+        if straight:
+            d = positions[None, :, :] - st["start"][:, None, :]
+            s = np.einsum("lnk,lk->ln", d, st["dir"])
+            amp, puls, phase = (st["sine"][:, j : j + 1] for j in range(3))
+            s_all[straight] = s
+            r_all[straight] = np.einsum("lnk,lk->ln", d, st["lat"]) - amp * np.sin(puls * s + phase)
+            h_all[straight] = st["heading"][:, None] + np.arctan(amp * puls * np.cos(puls * s + phase))
+        if circular:
+            d = positions[None, :, :] - ci["center"][:, None, :]
+            sp, rad, dr = ci["phase"][:, None], ci["radius"][:, None], ci["dir"][:, None]
+            phi = sp + _wrap(np.arctan2(d[..., 1], d[..., 0]) - sp)
+            s = dr * (phi - sp) * rad
+            s_all[circular] = s
+            r_all[circular] = dr * (rad - np.hypot(d[..., 0], d[..., 1]))
+            h_all[circular] = dr * s / rad + sp + np.pi / 2 * dr
+        for k in other:
+            s_all[k], r_all[k] = lane_coordinates(lanes[k], positions)
+            h_all[k] = lane_headings(lanes[k], s_all[k])
+        length = lengths[:, None]
+        cost = np.abs(r_all) + np.maximum(s_all - length, 0) + np.maximum(-s_all, 0)
+        if headings is not None:
+            cost += np.abs(_wrap(headings[None, :] - h_all))
+        return [idx[k] for k in np.argmin(cost, axis=0)]
 
     def get_closest_lane_index(self, position: np.ndarray, heading: float | None = None) -> LaneIndex:
         h = None if heading is None else np.array([heading], dtype=np.float64)
