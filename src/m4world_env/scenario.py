@@ -1,0 +1,425 @@
+"""Scenario files: what road, which traffic, which scripted objects, what the sky looks like.
+
+A scenario is a YAML file validated by pydantic v2 models with ``extra="forbid"`` everywhere, so
+a typo is an error, never a silently ignored key. Every load error is a :class:`ScenarioError`
+whose message names the file and the field path (``scenarios/foo.yaml: objects.2.track.speed:
+Input should be a valid number``). The format is documented in ``docs/scenarios.md``.
+
+Coordinates in scenarios use OUR frame (x forward, y left, yaw counter-clockwise, metres). Lane
+ids are highway-env's: lane 0 is the leftmost lane of a road in its driving direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from world_model.scene import CATEGORIES, CATEGORY_SIZES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS, ScenePrompt
+
+SCENARIOS_DIR = Path(__file__).parent / "scenarios"
+
+# Categories IDM traffic may be drawn from (they drive; pedestrians and cones do not).
+VEHICLE_CATEGORIES = ("car", "truck", "bus", "van", "motorcycle", "tree_truck", "cement_mixer")
+DEFAULT_TRAFFIC_MIX = {"car": 0.8, "truck": 0.06, "bus": 0.03, "van": 0.07, "motorcycle": 0.04}
+DEFAULT_TRAFFIC_COLORS = ("white", "black", "gray", "silver", "red", "blue", "dark_red", "navy", "beige")
+
+Category = Literal[CATEGORIES]  # type: ignore[valid-type]
+VehicleCategory = Literal[VEHICLE_CATEGORIES]  # type: ignore[valid-type]
+Weather = Literal[WEATHERS]  # type: ignore[valid-type]
+TimeOfDay = Literal[TIMES_OF_DAY]  # type: ignore[valid-type]
+
+
+class ScenarioError(ValueError):
+    """A scenario file or scenario value is invalid. The message names the file and field path."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+def _check_color(value: str | tuple[int, int, int]) -> str | tuple[int, int, int]:
+    if isinstance(value, str):
+        if value not in NAMED_COLORS:
+            raise ValueError(f"unknown colour {value!r}; use an RGB triple or one of {sorted(NAMED_COLORS)}")
+        return value
+    if len(value) != 3 or any(not 0 <= int(c) <= 255 for c in value):
+        raise ValueError(f"RGB colour must be three integers in [0, 255], got {value!r}")
+    return tuple(int(c) for c in value)
+
+
+Color = str | tuple[int, int, int]
+
+# ---------------------------------------------------------------------------------------- roads
+
+
+class HighwayRoad(_Strict):
+    """A straight multi-lane highway (highway-env's ``highway-v0`` road)."""
+
+    type: Literal["highway"] = "highway"
+    lanes: int = Field(4, ge=1, le=8)
+    length: float = Field(2000.0, gt=50)
+    speed_limit: float = Field(30.0, gt=0)
+    lane_width: float = Field(4.0, gt=2)
+
+
+class MergeRoad(_Strict):
+    """A highway with an on-ramp joining from the right (``merge-v0``)."""
+
+    type: Literal["merge"] = "merge"
+    lanes: int = Field(2, ge=1, le=6)
+    before: float = Field(150.0, gt=10, description="main road before the ramp converges, m")
+    converging: float = Field(80.0, gt=10, description="length of the ramp's S-curve, m")
+    merge_length: float = Field(80.0, gt=10, description="length of the acceleration lane, m")
+    after: float = Field(800.0, gt=10, description="main road after the merge, m")
+    speed_limit: float = Field(30.0, gt=0)
+    ramp_speed_limit: float = Field(20.0, gt=0)
+    lane_width: float = Field(4.0, gt=2)
+
+
+class RoundaboutRoad(_Strict):
+    """A four-arm roundabout, counter-clockwise (right-hand traffic)."""
+
+    type: Literal["roundabout"] = "roundabout"
+    radius: float = Field(20.0, ge=8, description="radius of the inner ring lane, m")
+    lanes: int = Field(2, ge=1, le=3, description="ring lanes")
+    access_length: float = Field(150.0, gt=20, description="length of each straight approach, m")
+    entry_angle_deg: float = Field(24.0, gt=5, lt=40, description="half-angle between entry and exit")
+    speed_limit: float = Field(12.0, gt=0)
+    lane_width: float = Field(4.0, gt=2)
+
+
+class IntersectionRoad(_Strict):
+    """A four-arm unsignalized crossing, one lane per direction, with turning lanes."""
+
+    type: Literal["intersection"] = "intersection"
+    arm_length: float = Field(100.0, gt=20)
+    turn_radius: float = Field(10.0, ge=4, description="radius of the right-turn lanes, m")
+    speed_limit: float = Field(12.0, gt=0)
+    lane_width: float = Field(4.0, gt=2)
+
+
+class TwoWayRoad(_Strict):
+    """A straight road with oncoming traffic on the left (``two-way-v0``)."""
+
+    type: Literal["two_way"] = "two_way"
+    lanes: int = Field(1, ge=1, le=4, description="lanes in the ego's direction")
+    oncoming_lanes: int = Field(1, ge=1, le=4)
+    length: float = Field(1000.0, gt=50)
+    speed_limit: float = Field(20.0, gt=0)
+    lane_width: float = Field(4.0, gt=2)
+
+
+Road = Annotated[
+    HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, Field(discriminator="type")
+]
+
+# ------------------------------------------------------------------------------ ego and traffic
+
+
+class EgoSpec(_Strict):
+    lane: int = Field(1, ge=0, description="lane id on the road's start edge (0 = leftmost)")
+    longitudinal: float = Field(30.0, ge=0, description="position along the start lane, m")
+    speed: float = Field(25.0, ge=0)
+    turn: Literal["left", "straight", "right"] = Field(
+        "straight", description="route at a roundabout or intersection (ignored on straight roads)"
+    )
+
+
+class TrafficSpec(_Strict):
+    count: int = Field(10, ge=0, le=200)
+    density: float = Field(
+        1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense"
+    )
+    mix: dict[VehicleCategory, float] = Field(default_factory=lambda: dict(DEFAULT_TRAFFIC_MIX))
+    colors: list[str] = Field(default_factory=lambda: list(DEFAULT_TRAFFIC_COLORS), min_length=1)
+
+    @field_validator("mix")
+    @classmethod
+    def _mix_positive(cls, mix: dict[str, float]) -> dict[str, float]:
+        if not mix or any(w < 0 for w in mix.values()) or sum(mix.values()) <= 0:
+            raise ValueError("mix needs non-negative weights with a positive sum")
+        return mix
+
+    @field_validator("colors")
+    @classmethod
+    def _named_colors(cls, colors: list[str]) -> list[str]:
+        for c in colors:
+            _check_color(c)
+        return colors
+
+
+# ----------------------------------------------------------------------------- scripted tracks
+
+
+class StaticTrack(_Strict):
+    """Standing still, either on a lane (``lane`` + ``longitudinal``) or at ``x``/``y``/``yaw``."""
+
+    kind: Literal["static"] = "static"
+    lane: int | None = Field(None, ge=0)
+    longitudinal: float | None = None
+    x: float | None = None
+    y: float | None = None
+    yaw: float = 0.0
+    lateral: float = Field(0.0, description="offset to the LEFT of the lane centre, m (lane placement only)")
+
+    @model_validator(mode="after")
+    def _one_placement(self) -> StaticTrack:
+        on_lane = self.lane is not None and self.longitudinal is not None
+        at_xy = self.x is not None and self.y is not None
+        if on_lane == at_xy:
+            raise ValueError("give either lane + longitudinal, or x + y (and optionally yaw)")
+        return self
+
+
+class LaneFollowTrack(_Strict):
+    """Drives along a lane from ``start``: constant speed, or IDM (brakes for what is ahead)."""
+
+    kind: Literal["lane_follow"] = "lane_follow"
+    lane: int = Field(..., ge=0)
+    start: float = 0.0
+    speed: float = Field(..., ge=0)
+    mode: Literal["constant", "idm"] = "constant"
+
+
+class Waypoint(_Strict):
+    t: float = Field(..., ge=0)
+    x: float
+    y: float
+    yaw: float | None = Field(None, description="omitted: the direction of motion")
+
+
+class WaypointsTrack(_Strict):
+    """Timed poses in our frame, linearly interpolated; holds the last pose afterwards."""
+
+    kind: Literal["waypoints"] = "waypoints"
+    points: list[Waypoint] = Field(..., min_length=2)
+
+    @field_validator("points")
+    @classmethod
+    def _increasing(cls, pts: list[Waypoint]) -> list[Waypoint]:
+        if any(b.t <= a.t for a, b in zip(pts, pts[1:], strict=False)):
+            raise ValueError("waypoint times must be strictly increasing")
+        return pts
+
+
+class CutInTrack(_Strict):
+    """Drives in ``from_lane`` at ``speed`` and moves to ``to_lane`` between ``time`` and
+    ``time + duration`` (a smooth cosine lateral profile)."""
+
+    kind: Literal["cut_in"] = "cut_in"
+    from_lane: int = Field(..., ge=0)
+    to_lane: int = Field(..., ge=0)
+    start: float = 0.0
+    speed: float = Field(..., ge=0)
+    time: float = Field(..., ge=0)
+    duration: float = Field(2.0, gt=0)
+
+
+Track = Annotated[StaticTrack | LaneFollowTrack | WaypointsTrack | CutInTrack, Field(discriminator="kind")]
+
+
+class ObjectSpec(_Strict):
+    """One scripted object."""
+
+    id: str = Field(..., min_length=1)
+    category: Category
+    color: Color = "gray"
+    description: str = ""
+    image: str | None = None
+    size: tuple[float, float, float] | None = Field(
+        None, description="length, width, height; default by category"
+    )
+    track: Track
+
+    @field_validator("color")
+    @classmethod
+    def _color(cls, v: Color) -> Color:
+        return _check_color(v)
+
+    @field_validator("size")
+    @classmethod
+    def _size(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
+        if v is not None and any(not (math.isfinite(s) and s > 0) for s in v):
+            raise ValueError(f"size must be three positive lengths, got {v}")
+        return v
+
+    @property
+    def box_size(self) -> tuple[float, float, float]:
+        return self.size if self.size is not None else CATEGORY_SIZES[self.category]
+
+    @property
+    def rgb(self) -> tuple[int, int, int]:
+        return NAMED_COLORS[self.color] if isinstance(self.color, str) else self.color
+
+    @property
+    def color_name(self) -> str:
+        return self.color if isinstance(self.color, str) else "rgb({}, {}, {})".format(*self.color)
+
+
+# -------------------------------------------------------------------------------- the scenario
+
+
+class Scenario(_Strict):
+    name: str = Field(..., min_length=1)
+    road: Road
+    duration: float = Field(30.0, gt=0, description="seconds")
+    policy_frequency: float = Field(5.0, gt=0, description="agent decisions per second")
+    sensor_frequency: float = Field(10.0, gt=0, description="sensor frames per second")
+    substeps: int = Field(1, ge=1, le=20, description="simulation steps per sensor frame")
+    prompt_text: str = Field("", alias="prompt")
+    weather: Weather = "sunny"
+    time_of_day: TimeOfDay = "day"
+    ego: EgoSpec = Field(default_factory=EgoSpec)
+    traffic: TrafficSpec = Field(default_factory=TrafficSpec)
+    objects: list[ObjectSpec] = Field(default_factory=list)
+    adapters: list[str] = Field(default_factory=list, description="LoRA adapter names")
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Scenario:
+        ratio = self.sensor_frequency / self.policy_frequency
+        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+            raise ValueError(
+                f"sensor_frequency / policy_frequency must be a positive integer, got "
+                f"{self.sensor_frequency} / {self.policy_frequency}"
+            )
+        ids = [o.id for o in self.objects]
+        dup = sorted({i for i in ids if ids.count(i) > 1})
+        if dup:
+            raise ValueError(f"object ids must be unique, duplicated: {dup}")
+        return self
+
+    @property
+    def frames_per_step(self) -> int:
+        """Sensor frames per env step (one causal chunk)."""
+        return round(self.sensor_frequency / self.policy_frequency)
+
+    @property
+    def num_steps(self) -> int:
+        """Env steps in ``duration``."""
+        return max(1, math.ceil(self.duration * self.policy_frequency - 1e-9))
+
+    @property
+    def sim_dt(self) -> float:
+        """Seconds per simulation substep."""
+        return 1.0 / (self.sensor_frequency * self.substeps)
+
+    def prompt(self) -> ScenePrompt:
+        return ScenePrompt(text=self.prompt_text, weather=self.weather, time_of_day=self.time_of_day)
+
+
+# ------------------------------------------------------------------------------------- loading
+
+
+def _yaml_path(loc: tuple, data: object) -> str:
+    """pydantic's error location as a path in the user's YAML: union tags are dropped."""
+    parts, cur = [], data
+    for p in loc:
+        in_dict = isinstance(cur, dict) and p in cur
+        if in_dict or (isinstance(cur, list) and isinstance(p, int) and 0 <= p < len(cur)):
+            cur = cur[p]
+        elif isinstance(cur, dict) and p in (cur.get("type"), cur.get("kind")):
+            continue  # the discriminated-union branch pydantic went into, not a YAML key
+        elif isinstance(p, str) and p[:1].isupper():
+            continue  # a model-class branch of a plain union
+        else:
+            cur = None
+        parts.append(str(p))
+    return ".".join(parts) or "<root>"
+
+
+def _format_validation_error(source: str, err: ValidationError, data: object = None) -> str:
+    return "\n".join(f"{source}: {_yaml_path(e['loc'], data)}: {e['msg']}" for e in err.errors())
+
+
+def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
+    """Validate a parsed scenario mapping. Raises :class:`ScenarioError` naming ``source``."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: <root>: a scenario must be a mapping, got {type(data).__name__}")
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(_format_validation_error(source, err, data)) from None
+
+
+def _resolve(name_or_path: str | Path) -> Path:
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        if not p.exists():
+            raise ScenarioError(f"{p}: no such scenario file")
+        return p
+    bundled = SCENARIOS_DIR / f"{name_or_path}.yaml"
+    if not bundled.exists():
+        raise ScenarioError(
+            f"unknown scenario {str(name_or_path)!r}; bundled ones: {', '.join(list_scenarios())}"
+        )
+    return bundled
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load a bundled scenario by name (``"merge_cut_in"``) or any YAML file by path."""
+    path = _resolve(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = (
+            f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "<unknown position>"
+        )
+        problem = getattr(err, "problem", None) or str(err)
+        raise ScenarioError(f"{path}: YAML syntax error at {where}: {problem}") from None
+    return scenario_from_dict(data, str(path))
+
+
+def list_scenarios() -> list[str]:
+    """Names of the bundled scenarios, sorted."""
+    return sorted(p.stem for p in SCENARIOS_DIR.glob("*.yaml"))
+
+
+@dataclass(frozen=True)
+class RandomizationConfig:
+    """Ranges of :func:`randomize_scenario`."""
+
+    density_scale: tuple[float, float] = (0.6, 1.6)  # multiplies the scenario's density
+    count_scale_max: float = 2.0  # count drawn in [0, count_scale_max * count]
+    empty_count_max: int = 8  # an empty scenario gets up to this many vehicles
+    mix_concentration: float = 0.5  # Dirichlet alpha of the random category weights
+    car_bias: float = 2.0  # added to the car weight so that traffic stays mostly cars
+    min_colors: int = 3
+
+
+def randomize_scenario(
+    s: Scenario, rng: np.random.Generator, config: RandomizationConfig = RandomizationConfig()
+) -> Scenario:
+    """Seeded variation for data recording: traffic count/density, IDM categories and colours,
+    weather and time of day. Road, ego and scripted objects are kept (they define the case)."""
+    weights = rng.dirichlet(np.full(len(VEHICLE_CATEGORIES), config.mix_concentration))
+    mix = {c: float(w) for c, w in zip(VEHICLE_CATEGORIES, weights, strict=True)}
+    mix["car"] += config.car_bias
+    for c, w in s.traffic.mix.items():
+        mix[c] += w
+    n_colors = int(rng.integers(config.min_colors, len(NAMED_COLORS) + 1))
+    colors = [str(c) for c in rng.choice(sorted(NAMED_COLORS), size=n_colors, replace=False)]
+    top = round(config.count_scale_max * s.traffic.count) if s.traffic.count else config.empty_count_max
+    traffic = s.traffic.model_copy(
+        update={
+            "count": int(rng.integers(0, top + 1)),
+            "density": float(s.traffic.density * rng.uniform(*config.density_scale)),
+            "mix": mix,
+            "colors": colors,
+        }
+    )
+    return s.model_copy(
+        update={
+            "traffic": traffic,
+            "weather": str(rng.choice(WEATHERS)),
+            "time_of_day": str(rng.choice(TIMES_OF_DAY)),
+        }
+    )
