@@ -1,0 +1,77 @@
+"""Rain streaks and snow flakes: a pool of overlay layers per resolution, picked per frame.
+
+Drawing hundreds of streaks every frame would cost more than the rest of the image, so a few
+larger-than-image alpha layers are drawn once; each frame picks a layer and an offset per view
+from a seed derived from the frame (scenario name and frame index), which keeps rendering a pure,
+deterministic function of the frame while the streaks move from frame to frame.
+"""
+
+from __future__ import annotations
+
+import math
+import zlib
+
+import cv2
+import numpy as np
+
+from world_model.scene import SceneFrame
+from world_model.sim.config import SimConfig
+
+# Streak length as a fraction of the image height, slant from vertical (radians), alpha range.
+RAIN_LENGTH_FRAC = (0.06, 0.16)
+RAIN_SLANT_RAD = (0.12, 0.3)
+RAIN_ALPHA = (0.25, 0.55)
+# Flake radius as a fraction of the image height, alpha range.
+SNOW_RADIUS_FRAC = (0.003, 0.009)
+SNOW_ALPHA = (0.6, 0.95)
+
+
+def frame_seed(frame: SceneFrame) -> int:
+    """A stable 32-bit seed from the frame (Python's ``hash`` of a str changes between runs)."""
+    return zlib.crc32(f"{frame.scenario}|{frame.frame_index}".encode())
+
+
+def precipitation_layers(kind: str, h: int, w: int, config: SimConfig) -> np.ndarray:
+    """(layers, 2h, 2w) float32 alpha in [0, 1] for "rain" or "snow"."""
+    if kind not in ("rain", "snow"):
+        raise ValueError(f"precipitation kind must be 'rain' or 'snow', got {kind!r}")
+    rng = np.random.default_rng(config.precipitation_seed)
+    hh, ww = 2 * h, 2 * w
+    per_kpx = config.rain_streaks_per_kpx if kind == "rain" else config.snow_flakes_per_kpx
+    count = max(1, round(per_kpx * hh * ww / 1000.0))
+    shift = config.subpixel_bits
+    scale = 1 << shift
+    layers = np.zeros((config.precipitation_layers, hh, ww), dtype=np.uint8)
+    for layer in layers:
+        xs, ys = rng.random(count) * ww, rng.random(count) * hh
+        if kind == "rain":
+            lengths = rng.uniform(*RAIN_LENGTH_FRAC, count) * h
+            slants = rng.uniform(*RAIN_SLANT_RAD, count)
+            alphas = rng.uniform(*RAIN_ALPHA, count)
+            for x, y, ln, sl, a in zip(xs, ys, lengths, slants, alphas, strict=True):
+                p0 = (round(x * scale), round(y * scale))
+                p1 = (round((x + ln * math.sin(sl)) * scale), round((y + ln * math.cos(sl)) * scale))
+                cv2.line(layer, p0, p1, int(255 * a), 1, cv2.LINE_AA, shift)
+        else:
+            radii = rng.uniform(*SNOW_RADIUS_FRAC, count) * h
+            alphas = rng.uniform(*SNOW_ALPHA, count)
+            for x, y, r, a in zip(xs, ys, radii, alphas, strict=True):
+                centre = (round(x * scale), round(y * scale))
+                cv2.circle(layer, centre, max(1, round(r * scale)), int(255 * a), -1, cv2.LINE_AA, shift)
+    return layers.astype(np.float32) / 255.0
+
+
+def overlay_alpha(layers: np.ndarray, frame: SceneFrame, views: int, h: int, w: int) -> np.ndarray:
+    """(views * h, w) alpha for this frame: one random window of a random layer per view."""
+    rng = np.random.default_rng(frame_seed(frame))
+    picks = rng.integers(0, len(layers), views)
+    oy, ox = rng.integers(0, h, views), rng.integers(0, w, views)
+    return np.concatenate([layers[k, y : y + h, x : x + w] for k, y, x in zip(picks, oy, ox, strict=True)])
+
+
+def apply_overlay(images: np.ndarray, alpha: np.ndarray, color: np.ndarray) -> np.ndarray:
+    """Blend ``color`` over uint8 ``images`` (V*H, W, 3) with per-pixel ``alpha`` (V*H, W)."""
+    img = images.astype(np.float32)
+    a = alpha[..., None]
+    img += (color.astype(np.float32) - img) * a
+    return img.astype(np.uint8)
