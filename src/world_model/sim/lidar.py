@@ -57,7 +57,7 @@ def _candidate_bands(poses: ObjectPoses, spec: LidarSpec, rays: LidarRays, margi
     surrounds = dmin <= 0.0
 
     # Azimuth sector: attained at the footprint's corners when the LiDAR is outside it.
-    corners = poses.corners[:, :4]
+    corners = poses.corners[:, [0, 1, 5, 4]]  # the top face: the footprint's four corners
     az_c = np.arctan2(centre[:, 1], centre[:, 0])
     spread = (np.arctan2(corners[..., 1], corners[..., 0]) - az_c[:, None] + np.pi) % (2 * np.pi) - np.pi
     a = spec.azimuth
