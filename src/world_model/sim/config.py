@@ -14,9 +14,9 @@ class SimConfig:
     """
 
     # -- ground texture (rasterized once per map, world-aligned) --
-    texture_m_per_px: float = 0.1  # finest texel size
-    texture_max_texels: int = 64_000_000  # coarsen the texel size beyond this (huge maps)
-    texture_margin_m: float = 60.0  # off-road border rasterized around the map's extent
+    texture_m_per_px: float = 0.1  # texel size
+    texture_tile_px: int = 256  # tiles are rasterized on first sight (power of two)
+    texture_max_tiles: int = 1024  # memory bound of one map's tile atlas (1024 x 64 KiB)
     texture_noise_cell_m: float = 1.5  # size of the low-frequency asphalt / grass patches
     texture_noise_levels: int = 8  # palette entries per surface used for that variation
     texture_seed: int = 1234
@@ -25,6 +25,7 @@ class SimConfig:
     dash_length_m: float = 3.0
     dash_gap_m: float = 6.0
     max_ground_distance_m: float = 400.0  # ground farther than this along a ray reads as horizon
+    shading_levels: int = 256  # quantization steps per unit of road light and of fog
 
     # -- cameras --
     near_plane_m: float = 0.1  # polygons are clipped against z_cam >= near_plane_m
@@ -59,6 +60,7 @@ class SimConfig:
             "dash_length_m": self.dash_length_m,
             "max_ground_distance_m": self.max_ground_distance_m,
             "near_plane_m": self.near_plane_m,
+            "shading_levels": self.shading_levels,
         }
         for name, value in positive.items():
             if not value > 0:
@@ -69,8 +71,8 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.texture_noise_levels must be in [1, 32], got {self.texture_noise_levels}"
             )
-        if self.precipitation_layers < 1 or self.cache_size < 1:
-            raise ValueError("SimConfig.precipitation_layers and cache_size must be >= 1")
+        if self.precipitation_layers < 1 or self.cache_size < 1 or self.texture_max_tiles < 2:
+            raise ValueError("SimConfig: precipitation_layers, cache_size >= 1 and texture_max_tiles >= 2")
         if not 0 <= self.subpixel_bits <= 8:
             raise ValueError(f"SimConfig.subpixel_bits must be in [0, 8], got {self.subpixel_bits}")
         if not 0.0 <= self.crop_min_visible_fraction <= 1.0:

@@ -23,6 +23,8 @@ from world_model.sim import ground, lidar, objects, precipitation
 from world_model.sim.config import SimConfig
 from world_model.sim.lighting import SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD, lighting_for
 from world_model.sim.poses import object_poses
+from world_model.sim.scene_mesh import SceneMesh, build_scene_mesh, object_key
+from world_model.sim.texture import MapTexture, palette
 
 
 class _Cache:
@@ -99,8 +101,8 @@ class ProceduralSimulator:
             self.bev if self.bev is not None else frame.bev,
         )
 
-    def _scene_mesh(self, frame: SceneFrame) -> objects.SceneMesh:
-        return self._meshes.get(objects.object_key(frame), (), lambda: objects.build_scene_mesh(frame))
+    def _scene_mesh(self, frame: SceneFrame) -> SceneMesh:
+        return self._meshes.get(object_key(frame), (), lambda: build_scene_mesh(frame))
 
     def _plan(self, frame: SceneFrame, rig: CameraRig, spec: LidarSpec) -> objects.DrawPlan:
         cfg = self.config
@@ -133,26 +135,25 @@ class ProceduralSimulator:
         h, w = rig.resolution
         lighting = lighting_for(frame.prompt)
         weather, tod = frame.prompt.weather, frame.prompt.time_of_day
-        tex = self._textures.get(id(frame.map), (frame.map,), lambda: ground.rasterize_map(frame.map, cfg))
+        tex = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
         rays = self._rays.get(
             (id(rig), spec.mount_height),
             (rig,),
             lambda: ground.ground_rays(rig, spec.mount_height, cfg.max_ground_distance_m),
         )
 
-        def make_shading() -> tuple[ground.BackgroundShading, np.ndarray]:
-            shading = ground.background_shading(rays, lighting, SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD)
-            return shading, ground.palette(lighting, cfg.texture_noise_levels)
+        def make_shading() -> ground.BackgroundShading:
+            albedo = palette(lighting, cfg.texture_noise_levels)
+            return ground.background_shading(
+                rays, lighting, albedo, SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD, cfg.shading_levels
+            )
 
-        shading, pal = self._shading.get((id(rig), spec.mount_height, weather, tod), (rig,), make_shading)
-        img = ground.render_background(tex, rays, shading, pal, frame.ego)
+        shading = self._shading.get((id(rig), spec.mount_height, weather, tod), (rig,), make_shading)
+        img = ground.render_background(tex, rays, shading, frame.ego)
 
         plan = self._plan(frame, rig, spec)
-        line = cv2.LINE_AA if cfg.antialias else cv2.LINE_8
         for v in range(rig.num_views):
-            view = img[v * h : (v + 1) * h]
-            for poly, color in zip(plan.polygons[v], plan.colors[v], strict=True):
-                cv2.fillConvexPoly(view, poly, color, line, cfg.subpixel_bits)
+            objects.paint(img[v * h : (v + 1) * h], plan, v, cfg.antialias, cfg.subpixel_bits)
 
         if lighting.precipitation != "none":
             layers = self._precip.get(
@@ -254,15 +255,13 @@ class ProceduralSimulator:
         silhouette = np.zeros((rig.num_views, n), dtype=np.int64)
         for v in range(rig.num_views):
             ids = np.zeros((h, w), dtype=np.int32)
-            per_obj: dict[int, list[np.ndarray]] = {}
-            for poly, obj in zip(plan.polygons[v], plan.objects[v], strict=True):
-                cv2.fillConvexPoly(ids, poly, obj + 1, cv2.LINE_8, shift)
-                per_obj.setdefault(obj, []).append(poly)
+            objects.paint(ids, plan, v, False, shift, value=lambda o: o + 1)
             visible[v] = np.bincount(ids.ravel(), minlength=n + 1)[1:]
             mask = np.zeros((h, w), dtype=np.uint8)
-            for obj, polys in per_obj.items():
+            on_view = plan.objects[plan.view(v)]
+            for obj in np.unique(on_view).tolist():
                 mask[:] = 0
-                for poly in polys:
+                for poly in plan.polygons[plan.view(v)][on_view == obj]:
                     cv2.fillConvexPoly(mask, poly, 1, cv2.LINE_8, shift)
                 silhouette[v, obj] = int(mask.sum())
         return visible, silhouette
