@@ -89,6 +89,12 @@ def test_renders_at_224x400_with_all_categories():
     assert obs.cameras.std() > 10
     m = mosaic(obs, fr)
     assert m.dtype == np.uint8 and m.ndim == 3 and m.shape[1] > 3 * 400
+    # The ring layout puts FRONT in the top middle and BACK in the bottom middle.
+    assert np.array_equal(m[:224, 400:800], obs.cameras[1]) and np.array_equal(
+        m[224:448, 400:800], obs.cameras[4]
+    )
+    # With the frame, object boxes and the ego are drawn on the BEV panel.
+    assert (mosaic(obs) != m).any()
 
 
 def test_night_is_darker_than_day_and_lamps_glow():

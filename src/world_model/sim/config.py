@@ -16,7 +16,7 @@ class SimConfig:
     # -- ground texture (rasterized once per map, world-aligned) --
     texture_m_per_px: float = 0.1  # texel size
     texture_tile_px: int = 256  # tiles are rasterized on first sight (power of two)
-    texture_max_tiles: int = 1024  # memory bound of one map's tile atlas (1024 x 64 KiB)
+    texture_max_tiles: int = 1024  # tiles kept per map (1024 x 64 KiB); one frame's tiles always fit
     texture_noise_cell_m: float = 1.5  # size of the low-frequency asphalt / grass patches
     texture_noise_levels: int = 8  # palette entries per surface used for that variation
     texture_seed: int = 1234
@@ -49,7 +49,8 @@ class SimConfig:
     crop_margin: float = 0.1  # relative margin added around the projected box
 
     # -- caches (keyed by object identity of specs / maps) --
-    cache_size: int = 8
+    cache_size: int = 8  # rigs, LiDAR specs, lightings and object sets kept
+    texture_cache_size: int = 2  # maps whose road textures are kept (each up to texture_max_tiles)
 
     def __post_init__(self) -> None:
         positive = {
@@ -71,8 +72,15 @@ class SimConfig:
             raise ValueError(
                 f"SimConfig.texture_noise_levels must be in [1, 32], got {self.texture_noise_levels}"
             )
-        if self.precipitation_layers < 1 or self.cache_size < 1 or self.texture_max_tiles < 2:
-            raise ValueError("SimConfig: precipitation_layers, cache_size >= 1 and texture_max_tiles >= 2")
+        if (
+            self.precipitation_layers < 1
+            or self.cache_size < 1
+            or self.texture_cache_size < 1
+            or self.texture_max_tiles < 2
+        ):
+            raise ValueError(
+                "SimConfig: precipitation_layers and cache sizes must be >= 1, texture_max_tiles >= 2"
+            )
         if not 0 <= self.subpixel_bits <= 8:
             raise ValueError(f"SimConfig.subpixel_bits must be in [0, 8], got {self.subpixel_bits}")
         if not 0.0 <= self.crop_min_visible_fraction <= 1.0:

@@ -77,7 +77,7 @@ class ProceduralSimulator:
         self.rig, self.lidar, self.bev = rig, lidar, bev
         self.config = config or SimConfig()
         n = self.config.cache_size
-        self._textures = _Cache(n)
+        self._textures = _Cache(self.config.texture_cache_size)
         self._rays = _Cache(n)
         self._shading = _Cache(n)
         self._lidar_rays = _Cache(n)

@@ -155,7 +155,7 @@ class MapTexture:
         tiles += tx
         slot = np.take(self.page, tiles)
         if len(slot) and slot.min() < 0:
-            self._draw_tiles(np.unique(tiles[slot < 0]))
+            self._ensure(np.unique(tiles))
             slot = np.take(self.page, tiles)
         mask = self.tile - 1
         slot <<= 2 * self.bits
@@ -166,7 +166,8 @@ class MapTexture:
         slot += col
         return np.take(self.atlas.reshape(-1), slot)
 
-    def _draw_tiles(self, tiles: np.ndarray) -> None:
+    def _tile_hits(self, tiles: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World corners (x0, y0) of ``tiles`` and which primitives overlap each, (T, P) bool."""
         tile_m = self.tile * self.res
         tx0 = self.x0 + (tiles % self.ntx) * tile_m
         ty0 = self.y0 + (tiles // self.ntx) * tile_m
@@ -175,20 +176,31 @@ class MapTexture:
             & (self.boxes[None, :, 2] > tx0[:, None])
             & (self.boxes[None, :, 1] < ty0[:, None] + tile_m)
             & (self.boxes[None, :, 3] > ty0[:, None])
-        )  # (tiles, primitives)
-        empty = ~hits.any(1)
-        self.page[tiles[empty]] = 0
-        todo = np.nonzero(~empty)[0]
-        if self.used + len(todo) > self.max_tiles:  # bounded memory: start over, keep what is asked now
+        )
+        return tx0, ty0, hits
+
+    def _ensure(self, needed: np.ndarray) -> None:
+        """Draw the tiles among ``needed`` (unique tile ids of one lookup) not drawn yet."""
+        missing = needed[self.page[needed] < 0]
+        tx0, ty0, hits = self._tile_hits(missing)
+        if self.used + int(hits.any(1).sum()) > self.max_tiles:
+            # Bounded memory: start over with just this lookup's tiles (which always fit, even
+            # beyond max_tiles, so one frame never reads a tile evicted while it was drawn).
             self._reset_tiles()
-            self.page[tiles[empty]] = 0
+            missing = needed
+            tx0, ty0, hits = self._tile_hits(missing)
+        empty = ~hits.any(1)
+        self.page[missing[empty]] = 0
+        todo = np.nonzero(~empty)[0]
+        need = self.used + len(todo)
+        if need > len(self.atlas):
+            size = max(need, min(2 * len(self.atlas), self.max_tiles))
+            grown = np.empty((size,) + self.atlas.shape[1:], np.uint8)
+            grown[: self.used] = self.atlas[: self.used]
+            self.atlas = grown
         for i in todo:
-            if self.used == len(self.atlas):
-                grown = np.empty((min(2 * len(self.atlas), self.max_tiles),) + self.atlas.shape[1:], np.uint8)
-                grown[: self.used] = self.atlas[: self.used]
-                self.atlas = grown
             self.atlas[self.used] = self._rasterize(tx0[i], ty0[i], np.nonzero(hits[i])[0])
-            self.page[tiles[i]] = self.used
+            self.page[missing[i]] = self.used
             self.used += 1
 
     def _rasterize(self, x0: float, y0: float, prims: np.ndarray) -> np.ndarray:
