@@ -136,14 +136,14 @@ def plan_objects(
     fx, fy = (np.array([c.K[0, 0] for c in rig.cameras]), np.array([c.K[1, 1] for c in rig.cameras]))
     cx, cyy = (np.array([c.K[0, 2] for c in rig.cameras]), np.array([c.K[1, 2] for c in rig.cameras]))
 
-    # Object-level culling and level of detail from the projected 3D boxes.
-
     def to_cameras(p: np.ndarray) -> np.ndarray:
         """LiDAR-frame points (M, 3) -> (M, V, 3) in every camera: R^T (p - t), one BLAS product."""
         return (p @ r_all).reshape(len(p), nviews, 3) - t_cam
 
     r_all = Rs.transpose(1, 0, 2).reshape(3, nviews * 3)  # columns: every camera's R
     t_cam = np.einsum("vj,vjk->vk", ts, Rs)  # (V, 3) = R^T t
+
+    # Object-level culling and level of detail from the projected 3D boxes.
     cc = to_cameras(poses.corners.reshape(-1, 3)).reshape(-1, 8, nviews, 3).transpose(2, 0, 1, 3)
     front = cc[..., 2] > near
     zs = np.where(front, cc[..., 2], 1.0)

@@ -22,7 +22,7 @@ from world_model.sensors import BevSpec, CameraRig, LidarSpec
 from world_model.sim import ground, lidar, objects, precipitation
 from world_model.sim.config import SimConfig
 from world_model.sim.lighting import SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD, lighting_for
-from world_model.sim.poses import object_poses
+from world_model.sim.poses import ObjectPoses, object_poses
 from world_model.sim.scene_mesh import SceneMesh, build_scene_mesh, object_key
 from world_model.sim.texture import MapTexture, palette
 
@@ -83,6 +83,7 @@ class ProceduralSimulator:
         self._lidar_rays = _Cache(n)
         self._meshes = _Cache(n)
         self._precip = _Cache(n)
+        self._poses = _Cache(1)  # render() asks for the same frame's poses twice
 
     # -- specs and caches ---------------------------------------------------------------------
 
@@ -101,6 +102,11 @@ class ProceduralSimulator:
             self.bev if self.bev is not None else frame.bev,
         )
 
+    def _object_poses(self, frame: SceneFrame, spec: LidarSpec) -> ObjectPoses:
+        return self._poses.get(
+            (id(frame), spec.mount_height), (frame,), lambda: object_poses(frame, spec.mount_height)
+        )
+
     def _scene_mesh(self, frame: SceneFrame) -> SceneMesh:
         return self._meshes.get(object_key(frame), (), lambda: build_scene_mesh(frame))
 
@@ -109,7 +115,7 @@ class ProceduralSimulator:
         return objects.plan_objects(
             frame,
             self._scene_mesh(frame),
-            object_poses(frame, spec.mount_height),
+            self._object_poses(frame, spec),
             rig,
             lighting_for(frame.prompt),
             cfg.near_plane_m,
@@ -169,9 +175,7 @@ class ProceduralSimulator:
         """(beams, azimuth) float32 ranges in metres; ``no_return`` (0.0) where nothing is hit."""
         _, spec, _ = self._specs(frame)
         rays = self._lidar_rays.get(id(spec), (spec,), lambda: lidar.lidar_rays(spec))
-        return lidar.cast(
-            object_poses(frame, spec.mount_height), spec, rays, self.config.lidar_cull_margin_cols
-        )
+        return lidar.cast(self._object_poses(frame, spec), spec, rays, self.config.lidar_cull_margin_cols)
 
     def render_bev(self, frame: SceneFrame) -> np.ndarray:
         """(h, w, c) uint8 {0, 1} map raster around the ego, forward up, ego's left on the left."""
@@ -224,7 +228,7 @@ class ProceduralSimulator:
         _, spec, _ = self._specs(frame)
         near = self.config.near_plane_m
         out = {}
-        corners = object_poses(frame, spec.mount_height).corners
+        corners = self._object_poses(frame, spec).corners
         for obj, cs in zip(frame.objects, corners, strict=True):
             pc = (cs - cam.t) @ cam.R
             pts = [pc[i] for i in range(8) if pc[i, 2] >= near]
