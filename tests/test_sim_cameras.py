@@ -150,3 +150,15 @@ def test_bad_input_is_rejected_with_specific_errors():
         sim.project(frame(), 0, np.zeros((3,)))
     with pytest.raises(ValueError):
         SimConfig(near_plane_m=0.0)
+
+
+def test_simulator_does_not_import_gym_or_highway_env():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, world_model.sim; "
+        "bad = [m for m in ('gymnasium', 'highway_env', 'torch') if m in sys.modules]; "
+        "sys.exit(1 if bad else 0)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
