@@ -35,7 +35,7 @@ class SimConfig:
     subpixel_bits: int = 4  # fixed-point fraction bits passed to cv2 drawing calls
 
     # -- precipitation overlay (rain streaks / snow flakes) --
-    precipitation_layers: int = 8  # pre-generated overlay layers per resolution; frames pick one
+    precipitation_layers: int = 4  # pre-generated overlay layers per resolution; frames pick one
     precipitation_seed: int = 4321
     rain_streaks_per_kpx: float = 4.0  # streaks per 1000 pixels
     snow_flakes_per_kpx: float = 3.0

@@ -61,17 +61,24 @@ def precipitation_layers(kind: str, h: int, w: int, config: SimConfig) -> np.nda
     return layers.astype(np.float32) / 255.0
 
 
-def overlay_alpha(layers: np.ndarray, frame: SceneFrame, views: int, h: int, w: int) -> np.ndarray:
-    """(views * h, w) alpha for this frame: one random window of a random layer per view."""
-    rng = np.random.default_rng(frame_seed(frame))
-    picks = rng.integers(0, len(layers), views)
-    oy, ox = rng.integers(0, h, views), rng.integers(0, w, views)
-    return np.concatenate([layers[k, y : y + h, x : x + w] for k, y, x in zip(picks, oy, ox, strict=True)])
+class Overlay:
+    """Rain or snow for one image size: the layer pool plus what blending needs, prepared once."""
 
+    def __init__(self, kind: str, views: int, h: int, w: int, color: np.ndarray, config: SimConfig) -> None:
+        self.alpha = precipitation_layers(kind, h, w, config)
+        self.keep = 1.0 - self.alpha
+        self.views, self.h, self.w = views, h, w
+        self.solid = np.empty((views * h, w, 3), dtype=np.uint8)
+        self.solid[:] = np.clip(np.round(color), 0, 255).astype(np.uint8)
 
-def apply_overlay(images: np.ndarray, alpha: np.ndarray, color: np.ndarray) -> np.ndarray:
-    """Blend ``color`` over uint8 ``images`` (V*H, W, 3) with per-pixel ``alpha`` (V*H, W)."""
-    img = images.astype(np.float32)
-    a = alpha[..., None]
-    img += (color.astype(np.float32) - img) * a
-    return img.astype(np.uint8)
+    def apply(self, images: np.ndarray, frame: SceneFrame) -> np.ndarray:
+        """Blend this frame's streaks over ``images`` (V*H, W, 3) uint8: one random window of a
+        random layer per view, drawn from a seed derived from the frame."""
+        rng = np.random.default_rng(frame_seed(frame))
+        picks = rng.integers(0, len(self.alpha), self.views)
+        oy, ox = rng.integers(0, self.h, self.views), rng.integers(0, self.w, self.views)
+        windows = list(zip(picks, oy, ox, strict=True))
+        h, w = self.h, self.w
+        alpha = np.concatenate([self.alpha[k, y : y + h, x : x + w] for k, y, x in windows])
+        keep = np.concatenate([self.keep[k, y : y + h, x : x + w] for k, y, x in windows])
+        return cv2.blendLinear(images, self.solid, keep, alpha)

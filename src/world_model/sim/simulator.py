@@ -162,13 +162,14 @@ class ProceduralSimulator:
             objects.paint(img[v * h : (v + 1) * h], plan, v, cfg.antialias, cfg.subpixel_bits)
 
         if lighting.precipitation != "none":
-            layers = self._precip.get(
-                (lighting.precipitation, h, w),
+            overlay = self._precip.get(
+                (lighting.precipitation, rig.num_views, h, w, weather, tod),
                 (),
-                lambda: precipitation.precipitation_layers(lighting.precipitation, h, w, cfg),
+                lambda: precipitation.Overlay(
+                    lighting.precipitation, rig.num_views, h, w, lighting.precipitation_color, cfg
+                ),
             )
-            alpha = precipitation.overlay_alpha(layers, frame, rig.num_views, h, w)
-            img = precipitation.apply_overlay(img, alpha, lighting.precipitation_color)
+            img = overlay.apply(img, frame)
         return img.reshape(rig.num_views, h, w, 3)
 
     def render_lidar(self, frame: SceneFrame) -> np.ndarray:
