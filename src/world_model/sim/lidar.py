@@ -3,7 +3,8 @@
 Rays follow :class:`~world_model.sensors.LidarSpec` (row 0 = top beam, column 0 = azimuth +180 deg,
 decreasing). The road returns are fixed per beam and precomputed. For objects, each box is culled
 to the azimuth sector and elevation band that can possibly hit it; all (ray, box) candidate pairs
-of a frame are then intersected in one vectorized slab test.
+of a frame are then intersected in one vectorized slab test. The ego's own body is not modelled,
+and a box that contains the LiDAR (a crash) returns nothing: rays leave it from the inside.
 """
 
 from __future__ import annotations
