@@ -31,14 +31,10 @@ FRAME_DT_S = 0.1
 STATIC = ("cone", "barrier", "pedestrian")
 
 
-def sequence(
-    width: int, height: int, frames: int, objects: int, weather: str, time_of_day: str
-) -> list[SceneFrame]:
+def sequence(width: int, height: int, frames: int, objects: int, weather: str, time_of_day: str) -> list[SceneFrame]:
     rig = default_rig(width=width, height=height)
     road = straight_road(num_lanes=4, x0=-500.0, x1=5000.0)
-    base = demo_frame(
-        num_objects=objects, seed=0, weather=weather, time_of_day=time_of_day, rig=rig, road=road
-    )
+    base = demo_frame(num_objects=objects, seed=0, weather=weather, time_of_day=time_of_day, rig=rig, road=road)
     rel_speed = np.random.default_rng(1).uniform(-3.0, 3.0, len(base.objects))  # m/s relative to the ego
     out = []
     for i in range(frames):

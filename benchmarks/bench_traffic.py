@@ -83,9 +83,7 @@ def main() -> None:
             "processor": platform.processor() or platform.machine(),
         },
         "bridge": {n: bench_bridge(n, args.steps, args.seed) for n in SCENARIOS},
-        "highway_env": {
-            e: bench_highway_env(e, args.steps // 3, args.seed) for e in ("highway-v0", "highway-fast-v0")
-        },
+        "highway_env": {e: bench_highway_env(e, args.steps // 3, args.seed) for e in ("highway-v0", "highway-fast-v0")},
     }
     args.out.write_text(json.dumps(result, indent=2))
     print(json.dumps(result, indent=2))

@@ -27,9 +27,7 @@ def frame(objects=(), weather="sunny", time_of_day="day", rig=None, ego_y=-4.0, 
 
 
 def car(x, y, color=(200, 30, 30), track_id="car", category="car", yaw=0.0, size=(4.5, 1.9, 1.6)):
-    return SceneObject(
-        track_id=track_id, category=category, box=Box3D((x, y, size[2] / 2), size, yaw), color=color
-    )
+    return SceneObject(track_id=track_id, category=category, box=Box3D((x, y, size[2] / 2), size, yaw), color=color)
 
 
 def test_point_projects_to_hand_computed_pixel():
@@ -90,9 +88,7 @@ def test_renders_at_224x400_with_all_categories():
     m = mosaic(obs, fr)
     assert m.dtype == np.uint8 and m.ndim == 3 and m.shape[1] > 3 * 400
     # The ring layout puts FRONT in the top middle and BACK in the bottom middle.
-    assert np.array_equal(m[:224, 400:800], obs.cameras[1]) and np.array_equal(
-        m[224:448, 400:800], obs.cameras[4]
-    )
+    assert np.array_equal(m[:224, 400:800], obs.cameras[1]) and np.array_equal(m[224:448, 400:800], obs.cameras[4])
     # With the frame, object boxes and the ego are drawn on the BEV panel.
     assert (mosaic(obs) != m).any()
 

@@ -11,9 +11,7 @@ ROAD = straight_road(num_lanes=3)
 
 
 def obj(track_id, x, y, category="car", size=(4.5, 1.9, 1.6), color=(200, 30, 30)):
-    return SceneObject(
-        track_id=track_id, category=category, box=Box3D((x, y, size[2] / 2), size, 0.0), color=color
-    )
+    return SceneObject(track_id=track_id, category=category, box=Box3D((x, y, size[2] / 2), size, 0.0), color=color)
 
 
 def frame(objects, rig=None):

@@ -31,9 +31,7 @@ def changed_columns(with_obj, empty):
     return np.nonzero((with_obj != empty).any(axis=0))[0]
 
 
-@pytest.mark.parametrize(
-    "d, size", [(20.0, (4.5, 1.9, 1.6)), (35.0, (8.5, 2.5, 3.4)), (9.0, (0.6, 0.6, 1.75))]
-)
+@pytest.mark.parametrize("d, size", [(20.0, (4.5, 1.9, 1.6)), (35.0, (8.5, 2.5, 3.4)), (9.0, (0.6, 0.6, 1.75))])
 def test_object_straight_ahead_reads_d_minus_half_length(d, size):
     sim = ProceduralSimulator()
     ranges = sim.render_lidar(frame([box(d, -4.0, size)]))

@@ -66,9 +66,7 @@ def test_same_seed_same_frames_different_seed_different_traffic():
 
 def test_frame_conversion_forward_and_left():
     s = _quiet_highway(
-        objects=[
-            {"id": "left_car", "category": "car", "track": {"kind": "static", "lane": 0, "longitudinal": 80}}
-        ]
+        objects=[{"id": "left_car", "category": "car", "track": {"kind": "static", "lane": 0, "longitudinal": 80}}]
     )
     b = TrafficBridge(s, "discrete_meta")
     f0 = b.reset(seed=0)
@@ -151,9 +149,7 @@ def test_cut_in_happens_at_time_t():
     frames = [b.reset(seed=0)]
     while not b.truncated:
         frames += b.step([0.0, 0.0])
-    ys = {
-        round(f.time, 3): o.box.center[1] for f, o in zip(frames, _track(frames, "cutting_van"), strict=True)
-    }
+    ys = {round(f.time, 3): o.box.center[1] for f, o in zip(frames, _track(frames, "cutting_van"), strict=True)}
     before = [y for t, y in ys.items() if t <= tr.time]
     after = [y for t, y in ys.items() if t >= tr.time + tr.duration]
     assert np.allclose(before, 0.0) and np.allclose(after, -4.0)
@@ -201,9 +197,7 @@ def test_ego_crashes_into_stopped_vehicle_and_idm_brakes_for_it():
         update={
             "objects": [
                 *s.objects,
-                scenario_from_dict({"name": "x", "road": {"type": "highway"}, "objects": [follower]}).objects[
-                    0
-                ],
+                scenario_from_dict({"name": "x", "road": {"type": "highway"}, "objects": [follower]}).objects[0],
             ],
             "ego": s.ego.model_copy(update={"lane": 0}),
         }
@@ -220,15 +214,11 @@ def test_insert_edit_remove_objects():
     b = TrafficBridge(_quiet_highway())
     b.reset(seed=0)
     for k, cat in enumerate(CATEGORIES):
-        b.insert_object(
-            {"id": f"o{k}", "category": cat, "track": {"kind": "static", "x": 100.0 + 10 * k, "y": 8.0}}
-        )
+        b.insert_object({"id": f"o{k}", "category": cat, "track": {"kind": "static", "x": 100.0 + 10 * k, "y": 8.0}})
     frame = b.step([0.0, 0.0])[-1]
     assert {o.category for o in frame.objects} == set(CATEGORIES)
     with pytest.raises(ScenarioError, match="insert_object: track.speed"):
-        b.insert_object(
-            {"id": "bad", "category": "car", "track": {"kind": "lane_follow", "lane": 0, "speed": "x"}}
-        )
+        b.insert_object({"id": "bad", "category": "car", "track": {"kind": "lane_follow", "lane": 0, "speed": "x"}})
     with pytest.raises(ScenarioError, match="already in use"):
         b.insert_object({"id": "o0", "category": "car", "track": {"kind": "static", "x": 0.0, "y": 0.0}})
     b.edit_object("o0", category="bus", color="yellow")

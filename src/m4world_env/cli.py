@@ -17,10 +17,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     env = gym.make(
         "M4World-v0", scenario=args.scenario, backend=args.backend, checkpoint=args.checkpoint, render_mode="rgb_array"
     )
-    policy = make_policy(args.policy, env)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     obs, info = env.reset(seed=args.seed)
+    policy = make_policy(args.policy, env)  # after reset: same policy seed as `m4world eval` for this seed
     fps = env.metadata["render_fps"]
     steps = 0
     with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=8) as writer:

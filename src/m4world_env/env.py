@@ -28,6 +28,7 @@ from world_model.sensors import BevSpec, LidarSpec, default_rig
 
 STATE_FEATURES = ("presence", "x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "length", "width")
 RESET_OPTIONS = ("reference",)
+STATE_BOUND = 1.0e4  # metres / m/s; values are clipped to it (roads are at most a few km long)
 
 
 class ActionError(ValueError):
@@ -130,7 +131,7 @@ class M4WorldEnv(gym.Env):
             ),
             "bev": spaces.Box(0, 1, shape=(bh, bw, bc), dtype=np.uint8),
             "state": spaces.Box(
-                -np.inf, np.inf, shape=(1 + self.cfg.state_objects, len(STATE_FEATURES)), dtype=np.float32
+                -STATE_BOUND, STATE_BOUND, shape=(1 + self.cfg.state_objects, len(STATE_FEATURES)), dtype=np.float32
             ),
         }
         return spaces.Dict({k: all_spaces[k] for k in self.cfg.observation_keys})
@@ -238,7 +239,7 @@ class M4WorldEnv(gym.Env):
         return reward_terms(
             crashed=bool(self.bridge.crashed),
             speed=float(ego.speed),
-            lane_index=int(self.bridge.lane_index),
+            lane_index=int(self.bridge.lane_index[2]),
             num_lanes=int(self.bridge.num_lanes),
             on_road=bool(self.bridge.on_road),
             progress_m=progress,
@@ -256,7 +257,7 @@ class M4WorldEnv(gym.Env):
         if "bev" in keys:
             out["bev"] = self._obs.bev
         if "state" in keys:
-            out["state"] = state_from_frame(self._frame, self.cfg.state_objects)
+            out["state"] = np.clip(state_from_frame(self._frame, self.cfg.state_objects), -STATE_BOUND, STATE_BOUND)
         return out
 
     def _info(self, terms: dict[str, float]) -> dict[str, Any]:
@@ -266,7 +267,7 @@ class M4WorldEnv(gym.Env):
             "speed": float(ego.speed),
             "crashed": bool(self.bridge.crashed),
             "on_road": bool(self.bridge.on_road),
-            "lane_index": int(self.bridge.lane_index),
+            "lane_index": int(self.bridge.lane_index[2]),
             "rewards": dict(terms),
             "episode_metrics": self._metrics.summary(),
         }

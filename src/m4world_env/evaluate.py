@@ -31,16 +31,15 @@ def _builtin_policy(name: str, env) -> Policy:
     from m4world_env import policies
 
     base = env.unwrapped
-    action_type = base.cfg.action_type
+    seed = int(base.np_random.integers(2**31 - 1))
     if name == "random":
-        space = base.action_space
-        space.seed(int(base.np_random.integers(2**31 - 1)))
-        return lambda obs, info: space.sample()
+        rand = policies.RandomPolicy(seed=seed)
+        return lambda obs, info: rand(base.bridge)
     if name == "idm":
-        auto = policies.IDMAutopilot(action_type=action_type, seed=int(base.np_random.integers(2**31 - 1)))
+        auto = policies.IDMAutopilot(seed=seed)
         return lambda obs, info: auto(base.bridge)
     if name == "lane_keeping":
-        keep = policies.ConstantSpeedLaneKeeping(action_type=action_type)
+        keep = policies.ConstantSpeedLaneKeeping()
         return lambda obs, info: keep(base.bridge)
     raise ValueError(f"unknown built-in policy {name!r}; choose one of {BUILTIN_POLICIES} or give module:callable")
 
@@ -65,9 +64,15 @@ def make_policy(spec: str, env) -> Policy:
     return obj(env) if params == ["env"] else obj
 
 
-def run_episode(env, policy: Policy, seed: int, max_steps: int | None = None) -> dict[str, float]:
-    """One episode; returns the env's final ``episode_metrics`` plus the seed."""
+def run_episode(env, policy: Policy | str, seed: int, max_steps: int | None = None) -> dict[str, float]:
+    """One episode; returns the env's final ``episode_metrics`` plus the seed.
+
+    A built-in policy name is instantiated after the reset (its state is per episode and its seed
+    comes from the env's seeded RNG, so an episode replays from its seed alone).
+    """
     obs, info = env.reset(seed=seed)
+    if isinstance(policy, str):
+        policy = make_policy(policy, env)
     steps = 0
     while True:
         obs, _reward, terminated, truncated, info = env.step(policy(obs, info))
@@ -106,10 +111,10 @@ def evaluate(
     for name in scenarios:
         scenario = load_scenario(name)
         env = gym.make("M4World-v0", scenario=scenario, backend=backend, checkpoint=checkpoint, config=config)
-        pol = make_policy(policy, env)
+        custom = None if policy in BUILTIN_POLICIES else make_policy(policy, env)
         eps = []
         for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress):
-            metrics = run_episode(env, pol, seed=seed + e, max_steps=max_steps)
+            metrics = run_episode(env, custom or policy, seed=seed + e, max_steps=max_steps)
             eps.append(metrics)
             records.append({"scenario": scenario.name, "episode": e, **metrics})
         env.close()

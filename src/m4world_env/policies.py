@@ -35,8 +35,7 @@ def bridge_of(state: object) -> TrafficBridge:
     if isinstance(getattr(state, "bridge", None), TrafficBridge):
         return state.bridge
     raise TypeError(
-        "a policy needs a TrafficBridge, an object with .bridge, or a dict with 'bridge'; "
-        f"got {type(state).__name__}"
+        f"a policy needs a TrafficBridge, an object with .bridge, or a dict with 'bridge'; got {type(state).__name__}"
     )
 
 
@@ -70,20 +69,13 @@ class RoadFollower:
         if local_xy(lane, *v.position)[0] > lane.length - lane.VEHICLE_LENGTH / 2:
             edges = [r[:2] for r in bridge.route]
             route = bridge.route[edges.index(self.target[:2]) + 1 :] if self.target[:2] in edges else None
-            self.target = net.next_lane(
-                self.target, route=route, position=v.position, np_random=bridge.road.np_random
-            )
+            self.target = net.next_lane(self.target, route=route, position=v.position, np_random=bridge.road.np_random)
         return self.target
 
 
 def _continuous(bridge: TrafficBridge, acceleration: float, steering: float) -> np.ndarray:
     cfg = bridge.config.actions
-    a = (
-        2
-        * (acceleration - cfg.acceleration_range[0])
-        / (cfg.acceleration_range[1] - cfg.acceleration_range[0])
-        - 1
-    )
+    a = 2 * (acceleration - cfg.acceleration_range[0]) / (cfg.acceleration_range[1] - cfg.acceleration_range[0]) - 1
     st = 2 * (steering - cfg.steering_range[0]) / (cfg.steering_range[1] - cfg.steering_range[0]) - 1
     return np.array([clip(a, -1.0, 1.0), clip(st, -1.0, 1.0)], dtype=np.float32)
 
@@ -175,10 +167,7 @@ class IDMAutopilot:
             if target[2] != ego.lane_index[2]:
                 return META_INDEX["LANE_LEFT"] if target[2] < ego.lane_index[2] else META_INDEX["LANE_RIGHT"]
             front, _ = b.road.neighbour_vehicles(ego, ego.lane_index)
-            if (
-                self._idm(ego, front, desired) < -c.comfort_acc / 2
-                or ego.target_speed > desired + c.speed_tolerance
-            ):
+            if self._idm(ego, front, desired) < -c.comfort_acc / 2 or ego.target_speed > desired + c.speed_tolerance:
                 return META_INDEX["SLOWER"]
             if ego.target_speed < desired - c.speed_tolerance:
                 return META_INDEX["FASTER"]

@@ -68,7 +68,7 @@ def record_episode(
     rig = default_rig(width=cfg.width, height=cfg.height)
     bridge = TrafficBridge(scenario, action_type=cfg.action_type, rig=rig, lidar=cfg.lidar, bev=cfg.bev)
     frames = [bridge.reset(seed=seed)]
-    policy = IDMAutopilot(action_type=cfg.action_type, seed=seed)
+    policy = IDMAutopilot(seed=seed)
     while not (bridge.truncated or bridge.crashed):
         frames.extend(bridge.step(policy(bridge)))
     sim = sim or ProceduralSimulator()

@@ -115,9 +115,7 @@ class TwoWayRoad(_Strict):
     lane_width: float = Field(4.0, gt=2)
 
 
-Road = Annotated[
-    HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, Field(discriminator="type")
-]
+Road = Annotated[HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, Field(discriminator="type")]
 
 # ------------------------------------------------------------------------------ ego and traffic
 
@@ -133,9 +131,7 @@ class EgoSpec(_Strict):
 
 class TrafficSpec(_Strict):
     count: int = Field(10, ge=0, le=200)
-    density: float = Field(
-        1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense"
-    )
+    density: float = Field(1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense")
     mix: dict[VehicleCategory, float] = Field(default_factory=lambda: dict(DEFAULT_TRAFFIC_MIX))
     colors: list[str] = Field(default_factory=lambda: list(DEFAULT_TRAFFIC_COLORS), min_length=1)
 
@@ -232,9 +228,7 @@ class ObjectSpec(_Strict):
     color: Color = "gray"
     description: str = ""
     image: str | None = None
-    size: tuple[float, float, float] | None = Field(
-        None, description="length, width, height; default by category"
-    )
+    size: tuple[float, float, float] | None = Field(None, description="length, width, height; default by category")
     track: Track
 
     @field_validator("color")
@@ -357,9 +351,7 @@ def _resolve(name_or_path: str | Path) -> Path:
         return p
     bundled = SCENARIOS_DIR / f"{name_or_path}.yaml"
     if not bundled.exists():
-        raise ScenarioError(
-            f"unknown scenario {str(name_or_path)!r}; bundled ones: {', '.join(list_scenarios())}"
-        )
+        raise ScenarioError(f"unknown scenario {str(name_or_path)!r}; bundled ones: {', '.join(list_scenarios())}")
     return bundled
 
 
@@ -370,9 +362,7 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
-        where = (
-            f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "<unknown position>"
-        )
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "<unknown position>"
         problem = getattr(err, "problem", None) or str(err)
         raise ScenarioError(f"{path}: YAML syntax error at {where}: {problem}") from None
     return scenario_from_dict(data, str(path))

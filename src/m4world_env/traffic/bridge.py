@@ -87,9 +87,7 @@ class TrafficBridge:
         self._ids: dict[str, object] = {}
         for spec in s.objects:
             self._add(population.make_scripted(self.road, self.layout, spec, s.name))
-        for v in population.spawn_traffic(
-            self.road, self.layout, s, self._traffic_rng, self.config.population
-        ):
+        for v in population.spawn_traffic(self.road, self.layout, s, self._traffic_rng, self.config.population):
             self._add(v)
         self._substeps = 0
         self.frame_index = 0
@@ -102,9 +100,7 @@ class TrafficBridge:
         frm, to = self.layout.ego_edge
         n = len(net.graph[frm][to])
         if s.ego.lane >= n:
-            raise ScenarioError(
-                f"{s.name}: ego.lane: lane {s.ego.lane} does not exist, the start road has {n} lanes"
-            )
+            raise ScenarioError(f"{s.name}: ego.lane: lane {s.ego.lane} does not exist, the start road has {n} lanes")
         lane = net.get_lane((frm, to, s.ego.lane))
         pos, heading = lane.position(s.ego.longitudinal, 0.0), lane.heading_at(s.ego.longitudinal)
         if self.action_type == "continuous":

@@ -54,8 +54,7 @@ def local_xy(lane: AbstractLane, x: float, y: float) -> tuple[float, float]:
 def heading_at(lane: AbstractLane, s: float) -> float:
     if isinstance(lane, SineLane):
         return float(
-            lane.heading
-            + math.atan(lane.amplitude * lane.pulsation * math.cos(lane.pulsation * s + lane.phase))
+            lane.heading + math.atan(lane.amplitude * lane.pulsation * math.cos(lane.pulsation * s + lane.phase))
         )
     if isinstance(lane, StraightLane):
         return float(lane.heading)
@@ -153,13 +152,9 @@ class FastIDMMixin(FastControlMixin):
     def desired_gap(self, ego_vehicle, front_vehicle=None, projected: bool = True) -> float:
         ab = -self.COMFORT_ACC_MAX * self.COMFORT_ACC_MIN
         if projected:  # (v_ego - v_front) . direction_ego
-            dv = ego_vehicle.speed - front_vehicle.speed * math.cos(
-                front_vehicle.heading - ego_vehicle.heading
-            )
+            dv = ego_vehicle.speed - front_vehicle.speed * math.cos(front_vehicle.heading - ego_vehicle.heading)
         else:
             dv = ego_vehicle.speed - front_vehicle.speed
         return (
-            self.DISTANCE_WANTED
-            + ego_vehicle.speed * self.TIME_WANTED
-            + ego_vehicle.speed * dv / (2 * math.sqrt(ab))
+            self.DISTANCE_WANTED + ego_vehicle.speed * self.TIME_WANTED + ego_vehicle.speed * dv / (2 * math.sqrt(ab))
         )

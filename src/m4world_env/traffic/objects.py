@@ -106,9 +106,7 @@ def make_track(spec: ObjectSpec, network: RoadNetwork, edge: tuple[str, str]) ->
 
     def lane_path(lane: int) -> LanePath:
         if lane >= n_lanes:
-            raise ValueError(
-                f"object {spec.id!r}: lane {lane} does not exist; edge {edge} has {n_lanes} lanes"
-            )
+            raise ValueError(f"object {spec.id!r}: lane {lane} does not exist; edge {edge} has {n_lanes} lanes")
         return LanePath(network, (edge[0], edge[1], lane))
 
     if isinstance(tr, StaticTrack):

@@ -182,9 +182,7 @@ def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
         data = {**spec.model_dump(), **changes}
         return make_scripted(road, layout, parse_spec(data, f"edit_object({obj.track_id})"), "edit_object")
     if "speed" in changes and not is_vehicle(obj):
-        raise ValueError(
-            f"{obj.track_id!r} follows a scripted track: change its motion with track=..., not speed"
-        )
+        raise ValueError(f"{obj.track_id!r} follows a scripted track: change its motion with track=..., not speed")
     category = changes.get("category", look.category)
     probe = {
         "id": obj.track_id,
@@ -203,9 +201,7 @@ def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
         category=checked.category,
         color=checked.rgb,
         color_name=checked.color_name,
-        description=look.description
-        if keep_text
-        else (checked.description or describe(category, checked.color_name)),
+        description=look.description if keep_text else (checked.description or describe(category, checked.color_name)),
         size=checked.size
         if checked.size is not None
         else (look.size if "category" not in changes else CATEGORY_SIZES[category]),
@@ -214,9 +210,7 @@ def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
     _dress(obj, obj.track_id, new_look, obj.scripted)
     if spec is not None:
         obj.spec = spec.model_copy(
-            update={
-                k: v for k, v in changes.items() if k in ("category", "color", "description", "image", "size")
-            }
+            update={k: v for k, v in changes.items() if k in ("category", "color", "description", "image", "size")}
         )
     if "speed" in changes:
         speed = float(changes["speed"])

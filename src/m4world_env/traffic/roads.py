@@ -81,9 +81,7 @@ def build_merge(road: MergeRoad) -> RoadLayout:
         net.add_lane("a", "b", StraightLane([0, k * w], [xb, k * w], w, lt, speed_limit=road.speed_limit))
         # Along the acceleration lane the right marking becomes dashed.
         lt_merge = (lt[0], S if k == n - 1 else lt[1])
-        net.add_lane(
-            "b", "c", StraightLane([xb, k * w], [xc, k * w], w, lt_merge, speed_limit=road.speed_limit)
-        )
+        net.add_lane("b", "c", StraightLane([xb, k * w], [xc, k * w], w, lt_merge, speed_limit=road.speed_limit))
         net.add_lane("c", "d", StraightLane([xc, k * w], [xd, k * w], w, lt, speed_limit=road.speed_limit))
     # Ramp: starts one lane-gap right of the main road's right edge, S-curves onto lane n.
     gap = w  # one lane width of verge between the ramp and the road before converging
@@ -213,9 +211,7 @@ def build_roundabout(road: RoundaboutRoad) -> RoadLayout:
     return RoadLayout(net, (f"{EGO_ARM}_far", f"{EGO_ARM}_mid"), spawn, dests, dests[0], w, inner)
 
 
-def _arc(
-    p: np.ndarray, heading: float, turn: str, radius: float, w: float, speed_limit: float
-) -> CircularLane:
+def _arc(p: np.ndarray, heading: float, turn: str, radius: float, w: float, speed_limit: float) -> CircularLane:
     """A quarter circle starting at ``p`` with ``heading``; a right turn increases the
     highway-env heading (its y axis points right)."""
     if turn == "right":
@@ -279,9 +275,7 @@ def build_two_way(road: TwoWayRoad) -> RoadLayout:
         net.add_lane(
             "onc_b",
             "onc_a",
-            StraightLane(
-                [road.length, y], [0, y], w, (left, C if k == m - 1 else N), speed_limit=road.speed_limit
-            ),
+            StraightLane([road.length, y], [0, y], w, (left, C if k == m - 1 else N), speed_limit=road.speed_limit),
         )
     inner = {(("fwd_a", "fwd_b", 0), 0), (("onc_b", "onc_a", 0), 0)}
     return RoadLayout(

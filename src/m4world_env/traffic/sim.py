@@ -57,9 +57,7 @@ def lane_coordinates(lane: AbstractLane, points: np.ndarray) -> tuple[np.ndarray
 def lane_headings(lane: AbstractLane, s: np.ndarray) -> np.ndarray:
     """Vectorized ``lane.heading_at``. s: (N,) -> (N,)."""
     if isinstance(lane, SineLane):
-        return lane.heading + np.arctan(
-            lane.amplitude * lane.pulsation * np.cos(lane.pulsation * s + lane.phase)
-        )
+        return lane.heading + np.arctan(lane.amplitude * lane.pulsation * np.cos(lane.pulsation * s + lane.phase))
     if isinstance(lane, StraightLane):
         return np.full_like(s, lane.heading)
     if isinstance(lane, CircularLane):
@@ -75,9 +73,7 @@ class FastNetwork(RoadNetwork):
     def _lane_tables(self) -> tuple:
         """Lane parameters stacked per lane family, in RoadNetwork's lane order (so that argmin
         ties resolve as in highway-env). Rebuilt if lanes were added."""
-        idx = [
-            (f, t, i) for f, tos in self.graph.items() for t, lanes in tos.items() for i in range(len(lanes))
-        ]
+        idx = [(f, t, i) for f, tos in self.graph.items() for t, lanes in tos.items() for i in range(len(lanes))]
         if self._tables is not None and self._tables[0] == idx:
             return self._tables
         lanes = [self.graph[f][t][i] for f, t, i in idx]
@@ -85,10 +81,7 @@ class FastNetwork(RoadNetwork):
         circular = [k for k, ln in enumerate(lanes) if isinstance(ln, CircularLane)]
         other = [k for k in range(len(lanes)) if k not in set(straight) | set(circular)]
         st = [lanes[k] for k in straight]
-        sine = [
-            (ln.amplitude, ln.pulsation, ln.phase) if isinstance(ln, SineLane) else (0.0, 0.0, 0.0)
-            for ln in st
-        ]
+        sine = [(ln.amplitude, ln.pulsation, ln.phase) if isinstance(ln, SineLane) else (0.0, 0.0, 0.0) for ln in st]
         st_arr = {
             "start": np.array([ln.start for ln in st]).reshape(-1, 2),
             "dir": np.array([ln.direction for ln in st]).reshape(-1, 2),

@@ -69,18 +69,14 @@ class SimConfig:
         if self.dash_gap_m < 0:
             raise ValueError(f"SimConfig.dash_gap_m must be >= 0, got {self.dash_gap_m}")
         if not 1 <= self.texture_noise_levels <= 32:
-            raise ValueError(
-                f"SimConfig.texture_noise_levels must be in [1, 32], got {self.texture_noise_levels}"
-            )
+            raise ValueError(f"SimConfig.texture_noise_levels must be in [1, 32], got {self.texture_noise_levels}")
         if (
             self.precipitation_layers < 1
             or self.cache_size < 1
             or self.texture_cache_size < 1
             or self.texture_max_tiles < 2
         ):
-            raise ValueError(
-                "SimConfig: precipitation_layers and cache sizes must be >= 1, texture_max_tiles >= 2"
-            )
+            raise ValueError("SimConfig: precipitation_layers and cache sizes must be >= 1, texture_max_tiles >= 2")
         if not 0 <= self.subpixel_bits <= 8:
             raise ValueError(f"SimConfig.subpixel_bits must be in [0, 8], got {self.subpixel_bits}")
         if not 0.0 <= self.crop_min_visible_fraction <= 1.0:

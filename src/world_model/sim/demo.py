@@ -23,9 +23,7 @@ from world_model.scene import (
 from world_model.sensors import CameraRig, default_rig
 
 
-def straight_road(
-    num_lanes: int = 4, lane_width: float = 4.0, x0: float = -300.0, x1: float = 1500.0
-) -> MapGeometry:
+def straight_road(num_lanes: int = 4, lane_width: float = 4.0, x0: float = -300.0, x1: float = 1500.0) -> MapGeometry:
     """Lanes along +x; lane k is centred at y = -k * lane_width (lane 0 leftmost, as highway-env's)."""
     if num_lanes < 1:
         raise ValueError(f"num_lanes must be >= 1, got {num_lanes}")
@@ -36,28 +34,22 @@ def straight_road(
         for k, y in enumerate(bounds)
     )
     strips = tuple(
-        np.array([[x0, bounds[k + 1]], [x1, bounds[k + 1]], [x1, bounds[k]], [x0, bounds[k]]])
-        for k in range(num_lanes)
+        np.array([[x0, bounds[k + 1]], [x1, bounds[k + 1]], [x1, bounds[k]], [x0, bounds[k]]]) for k in range(num_lanes)
     )
     edges = (np.stack([xs, [bounds[0]] * 2], 1), np.stack([xs, [bounds[-1]] * 2], 1))
     return MapGeometry(lane_lines=lines, road_edges=edges, drivable_area=strips, lane_width=lane_width)
 
 
-def ring_road(
-    radius: float = 30.0, num_lanes: int = 2, lane_width: float = 4.0, segments: int = 96
-) -> MapGeometry:
+def ring_road(radius: float = 30.0, num_lanes: int = 2, lane_width: float = 4.0, segments: int = 96) -> MapGeometry:
     """A roundabout-like ring centred at the origin; drivable area as one quad per arc segment."""
     ang = np.linspace(0.0, 2 * np.pi, segments + 1)
     circle = np.stack([np.cos(ang), np.sin(ang)], 1)
     radii = [radius + k * lane_width for k in range(num_lanes + 1)]
     lines = tuple(
-        LaneLine(points=r * circle, kind="solid" if k in (0, num_lanes) else "dashed")
-        for k, r in enumerate(radii)
+        LaneLine(points=r * circle, kind="solid" if k in (0, num_lanes) else "dashed") for k, r in enumerate(radii)
     )
     quads = tuple(
-        np.array(
-            [radii[0] * circle[i], radii[-1] * circle[i], radii[-1] * circle[i + 1], radii[0] * circle[i + 1]]
-        )
+        np.array([radii[0] * circle[i], radii[-1] * circle[i], radii[-1] * circle[i + 1], radii[0] * circle[i + 1]])
         for i in range(segments)
     )
     return MapGeometry(

@@ -103,17 +103,13 @@ def background_shading(
     ).reshape(-1, 3)  # (S * 256, 3)
     t = np.clip(rays.elevation / sky_span, 0.0, 1.0).reshape(-1, 1)
     sky_fog = float(lighting.fog_factor(sky_distance))
-    sky = (1 - sky_fog) * (
-        (1 - t) * lighting.sky_horizon + t * lighting.sky_zenith
-    ) + sky_fog * lighting.fog_color
+    sky = (1 - sky_fog) * ((1 - t) * lighting.sky_horizon + t * lighting.sky_zenith) + sky_fog * lighting.fog_color
     base = len(table) + np.arange(len(sky), dtype=np.int32)  # every pixel its own sky row ...
     base[rays.ground_index] = (inverse.reshape(-1) * 256).astype(np.int32)  # ... unless it sees the road
     return BackgroundShading(base=base, palette=_pack_rgba(np.concatenate([table, sky])))
 
 
-def render_background(
-    tex: MapTexture, rays: GroundRays, shading: BackgroundShading, ego: EgoState
-) -> np.ndarray:
+def render_background(tex: MapTexture, rays: GroundRays, shading: BackgroundShading, ego: EgoState) -> np.ndarray:
     """Sky and road for all views, (V*H, W, 3) uint8."""
     h, w = rays.distance.shape
     rows = shading.base.copy()

@@ -49,9 +49,7 @@ def _candidate_bands(poses: ObjectPoses, spec: LidarSpec, rays: LidarRays, margi
     centre, half = poses.centre, poses.half
     c, s = poses.cos, poses.sin
     n = len(centre)
-    origin = -np.stack(
-        [c * centre[:, 0] + s * centre[:, 1], -s * centre[:, 0] + c * centre[:, 1], centre[:, 2]], 1
-    )
+    origin = -np.stack([c * centre[:, 0] + s * centre[:, 1], -s * centre[:, 0] + c * centre[:, 1], centre[:, 2]], 1)
     gap = np.maximum(np.abs(origin) - half, 0.0)
     dmin = np.hypot(gap[:, 0], gap[:, 1])  # horizontal distance from the LiDAR to the footprint
     reachable = np.hypot(dmin, gap[:, 2]) <= spec.max_range

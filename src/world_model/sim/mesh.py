@@ -74,9 +74,7 @@ class MeshBuilder:
         self._parts: list[int] = []
         self._part_boxes: list[tuple[np.ndarray, np.ndarray]] = []
 
-    def _add_part(
-        self, verts: np.ndarray, faces: dict[str, list[int]], roles: dict[str, str]
-    ) -> dict[str, int]:
+    def _add_part(self, verts: np.ndarray, faces: dict[str, list[int]], roles: dict[str, str]) -> dict[str, int]:
         part = len(self._part_boxes)
         centre = verts.mean(axis=0)
         out = {}
@@ -96,14 +94,10 @@ class MeshBuilder:
         self._part_boxes.append((verts.min(axis=0), verts.max(axis=0)))
         return out
 
-    def hexa(
-        self, corners: np.ndarray, role: str, face_roles: dict[str, str] | None = None
-    ) -> dict[str, int]:
+    def hexa(self, corners: np.ndarray, role: str, face_roles: dict[str, str] | None = None) -> dict[str, int]:
         """A convex hexahedron from 8 corners in the box corner order of :mod:`world_model.geometry`."""
         roles = {name: (face_roles or {}).get(name, role) for name in BOX_FACES}
-        return self._add_part(
-            np.asarray(corners, dtype=np.float64), {k: list(v) for k, v in BOX_FACES.items()}, roles
-        )
+        return self._add_part(np.asarray(corners, dtype=np.float64), {k: list(v) for k, v in BOX_FACES.items()}, roles)
 
     def box(
         self,
@@ -154,9 +148,7 @@ class MeshBuilder:
             roles[f"side{i}"] = side_roles[i % len(side_roles)] if side_roles else role
         return self._add_part(verts, faces, roles)
 
-    def frustum(
-        self, z0: float, z1: float, r0: float, r1: float, role: str, sides: int = 8
-    ) -> dict[str, int]:
+    def frustum(self, z0: float, z1: float, r0: float, r1: float, role: str, sides: int = 8) -> dict[str, int]:
         """A vertical ``sides``-gon frustum (cone segment) on the local z axis from z0 (inradius r0) to z1."""
         ang = 2 * np.pi * (np.arange(sides) + 0.5) / sides
         ring = np.stack([np.cos(ang), np.sin(ang), np.zeros(sides)], axis=1) / np.cos(np.pi / sides)
@@ -193,9 +185,7 @@ class MeshBuilder:
         self._parts.append(self._parts[face])
         return out
 
-    def side_decals(
-        self, faces: dict[str, int], x0: float, x1: float, v0: float, v1: float, role: str
-    ) -> None:
+    def side_decals(self, faces: dict[str, int], x0: float, x1: float, v0: float, v1: float, role: str) -> None:
         """The same decal on the "left" and "right" faces, ``x0..x1`` measured back (0) to front (1)."""
         self.decal(faces["left"], x0, x1, v0, v1, role)
         self.decal(faces["right"], 1 - x1, 1 - x0, v0, v1, role)

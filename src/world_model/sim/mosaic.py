@@ -73,9 +73,7 @@ def bev_image(bev: np.ndarray, size: int, frame: SceneFrame | None) -> np.ndarra
         return np.round(np.stack([cols, rows], 1) * 16).astype(np.int32)
 
     for obj, corners in zip(frame.objects, frame.object_corners_lidar(), strict=True):
-        cv2.fillConvexPoly(
-            out, to_px(corners[[0, 1, 5, 4], :2]), tuple(int(c) for c in obj.color), cv2.LINE_AA, 4
-        )
+        cv2.fillConvexPoly(out, to_px(corners[[0, 1, 5, 4], :2]), tuple(int(c) for c in obj.color), cv2.LINE_AA, 4)
     e = frame.ego
     l, wd = e.size[0] / 2, e.size[1] / 2
     ego = np.array([[l, wd], [l, -wd], [-l, -wd], [-l, wd]])

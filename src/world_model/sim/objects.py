@@ -84,9 +84,7 @@ def face_colors(
     light = lighting.ambient + lighting.sun * np.maximum(normals @ sun_l, 0.0)
     if lighting.lamps > 0:
         dist_xy = np.maximum(np.hypot(centroids[:, 0], centroids[:, 1]), 1e-6)
-        facing = np.maximum(
-            -(normals[:, 0] * centroids[:, 0] + normals[:, 1] * centroids[:, 1]) / dist_xy, 0.0
-        )
+        facing = np.maximum(-(normals[:, 0] * centroids[:, 0] + normals[:, 1] * centroids[:, 1]) / dist_xy, 0.0)
         light = light + lighting.headlight(centroids[:, 0], centroids[:, 1]) * facing
     col = sm.albedo[faces] * light[:, None] * lighting.tint
     if lighting.lamps > 0:
@@ -159,9 +157,7 @@ def plan_objects(
 
     # Objects are painted far to near: distance from the camera to the closest point of the box.
     rel = ts[:, None, :] - poses.centre[None]  # (V, N, 3)
-    c_loc = np.stack(
-        [cy * rel[..., 0] + sy * rel[..., 1], -sy * rel[..., 0] + cy * rel[..., 1], rel[..., 2]], -1
-    )
+    c_loc = np.stack([cy * rel[..., 0] + sy * rel[..., 1], -sy * rel[..., 0] + cy * rel[..., 1], rel[..., 2]], -1)
     obj_dist = np.linalg.norm(c_loc - np.clip(c_loc, -poses.half, poses.half), axis=-1)  # (V, N)
     part_rank = _part_ranks(sm, pn, c_loc[pv, pn])
 
@@ -198,9 +194,7 @@ def plan_objects(
 
     # Only faces crossing the near plane need clipping; the others are padded to the same layout.
     uf, vf, ok = project(pts[inside], kview[k[inside]])
-    uf, vf = (
-        np.concatenate([a, np.repeat(a[:, -1:], CLIPPED_VERTS - MAX_FACE_VERTS, 1)], 1) for a in (uf, vf)
-    )
+    uf, vf = (np.concatenate([a, np.repeat(a[:, -1:], CLIPPED_VERTS - MAX_FACE_VERTS, 1)], 1) for a in (uf, vf))
     k_in = k[inside][ok]
     clipped, _ = clip_near(pts[crossing], near)
     uc, vc, ok = project(clipped, kview[k[crossing]])

@@ -63,9 +63,7 @@ def build_scene_mesh(frame: SceneFrame) -> SceneMesh:
     n = len(meshes)
     pmax = max((m.num_parts for m in meshes), default=1)
     roles_flag, roles_emit = emissive_table()
-    verts, vobj, faces, sizes, normals, cents, parents, fobj, fpart, alb, emit, ecol, obj_alb = (
-        [] for _ in range(13)
-    )
+    verts, vobj, faces, sizes, normals, cents, parents, fobj, fpart, alb, emit, ecol, obj_alb = ([] for _ in range(13))
     starts = [0]
     part_lo = np.zeros((n, pmax, 3))
     part_hi = np.zeros((n, pmax, 3))

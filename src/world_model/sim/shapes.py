@@ -166,9 +166,7 @@ def tree_truck(l: float, w: float, h: float) -> Mesh:
     mb = MeshBuilder()
     r, tread = 0.12 * h, 0.14 * w
     cab_len = 0.2 * l
-    top = _cab_and_chassis(
-        mb, l, w, h, r, tread, cab_len, -h / 2 + 0.72 * h, (0.38 * l, -0.25 * l, -0.38 * l)
-    )
+    top = _cab_and_chassis(mb, l, w, h, r, tread, cab_len, -h / 2 + 0.72 * h, (0.38 * l, -0.25 * l, -0.38 * l))
     bed_x1 = l / 2 - cab_len - 0.02 * l
     bed = mb.box((-l / 2, -w / 2, top), (bed_x1, w / 2, top + 0.06 * h), "trim")
     _lamps(mb, None, bed["back"], 0.2, 0.8)
@@ -190,9 +188,7 @@ def cement_mixer(l: float, w: float, h: float) -> Mesh:
     mb = MeshBuilder()
     r, tread = 0.13 * h, 0.14 * w
     cab_len = 0.22 * l
-    top = _cab_and_chassis(
-        mb, l, w, h, r, tread, cab_len, -h / 2 + 0.78 * h, (0.36 * l, -0.22 * l, -0.36 * l)
-    )
+    top = _cab_and_chassis(mb, l, w, h, r, tread, cab_len, -h / 2 + 0.78 * h, (0.36 * l, -0.22 * l, -0.36 * l))
     # The drum: an octagonal prism, rear end raised, kept inside the space behind the cab.
     tilt = math.radians(6.0)
     length = 0.68 * l

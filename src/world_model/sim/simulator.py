@@ -103,9 +103,7 @@ class ProceduralSimulator:
         )
 
     def _object_poses(self, frame: SceneFrame, spec: LidarSpec) -> ObjectPoses:
-        return self._poses.get(
-            (id(frame), spec.mount_height), (frame,), lambda: object_poses(frame, spec.mount_height)
-        )
+        return self._poses.get((id(frame), spec.mount_height), (frame,), lambda: object_poses(frame, spec.mount_height))
 
     def _scene_mesh(self, frame: SceneFrame) -> SceneMesh:
         return self._meshes.get(object_key(frame), (), lambda: build_scene_mesh(frame))
@@ -181,9 +179,7 @@ class ProceduralSimulator:
     def render_bev(self, frame: SceneFrame) -> np.ndarray:
         """(h, w, c) uint8 {0, 1} map raster around the ego, forward up, ego's left on the left."""
         _, _, bev = self._specs(frame)
-        return ground.render_bev(
-            frame.map, bev, frame.ego, self.config.lane_line_width_m, self.config.subpixel_bits
-        )
+        return ground.render_bev(frame.map, bev, frame.ego, self.config.lane_line_width_m, self.config.subpixel_bits)
 
     # -- geometry helpers -------------------------------------------------------------------
 
@@ -198,9 +194,7 @@ class ProceduralSimulator:
             raise IndexError(f"view {view} out of range for a rig of {rig.num_views} cameras")
         return rig.cameras[view]
 
-    def project(
-        self, frame: SceneFrame | None, view: int, points_lidar: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, frame: SceneFrame | None, view: int, points_lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pinhole projection of LiDAR-frame points (N, 3) into camera ``view``.
 
         Returns uv (N, 2) float64 in pixels (pixel (col, row) spans [col, col + 1) x [row, row + 1),
@@ -282,9 +276,7 @@ class ProceduralSimulator:
             cameras = self.render_cameras(frame)
         h, w = rig.resolution
         if cameras.dtype != np.uint8 or cameras.shape != (rig.num_views, h, w, 3):
-            raise ValueError(
-                f"cameras must be uint8 {(rig.num_views, h, w, 3)}, got {cameras.dtype} {cameras.shape}"
-            )
+            raise ValueError(f"cameras must be uint8 {(rig.num_views, h, w, 3)}, got {cameras.dtype} {cameras.shape}")
         cfg = self.config
         visible, silhouette = self.visible_pixels(frame)
         fraction = visible / np.maximum(silhouette, 1)

@@ -91,9 +91,7 @@ class MapTexture:
             if ln.kind == "none" or len(ln.points) < 2:
                 continue
             segs = (
-                [ln.points]
-                if ln.kind == "solid"
-                else dash_segments(ln.points, config.dash_length_m, config.dash_gap_m)
+                [ln.points] if ln.kind == "solid" else dash_segments(ln.points, config.dash_length_m, config.dash_gap_m)
             )
             self.prims += [(MARKING, np.asarray(s, dtype=np.float64), line_px) for s in segs]
         edge_px = max(1, round(config.road_edge_width_m / self.res))
