@@ -176,7 +176,8 @@ def test_vector_env_equals_single_envs_and_autoreset():
     assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
     singles = [make(scenario="merge_cut_in", config=cfg) for _ in range(n)]
     vobs, _ = venv.reset(seed=seed)
-    sobs = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    for i, env in enumerate(singles):
+        env.reset(seed=seed + i)
     rng = np.random.default_rng(0)
     for _ in range(4):
         actions = rng.uniform(-0.5, 0.5, size=(n, 2)).astype(np.float32)
@@ -198,13 +199,13 @@ def test_vector_env_autoreset_next_step():
         config={**SMALL, "observation_keys": ["state"]},
     )
     venv.reset(seed=0)
-    done_seen = False
+    ended = None
     for _ in range(400):
         _, rew, term, trunc, _ = venv.step(np.tile([1.0, 0.0], (2, 1)).astype(np.float32))
-        if done_seen:
+        if ended is not None:
             # the step after an episode ended is a reset: reward 0, flags False
-            assert rew[idx] == 0.0 and not term[idx] and not trunc[idx]
+            assert rew[ended] == 0.0 and not term[ended] and not trunc[ended]
             break
         if (term | trunc).any():
-            done_seen, idx = True, int(np.argmax(term | trunc))
-    assert done_seen
+            ended = int(np.argmax(term | trunc))
+    assert ended is not None

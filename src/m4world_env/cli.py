@@ -8,8 +8,10 @@ from pathlib import Path
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    import cv2
     import gymnasium as gym
     import imageio.v2 as imageio
+    import numpy as np
 
     import m4world_env  # noqa: F401  (registers M4World-v0)
     from m4world_env.evaluate import make_policy
@@ -23,11 +25,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     policy = make_policy(args.policy, env)  # after reset: same policy seed as `m4world eval` for this seed
     fps = env.metadata["render_fps"]
     steps = 0
-    with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=8) as writer:
-        writer.append_data(env.render())
+
+    def frame() -> np.ndarray:
+        img = env.render()
+        return cv2.resize(img, (img.shape[1] * args.scale, img.shape[0] * args.scale), interpolation=cv2.INTER_NEAREST)
+
+    with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
+        writer.append_data(frame())
         while True:
             obs, _r, terminated, truncated, info = env.step(policy(obs, info))
-            writer.append_data(env.render())
+            writer.append_data(frame())
             steps += 1
             if terminated or truncated or (args.steps and steps >= args.steps):
                 break
@@ -107,6 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--steps", type=int, default=0, help="stop after N steps (0 = the scenario's duration)")
     d.add_argument("--out", default="out/demo.mp4")
+    d.add_argument("--scale", type=int, default=3, help="integer upscaling of the mosaic in the video")
     d.set_defaults(func=_cmd_demo)
 
     r = sub.add_parser("record", help="record training clips (procedural sensors) from scenarios")

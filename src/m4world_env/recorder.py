@@ -14,7 +14,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from world_model.sim import ProceduralSimulator
 
 from m4world_env.policies import IDMAutopilot
 from m4world_env.scenario import Scenario, load_scenario, randomize_scenario
@@ -22,6 +21,7 @@ from m4world_env.traffic import TrafficBridge
 from world_model.data import clip_exists, write_clip
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
+from world_model.sim import ProceduralSimulator
 
 
 @dataclass
