@@ -10,12 +10,13 @@ env is a batch of one.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Protocol
 
-from world_model.sim import ProceduralSimulator
-
+from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
+from world_model.sim import ProceduralSimulator, SimConfig
 
 
 class SensorBackend(Protocol):
@@ -38,8 +39,16 @@ class ProceduralBackend:
     the state after the step; rendering intermediate frames would only cost time).
     """
 
-    def __init__(self, with_bev: bool = False, every_frame: bool = False) -> None:
-        self.sim = ProceduralSimulator()
+    def __init__(self, with_bev: bool = False, every_frame: bool = False, num_rollouts: int = 1) -> None:
+        # Each rollout has its own map (and maybe rig): keep every rollout's caches warm.
+        base = SimConfig()
+        self.sim = ProceduralSimulator(
+            config=replace(
+                base,
+                cache_size=max(base.cache_size, 2 * num_rollouts),
+                texture_cache_size=max(base.texture_cache_size, num_rollouts),
+            )
+        )
         self.with_bev = with_bev
         self.every_frame = every_frame
 
@@ -60,3 +69,19 @@ class ProceduralBackend:
             frames = chunk if self.every_frame else chunk[-1:]
             out.append([self.sim.render(f, with_bev=self.with_bev) for f in frames])
         return out
+
+
+def make_backend(
+    backend: str, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig
+) -> SensorBackend:
+    """The backend for ``num_rollouts`` rollouts (1 for a single env, N for the vector env)."""
+    if backend == "procedural":
+        if checkpoint is not None:
+            raise InvalidOptionError("checkpoint is only used by backend='world_model'")
+        return ProceduralBackend(with_bev=with_bev, num_rollouts=num_rollouts)
+    if backend == "world_model":
+        raise InvalidOptionError(
+            "backend='world_model' needs the causal student's streaming engine, which this version does not "
+            "ship yet; use backend='procedural'"
+        )
+    raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")

@@ -102,6 +102,14 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_gallery(args: argparse.Namespace) -> int:
+    from m4world_env.gallery import make_gallery
+
+    for path in make_gallery(args.out, seconds=args.seconds, height=args.height, width=args.width):
+        print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
     sub = p.add_subparsers(dest="command", required=True)
@@ -139,6 +147,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--out", default=None, help="write the JSON report here")
     e.set_defaults(func=_cmd_eval)
+
+    g = sub.add_parser("gallery", help="render PNG mosaics of scenarios under several weathers/times")
+    g.add_argument("--out", default="docs/images")
+    g.add_argument("--seconds", type=float, default=3.0)
+    g.add_argument("--height", type=int, default=128)
+    g.add_argument("--width", type=int, default=224)
+    g.set_defaults(func=_cmd_gallery)
 
     s = sub.add_parser("scenarios", help="list (or validate) scenarios")
     s.add_argument("--check", nargs="*", help="scenario files to validate")

@@ -15,7 +15,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import ResetNeeded
 
-from m4world_env.backends import ProceduralBackend, SensorBackend
+from m4world_env.backends import SensorBackend, make_backend
 from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError, UnknownOptionError
 from m4world_env.metrics import EpisodeMetrics
 from m4world_env.rewards import combine_reward, reward_terms
@@ -86,7 +86,9 @@ class M4WorldEnv(gym.Env):
         self.rig = default_rig(width=self.cfg.width, height=self.cfg.height)
         self.lidar_spec = LidarSpec()
         self.bev_spec = BevSpec()
-        self.backend: SensorBackend = shared_backend or self._make_backend(backend, checkpoint)
+        self.backend: SensorBackend = shared_backend or make_backend(
+            backend, checkpoint, num_rollouts=1, with_bev=self.needs_bev, config=self.cfg
+        )
         self.backend_index = backend_index
         self.bridge = TrafficBridge(
             self.scenario, action_type=self.cfg.action_type, rig=self.rig, lidar=self.lidar_spec, bev=self.bev_spec
@@ -101,16 +103,10 @@ class M4WorldEnv(gym.Env):
 
     # -- construction helpers --
 
-    def _make_backend(self, backend: str, checkpoint: str | None) -> SensorBackend:
-        if backend == "procedural":
-            if checkpoint is not None:
-                raise InvalidOptionError("checkpoint is only used by backend='world_model'")
-            needs_bev = "bev" in self.cfg.observation_keys or self.render_mode is not None
-            return ProceduralBackend(with_bev=needs_bev)
-        raise InvalidOptionError(
-            "backend='world_model' needs the causal student's streaming engine, which this version does not "
-            "ship yet; use backend='procedural'"
-        )
+    @property
+    def needs_bev(self) -> bool:
+        """Whether observations must carry the BEV raster (an observation key, or the render mosaic)."""
+        return "bev" in self.cfg.observation_keys or self.render_mode is not None
 
     @property
     def camera_names(self) -> tuple[str, ...]:

@@ -18,8 +18,10 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
+from m4world_env.backends import make_backend
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
+from m4world_env.scenario import Scenario, load_scenario
 
 
 class M4WorldVectorEnv(VectorEnv):
@@ -39,20 +41,16 @@ class M4WorldVectorEnv(VectorEnv):
             raise InvalidOptionError(f"unknown M4World vector env option(s) {sorted(kwargs)}")
         if num_envs < 1:
             raise InvalidOptionError(f"num_envs must be >= 1, got {num_envs}")
-        first = M4WorldEnv(scenario, backend, checkpoint, render_mode, config)
-        self.envs = [first] + [
-            M4WorldEnv(
-                first.scenario,
-                backend,
-                checkpoint,
-                render_mode,
-                first.cfg,
-                shared_backend=first.backend,
-                backend_index=i,
-            )
-            for i in range(1, num_envs)
+        cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
+        needs_bev = "bev" in cfg.observation_keys or render_mode is not None
+        self.backend = make_backend(backend, checkpoint, num_rollouts=num_envs, with_bev=needs_bev, config=cfg)
+        # One scenario object for all sub-envs (loaded once); each sub-env has its own traffic.
+        scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
+        self.envs = [
+            M4WorldEnv(scenario, backend, checkpoint, render_mode, cfg, shared_backend=self.backend, backend_index=i)
+            for i in range(num_envs)
         ]
-        self.backend = first.backend
+        first = self.envs[0]
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.metadata = {**first.metadata, "autoreset_mode": AutoresetMode.NEXT_STEP}

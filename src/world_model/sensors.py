@@ -6,6 +6,7 @@ These are plain, serializable dataclasses with every default visible.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -138,8 +139,31 @@ def default_rig(
 ) -> CameraRig:
     """The default 6-camera surround rig (nuScenes ring order), any resolution.
 
-    Cameras sit ``mount_offset`` from the LiDAR (slightly below it, as on a roof rack).
+    Cameras sit ``mount_offset`` from the LiDAR (slightly below it, as on a roof rack). Equal
+    arguments return the *same* (immutable) rig object, so identity-keyed caches downstream (the
+    simulator's per-rig precomputations) are shared by every env built with the same rig.
     """
+    return _default_rig(
+        int(width),
+        int(height),
+        tuple(names),
+        tuple(map(float, yaws_deg)),
+        tuple(map(float, hfovs_deg)),
+        tuple(map(float, mount_offset)),
+        float(pitch_deg),
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _default_rig(
+    width: int,
+    height: int,
+    names: tuple[str, ...],
+    yaws_deg: tuple[float, ...],
+    hfovs_deg: tuple[float, ...],
+    mount_offset: tuple[float, float, float],
+    pitch_deg: float,
+) -> CameraRig:
     if not (len(names) == len(yaws_deg) == len(hfovs_deg)):
         raise ValueError("names, yaws_deg and hfovs_deg must have the same length")
     if len(set(names)) != len(names):
@@ -148,6 +172,9 @@ def default_rig(
         make_camera(n, y, f, width, height, position=mount_offset, pitch_deg=pitch_deg)
         for n, y, f in zip(names, yaws_deg, hfovs_deg, strict=True)
     )
+    for cam in cams:  # shared instance: make it immutable
+        for arr in (cam.K, cam.R, cam.t):
+            arr.setflags(write=False)
     return CameraRig(cameras=cams)
 
 
