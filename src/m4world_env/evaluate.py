@@ -92,7 +92,7 @@ def aggregate(episodes: Sequence[dict[str, float]]) -> dict[str, float]:
 
 
 def evaluate(
-    policy: str,
+    policy: str | Callable,
     scenarios: Sequence[str],
     episodes: int = 1,
     seed: int = 0,
@@ -102,7 +102,11 @@ def evaluate(
     max_steps: int | None = None,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run ``policy`` for ``episodes`` episodes on each scenario. Seeds: ``seed + episode``."""
+    """Run ``policy`` for ``episodes`` episodes on each scenario. Seeds: ``seed + episode``.
+
+    ``policy`` is a spec for :func:`make_policy`, or a callable: a factory taking the env and
+    returning ``policy(obs, info) -> action``, or such a policy itself.
+    """
     import gymnasium as gym
     from tqdm import tqdm
 
@@ -111,7 +115,10 @@ def evaluate(
     for name in scenarios:
         scenario = load_scenario(name)
         env = gym.make("M4World-v0", scenario=scenario, backend=backend, checkpoint=checkpoint, config=config)
-        custom = None if policy in BUILTIN_POLICIES else make_policy(policy, env)
+        if callable(policy):
+            custom = policy(env) if list(inspect.signature(policy).parameters) == ["env"] else policy
+        else:
+            custom = None if policy in BUILTIN_POLICIES else make_policy(policy, env)
         eps = []
         for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress):
             metrics = run_episode(env, custom or policy, seed=seed + e, max_steps=max_steps)
@@ -120,7 +127,7 @@ def evaluate(
         env.close()
         per_scenario[scenario.name] = aggregate(eps)
     return {
-        "policy": policy,
+        "policy": policy if isinstance(policy, str) else getattr(policy, "__qualname__", repr(policy)),
         "backend": backend,
         "seed": seed,
         "per_scenario": per_scenario,
