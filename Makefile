@@ -23,7 +23,7 @@ demo: install
 	$(VENV)/bin/m4world demo
 
 test: install
-	$(PY) -m pytest -n 2 --dist loadfile tests
+	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 lint: install
 	$(VENV)/bin/ruff check src tests benchmarks examples
