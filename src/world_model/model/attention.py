@@ -41,7 +41,7 @@ def cross_view_mask(adjacency: torch.Tensor, tokens_per_view: int) -> torch.Tens
 
 
 class RMSNorm(nn.Module):
-    """RMSNorm computing in the input's dtype (bf16 under autocast keeps the fused path)."""
+    """RMSNorm over the last dim, computed in float32: the bf16 CPU kernel is many times slower."""
 
     def __init__(self, dim: int, eps: float) -> None:
         super().__init__()
@@ -49,12 +49,15 @@ class RMSNorm(nn.Module):
         self.weight = nn.Parameter(torch.ones(dim))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.rms_norm(x, (x.shape[-1],), self.weight.to(x.dtype), self.eps)
+        return F.rms_norm(x.float(), (x.shape[-1],), self.weight.float(), self.eps).to(x.dtype)
 
 
-def _heads(x: torch.Tensor, heads: int) -> torch.Tensor:
-    """(..., S, D) -> (..., H, S, D/H)."""
-    return x.unflatten(-1, (heads, -1)).transpose(-3, -2)
+def _heads(x: torch.Tensor, heads: int, norm: nn.Module | None = None) -> torch.Tensor:
+    """(..., S, D) -> (..., H, S, D/H), normalizing each head first (on the contiguous layout)."""
+    x = x.unflatten(-1, (heads, -1))
+    if norm is not None:
+        x = norm(x)
+    return x.transpose(-3, -2)
 
 
 def _merge(x: torch.Tensor) -> torch.Tensor:
@@ -86,8 +89,8 @@ class SelfAttention(nn.Module):
         """x (N, S, D); cos/sin (S, head_dim/2); mask (S, Sc+S) or None (full);
         context keys/values (N, H, Sc, head_dim). Returns output (N, S, D) and this call's own
         (k, v) (N, H, S, head_dim), already rotated, ready to be cached."""
-        q = apply_rope(self.q_norm(_heads(self.q(x), self.heads)), cos, sin)
-        k = apply_rope(self.k_norm(_heads(self.k(x), self.heads)), cos, sin)
+        q = apply_rope(_heads(self.q(x), self.heads, self.q_norm), cos, sin)
+        k = apply_rope(_heads(self.k(x), self.heads, self.k_norm), cos, sin)
         v = _heads(self.v(x), self.heads)
         k_all, v_all = k, v
         if context is not None:
@@ -112,11 +115,11 @@ class CrossAttention(nn.Module):
 
     def kv(self, ctx: torch.Tensor) -> KV:
         """ctx (..., Sc, ctx_dim) -> keys, values (..., H, Sc, head_dim)."""
-        return self.k_norm(_heads(self.k(ctx), self.heads)), _heads(self.v(ctx), self.heads)
+        return _heads(self.k(ctx), self.heads, self.k_norm), _heads(self.v(ctx), self.heads)
 
     def attend(self, x: torch.Tensor, kv: KV, mask: torch.Tensor | None) -> torch.Tensor:
         """x (N, S, D), kv (N, H, Sc, hd), mask broadcastable to (N, H, S, Sc) -> (N, S, D)."""
-        q = self.q_norm(_heads(self.q(x), self.heads))
+        q = _heads(self.q(x), self.heads, self.q_norm)
         k, v = kv
         out = F.scaled_dot_product_attention(q, k.to(q.dtype), v.to(q.dtype), attn_mask=mask)
         return self.o(_merge(out))

@@ -49,8 +49,23 @@ class _Run:
     sin: torch.Tensor
     self_mask: torch.Tensor | None
     tokens: ControlTokens
-    control_mask: torch.Tensor  # (B*V*T, 1, 1, 1+Nf)
+    control_keys: torch.Tensor  # (B, V + T*Nf, Dc): sensor tokens, then per-frame control tokens
+    control_mask: torch.Tensor  # (B, 1, V*T*N, V + T*Nf)
     view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
+
+
+def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Control keys (B, V + T*Nf, Dc) and their mask (B, 1, V*T*N, V + T*Nf) for queries laid
+    out (view, frame, token)."""
+    b, t, nf, _ = tokens.frame.shape
+    v = tokens.sensor.shape[1]
+    keys = torch.cat([tokens.sensor, tokens.frame.flatten(1, 2)], dim=1)
+    dev = tokens.frame.device
+    sensor_ok = torch.eye(v, dtype=torch.bool, device=dev)[:, None, :].expand(v, t, v)  # (V, T, V)
+    same_frame = torch.eye(t, dtype=torch.bool, device=dev).repeat_interleave(nf, dim=1)  # (T, T*Nf)
+    frame_ok = same_frame[None, None] & tokens.frame_mask.flatten(1, 2)[:, None, None]  # (B, 1, T, T*Nf)
+    mask = torch.cat([sensor_ok[None].expand(b, v, t, v), frame_ok.expand(b, v, t, t * nf)], dim=-1)
+    return keys, mask.repeat_interleave(n, dim=2).reshape(b, 1, v * t * n, v + t * nf)
 
 
 class TimestepEmbedding(nn.Module):
@@ -108,17 +123,10 @@ class DiTBlock(nn.Module):
         q = self.norm_text(x).reshape(b, v * t * n, -1)
         x = x + self.text_attn.attend(q, tk, run.tokens.text_mask[:, None, None]).view_as(x)
 
-        ks, vs = self.control_attn.kv(run.tokens.sensor[:, :, None])  # (B, V, H, 1, hd)
-        kf, vf = self.control_attn.kv(run.tokens.frame)  # (B, T, H, Nf, hd)
-        hh, nf, hd = kf.shape[2], kf.shape[3], kf.shape[4]
-
-        def join(s: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
-            s = s[:, :, None].expand(b, v, t, hh, 1, hd)
-            f = f[:, None].expand(b, v, t, hh, nf, hd)
-            return torch.cat([s, f], dim=-2).reshape(b * v * t, hh, 1 + nf, hd)
-
-        q = self.norm_control(x).reshape(b * v * t, n, -1)
-        x = x + self.control_attn.attend(q, (join(ks, kf), join(vs, vf)), run.control_mask).view_as(x)
+        # Keys: the V sensor tokens then every frame's controls; the mask lets a token of view v,
+        # frame f see sensor v and the controls of frame f only (one attention call, no copies).
+        q = self.norm_control(x).reshape(b, v * t * n, -1)
+        x = x + self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask).view_as(x)
 
         if self.cross_view is not None:
             hv = self._per_frame(self.norm_view(x), run).transpose(1, 2).reshape(b * t, v * n, -1)
@@ -126,7 +134,7 @@ class DiTBlock(nn.Module):
             x = x + out.view(b, t, v, n, -1).transpose(1, 2).reshape_as(x)
 
         h = (self._per_frame(self.norm2(x), run) * (1 + scale2) + shift2).view_as(x)
-        h = self.fc2(F.gelu(self.fc1(h), approximate="tanh"))
+        h = self.fc2(F.gelu(self.fc1(h)))
         x = x + (self._per_frame(h, run) * gate2).view_as(x)
         return x, kv
 
@@ -152,8 +160,13 @@ class MultiViewDiT(nn.Module):
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
+    def _autocast(self, device_type: str) -> torch.autocast:
+        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
+
     def tokenize(self, cond: Conditions) -> ControlTokens:
-        return self.tokenizer(cond)
+        """Control tokens for ``cond``; pass them to :meth:`forward` to reuse across denoising steps."""
+        with self._autocast(cond.ego.device.type):
+            return self.tokenizer(cond)
 
     def _check(self, x: torch.Tensor) -> None:
         cfg = self.cfg
@@ -196,8 +209,7 @@ class MultiViewDiT(nn.Module):
             raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
         if kv_context is not None and len(kv_context) != len(self.blocks):
             raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}")
-        enabled = cfg.dit.autocast_bf16
-        with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=enabled):
+        with self._autocast(x.device.type):
             tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
             if tokens.frame.shape[1] != t_len:
                 raise ValueError(f"conditions have {tokens.frame.shape[1]} frames, latents {t_len}")
@@ -216,11 +228,9 @@ class MultiViewDiT(nn.Module):
             self_mask = None
             if causal:
                 self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device)
-            ones = torch.ones(b, t_len, 1, dtype=torch.bool, device=x.device)
-            control_mask = torch.cat([ones, tokens.frame_mask], dim=-1)[:, None].expand(b, v, t_len, -1)
+            control_keys, control_mask = _control_keys(tokens, n)
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
-            run = _Run(b, v, t_len, n, mod, cos, sin, self_mask, tokens,
-                       control_mask.reshape(b * v * t_len, 1, 1, -1),
+            run = _Run(b, v, t_len, n, mod, cos, sin, self_mask, tokens, control_keys, control_mask,
                        view_mask.reshape(b * t_len, 1, v * n, v * n))
             kvs: list[KV] = []
             for i, block in enumerate(self.blocks):

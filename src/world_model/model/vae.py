@@ -170,7 +170,9 @@ def kl_loss(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 
 def cameras_to_images(cameras: np.ndarray | torch.Tensor) -> torch.Tensor:
     """uint8 (..., H, W, 3) -> float32 (..., 3, H, W) in [-1, 1]."""
-    x = torch.as_tensor(np.asarray(cameras))
+    if isinstance(cameras, np.ndarray) and not cameras.flags.writeable:
+        cameras = np.array(cameras)  # memory-mapped clips are read-only; torch wants writable memory
+    x = torch.as_tensor(cameras)
     if x.dtype != torch.uint8 or x.shape[-1] != 3:
         raise ValueError(f"cameras must be uint8 (..., H, W, 3), got {x.dtype} {tuple(x.shape)}")
     return x.movedim(-1, -3).float() / 127.5 - 1.0
