@@ -80,3 +80,27 @@ def make_dataset(root: str | Path, cfg: ModelConfig, lengths: tuple[int, ...] = 
         crops = {f"car{k}": np.full((12, 10, 3), 40 * k + 20, np.uint8) for k in range(2)}
         write_clip(root, f"clip{i:02d}", frames, cams, lidar, bev, crops=crops)
     return root
+
+
+def tiny_conditions(cfg: ModelConfig, num_frames: int, batch: int = 1, num_objects: int = 3):
+    """Conditions (hash text encoder, no image encoder) for synthetic frames."""
+    from world_model.model import Conditions, build_condition_arrays, make_text_encoder
+
+    enc = make_text_encoder(cfg.text)
+    items = []
+    for b in range(batch):
+        frames = make_frames(cfg, num_frames, num_objects=num_objects, seed=b)
+        _, _, bev = make_sensors(cfg, num_frames)
+        items.append(build_condition_arrays(frames, bev, cfg, enc))
+    return Conditions.collate(items)
+
+
+def perturbed(module, seed: int = 0, scale: float = 0.2):
+    """Add noise to every parameter: zero-initialized gates/heads would make outputs trivially constant."""
+    import torch
+
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in module.parameters():
+            p.add_(scale * torch.randn(p.shape, generator=gen))
+    return module.eval()

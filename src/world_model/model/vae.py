@@ -196,7 +196,7 @@ def lidar_to_images(ranges: np.ndarray | torch.Tensor, cfg: ModelConfig) -> torc
     x = x.reshape(-1, 1, *x.shape[-2:])
     # Antialiased bilinear: azimuth is decimated (1024 -> 112) while beams are upsampled (32 -> 64).
     x = F.interpolate(x, size=(cfg.sensors.height, cfg.sensors.width), mode="bilinear", antialias=True,
-                      align_corners=False)
+                      align_corners=False).clamp(-1.0, 1.0)
     return x.expand(-1, 3, -1, -1).reshape(*lead, 3, cfg.sensors.height, cfg.sensors.width).contiguous()
 
 
