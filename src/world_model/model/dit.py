@@ -68,6 +68,19 @@ def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Te
     return keys, mask.repeat_interleave(n, dim=2).reshape(b, 1, v * t * n, v + t * nf)
 
 
+def _sincos_2d(dim: int, rows: int, cols: int) -> torch.Tensor:
+    """(rows * cols, dim) fixed sin-cos embedding; half the channels for rows, half for columns."""
+    quarter = dim // 4
+    freqs = 1.0 / 10000.0 ** (torch.arange(quarter, dtype=torch.float64) / quarter)
+    r = torch.arange(rows, dtype=torch.float64)[:, None] * freqs
+    c = torch.arange(cols, dtype=torch.float64)[:, None] * freqs
+    emb = torch.cat([
+        torch.cat([r.sin(), r.cos()], dim=1)[:, None].expand(rows, cols, -1),
+        torch.cat([c.sin(), c.cos()], dim=1)[None].expand(rows, cols, -1),
+    ], dim=-1).reshape(rows * cols, -1)
+    return F.pad(emb, (0, dim - emb.shape[1])).float()
+
+
 class TimestepEmbedding(nn.Module):
     def __init__(self, dim: int, freq_dim: int, scale: float) -> None:
         super().__init__()
@@ -149,6 +162,10 @@ class MultiViewDiT(nn.Module):
         self.tokenizer = ControlTokenizer(cfg)
         self.patch_in = nn.Linear((c + cfg.dit.in_channels_extra) * p * p, d)
         self.view_type = nn.Parameter(torch.zeros(2, d))  # camera, LiDAR
+        # Fixed 2-D sin-cos embedding of (row, col): RoPE alone is relative, and a view's layout
+        # (sky on top, road below, LiDAR beams by elevation) is absolute. Frames get no absolute
+        # embedding so a streaming rollout is shift-invariant in time.
+        self.register_buffer("spatial_embed", _sincos_2d(d, *cfg.token_hw), persistent=False)
         self.time_embed = TimestepEmbedding(d, cfg.dit.timestep_freq_dim, cfg.dit.timestep_scale)
         self.time_proj = nn.Linear(d, MODULATIONS * d)
         self.blocks = nn.ModuleList(DiTBlock(cfg, i in cfg.cross_view_blocks) for i in range(cfg.dit.depth))
@@ -218,7 +235,8 @@ class MultiViewDiT(nn.Module):
             h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)
             view_type = torch.zeros(v, dtype=torch.long, device=x.device)
             view_type[cfg.sensors.lidar_view] = 1
-            h = (self.patch_in(h) + self.view_type[view_type][None, :, None]).reshape(b * v, t_len * n, -1)
+            h = self.patch_in(h).view(b, v, t_len, n, -1) + self.spatial_embed.to(h.dtype)
+            h = (h + self.view_type[view_type][None, :, None, None]).reshape(b * v, t_len * n, -1)
 
             temb = self.time_embed(t)  # (B, T, D)
             mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
