@@ -31,12 +31,25 @@ def make_frames(cfg: ModelConfig, num_frames: int, num_objects: int = 3, seed: i
             )
             for i, (x0, y0) in enumerate(starts)
         )
-        frames.append(SceneFrame(time=0.1 * f, frame_index=f, ego=ego, objects=objs, map=MapGeometry(),
-                                 prompt=prompt, rig=rig, lidar=cfg.sensors.lidar, bev=cfg.sensors.bev))
+        frames.append(
+            SceneFrame(
+                time=0.1 * f,
+                frame_index=f,
+                ego=ego,
+                objects=objs,
+                map=MapGeometry(),
+                prompt=prompt,
+                rig=rig,
+                lidar=cfg.sensors.lidar,
+                bev=cfg.sensors.bev,
+            )
+        )
     return frames
 
 
-def make_sensors(cfg: ModelConfig, num_frames: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_sensors(
+    cfg: ModelConfig, num_frames: int, phase: float = 0.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """cameras uint8 (T, V, H, W, 3), lidar float16 (T, B, A) metres, bev uint8 (T, h, w, c).
 
     Cameras: sky/road split plus stripes that move with the frame index, tinted per view.
@@ -48,10 +61,12 @@ def make_sensors(cfg: ModelConfig, num_frames: int, phase: float = 0.0) -> tuple
     rows = np.arange(s.height)[None, None, :, None]
     cols = np.arange(s.width)[None, None, None, :]
     sky = rows < s.height // 2
-    stripes = (np.sin(2 * np.pi * (cols / 16.0 - 0.15 * t_idx + phase) + v_idx) > 0)
+    stripes = np.sin(2 * np.pi * (cols / 16.0 - 0.15 * t_idx + phase) + v_idx) > 0
     base = np.where(sky, 180, 60 + 80 * stripes)
     cams = np.stack([base + 10 * v_idx, base, np.where(sky, 230, base - 20 * v_idx % 40)], axis=-1)
-    cams = np.clip(np.broadcast_to(cams, (num_frames, s.num_cameras, s.height, s.width, 3)), 0, 255).astype(np.uint8)
+    cams = np.clip(np.broadcast_to(cams, (num_frames, s.num_cameras, s.height, s.width, 3)), 0, 255).astype(
+        np.uint8
+    )
 
     spec = s.lidar
     el = spec.elevations()[None, :, None]

@@ -24,7 +24,9 @@ def test_default_rig_cross_view_neighbours():
     adj = view_adjacency(rig)
     idx = {n: i for i, n in enumerate(rig.names)}
     lidar = rig.num_views
-    neighbours = {n: {rig.names[j] if j < lidar else "LIDAR" for j in np.flatnonzero(adj[i])} for n, i in idx.items()}
+    neighbours = {
+        n: {rig.names[j] if j < lidar else "LIDAR" for j in np.flatnonzero(adj[i])} for n, i in idx.items()
+    }
     assert neighbours["FRONT"] == {"FRONT_LEFT", "FRONT_RIGHT", "LIDAR"}
     assert neighbours["FRONT_LEFT"] == {"FRONT", "BACK_LEFT", "LIDAR"}
     assert neighbours["BACK"] == {"BACK_LEFT", "BACK_RIGHT", "LIDAR"}
@@ -60,8 +62,14 @@ def test_image_descriptions_from_crops_and_object_image():
     frames = make_frames(cfg, 1, num_objects=2)
     _, _, bev = make_sensors(cfg, 1)
     enc = VaeCropEncoder(SensorVAE(cfg))
-    arr = build_condition_arrays(frames, bev, cfg, HashTextEncoder(cfg.text.dim), enc,
-                                 crops={"car1": np.full((9, 7, 3), 200, np.uint8)})
+    arr = build_condition_arrays(
+        frames,
+        bev,
+        cfg,
+        HashTextEncoder(cfg.text.dim),
+        enc,
+        crops={"car1": np.full((9, 7, 3), 200, np.uint8)},
+    )
     assert arr.obj_has_image[0].sum() == 1 and arr.obj_image.shape[-1] == 2 * cfg.vae.latent_channels
     slot = int(np.flatnonzero(arr.obj_has_image[0])[0])
     car1 = [i for i, o in enumerate(frames[0].objects) if o.track_id == "car1"][0]
@@ -79,7 +87,15 @@ def test_object_tokens_ignore_order_and_padding():
     t = torch.tensor([0.4])
     base = model(x, t, cond)
     perm = torch.tensor([2, 0, 1, 3])  # 3 real objects, 1 padding slot
-    fields = ["obj_corners", "obj_category", "obj_text", "obj_image", "obj_mask", "obj_has_text", "obj_has_image"]
+    fields = [
+        "obj_corners",
+        "obj_category",
+        "obj_text",
+        "obj_image",
+        "obj_mask",
+        "obj_has_text",
+        "obj_has_image",
+    ]
     permuted = cond._map(lambda k, v: v[:, :, perm] if k in fields else v)
     assert torch.allclose(model(x, t, permuted), base, atol=1e-5)
     # Garbage in the padding slot changes nothing; neither does the object's own token change.
@@ -117,7 +133,9 @@ def test_object_text_falls_back_to_colour_and_category():
     frames = make_frames(cfg, 1, num_objects=1)
     obj = frames[0].objects[0]
     assert obj.description == ""
-    bare = SceneObject(track_id="x", category="cone", box=Box3D((90.0, 0.0, 0.4), (0.4, 0.4, 0.75), 0.0), color_name="")
+    bare = SceneObject(
+        track_id="x", category="cone", box=Box3D((90.0, 0.0, 0.4), (0.4, 0.4, 0.75), 0.0), color_name=""
+    )
     _, _, bev = make_sensors(cfg, 1)
     enc = HashTextEncoder(cfg.text.dim)
     arr = build_condition_arrays([frames[0].with_objects((obj, bare))], bev, cfg, enc)

@@ -16,8 +16,15 @@ STD = 0.25
 class VelocityMLP(nn.Module):
     def __init__(self, width: int = 128) -> None:
         super().__init__()
-        self.net = nn.Sequential(nn.Linear(2 + 16, width), nn.SiLU(), nn.Linear(width, width), nn.SiLU(),
-                                 nn.Linear(width, width), nn.SiLU(), nn.Linear(width, 2))
+        self.net = nn.Sequential(
+            nn.Linear(2 + 16, width),
+            nn.SiLU(),
+            nn.Linear(width, width),
+            nn.SiLU(),
+            nn.Linear(width, width),
+            nn.SiLU(),
+            nn.Linear(width, 2),
+        )
         self.register_buffer("freqs", torch.arange(1, 9).float() * torch.pi)
 
     def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -4,7 +4,14 @@ import numpy as np
 import torch
 from model_fixtures import make_sensors, tiny_conditions
 
-from world_model.model import Conditions, MultiViewDiT, SensorVAE, flow_matching_loss, get_preset, sample_timesteps
+from world_model.model import (
+    Conditions,
+    MultiViewDiT,
+    SensorVAE,
+    flow_matching_loss,
+    get_preset,
+    sample_timesteps,
+)
 
 LOSS_DROP_FACTOR = 4.0  # measured ~6 with these settings
 STEPS = 250
@@ -27,8 +34,9 @@ def test_tiny_dit_overfits_one_clip():
     for _ in range(STEPS):
         t = sample_timesteps((BATCH,), cfg.flow, gen)
         batch = x0.expand(BATCH, *x0.shape[1:])
-        loss = flow_matching_loss(lambda xt, tt: model(xt, tt, batch_cond), batch, t,
-                                  torch.randn(batch.shape, generator=gen))
+        loss = flow_matching_loss(
+            lambda xt, tt: model(xt, tt, batch_cond), batch, t, torch.randn(batch.shape, generator=gen)
+        )
         opt.zero_grad()
         loss.backward()
         opt.step()

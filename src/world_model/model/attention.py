@@ -21,7 +21,10 @@ KV = tuple[torch.Tensor, torch.Tensor]  # keys, values: (N, heads, S, head_dim)
 
 
 def block_causal_mask(
-    frames: int, tokens_per_frame: int, chunk_frames: int, context_frames: int = 0,
+    frames: int,
+    tokens_per_frame: int,
+    chunk_frames: int,
+    context_frames: int = 0,
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
     """(S, Sc + S) bool for S = frames * tokens_per_frame queries and Sc context tokens.

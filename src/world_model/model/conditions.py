@@ -97,8 +97,17 @@ class ConditionArrays:
     text_mask: np.ndarray
     view_adjacency: np.ndarray
 
-    TIME_FIELDS = ("ego", "bev", "obj_corners", "obj_category", "obj_text", "obj_image",
-                   "obj_mask", "obj_has_text", "obj_has_image")
+    TIME_FIELDS = (
+        "ego",
+        "bev",
+        "obj_corners",
+        "obj_category",
+        "obj_text",
+        "obj_image",
+        "obj_mask",
+        "obj_has_text",
+        "obj_has_image",
+    )
 
     @property
     def num_frames(self) -> int:
@@ -161,7 +170,9 @@ def build_condition_arrays(
             txt[f, idx] = text_encoder.pooled([descs[i] for i in idx])
             has_txt[f, idx] = True
         if image_encoder is not None:
-            pairs = [(i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)]
+            pairs = [
+                (i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)
+            ]
             pairs = [(i, c) for i, c in pairs if c is not None]
             if pairs:
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
@@ -222,8 +233,10 @@ class Conditions:
         """Stack sequences of equal length into a batch."""
         if len({it.num_frames for it in items}) != 1:
             raise ValueError("Conditions.collate needs sequences of equal length")
-        kw = {f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items]))
-              for f in fields(ConditionArrays)}
+        kw = {
+            f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items]))
+            for f in fields(ConditionArrays)
+        }
         kw["bev"] = kw["bev"].float()
         return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
 
@@ -244,4 +257,6 @@ class Conditions:
     @staticmethod
     def cat(items: Sequence[Conditions]) -> Conditions:
         """Concatenate along the batch (e.g. conditional + unconditional for guidance)."""
-        return Conditions(**{f.name: torch.cat([getattr(it, f.name) for it in items]) for f in fields(Conditions)})
+        return Conditions(
+            **{f.name: torch.cat([getattr(it, f.name) for it in items]) for f in fields(Conditions)}
+        )

@@ -156,7 +156,9 @@ class ModelConfig:
     def __post_init__(self) -> None:
         s, v, d, c = self.sensors, self.vae, self.dit, self.control
         if s.height % v.downsample or s.width % v.downsample:
-            raise ValueError(f"image {s.height}x{s.width} must be divisible by the VAE downsampling {v.downsample}")
+            raise ValueError(
+                f"image {s.height}x{s.width} must be divisible by the VAE downsampling {v.downsample}"
+            )
         if self.latent_hw[0] % d.patch or self.latent_hw[1] % d.patch:
             raise ValueError(f"latent grid {self.latent_hw} must be divisible by the DiT patch {d.patch}")
         if d.dim % d.heads or d.head_dim % 2:
@@ -258,7 +260,9 @@ def _gpu() -> ModelConfig:
     return ModelConfig(
         name="gpu",
         sensors=SensorConfig(num_cameras=6, height=224, width=400, bev=BevSpec(m_per_px=0.5)),
-        vae=VaeConfig(latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64),
+        vae=VaeConfig(
+            latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64
+        ),
         text=TextConfig(encoder="minilm", dim=384, max_tokens=128),
         control=ControlConfig(dim=1536, fourier_freqs=8, map_patch=8, max_objects=64, crop_size=64),
         dit=DitConfig(dim=1536, depth=30, heads=12, patch=2, autocast_bf16=True),

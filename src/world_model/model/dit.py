@@ -74,10 +74,13 @@ def _sincos_2d(dim: int, rows: int, cols: int) -> torch.Tensor:
     freqs = 1.0 / 10000.0 ** (torch.arange(quarter, dtype=torch.float64) / quarter)
     r = torch.arange(rows, dtype=torch.float64)[:, None] * freqs
     c = torch.arange(cols, dtype=torch.float64)[:, None] * freqs
-    emb = torch.cat([
-        torch.cat([r.sin(), r.cos()], dim=1)[:, None].expand(rows, cols, -1),
-        torch.cat([c.sin(), c.cos()], dim=1)[None].expand(rows, cols, -1),
-    ], dim=-1).reshape(rows * cols, -1)
+    emb = torch.cat(
+        [
+            torch.cat([r.sin(), r.cos()], dim=1)[:, None].expand(rows, cols, -1),
+            torch.cat([c.sin(), c.cos()], dim=1)[None].expand(rows, cols, -1),
+        ],
+        dim=-1,
+    ).reshape(rows * cols, -1)
     return F.pad(emb, (0, dim - emb.shape[1])).float()
 
 
@@ -139,7 +142,9 @@ class DiTBlock(nn.Module):
         # Keys: the V sensor tokens then every frame's controls; the mask lets a token of view v,
         # frame f see sensor v and the controls of frame f only (one attention call, no copies).
         q = self.norm_control(x).reshape(b, v * t * n, -1)
-        x = x + self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask).view_as(x)
+        x = x + self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask).view_as(
+            x
+        )
 
         if self.cross_view is not None:
             hv = self._per_frame(self.norm_view(x), run).transpose(1, 2).reshape(b * t, v * n, -1)
@@ -225,7 +230,9 @@ class MultiViewDiT(nn.Module):
         if t.shape != (b, t_len):
             raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
         if kv_context is not None and len(kv_context) != len(self.blocks):
-            raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}")
+            raise ValueError(
+                f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}"
+            )
         with self._autocast(x.device.type):
             tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
             if tokens.frame.shape[1] != t_len:
@@ -248,15 +255,27 @@ class MultiViewDiT(nn.Module):
                 self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device)
             control_keys, control_mask = _control_keys(tokens, n)
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
-            run = _Run(b, v, t_len, n, mod, cos, sin, self_mask, tokens, control_keys, control_mask,
-                       view_mask.reshape(b * t_len, 1, v * n, v * n))
+            run = _Run(
+                b,
+                v,
+                t_len,
+                n,
+                mod,
+                cos,
+                sin,
+                self_mask,
+                tokens,
+                control_keys,
+                control_mask,
+                view_mask.reshape(b * t_len, 1, v * n, v * n),
+            )
             kvs: list[KV] = []
             for i, block in enumerate(self.blocks):
                 h, kv = block(h, run, None if kv_context is None else kv_context[i])
                 if return_kv:
                     kvs.append(kv)
             shift, scale = self.out_mod(F.silu(temb))[:, None, :, None].chunk(2, dim=-1)
-            h = (self.norm_out(h).view(b, v, t_len, n, -1) * (1 + scale) + shift)
+            h = self.norm_out(h).view(b, v, t_len, n, -1) * (1 + scale) + shift
             out = self.head(h).float()  # (B, V, T, N, C*p*p)
         c = cfg.vae.latent_channels
         out = out.reshape(b, v, t_len, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)

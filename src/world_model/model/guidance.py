@@ -37,10 +37,20 @@ class AdaptiveProjectedGuidance:
     """Stateful (momentum) APG on denoised predictions; one instance per sampling run."""
 
     def __init__(
-        self, scale: float, eta: float = 0.0, norm_threshold: float = 0.0, momentum: float = 0.0,
+        self,
+        scale: float,
+        eta: float = 0.0,
+        norm_threshold: float = 0.0,
+        momentum: float = 0.0,
         dims: tuple[int, ...] = (-1, -2, -3),
     ) -> None:
-        self.scale, self.eta, self.norm_threshold, self.momentum, self.dims = scale, eta, norm_threshold, momentum, dims
+        self.scale, self.eta, self.norm_threshold, self.momentum, self.dims = (
+            scale,
+            eta,
+            norm_threshold,
+            momentum,
+            dims,
+        )
         self.running: torch.Tensor | None = None
 
     def reset(self) -> None:

@@ -72,10 +72,17 @@ class VaeCropEncoder(ImageDescriptionEncoder):
 
     @torch.no_grad()
     def _encode(self, crops: list[np.ndarray]) -> np.ndarray:
-        images = torch.stack([
-            F.interpolate(cameras_to_images(c)[None], size=(self.size, self.size), mode="bilinear",
-                          antialias=True, align_corners=False)[0]
-            for c in crops
-        ])
+        images = torch.stack(
+            [
+                F.interpolate(
+                    cameras_to_images(c)[None],
+                    size=(self.size, self.size),
+                    mode="bilinear",
+                    antialias=True,
+                    align_corners=False,
+                )[0]
+                for c in crops
+            ]
+        )
         z = self.vae.encode(images)  # (N, C, s/d, s/d)
         return torch.cat([z.mean(dim=(2, 3)), z.std(dim=(2, 3), unbiased=False)], dim=1).numpy()

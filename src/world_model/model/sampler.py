@@ -27,7 +27,11 @@ class GuidedVelocity:
     """velocity_fn(x_t (B, T, V, C, h, w), t (B,) or (B, T)) -> guided velocity, same shape as x_t."""
 
     def __init__(
-        self, model: MultiViewDiT, cond: Conditions, sampler: SamplerConfig | None = None, **forward_kwargs: Any
+        self,
+        model: MultiViewDiT,
+        cond: Conditions,
+        sampler: SamplerConfig | None = None,
+        **forward_kwargs: Any,
     ) -> None:
         self.model = model
         self.sampler = sampler or model.cfg.sampler
@@ -37,7 +41,9 @@ class GuidedVelocity:
         both = Conditions.cat([cond, cond.with_drop(True)]) if self.guided else cond
         self.tokens = model.tokenize(both)
         s = self.sampler
-        self.apg = AdaptiveProjectedGuidance(s.lidar_apg_scale, s.apg_eta, s.apg_norm_threshold, s.apg_momentum)
+        self.apg = AdaptiveProjectedGuidance(
+            s.lidar_apg_scale, s.apg_eta, s.apg_norm_threshold, s.apg_momentum
+        )
 
     def __call__(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         if not self.guided:
@@ -72,7 +78,9 @@ def sample_latents(
     was_training = model.training
     model.eval()
     try:
-        return euler_sample(GuidedVelocity(model, cond.to(device), sampler), noise, sampler.steps, cfg.flow.shift)
+        return euler_sample(
+            GuidedVelocity(model, cond.to(device), sampler), noise, sampler.steps, cfg.flow.shift
+        )
     finally:
         model.train(was_training)
 
@@ -88,16 +96,24 @@ def latents_to_observations(
     out = []
     for b in range(latents.shape[0]):
         cams, lidar = vae.decode_frames(latents[b], lidar_spec)
-        out.append([
-            Observation(cameras=cams[i], lidar=lidar[i], bev=None if bev is None else np.asarray(bev[b, i]))
-            for i in range(len(cams))
-        ])
+        out.append(
+            [
+                Observation(
+                    cameras=cams[i], lidar=lidar[i], bev=None if bev is None else np.asarray(bev[b, i])
+                )
+                for i in range(len(cams))
+            ]
+        )
     return out
 
 
 def generate(
-    model: MultiViewDiT, vae: SensorVAE, cond: Conditions, generator: torch.Generator | None = None,
-    sampler: SamplerConfig | None = None, lidar_spec: LidarSpec | None = None,
+    model: MultiViewDiT,
+    vae: SensorVAE,
+    cond: Conditions,
+    generator: torch.Generator | None = None,
+    sampler: SamplerConfig | None = None,
+    lidar_spec: LidarSpec | None = None,
 ) -> list[list[Observation]]:
     """Sample and decode: B lists of T :class:`~world_model.Observation`."""
     return latents_to_observations(vae, sample_latents(model, cond, generator, sampler), lidar_spec)

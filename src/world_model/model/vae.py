@@ -85,8 +85,12 @@ class Decoder(nn.Module):
         cin = chans[0]
         for c in chans:
             # One conv per level after nearest upsampling: the full-resolution levels dominate cost.
-            ups += [nn.Upsample(scale_factor=2.0, mode="nearest"), nn.Conv2d(cin, c, 3, padding=1),
-                    nn.GroupNorm(_groups(c), c), nn.SiLU()]
+            ups += [
+                nn.Upsample(scale_factor=2.0, mode="nearest"),
+                nn.Conv2d(cin, c, 3, padding=1),
+                nn.GroupNorm(_groups(c), c),
+                nn.SiLU(),
+            ]
             cin = c
         self.up = nn.Sequential(*ups)
         self.conv_out = nn.Conv2d(cin, cfg.image_channels, 3, padding=1)
@@ -140,19 +144,30 @@ class SensorVAE(nn.Module):
     def encode_frames(self, cameras: np.ndarray, lidar: np.ndarray, batch: int = 64) -> torch.Tensor:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) -> latents (T, V+1, C, h, w)."""
         t, v = cameras.shape[:2]
-        images = torch.cat([cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(
-            t, v, 3, *cameras.shape[2:4]), lidar_to_images(lidar, self.cfg)[:, None]], dim=1)
+        images = torch.cat(
+            [
+                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(
+                    t, v, 3, *cameras.shape[2:4]
+                ),
+                lidar_to_images(lidar, self.cfg)[:, None],
+            ],
+            dim=1,
+        )
         flat = images.flatten(0, 1)
         out = torch.cat([self.encode(flat[i : i + batch]) for i in range(0, len(flat), batch)])
         return out.reshape(t, v + 1, *out.shape[1:])
 
     @torch.no_grad()
-    def decode_frames(self, latents: torch.Tensor, lidar_spec: LidarSpec | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar float32 metres (T, beams, azimuth)."""
+    def decode_frames(
+        self, latents: torch.Tensor, lidar_spec: LidarSpec | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth)."""
         t, v1 = latents.shape[:2]
         images = self.decode(latents.flatten(0, 1).float()).reshape(t, v1, 3, *self.cfg_hw)
         cams = images_to_cameras(images[:, :-1])
-        lid = images_to_lidar(images[:, -1], lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction)
+        lid = images_to_lidar(
+            images[:, -1], lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
+        )
         return cams, lid
 
     @property
@@ -195,8 +210,9 @@ def lidar_to_images(ranges: np.ndarray | torch.Tensor, cfg: ModelConfig) -> torc
     lead = x.shape[:-2]
     x = x.reshape(-1, 1, *x.shape[-2:])
     # Antialiased bilinear: azimuth is decimated (1024 -> 112) while beams are upsampled (32 -> 64).
-    x = F.interpolate(x, size=(cfg.sensors.height, cfg.sensors.width), mode="bilinear", antialias=True,
-                      align_corners=False).clamp(-1.0, 1.0)
+    x = F.interpolate(
+        x, size=(cfg.sensors.height, cfg.sensors.width), mode="bilinear", antialias=True, align_corners=False
+    ).clamp(-1.0, 1.0)
     return x.expand(-1, 3, -1, -1).reshape(*lead, 3, cfg.sensors.height, cfg.sensors.width).contiguous()
 
 
@@ -204,8 +220,9 @@ def images_to_lidar(images: torch.Tensor, spec: LidarSpec, no_return_fraction: f
     """(..., 3, H, W) in [-1, 1] -> float32 metres (..., beams, azimuth), no-return restored."""
     x = images.float().mean(dim=-3)
     lead = x.shape[:-2]
-    x = F.interpolate(x.reshape(-1, 1, *x.shape[-2:]), size=(spec.beams, spec.azimuth), mode="bilinear",
-                      align_corners=False)
+    x = F.interpolate(
+        x.reshape(-1, 1, *x.shape[-2:]), size=(spec.beams, spec.azimuth), mode="bilinear", align_corners=False
+    )
     r = ((x.clamp(-1, 1) + 1.0) * 0.5 * spec.max_range).reshape(*lead, spec.beams, spec.azimuth)
     r = torch.where(r >= no_return_fraction * spec.max_range, torch.full_like(r, spec.no_return), r)
     return r.cpu().numpy().astype(np.float32)

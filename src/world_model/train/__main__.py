@@ -1,4 +1,6 @@
-"""CLI: ``python -m world_model.train --stage {vae,teacher} --data DIR --run RUN_DIR --preset tiny|default [--steps N]``.
+"""CLI: train one stage of the world model.
+
+``python -m world_model.train --stage {vae,teacher} --data DIR --run RUN --preset tiny|default [--steps N]``
 
 Rerunning the same command resumes from the stage's last checkpoint.
 """
@@ -28,8 +30,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     try:
-        out = train_stage(a.stage, a.data, a.run, preset=a.preset, steps=a.steps, batch_size=a.batch_size,
-                          lr=a.lr, ckpt_every=a.ckpt_every, seed=a.seed, progress=not a.no_progress)
+        out = train_stage(
+            a.stage,
+            a.data,
+            a.run,
+            preset=a.preset,
+            steps=a.steps,
+            batch_size=a.batch_size,
+            lr=a.lr,
+            ckpt_every=a.ckpt_every,
+            seed=a.seed,
+            progress=not a.no_progress,
+        )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -92,8 +92,12 @@ class LatentWindows:
     """Windows of cached latents with their conditions, at mixed lengths (``clip.train_frames``)."""
 
     def __init__(
-        self, clips: list[Clip], latents: list[torch.Tensor], cfg: ModelConfig,
-        text_encoder: TextEncoder, image_encoder: ImageDescriptionEncoder | None,
+        self,
+        clips: list[Clip],
+        latents: list[torch.Tensor],
+        cfg: ModelConfig,
+        text_encoder: TextEncoder,
+        image_encoder: ImageDescriptionEncoder | None,
     ) -> None:
         self.clips, self.latents, self.cfg = clips, latents, cfg
         self.arrays: list[ConditionArrays] = [

@@ -73,21 +73,32 @@ def _stage_config(stage_dir: Path, preset: str, config: ModelConfig | None) -> M
     if saved.exists():
         prev = ModelConfig.from_dict(json.loads(saved.read_text()))
         if prev != cfg:
-            raise ValueError(f"{stage_dir} was started with preset {prev.name!r} and a different config; "
-                             "use the same preset to resume, or a new run directory")
+            raise ValueError(
+                f"{stage_dir} was started with preset {prev.name!r} and a different config; "
+                "use the same preset to resume, or a new run directory"
+            )
     else:
         stage_dir.mkdir(parents=True, exist_ok=True)
         write_json_atomic(saved, cfg.to_dict())
     return cfg
 
 
-def _train_config(stage: str, cfg: ModelConfig, steps: int | None, batch_size: int | None, lr: float | None,
-                  ckpt_every: int | None, seed: int) -> TrainConfig:
+def _train_config(
+    stage: str,
+    cfg: ModelConfig,
+    steps: int | None,
+    batch_size: int | None,
+    lr: float | None,
+    ckpt_every: int | None,
+    seed: int,
+) -> TrainConfig:
     b, l, every = STAGE_DEFAULTS[stage]
     n = steps if steps is not None else DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"])
     if n < 1:
         raise ValueError(f"steps must be >= 1, got {n}")
-    return TrainConfig(steps=n, batch_size=batch_size or b, lr=lr or l, ckpt_every=ckpt_every or every, seed=seed)
+    return TrainConfig(
+        steps=n, batch_size=batch_size or b, lr=lr or l, ckpt_every=ckpt_every or every, seed=seed
+    )
 
 
 # -- vae ---------------------------------------------------------------------------------------
@@ -114,8 +125,11 @@ def vae_metrics(vae: SensorVAE, sampler: FrameSampler) -> dict[str, float]:
         nr_ok += int(((pred > spec.no_return) == ret).sum())
         n_all += truth.size
     mse = se / max(count, 1)
-    return {"camera_psnr_db": 10 * math.log10(255.0**2 / max(mse, 1e-10)),
-            "lidar_range_mae_m": abs_err / max(n_ret, 1), "lidar_return_accuracy": nr_ok / max(n_all, 1)}
+    return {
+        "camera_psnr_db": 10 * math.log10(255.0**2 / max(mse, 1e-10)),
+        "lidar_range_mae_m": abs_err / max(n_ret, 1),
+        "lidar_return_accuracy": nr_ok / max(n_all, 1),
+    }
 
 
 def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainConfig, progress: bool) -> dict:
@@ -140,8 +154,11 @@ def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainCon
     final.set_latent_stats(sampler.sample(stats_rng, STATS_FRAMES)[0])
     final.eval()
     metrics = vae_metrics(final, sampler)
-    export_weights(stage_dir / EXPORT, final.state_dict(),
-                   {"stage": "vae", "step": trainer.step, "model_config": cfg.to_dict(), "metrics": metrics})
+    export_weights(
+        stage_dir / EXPORT,
+        final.state_dict(),
+        {"stage": "vae", "step": trainer.step, "model_config": cfg.to_dict(), "metrics": metrics},
+    )
     write_json_atomic(stage_dir / "metrics.json", {"step": trainer.step, **metrics})
     return {**summary, "metrics": metrics}
 
@@ -149,14 +166,20 @@ def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainCon
 # -- teacher -----------------------------------------------------------------------------------
 
 
-def _teacher_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainConfig, progress: bool) -> dict:
+def _teacher_stage(
+    data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainConfig, progress: bool
+) -> dict:
     vae_path = stage_dir.parent / "vae" / EXPORT
     if not vae_path.with_suffix(".safetensors").exists():
-        raise FileNotFoundError(f"the teacher stage needs a trained VAE at {vae_path}.safetensors; "
-                                "run --stage vae with the same --run first")
+        raise FileNotFoundError(
+            f"the teacher stage needs a trained VAE at {vae_path}.safetensors; "
+            "run --stage vae with the same --run first"
+        )
     vae = load_vae(vae_path)
     if vae.cfg.vae != cfg.vae or vae.cfg.sensors != cfg.sensors:
-        raise ValueError(f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
+        raise ValueError(
+            f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}"
+        )
     clips = load_clips(data_dir, cfg)
     digest = file_digest(vae_path.with_suffix(".safetensors"))
     latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]
@@ -175,8 +198,11 @@ def _teacher_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: Trai
         return loss, b * x0.shape[1]
 
     summary = trainer.run(step, "teacher")
-    export_weights(stage_dir / EXPORT, trainer.ema.model_state(model),
-                   {"stage": "teacher", "step": trainer.step, "model_config": cfg.to_dict()})
+    export_weights(
+        stage_dir / EXPORT,
+        trainer.ema.model_state(model),
+        {"stage": "teacher", "step": trainer.step, "model_config": cfg.to_dict()},
+    )
     return summary
 
 

@@ -45,7 +45,9 @@ StepFn = Callable[["Trainer"], tuple[torch.Tensor, int]]
 
 
 class Trainer:
-    def __init__(self, stage_dir: Path, model: nn.Module, tcfg: TrainConfig, meta: dict, progress: bool = True):
+    def __init__(
+        self, stage_dir: Path, model: nn.Module, tcfg: TrainConfig, meta: dict, progress: bool = True
+    ):
         self.dir = Path(stage_dir)
         self.ckpt_dir = self.dir / "checkpoints"
         self.model = model
@@ -76,13 +78,20 @@ class Trainer:
         return True
 
     def save(self) -> Path:
-        meta = {**self.meta, "numpy_rng": self.rng.bit_generator.state, "ema_updates": self.ema.updates,
-                "loss": self.last_loss, "train_config": asdict(self.tcfg)}
+        meta = {
+            **self.meta,
+            "numpy_rng": self.rng.bit_generator.state,
+            "ema_updates": self.ema.updates,
+            "loss": self.last_loss,
+            "train_config": asdict(self.tcfg),
+        }
         return save_checkpoint(
-            self.ckpt_dir, self.step,
+            self.ckpt_dir,
+            self.step,
             {"model": self.model.state_dict(), "ema": self.ema.state_dict()},
             {"optimizer": self.opt.state_dict(), "torch_rng": self.gen.get_state()},
-            meta, keep=self.tcfg.keep_checkpoints,
+            meta,
+            keep=self.tcfg.keep_checkpoints,
         )
 
     def _lr(self) -> float:
@@ -95,8 +104,14 @@ class Trainer:
         self.model.train()
         losses: list[float] = []
         samples, t0 = 0, time.perf_counter()
-        bar = tqdm(total=self.tcfg.steps, initial=self.step, desc=desc, disable=not self.progress,
-                   dynamic_ncols=True, leave=False)
+        bar = tqdm(
+            total=self.tcfg.steps,
+            initial=self.step,
+            desc=desc,
+            disable=not self.progress,
+            dynamic_ncols=True,
+            leave=False,
+        )
         try:
             while self.step < self.tcfg.steps:
                 for group in self.opt.param_groups:
@@ -105,8 +120,8 @@ class Trainer:
                 value = float(loss.detach())
                 if not math.isfinite(value):
                     raise TrainingDivergedError(
-                        f"{desc}: loss is {value} at step {self.step + 1}; the last good checkpoint is kept in "
-                        f"{self.ckpt_dir} (step {self.resumed_from if self.step == 0 else self.step}). "
+                        f"{desc}: loss is {value} at step {self.step + 1}; the last good checkpoint "
+                        f"(if any) is kept in {self.ckpt_dir}. "
                         "Lower the learning rate or check the data, then rerun the same command to resume."
                     )
                 self.opt.zero_grad(set_to_none=True)
@@ -127,5 +142,10 @@ class Trainer:
         finally:
             bar.close()
         elapsed = time.perf_counter() - t0
-        return {"step": self.step, "losses": losses, "resumed_from": self.resumed_from,
-                "samples_per_s": samples / elapsed if losses else 0.0, "final_loss": self.last_loss}
+        return {
+            "step": self.step,
+            "losses": losses,
+            "resumed_from": self.resumed_from,
+            "samples_per_s": samples / elapsed if losses else 0.0,
+            "final_loss": self.last_loss,
+        }
