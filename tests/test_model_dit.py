@@ -107,3 +107,19 @@ def test_deterministic_given_seed():
     cond = tiny_conditions(cfg, 2)
     x = torch.randn(1, *cfg.latent_shape(2), generator=torch.Generator().manual_seed(1))
     assert torch.equal(a(x, torch.tensor([0.3]), cond), b(x, torch.tensor([0.3]), cond))
+
+
+def test_analytic_flops_match_torch_flop_counter():
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from world_model.model.flops import dit_forward_flops
+
+    cfg = get_preset("tiny")
+    model = MultiViewDiT(cfg).eval()
+    cond = tiny_conditions(cfg, 2, batch=2)
+    tokens = model.tokenize(cond)
+    x = torch.randn(2, *cfg.latent_shape(2))
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model(x, torch.rand(2), tokens)
+    # torch counts the linear layers on CPU (not SDPA): they must agree exactly.
+    assert counter.get_total_flops() == dit_forward_flops(cfg, batch=2, frames=2)["linear"]

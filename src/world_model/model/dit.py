@@ -242,7 +242,8 @@ class MultiViewDiT(nn.Module):
             h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)
             view_type = torch.zeros(v, dtype=torch.long, device=x.device)
             view_type[cfg.sensors.lidar_view] = 1
-            h = self.patch_in(h).view(b, v, t_len, n, -1) + self.spatial_embed.to(h.dtype)
+            h = self.patch_in(h.to(self.patch_in.weight.dtype)).view(b, v, t_len, n, -1)
+            h = h + self.spatial_embed.to(h.dtype)
             h = (h + self.view_type[view_type][None, :, None, None]).reshape(b * v, t_len * n, -1)
 
             temb = self.time_embed(t)  # (B, T, D)
