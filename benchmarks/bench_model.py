@@ -110,10 +110,21 @@ def main() -> None:
     a = p.parse_args()
     peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
     rows = [bench_config(get_preset(name), a.repeats, peaks) for name in a.presets]
-    print(f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
-          f"({torch.get_num_threads()} threads)")
-    cols = ["preset", "dtype", "dit_params_m", "forward_gflop", "forward_s", "achieved_gflops",
-            "fraction_of_peak", "vae_decode_ms_per_frame", "env_step_estimate_s"]
+    print(
+        f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
+        f"({torch.get_num_threads()} threads)"
+    )
+    cols = [
+        "preset",
+        "dtype",
+        "dit_params_m",
+        "forward_gflop",
+        "forward_s",
+        "achieved_gflops",
+        "fraction_of_peak",
+        "vae_decode_ms_per_frame",
+        "env_step_estimate_s",
+    ]
     print(" | ".join(cols))
     for r in rows:
         print(" | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols))

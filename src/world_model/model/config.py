@@ -54,7 +54,7 @@ class VaeConfig:
     latent_channels: int = 8
     channel_mults: tuple[int, ...] = (1, 2, 4)  # one stride-2 level each: 8x downsampling
     base_channels: int = 16
-    decoder_base_channels: int = 16
+    decoder_base_channels: int = 12  # decoding 8 envs x 7 views x 2 frames per env step must stay cheap
     kl_weight: float = 1e-6  # small: the latent only needs to be smooth, not a prior match
     lidar_loss_weight: float = 1.0
     lidar_no_return_fraction: float = 0.97  # decoded ranges >= this * max_range read as "no return"

@@ -252,7 +252,7 @@ class MultiViewDiT(nn.Module):
             cos, sin = cos.to(x.device), sin.to(x.device)
             ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
             self_mask = None
-            if causal:
+            if causal and t_len > cfg.clip.chunk_frames:  # one chunk sees all of itself: no mask needed
                 self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device)
             control_keys, control_mask = _control_keys(tokens, n)
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
