@@ -96,16 +96,16 @@ def test_object_tokens_ignore_order_and_padding():
         "obj_has_text",
         "obj_has_image",
     ]
-    permuted = cond._map(lambda k, v: v[:, :, perm] if k in fields else v)
+    permuted = cond.apply(lambda k, v: v[:, :, perm] if k in fields else v)
     assert torch.allclose(model(x, t, permuted), base, atol=1e-5)
     # Garbage in the padding slot changes nothing; neither does the object's own token change.
-    garbage = cond._map(lambda k, v: v.clone() if k in fields else v)
+    garbage = cond.apply(lambda k, v: v.clone() if k in fields else v)
     garbage.obj_corners[:, :, 3] = 33.0
     garbage.obj_category[:, :, 3] = 5.0
     assert torch.allclose(model(x, t, garbage), base, atol=1e-5)
     # Removing one object leaves the other objects' tokens unchanged (no interaction).
     tok = ControlTokenizer(cfg)
-    fewer = cond._map(lambda k, v: v.clone() if k in fields else v)
+    fewer = cond.apply(lambda k, v: v.clone() if k in fields else v)
     fewer.obj_mask[:, :, 2] = False
     a, b = tok.object_tokens(cond), tok.object_tokens(fewer)
     assert torch.allclose(a[:, :, :2], b[:, :, :2]) and not torch.allclose(a[:, :, 2], b[:, :, 2])

@@ -30,7 +30,7 @@ name, because colour is the fine-grained attribute scenarios set most often.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -240,15 +240,16 @@ class Conditions:
         kw["bev"] = kw["bev"].float()
         return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
 
-    def _map(self, fn) -> Conditions:  # noqa: ANN001
+    def apply(self, fn: Callable[[str, torch.Tensor], torch.Tensor]) -> Conditions:
+        """A new batch with ``fn(field_name, tensor)`` applied to every field."""
         return Conditions(**{f.name: fn(f.name, getattr(self, f.name)) for f in fields(self)})
 
     def to(self, device: torch.device | str) -> Conditions:
-        return self._map(lambda _, v: v.to(device))
+        return self.apply(lambda _, v: v.to(device))
 
     def frames(self, start: int, stop: int) -> Conditions:
         """Frames [start, stop) of the time-varying fields."""
-        return self._map(lambda k, v: v[:, start:stop] if k in ConditionArrays.TIME_FIELDS else v)
+        return self.apply(lambda k, v: v[:, start:stop] if k in ConditionArrays.TIME_FIELDS else v)
 
     def with_drop(self, drop: torch.Tensor | bool) -> Conditions:
         d = torch.as_tensor(drop, dtype=torch.bool).expand(self.batch_size).clone()
