@@ -49,23 +49,23 @@ class _Run:
     sin: torch.Tensor
     self_mask: torch.Tensor | None
     tokens: ControlTokens
-    control_keys: torch.Tensor  # (B, V + T*Nf, Dc): sensor tokens, then per-frame control tokens
-    control_mask: torch.Tensor  # (B, 1, V*T*N, V + T*Nf)
+    control_keys: torch.Tensor  # (B*T, V + Nf, Dc): sensor tokens, then the frame's control tokens
+    control_mask: torch.Tensor  # (B*T, 1, V*N, V + Nf)
     view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
 
 
 def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Control keys (B, V + T*Nf, Dc) and their mask (B, 1, V*T*N, V + T*Nf) for queries laid
-    out (view, frame, token)."""
-    b, t, nf, _ = tokens.frame.shape
+    """Per frame: keys (B*T, V + Nf, Dc) = the V sensor tokens, then that frame's controls, and
+    the mask (B*T, 1, V*N, V + Nf) letting a query of view v see sensor v and the valid controls."""
+    b, t, nf, dc = tokens.frame.shape
     v = tokens.sensor.shape[1]
-    keys = torch.cat([tokens.sensor, tokens.frame.flatten(1, 2)], dim=1)
-    dev = tokens.frame.device
-    sensor_ok = torch.eye(v, dtype=torch.bool, device=dev)[:, None, :].expand(v, t, v)  # (V, T, V)
-    same_frame = torch.eye(t, dtype=torch.bool, device=dev).repeat_interleave(nf, dim=1)  # (T, T*Nf)
-    frame_ok = same_frame[None, None] & tokens.frame_mask.flatten(1, 2)[:, None, None]  # (B, 1, T, T*Nf)
-    mask = torch.cat([sensor_ok[None].expand(b, v, t, v), frame_ok.expand(b, v, t, t * nf)], dim=-1)
-    return keys, mask.repeat_interleave(n, dim=2).reshape(b, 1, v * t * n, v + t * nf)
+    keys = torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(
+        b * t, v + nf, dc
+    )
+    sensor_ok = torch.eye(v, dtype=torch.bool, device=keys.device).repeat_interleave(n, dim=0)  # (V*N, V)
+    frame_ok = tokens.frame_mask.reshape(b * t, 1, 1, nf).expand(b * t, 1, v * n, nf)
+    mask = torch.cat([sensor_ok[None, None].expand(b * t, 1, v * n, v), frame_ok], dim=-1)
+    return keys, mask
 
 
 def _sincos_2d(dim: int, rows: int, cols: int) -> torch.Tensor:
@@ -125,6 +125,16 @@ class DiTBlock(nn.Module):
     def _per_frame(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
         return x.view(run.b, run.v, run.t, run.n, x.shape[-1])
 
+    def _frame_major(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
+        """(B*V, T*N, D) -> (B*T, V*N, D)."""
+        return self._per_frame(x, run).transpose(1, 2).reshape(run.b * run.t, run.v * run.n, -1)
+
+    def _view_major(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
+        """(B*T, V*N, D) -> (B*V, T*N, D)."""
+        return (
+            x.view(run.b, run.t, run.v, run.n, -1).transpose(1, 2).reshape(run.b * run.v, run.t * run.n, -1)
+        )
+
     def forward(self, x: torch.Tensor, run: _Run, context: KV | None) -> tuple[torch.Tensor, KV]:
         """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v)."""
         b, v, t, n = run.b, run.v, run.t, run.n
@@ -139,17 +149,15 @@ class DiTBlock(nn.Module):
         q = self.norm_text(x).reshape(b, v * t * n, -1)
         x = x + self.text_attn.attend(q, tk, run.tokens.text_mask[:, None, None]).view_as(x)
 
-        # Keys: the V sensor tokens then every frame's controls; the mask lets a token of view v,
-        # frame f see sensor v and the controls of frame f only (one attention call, no copies).
-        q = self.norm_control(x).reshape(b, v * t * n, -1)
-        x = x + self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask).view_as(
-            x
-        )
+        # Per frame, all views at once: queries (B*T, V*N); a token of view v, frame f sees sensor v
+        # and the controls of frame f only.
+        q = self._frame_major(self.norm_control(x), run)
+        out = self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask)
+        x = x + self._view_major(out, run)
 
         if self.cross_view is not None:
-            hv = self._per_frame(self.norm_view(x), run).transpose(1, 2).reshape(b * t, v * n, -1)
-            out = self.cross_view(hv, hv, run.view_mask)
-            x = x + out.view(b, t, v, n, -1).transpose(1, 2).reshape_as(x)
+            hv = self._frame_major(self.norm_view(x), run)
+            x = x + self._view_major(self.cross_view(hv, hv, run.view_mask), run)
 
         h = (self._per_frame(self.norm2(x), run) * (1 + scale2) + shift2).view_as(x)
         h = self.fc2(F.gelu(self.fc1(h)))

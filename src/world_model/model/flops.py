@@ -21,7 +21,7 @@ def dit_forward_flops(cfg: ModelConfig, batch: int, frames: int, context_frames:
     tokens = batch * v * frames * n
     queries = v * frames * n  # per sample, all views
     text = cfg.text.max_tokens + 1  # + the null token
-    control = v + frames * (1 + cfg.map_tokens + cfg.control.max_objects + 1)
+    control = v + 1 + cfg.map_tokens + cfg.control.max_objects + 1  # keys per frame: sensors + controls
     depth, views_blocks = cfg.dit.depth, len(cfg.cross_view_blocks)
 
     linear_block = (
@@ -35,7 +35,7 @@ def dit_forward_flops(cfg: ModelConfig, batch: int, frames: int, context_frames:
     attention_block = (
         2 * batch * v * (frames * n) * ((frames + context_frames) * n) * d
         + 2 * batch * queries * text * d
-        + 2 * batch * queries * control * d
+        + 2 * batch * frames * (v * n) * control * d
     )
     rows = batch * frames  # the timestep embedding runs once per frame
     timestep = rows * (cfg.dit.timestep_freq_dim * d + d * d + 6 * d * d + 2 * d * d)
