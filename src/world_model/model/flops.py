@@ -29,7 +29,7 @@ def dit_forward_flops(cfg: ModelConfig, batch: int, frames: int, context_frames:
         + 2 * tokens * d * d
         + 2 * batch * text * dc * d  # text cross-attention q, o and k, v
         + 2 * tokens * d * d
-        + 2 * batch * control * dc * d  # control cross-attention
+        + 2 * batch * frames * control * dc * d  # control cross-attention
         + 2 * tokens * d * hidden  # MLP
     )
     attention_block = (
