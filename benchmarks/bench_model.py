@@ -1,0 +1,137 @@
+"""World-model core benchmark: parameters, analytic FLOPs, DiT forward speed vs the CPU's matmul peak.
+
+One causal chunk of the gym env = ``clip.chunk_frames`` new frames for 8 batched envs x all views,
+attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cache-write forward
+of the DiT, then VAE decoding of 8 x views x chunk frames. This script times one DiT forward and
+the VAE decode the way the env runs them (bf16 weights when ``dit.autocast_bf16``), measures the
+machine's matmul peak in the same run (a 4096^2 matmul, fp32 and bf16) and reports medians.
+
+    python benchmarks/bench_model.py [--presets tiny default] [--repeats 7] [--out results.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
+from world_model.model.config import ModelConfig, get_preset
+from world_model.model.flops import dit_forward_flops
+
+ENVS = 8  # batched envs of one vector-env step
+DENOISE_FORWARDS = 4  # the 4-step causal student
+CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
+PEAK_SIZE = 4096
+
+
+def median_time(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def matmul_peak(dtype: torch.dtype, repeats: int) -> float:
+    a = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype)
+    b = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype)
+    return 2 * PEAK_SIZE**3 / median_time(lambda: a @ b, repeats) / 1e9
+
+
+def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
+    """Conditions with a full object list; timing does not depend on their values."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from model_fixtures import make_frames, make_sensors
+
+    fr = make_frames(cfg, frames, num_objects=cfg.control.max_objects)
+    _, _, bev = make_sensors(cfg, frames)
+    arr = build_condition_arrays(fr, bev, cfg, HashTextEncoder(cfg.text.dim))  # same widths as MiniLM
+    return Conditions.collate([arr] * batch)
+
+
+@torch.no_grad()
+def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float]) -> dict:
+    torch.manual_seed(0)
+    dtype = torch.bfloat16 if cfg.dit.autocast_bf16 else torch.float32
+    model = MultiViewDiT(cfg).eval().to(dtype)
+    vae = SensorVAE(cfg).eval().to(dtype)
+    chunk, ctx = cfg.clip.chunk_frames, cfg.clip.context_frames
+    n, v = cfg.tokens_per_frame, cfg.sensors.num_views
+    tokens = model.tokenize(synthetic_conditions(cfg, chunk, ENVS))
+    x = torch.randn(ENVS, *cfg.latent_shape(chunk))
+    t = torch.full((ENVS,), 0.5)
+    kv = [
+        tuple(torch.randn(ENVS * v, cfg.dit.heads, ctx * n, cfg.dit.head_dim, dtype=dtype) for _ in range(2))
+        for _ in range(cfg.dit.depth)
+    ]
+
+    def forward() -> torch.Tensor:
+        return model(x, t, tokens, causal=True, frame_offset=ctx, kv_context=kv)
+
+    fwd = median_time(forward, repeats)
+    z = torch.randn(ENVS * v * chunk, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)
+    dec = median_time(lambda: vae.decode(z), repeats)
+    flops = dit_forward_flops(cfg, ENVS, chunk, ctx)
+    peak_key = "bf16" if dtype == torch.bfloat16 else "fp32"
+    achieved = flops["total"] / fwd / 1e9
+    return {
+        "preset": cfg.name,
+        "dtype": peak_key,
+        "dit_params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+        "vae_params_m": sum(p.numel() for p in vae.parameters()) / 1e6,
+        "tokens_per_forward": ENVS * v * chunk * n,
+        "forward_gflop": flops["total"] / 1e9,
+        "forward_linear_gflop": flops["linear"] / 1e9,
+        "forward_s": fwd,
+        "achieved_gflops": achieved,
+        "fraction_of_peak": achieved / peaks[peak_key],
+        "vae_decode_s": dec,
+        "vae_decode_ms_per_frame": 1e3 * dec / (ENVS * v * chunk),
+        "env_step_estimate_s": (DENOISE_FORWARDS + CACHE_FORWARDS) * fwd + dec,
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--presets", nargs="+", default=["tiny", "default"])
+    p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--out", default=None, help="write the results as JSON here")
+    a = p.parse_args()
+    peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
+    rows = [bench_config(get_preset(name), a.repeats, peaks) for name in a.presets]
+    print(
+        f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
+        f"({torch.get_num_threads()} threads)"
+    )
+    cols = [
+        "preset",
+        "dtype",
+        "dit_params_m",
+        "forward_gflop",
+        "forward_s",
+        "achieved_gflops",
+        "fraction_of_peak",
+        "vae_decode_ms_per_frame",
+        "env_step_estimate_s",
+    ]
+    print(" | ".join(cols))
+    for r in rows:
+        print(" | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump({"envs": ENVS, "peak_gflops": peaks, "presets": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

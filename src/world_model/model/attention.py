@@ -1,0 +1,131 @@
+"""Attention layers of the DiT and the masks they use.
+
+Linear layers are named plainly (``q``, ``k``, ``v``, ``o``) so LoRA (peft ``target_modules``)
+finds them. All attention goes through ``torch.nn.functional.scaled_dot_product_attention``;
+boolean masks are True where attention is allowed.
+
+KV hook for the causal student: :meth:`SelfAttention.forward` returns the (RoPE-rotated) keys
+and values it computed, and accepts extra context keys/values that are prepended to its own.
+A streaming engine can thus keep an explicit per-layer cache of past frames.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from world_model.model.rope import apply_rope
+
+KV = tuple[torch.Tensor, torch.Tensor]  # keys, values: (N, heads, S, head_dim)
+
+
+def block_causal_mask(
+    frames: int,
+    tokens_per_frame: int,
+    chunk_frames: int,
+    context_frames: int = 0,
+    device: torch.device | str = "cpu",
+) -> torch.Tensor:
+    """(S, Sc + S) bool for S = frames * tokens_per_frame queries and Sc context tokens.
+
+    Query frame f (chunk ``f // chunk_frames``) sees every context frame and the frames of its
+    own and earlier chunks: a chunk's output never depends on later chunks.
+    """
+    chunk = torch.arange(frames, device=device) // chunk_frames
+    allowed = chunk[:, None] >= chunk[None, :]  # (T, T)
+    allowed = torch.cat([torch.ones(frames, context_frames, dtype=torch.bool, device=device), allowed], dim=1)
+    return allowed.repeat_interleave(tokens_per_frame, 0).repeat_interleave(tokens_per_frame, 1)
+
+
+def cross_view_mask(adjacency: torch.Tensor, tokens_per_view: int) -> torch.Tensor:
+    """(B, V, V) view adjacency -> (B, V*n, V*n) token mask for views laid out view-major."""
+    return adjacency.repeat_interleave(tokens_per_view, 1).repeat_interleave(tokens_per_view, 2)
+
+
+class RMSNorm(nn.Module):
+    """RMSNorm over the last dim, computed in float32: the bf16 CPU kernel is many times slower."""
+
+    def __init__(self, dim: int, eps: float) -> None:
+        super().__init__()
+        self.eps = eps
+        self.weight = nn.Parameter(torch.ones(dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.rms_norm(x.float(), (x.shape[-1],), self.weight.float(), self.eps).to(x.dtype)
+
+
+def _heads(x: torch.Tensor, heads: int, norm: nn.Module | None = None) -> torch.Tensor:
+    """(..., S, D) -> (..., H, S, D/H), normalizing each head first (on the contiguous layout)."""
+    x = x.unflatten(-1, (heads, -1))
+    if norm is not None:
+        x = norm(x)
+    return x.transpose(-3, -2)
+
+
+def _merge(x: torch.Tensor) -> torch.Tensor:
+    """(..., H, S, d) -> (..., S, H*d)."""
+    return x.transpose(-3, -2).flatten(-2)
+
+
+class SelfAttention(nn.Module):
+    """Multi-head self-attention with QK-norm (RMSNorm per head) and rotary positions."""
+
+    def __init__(self, dim: int, heads: int, eps: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.k = nn.Linear(dim, dim)
+        self.v = nn.Linear(dim, dim)
+        self.o = nn.Linear(dim, dim)
+        self.q_norm = RMSNorm(dim // heads, eps)
+        self.k_norm = RMSNorm(dim // heads, eps)
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        cos: torch.Tensor,
+        sin: torch.Tensor,
+        mask: torch.Tensor | None = None,
+        context: KV | None = None,
+    ) -> tuple[torch.Tensor, KV]:
+        """x (N, S, D); cos/sin (S, head_dim/2); mask (S, Sc+S) or None (full);
+        context keys/values (N, H, Sc, head_dim). Returns output (N, S, D) and this call's own
+        (k, v) (N, H, S, head_dim), already rotated, ready to be cached."""
+        q = apply_rope(_heads(self.q(x), self.heads, self.q_norm), cos, sin)
+        k = apply_rope(_heads(self.k(x), self.heads, self.k_norm), cos, sin)
+        v = _heads(self.v(x), self.heads)
+        k_all, v_all = k, v
+        if context is not None:
+            k_all = torch.cat([context[0].to(k.dtype), k], dim=2)
+            v_all = torch.cat([context[1].to(v.dtype), v], dim=2)
+        out = F.scaled_dot_product_attention(q, k_all, v_all, attn_mask=mask)
+        return self.o(_merge(out)), (k, v)
+
+
+class CrossAttention(nn.Module):
+    """Queries from the video tokens, keys/values from a context of width ``ctx_dim``."""
+
+    def __init__(self, dim: int, ctx_dim: int, heads: int, eps: float) -> None:
+        super().__init__()
+        self.heads = heads
+        self.q = nn.Linear(dim, dim)
+        self.k = nn.Linear(ctx_dim, dim)
+        self.v = nn.Linear(ctx_dim, dim)
+        self.o = nn.Linear(dim, dim)
+        self.q_norm = RMSNorm(dim // heads, eps)
+        self.k_norm = RMSNorm(dim // heads, eps)
+
+    def kv(self, ctx: torch.Tensor) -> KV:
+        """ctx (..., Sc, ctx_dim) -> keys, values (..., H, Sc, head_dim)."""
+        return _heads(self.k(ctx), self.heads, self.k_norm), _heads(self.v(ctx), self.heads)
+
+    def attend(self, x: torch.Tensor, kv: KV, mask: torch.Tensor | None) -> torch.Tensor:
+        """x (N, S, D), kv (N, H, Sc, hd), mask broadcastable to (N, H, S, Sc) -> (N, S, D)."""
+        q = _heads(self.q(x), self.heads, self.q_norm)
+        k, v = kv
+        out = F.scaled_dot_product_attention(q, k.to(q.dtype), v.to(q.dtype), attn_mask=mask)
+        return self.o(_merge(out))
+
+    def forward(self, x: torch.Tensor, ctx: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        return self.attend(x, self.kv(ctx), mask)

@@ -1,0 +1,263 @@
+"""SceneFrames -> numeric condition arrays -> batched :class:`Conditions` tensors (§3.2).
+
+The conversion is pure (no learned weights): text and crops are turned into embeddings by
+encoders that cache by content, everything else is geometry. The learned part (Fourier
+embeddings, MLPs, null features) lives in :mod:`world_model.model.tokens`.
+
+Shapes (T frames, Vc cameras, V = Vc + 1 views, O = ``control.max_objects``, L = ``text.max_tokens``,
+Dt text width, Di image-feature width):
+
+=================  ====================  ===============================================
+camera             (Vc, 7, 3)            ``[K; R; t^T]``, K rows 0/1 divided by width/height
+ego                (T, 4, 3)             ``[R; t^T]`` relative to ``first_ego``
+bev                (T, h, w, c) uint8    the BEV raster, {0, 1}
+obj_corners        (T, O, 8, 3)          box corners in the current LiDAR frame
+obj_category       (T, O, Dt)            pooled embedding of the category name
+obj_text           (T, O, Dt)            pooled embedding of the text description
+obj_image          (T, O, Di)            image-description feature of the reference crop
+obj_mask           (T, O) bool           real object (False = padding)
+obj_has_text       (T, O) bool           a text description exists
+obj_has_image      (T, O) bool           a reference crop exists
+text, text_mask    (L, Dt), (L,) bool    prompt tokens, padding masked
+view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR overlaps all
+=================  ====================  ===============================================
+
+Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
+A missing text description falls back to "<colour> <category>" when the object has a colour
+name, because colour is the fine-grained attribute scenarios set most often.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+import torch
+
+from world_model.model.config import ModelConfig
+from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
+from world_model.model.text import TextEncoder
+from world_model.scene import EgoState, SceneFrame
+from world_model.sensors import CameraRig
+
+
+def view_adjacency(rig: CameraRig) -> np.ndarray:
+    """(V, V) bool, V = cameras + LiDAR: which views see overlapping parts of the world.
+
+    Two cameras overlap when the angle between their optical axes is less than the sum of their
+    horizontal half-FoVs (the cameras sit within centimetres of each other, so the azimuth
+    sectors decide). The 360-degree LiDAR overlaps every camera. A view is not its own neighbour
+    (self-attention already covers it).
+    """
+    vc = rig.num_views
+    adj = np.zeros((vc + 1, vc + 1), dtype=bool)
+    for i, a in enumerate(rig.cameras):
+        for j, b in enumerate(rig.cameras):
+            if i != j:
+                gap = abs(math.remainder(a.yaw - b.yaw, 2 * math.pi))
+                adj[i, j] = gap < 0.5 * (a.hfov + b.hfov)
+    adj[vc, :vc] = adj[:vc, vc] = True
+    return adj
+
+
+def camera_condition(rig: CameraRig) -> np.ndarray:
+    """(Vc, 7, 3) ``[K; R; t^T]`` with K normalized by the image size."""
+    mats = rig.condition_matrices().copy()
+    for i, cam in enumerate(rig.cameras):
+        mats[i, 0] /= cam.width
+        mats[i, 1] /= cam.height
+    return mats
+
+
+def object_text(obj) -> str:  # noqa: ANN001 - SceneObject
+    if obj.description.strip():
+        return obj.description.strip()
+    if obj.color_name:
+        return f"{obj.color_name.replace('_', ' ')} {obj.category.replace('_', ' ')}"
+    return ""
+
+
+@dataclass
+class ConditionArrays:
+    """Numeric conditions of one sequence (numpy). See the module docstring for shapes."""
+
+    camera: np.ndarray
+    ego: np.ndarray
+    bev: np.ndarray
+    obj_corners: np.ndarray
+    obj_category: np.ndarray
+    obj_text: np.ndarray
+    obj_image: np.ndarray
+    obj_mask: np.ndarray
+    obj_has_text: np.ndarray
+    obj_has_image: np.ndarray
+    text: np.ndarray
+    text_mask: np.ndarray
+    view_adjacency: np.ndarray
+
+    TIME_FIELDS = (
+        "ego",
+        "bev",
+        "obj_corners",
+        "obj_category",
+        "obj_text",
+        "obj_image",
+        "obj_mask",
+        "obj_has_text",
+        "obj_has_image",
+    )
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.ego)
+
+    def frames(self, start: int, stop: int) -> ConditionArrays:
+        """Frames [start, stop). Ego poses stay relative to the sequence's first frame."""
+        return replace(self, **{k: getattr(self, k)[start:stop] for k in self.TIME_FIELDS})
+
+
+def build_condition_arrays(
+    frames: Sequence[SceneFrame],
+    bev: np.ndarray,
+    cfg: ModelConfig,
+    text_encoder: TextEncoder,
+    image_encoder: ImageDescriptionEncoder | None = None,
+    crops: dict[str, np.ndarray] | None = None,
+    first_ego: EgoState | None = None,
+) -> ConditionArrays:
+    """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
+
+    ``first_ego`` is the rollout's first ego state (default: ``frames[0].ego``). Without an
+    ``image_encoder`` every object's image description counts as missing.
+    """
+    if not frames:
+        raise ValueError("build_condition_arrays needs at least one frame")
+    t = len(frames)
+    bev = np.asarray(bev)
+    expected = (t, *cfg.sensors.bev.shape)
+    if bev.shape != expected:
+        raise ValueError(f"bev must have shape {expected} (T, h, w, c) for this config, got {bev.shape}")
+    rig = frames[0].rig
+    if rig.num_views != cfg.sensors.num_cameras:
+        raise ValueError(f"frames carry {rig.num_views} cameras but the model has {cfg.sensors.num_cameras}")
+    o_max, dt, di = cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
+    crops = crops or {}
+    first = first_ego or frames[0].ego
+
+    corners = np.zeros((t, o_max, 8, 3), np.float32)
+    cat = np.zeros((t, o_max, dt), np.float32)
+    txt = np.zeros((t, o_max, dt), np.float32)
+    img = np.zeros((t, o_max, di), np.float32)
+    mask = np.zeros((t, o_max), bool)
+    has_txt = np.zeros((t, o_max), bool)
+    has_img = np.zeros((t, o_max), bool)
+    for f, fr in enumerate(frames):
+        if not fr.objects:
+            continue
+        all_corners = fr.object_corners_lidar()
+        dist = np.linalg.norm(all_corners.mean(axis=1)[:, :2], axis=1)
+        keep = np.argsort(dist, kind="stable")[:o_max]
+        objs = [fr.objects[i] for i in keep]
+        n = len(objs)
+        corners[f, :n] = all_corners[keep]
+        mask[f, :n] = True
+        cat[f, :n] = text_encoder.pooled([o.category.replace("_", " ") for o in objs])
+        descs = [object_text(o) for o in objs]
+        idx = [i for i, d in enumerate(descs) if d]
+        if idx:
+            txt[f, idx] = text_encoder.pooled([descs[i] for i in idx])
+            has_txt[f, idx] = True
+        if image_encoder is not None:
+            pairs = [
+                (i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)
+            ]
+            pairs = [(i, c) for i, c in pairs if c is not None]
+            if pairs:
+                img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
+                has_img[f, [i for i, _ in pairs]] = True
+
+    tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
+    text = np.zeros((cfg.text.max_tokens, dt), np.float32)
+    text[: len(tokens)] = tokens
+    text_mask = np.arange(cfg.text.max_tokens) < len(tokens)
+    return ConditionArrays(
+        camera=camera_condition(rig),
+        ego=np.stack([fr.ego_pose_condition(first) for fr in frames]).astype(np.float32),
+        bev=bev.astype(np.uint8),
+        obj_corners=corners,
+        obj_category=cat,
+        obj_text=txt,
+        obj_image=img,
+        obj_mask=mask,
+        obj_has_text=has_txt,
+        obj_has_image=has_img,
+        text=text,
+        text_mask=text_mask,
+        view_adjacency=view_adjacency(rig),
+    )
+
+
+@dataclass
+class Conditions:
+    """A batch of conditions as tensors: every :class:`ConditionArrays` field with a leading B,
+    ``bev`` as float, plus ``drop`` (B,) bool: True replaces text and controls (ego, map,
+    objects) by learned null tokens, the unconditional branch of guidance."""
+
+    camera: torch.Tensor
+    ego: torch.Tensor
+    bev: torch.Tensor
+    obj_corners: torch.Tensor
+    obj_category: torch.Tensor
+    obj_text: torch.Tensor
+    obj_image: torch.Tensor
+    obj_mask: torch.Tensor
+    obj_has_text: torch.Tensor
+    obj_has_image: torch.Tensor
+    text: torch.Tensor
+    text_mask: torch.Tensor
+    view_adjacency: torch.Tensor
+    drop: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return self.ego.shape[0]
+
+    @property
+    def num_frames(self) -> int:
+        return self.ego.shape[1]
+
+    @classmethod
+    def collate(cls, items: Sequence[ConditionArrays]) -> Conditions:
+        """Stack sequences of equal length into a batch."""
+        if len({it.num_frames for it in items}) != 1:
+            raise ValueError("Conditions.collate needs sequences of equal length")
+        kw = {
+            f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items]))
+            for f in fields(ConditionArrays)
+        }
+        kw["bev"] = kw["bev"].float()
+        return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
+
+    def apply(self, fn: Callable[[str, torch.Tensor], torch.Tensor]) -> Conditions:
+        """A new batch with ``fn(field_name, tensor)`` applied to every field."""
+        return Conditions(**{f.name: fn(f.name, getattr(self, f.name)) for f in fields(self)})
+
+    def to(self, device: torch.device | str) -> Conditions:
+        return self.apply(lambda _, v: v.to(device))
+
+    def frames(self, start: int, stop: int) -> Conditions:
+        """Frames [start, stop) of the time-varying fields."""
+        return self.apply(lambda k, v: v[:, start:stop] if k in ConditionArrays.TIME_FIELDS else v)
+
+    def with_drop(self, drop: torch.Tensor | bool) -> Conditions:
+        d = torch.as_tensor(drop, dtype=torch.bool).expand(self.batch_size).clone()
+        return replace(self, drop=d)
+
+    @staticmethod
+    def cat(items: Sequence[Conditions]) -> Conditions:
+        """Concatenate along the batch (e.g. conditional + unconditional for guidance)."""
+        return Conditions(
+            **{f.name: torch.cat([getattr(it, f.name) for it in items]) for f in fields(Conditions)}
+        )

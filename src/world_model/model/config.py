@@ -1,0 +1,282 @@
+"""Model configuration: one dataclass per concern, every default visible, three presets.
+
+Token counts and tensor shapes are *derived* here (properties), never hard-coded elsewhere:
+
+* views        = cameras + 1 (the LiDAR range map is the last view, paper §3.2)
+* latent grid  = image size / VAE downsampling (``2 ** len(channel_mults)``)
+* tokens/frame = latent grid / DiT patch size
+* map tokens   = BEV raster / map patch size
+
+Presets (:func:`get_preset`): ``tiny`` (tests, seconds), ``default`` (the CPU preset that is
+trained and shipped), ``gpu`` (near the paper's dimensions; not trainable on this machine).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Which sensors the model generates, and at which resolution."""
+
+    num_cameras: int = 6
+    height: int = 64
+    width: int = 112
+    lidar: LidarSpec = field(default_factory=LidarSpec)
+    bev: BevSpec = field(default_factory=BevSpec)
+
+    @property
+    def num_views(self) -> int:
+        """Cameras plus the LiDAR view (always last)."""
+        return self.num_cameras + 1
+
+    @property
+    def lidar_view(self) -> int:
+        return self.num_cameras
+
+    def rig(self) -> CameraRig:
+        """The default rig at this resolution (the first ``num_cameras`` cameras of it)."""
+        rig = default_rig(width=self.width, height=self.height)
+        return CameraRig(cameras=rig.cameras[: self.num_cameras])
+
+
+@dataclass(frozen=True)
+class VaeConfig:
+    """Per-frame spatial autoencoder shared by cameras and LiDAR range maps (§3.2)."""
+
+    image_channels: int = 3  # RGB; a range map is repeated on the 3 channels
+    latent_channels: int = 8
+    channel_mults: tuple[int, ...] = (1, 2, 4)  # one stride-2 level each: 8x downsampling
+    base_channels: int = 16
+    decoder_base_channels: int = 12  # decoding 8 envs x 7 views x 2 frames per env step must stay cheap
+    kl_weight: float = 1e-6  # small: the latent only needs to be smooth, not a prior match
+    lidar_loss_weight: float = 1.0
+    lidar_no_return_fraction: float = 0.97  # decoded ranges >= this * max_range read as "no return"
+
+    @property
+    def downsample(self) -> int:
+        return 2 ** len(self.channel_mults)
+
+
+@dataclass(frozen=True)
+class TextConfig:
+    """Text encoder (§3.2, "Text tokens"): default the offline MiniLM sentence encoder."""
+
+    encoder: str = "minilm"  # "minilm" or "hash" (deterministic, dependency-free, for tests)
+    dim: int = 384
+    max_tokens: int = 32  # prompt tokens kept (padding is masked out)
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """Control tokenizer (§3.2): sensor, ego, map and object tokens."""
+
+    dim: int = 192  # control-token width fed to the DiT's control cross-attention
+    fourier_freqs: int = 6  # NeRF-style frequencies per coordinate
+    position_scale_m: float = 50.0  # metres mapped to 1.0 before Fourier embedding
+    map_patch: int = 10  # BEV pixels per map-token side
+    max_objects: int = 16  # nearest objects kept per frame; the rest are dropped
+    crop_size: int = 32  # object reference crops are resized to this square before encoding
+    image_feature: str = "vae"  # image-description encoder: pooled VAE-encoder latents
+
+
+@dataclass(frozen=True)
+class DitConfig:
+    """Multi-view + LiDAR diffusion transformer (§3.2)."""
+
+    dim: int = 192
+    depth: int = 10
+    heads: int = 4
+    mlp_ratio: float = 4.0
+    patch: int = 2
+    cross_view_every: int = 5  # a cross-view attention in blocks 5, 10, ... (1-based)
+    in_channels_extra: int = 0  # reference latent + mask channels (§6), 0 = none
+    qk_norm_eps: float = 1e-6
+    norm_eps: float = 1e-6
+    timestep_freq_dim: int = 256  # sinusoidal features of the timestep
+    timestep_scale: float = 1000.0  # t in [0, 1] is scaled to the usual diffusion-step range first
+    rope_theta: float = 10000.0
+    autocast_bf16: bool = True  # CPU bf16 autocast: ~2x matmul throughput on AVX512-BF16
+
+    @property
+    def head_dim(self) -> int:
+        return self.dim // self.heads
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Rectified flow (§4.1): x_t = (1-t) eps + t x0, t = 1 is data, target v = x0 - eps."""
+
+    timestep_dist: str = "logit_normal"  # or "uniform" (the paper's t ~ U(0, 1))
+    logit_mean: float = 0.0
+    logit_std: float = 1.0
+    shift: float = 1.0  # >1 moves training mass toward noise (SD3-style shift on sigma = 1 - t)
+    cond_drop_prob: float = 0.1  # text + controls dropped together, for guidance
+
+
+@dataclass(frozen=True)
+class SamplerConfig:
+    """Euler sampling with CFG for cameras and APG for LiDAR (§4.1)."""
+
+    steps: int = 20
+    camera_cfg_scale: float = 3.0
+    lidar_apg_scale: float = 3.0
+    apg_eta: float = 0.0  # weight of the parallel component kept (0 removes it)
+    apg_norm_threshold: float = 2.5  # rescale the guidance update to at most this norm
+    apg_momentum: float = -0.5  # negative momentum of Sadat et al.
+
+
+@dataclass(frozen=True)
+class ClipConfig:
+    """Temporal layout: chunks for the causal student, windows for training."""
+
+    chunk_frames: int = 2  # frames generated per causal chunk (= one env step)
+    context_frames: int = 4  # past frames kept in the student's attention window
+    train_frames: tuple[int, ...] = (4, 6, 8)  # mixed clip lengths seen by the teacher
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    name: str = "default"
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    vae: VaeConfig = field(default_factory=VaeConfig)
+    text: TextConfig = field(default_factory=TextConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    dit: DitConfig = field(default_factory=DitConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    sampler: SamplerConfig = field(default_factory=SamplerConfig)
+    clip: ClipConfig = field(default_factory=ClipConfig)
+
+    def __post_init__(self) -> None:
+        s, v, d, c = self.sensors, self.vae, self.dit, self.control
+        if s.height % v.downsample or s.width % v.downsample:
+            raise ValueError(
+                f"image {s.height}x{s.width} must be divisible by the VAE downsampling {v.downsample}"
+            )
+        if self.latent_hw[0] % d.patch or self.latent_hw[1] % d.patch:
+            raise ValueError(f"latent grid {self.latent_hw} must be divisible by the DiT patch {d.patch}")
+        if d.dim % d.heads or d.head_dim % 2:
+            raise ValueError(f"dit.dim {d.dim} must split into {d.heads} heads of even size")
+        bh, bw, _ = s.bev.shape
+        if bh % c.map_patch or bw % c.map_patch:
+            raise ValueError(f"BEV raster {bh}x{bw} must be divisible by control.map_patch {c.map_patch}")
+        if d.cross_view_every < 1:
+            raise ValueError("dit.cross_view_every must be >= 1")
+
+    # -- derived shapes --
+    @property
+    def latent_hw(self) -> tuple[int, int]:
+        return self.sensors.height // self.vae.downsample, self.sensors.width // self.vae.downsample
+
+    @property
+    def token_hw(self) -> tuple[int, int]:
+        h, w = self.latent_hw
+        return h // self.dit.patch, w // self.dit.patch
+
+    @property
+    def tokens_per_frame(self) -> int:
+        h, w = self.token_hw
+        return h * w
+
+    @property
+    def map_tokens(self) -> int:
+        bh, bw, _ = self.sensors.bev.shape
+        return (bh // self.control.map_patch) * (bw // self.control.map_patch)
+
+    @property
+    def cross_view_blocks(self) -> tuple[int, ...]:
+        """0-based indices of the blocks that carry a cross-view attention."""
+        k = self.dit.cross_view_every
+        return tuple(i for i in range(self.dit.depth) if (i + 1) % k == 0)
+
+    def latent_shape(self, frames: int) -> tuple[int, int, int, int, int]:
+        """(T, V, C, h, w) of one sample's latents."""
+        h, w = self.latent_hw
+        return frames, self.sensors.num_views, self.vae.latent_channels, h, w
+
+    # -- serialization --
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d["sensors"]["lidar"] = self.sensors.lidar.to_dict()
+        d["sensors"]["bev"] = self.sensors.bev.to_dict()
+        return d
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=1)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ModelConfig:
+        def build(kind: type, values: dict) -> Any:
+            kw = {}
+            for f in dataclasses.fields(kind):
+                if f.name not in values:
+                    continue
+                v = values[f.name]
+                kw[f.name] = tuple(v) if isinstance(v, list) else v
+            return kind(**kw)
+
+        s = dict(d["sensors"])
+        s["lidar"] = LidarSpec.from_dict(s["lidar"])
+        s["bev"] = BevSpec.from_dict(s["bev"])
+        return cls(
+            name=d["name"],
+            sensors=SensorConfig(**s),
+            vae=build(VaeConfig, d["vae"]),
+            text=build(TextConfig, d["text"]),
+            control=build(ControlConfig, d["control"]),
+            dit=build(DitConfig, d["dit"]),
+            flow=build(FlowConfig, d["flow"]),
+            sampler=build(SamplerConfig, d["sampler"]),
+            clip=build(ClipConfig, d["clip"]),
+        )
+
+
+def _tiny() -> ModelConfig:
+    # Small enough that a forward/backward on a few frames takes milliseconds.
+    return ModelConfig(
+        name="tiny",
+        sensors=SensorConfig(num_cameras=6, height=16, width=32, bev=BevSpec(m_per_px=4.0)),
+        vae=VaeConfig(latent_channels=4, channel_mults=(1, 2), base_channels=8, decoder_base_channels=8),
+        text=TextConfig(encoder="hash", dim=32, max_tokens=8),
+        control=ControlConfig(dim=32, fourier_freqs=4, map_patch=5, max_objects=4, crop_size=8),
+        dit=DitConfig(dim=32, depth=2, heads=2, patch=1, cross_view_every=2, autocast_bf16=False),
+        sampler=SamplerConfig(steps=4),
+        clip=ClipConfig(chunk_frames=1, context_frames=2, train_frames=(2, 3)),
+    )
+
+
+def _default() -> ModelConfig:
+    return ModelConfig(name="default")
+
+
+def _gpu() -> ModelConfig:
+    # Near the paper's scale (Wan2.1-1.3B-like width/depth, 224x400 views, 16 latent channels).
+    return ModelConfig(
+        name="gpu",
+        sensors=SensorConfig(num_cameras=6, height=224, width=400, bev=BevSpec(m_per_px=0.5)),
+        vae=VaeConfig(
+            latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64
+        ),
+        text=TextConfig(encoder="minilm", dim=384, max_tokens=128),
+        control=ControlConfig(dim=1536, fourier_freqs=8, map_patch=8, max_objects=64, crop_size=64),
+        dit=DitConfig(dim=1536, depth=30, heads=12, patch=2, autocast_bf16=True),
+        sampler=SamplerConfig(steps=50, camera_cfg_scale=5.0, lidar_apg_scale=5.0),
+        clip=ClipConfig(chunk_frames=3, context_frames=21, train_frames=(13, 29, 45)),
+    )
+
+
+PRESETS = {"tiny": _tiny, "default": _default, "gpu": _gpu}
+
+
+def get_preset(name: str) -> ModelConfig:
+    """A fresh config for preset ``name`` (one of :data:`PRESETS`)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None

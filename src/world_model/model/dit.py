@@ -1,0 +1,292 @@
+"""Multi-view + LiDAR diffusion transformer (§3.2, Fig. 2).
+
+Latents are ``(B, T, V, C, h, w)`` (frames, views = cameras + LiDAR last). Inside, each view is
+its own token sequence of ``T * N`` tokens (N = tokens per frame), and the view axis is folded
+into the batch: ``(B*V, T*N, D)``. Every block has
+
+1. spatio-temporal self-attention within a view (3-D RoPE, QK-norm, per-frame adaLN
+   modulation from the timestep, bidirectional or block-causal);
+2. text cross-attention (the scene prompt, shared by all views and frames);
+3. control cross-attention: a token of frame f of view v sees the sensor token of v and the
+   ego, map and object tokens of frame f only (controls are per-frame, §3.2);
+4. every ``cross_view_every``-th block, cross-view attention: at each frame, the tokens of a view
+   attend to the tokens of the views whose fields of view overlap. Only here do views meet, so
+   the view axis could be split across devices ("sensor parallelism", §4.4);
+5. an MLP (``fc1``/``fc2``), adaLN-modulated and gated.
+
+Hooks: ``forward(..., kv_context=, frame_offset=, return_kv=)`` for a causal streaming engine;
+``DitConfig.in_channels_extra`` for reference conditioning (§6).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from world_model.model.attention import KV, CrossAttention, SelfAttention, block_causal_mask, cross_view_mask
+from world_model.model.conditions import Conditions
+from world_model.model.config import ModelConfig
+from world_model.model.rope import rope_tables
+from world_model.model.tokens import ControlTokenizer, ControlTokens
+
+MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
+
+
+@dataclass
+class _Run:
+    """Per-forward state shared by all blocks."""
+
+    b: int
+    v: int
+    t: int
+    n: int
+    mod: torch.Tensor  # (B, T, 6, D)
+    cos: torch.Tensor
+    sin: torch.Tensor
+    self_mask: torch.Tensor | None
+    tokens: ControlTokens
+    control_keys: torch.Tensor  # (B*T, V + Nf, Dc): sensor tokens, then the frame's control tokens
+    control_mask: torch.Tensor  # (B*T, 1, V*N, V + Nf)
+    view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
+
+
+def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per frame: keys (B*T, V + Nf, Dc) = the V sensor tokens, then that frame's controls, and
+    the mask (B*T, 1, V*N, V + Nf) letting a query of view v see sensor v and the valid controls."""
+    b, t, nf, dc = tokens.frame.shape
+    v = tokens.sensor.shape[1]
+    keys = torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(
+        b * t, v + nf, dc
+    )
+    sensor_ok = torch.eye(v, dtype=torch.bool, device=keys.device).repeat_interleave(n, dim=0)  # (V*N, V)
+    frame_ok = tokens.frame_mask.reshape(b * t, 1, 1, nf).expand(b * t, 1, v * n, nf)
+    mask = torch.cat([sensor_ok[None, None].expand(b * t, 1, v * n, v), frame_ok], dim=-1)
+    return keys, mask
+
+
+def _sincos_2d(dim: int, rows: int, cols: int) -> torch.Tensor:
+    """(rows * cols, dim) fixed sin-cos embedding; half the channels for rows, half for columns."""
+    quarter = dim // 4
+    freqs = 1.0 / 10000.0 ** (torch.arange(quarter, dtype=torch.float64) / quarter)
+    r = torch.arange(rows, dtype=torch.float64)[:, None] * freqs
+    c = torch.arange(cols, dtype=torch.float64)[:, None] * freqs
+    emb = torch.cat(
+        [
+            torch.cat([r.sin(), r.cos()], dim=1)[:, None].expand(rows, cols, -1),
+            torch.cat([c.sin(), c.cos()], dim=1)[None].expand(rows, cols, -1),
+        ],
+        dim=-1,
+    ).reshape(rows * cols, -1)
+    return F.pad(emb, (0, dim - emb.shape[1])).float()
+
+
+class TimestepEmbedding(nn.Module):
+    def __init__(self, dim: int, freq_dim: int, scale: float) -> None:
+        super().__init__()
+        self.freq_dim, self.scale = freq_dim, scale
+        self.fc1 = nn.Linear(freq_dim, dim)
+        self.fc2 = nn.Linear(dim, dim)
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        """t (...) in [0, 1] -> (..., dim)."""
+        half = self.freq_dim // 2
+        freqs = torch.exp(-math.log(10000.0) * torch.arange(half, device=t.device) / half)
+        ang = (t.float() * self.scale)[..., None] * freqs
+        return self.fc2(F.silu(self.fc1(torch.cat([ang.cos(), ang.sin()], dim=-1))))
+
+
+class DiTBlock(nn.Module):
+    def __init__(self, cfg: ModelConfig, cross_view: bool) -> None:
+        super().__init__()
+        d, h, eps, dc = cfg.dit.dim, cfg.dit.heads, cfg.dit.norm_eps, cfg.control.dim
+        self.norm1 = nn.LayerNorm(d, elementwise_affine=False, eps=eps)
+        self.attn = SelfAttention(d, h, cfg.dit.qk_norm_eps)
+        self.norm_text = nn.LayerNorm(d, eps=eps)
+        self.text_attn = CrossAttention(d, dc, h, cfg.dit.qk_norm_eps)
+        self.norm_control = nn.LayerNorm(d, eps=eps)
+        self.control_attn = CrossAttention(d, dc, h, cfg.dit.qk_norm_eps)
+        self.cross_view = None
+        if cross_view:
+            self.norm_view = nn.LayerNorm(d, eps=eps)
+            self.cross_view = CrossAttention(d, d, h, cfg.dit.qk_norm_eps)
+            # Starts as identity so inserting it does not disturb the per-view pathway.
+            nn.init.zeros_(self.cross_view.o.weight)
+            nn.init.zeros_(self.cross_view.o.bias)
+        self.norm2 = nn.LayerNorm(d, elementwise_affine=False, eps=eps)
+        hidden = int(d * cfg.dit.mlp_ratio)
+        self.fc1 = nn.Linear(d, hidden)
+        self.fc2 = nn.Linear(hidden, d)
+        self.modulation = nn.Parameter(torch.zeros(MODULATIONS, d))
+
+    def _per_frame(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
+        return x.view(run.b, run.v, run.t, run.n, x.shape[-1])
+
+    def _frame_major(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
+        """(B*V, T*N, D) -> (B*T, V*N, D)."""
+        return self._per_frame(x, run).transpose(1, 2).reshape(run.b * run.t, run.v * run.n, -1)
+
+    def _view_major(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
+        """(B*T, V*N, D) -> (B*V, T*N, D)."""
+        return (
+            x.view(run.b, run.t, run.v, run.n, -1).transpose(1, 2).reshape(run.b * run.v, run.t * run.n, -1)
+        )
+
+    def forward(self, x: torch.Tensor, run: _Run, context: KV | None) -> tuple[torch.Tensor, KV]:
+        """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v)."""
+        b, v, t, n = run.b, run.v, run.t, run.n
+        m = (run.mod + self.modulation)[:, None, :, None]  # (B, 1, T, 1, 6, D)
+        shift1, scale1, gate1, shift2, scale2, gate2 = m.unbind(dim=-2)
+
+        h = (self._per_frame(self.norm1(x), run) * (1 + scale1) + shift1).view_as(x)
+        a, kv = self.attn(h, run.cos, run.sin, run.self_mask, context)
+        x = x + (self._per_frame(a, run) * gate1).view_as(x)
+
+        tk = self.text_attn.kv(run.tokens.text)  # (B, H, L, hd)
+        q = self.norm_text(x).reshape(b, v * t * n, -1)
+        x = x + self.text_attn.attend(q, tk, run.tokens.text_mask[:, None, None]).view_as(x)
+
+        # Per frame, all views at once: queries (B*T, V*N); a token of view v, frame f sees sensor v
+        # and the controls of frame f only.
+        q = self._frame_major(self.norm_control(x), run)
+        out = self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask)
+        x = x + self._view_major(out, run)
+
+        if self.cross_view is not None:
+            hv = self._frame_major(self.norm_view(x), run)
+            x = x + self._view_major(self.cross_view(hv, hv, run.view_mask), run)
+
+        h = (self._per_frame(self.norm2(x), run) * (1 + scale2) + shift2).view_as(x)
+        h = self.fc2(F.gelu(self.fc1(h)))
+        x = x + (self._per_frame(h, run) * gate2).view_as(x)
+        return x, kv
+
+
+class MultiViewDiT(nn.Module):
+    """Velocity network v_theta(x_t, t; C) over all views (see module docstring)."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        d, p, c = cfg.dit.dim, cfg.dit.patch, cfg.vae.latent_channels
+        self.tokenizer = ControlTokenizer(cfg)
+        self.patch_in = nn.Linear((c + cfg.dit.in_channels_extra) * p * p, d)
+        self.view_type = nn.Parameter(torch.zeros(2, d))  # camera, LiDAR
+        # Fixed 2-D sin-cos embedding of (row, col): RoPE alone is relative, and a view's layout
+        # (sky on top, road below, LiDAR beams by elevation) is absolute. Frames get no absolute
+        # embedding so a streaming rollout is shift-invariant in time.
+        self.register_buffer("spatial_embed", _sincos_2d(d, *cfg.token_hw), persistent=False)
+        self.time_embed = TimestepEmbedding(d, cfg.dit.timestep_freq_dim, cfg.dit.timestep_scale)
+        self.time_proj = nn.Linear(d, MODULATIONS * d)
+        self.blocks = nn.ModuleList(DiTBlock(cfg, i in cfg.cross_view_blocks) for i in range(cfg.dit.depth))
+        self.norm_out = nn.LayerNorm(d, elementwise_affine=False, eps=cfg.dit.norm_eps)
+        self.out_mod = nn.Linear(d, 2 * d)
+        self.head = nn.Linear(d, c * p * p)
+        # adaLN-Zero: every block and the output start as identity / zero.
+        for lin in (self.time_proj, self.out_mod, self.head):
+            nn.init.zeros_(lin.weight)
+            nn.init.zeros_(lin.bias)
+
+    def _autocast(self, device_type: str) -> torch.autocast:
+        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
+
+    def tokenize(self, cond: Conditions) -> ControlTokens:
+        """Control tokens for ``cond``; pass them to :meth:`forward` to reuse across denoising steps."""
+        with self._autocast(cond.ego.device.type):
+            return self.tokenizer(cond)
+
+    def _check(self, x: torch.Tensor) -> None:
+        cfg = self.cfg
+        want = (cfg.sensors.num_views, cfg.vae.latent_channels + cfg.dit.in_channels_extra, *cfg.latent_hw)
+        if x.ndim != 6 or tuple(x.shape[2:]) != want:
+            raise ValueError(f"x must be (B, T, V, C, h, w) with (V, C, h, w) = {want}, got {tuple(x.shape)}")
+
+    def forward(
+        self,
+        x: torch.Tensor,
+        t: torch.Tensor,
+        cond: Conditions | ControlTokens,
+        *,
+        causal: bool = False,
+        frame_offset: int = 0,
+        kv_context: list[KV] | None = None,
+        return_kv: bool = False,
+    ) -> torch.Tensor | tuple[torch.Tensor, list[KV]]:
+        """Predict the velocity.
+
+        Args:
+            x: (B, T, V, C + in_channels_extra, h, w) noisy latents (+ reference channels).
+            t: (B,) or (B, T) flow time per sample or per frame (1 = clean).
+            cond: conditions, or control tokens already computed for them (T frames).
+            causal: block-causal attention over chunks of ``clip.chunk_frames`` frames.
+            frame_offset: RoPE frame index of the first frame of ``x``.
+            kv_context: per block, cached self-attention (k, v) (B*V, H, Sc, hd) of earlier frames.
+            return_kv: also return each block's own (k, v) for caching.
+        Returns:
+            velocity (B, T, V, C, h, w) float32 [and the list of per-block (k, v)].
+        """
+        self._check(x)
+        cfg = self.cfg
+        b, t_len, v = x.shape[:3]
+        p, (th, tw) = cfg.dit.patch, cfg.token_hw
+        n = th * tw
+        if t.ndim == 1:
+            t = t[:, None].expand(b, t_len)
+        if t.shape != (b, t_len):
+            raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
+        if kv_context is not None and len(kv_context) != len(self.blocks):
+            raise ValueError(
+                f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}"
+            )
+        with self._autocast(x.device.type):
+            tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
+            if tokens.frame.shape[1] != t_len:
+                raise ValueError(f"conditions have {tokens.frame.shape[1]} frames, latents {t_len}")
+            cin = x.shape[3]
+            h = x.permute(0, 2, 1, 3, 4, 5).reshape(b, v, t_len, cin, th, p, tw, p)
+            h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)
+            view_type = torch.zeros(v, dtype=torch.long, device=x.device)
+            view_type[cfg.sensors.lidar_view] = 1
+            h = self.patch_in(h.to(self.patch_in.weight.dtype)).view(b, v, t_len, n, -1)
+            h = h + self.spatial_embed.to(h.dtype)
+            h = (h + self.view_type[view_type][None, :, None, None]).reshape(b * v, t_len * n, -1)
+
+            temb = self.time_embed(t)  # (B, T, D)
+            mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
+            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta)
+            cos, sin = cos.to(x.device), sin.to(x.device)
+            ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
+            self_mask = None
+            if causal and t_len > cfg.clip.chunk_frames:  # one chunk sees all of itself: no mask needed
+                self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device)
+            control_keys, control_mask = _control_keys(tokens, n)
+            view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
+            run = _Run(
+                b,
+                v,
+                t_len,
+                n,
+                mod,
+                cos,
+                sin,
+                self_mask,
+                tokens,
+                control_keys,
+                control_mask,
+                view_mask.reshape(b * t_len, 1, v * n, v * n),
+            )
+            kvs: list[KV] = []
+            for i, block in enumerate(self.blocks):
+                h, kv = block(h, run, None if kv_context is None else kv_context[i])
+                if return_kv:
+                    kvs.append(kv)
+            shift, scale = self.out_mod(F.silu(temb))[:, None, :, None].chunk(2, dim=-1)
+            h = self.norm_out(h).view(b, v, t_len, n, -1) * (1 + scale) + shift
+            out = self.head(h).float()  # (B, V, T, N, C*p*p)
+        c = cfg.vae.latent_channels
+        out = out.reshape(b, v, t_len, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)
+        out = out.reshape(b, t_len, v, c, th * p, tw * p)
+        return (out, kvs) if return_kv else out

@@ -1,0 +1,228 @@
+"""Per-frame spatial VAE shared by camera views and LiDAR range maps (paper §3.2).
+
+Temporal modelling is the DiT's job, so every frame is encoded on its own: one env step can then
+be a single frame. Layouts: images are ``(N, 3, H, W)`` floats in [-1, 1]; latents ``(N, C, h, w)``
+with ``h = H / downsample``.
+
+LiDAR (§3.2, "LiDAR modality support"): ranges in [0, max_range] metres map linearly to [-1, 1]
+and the map is resized to the camera resolution; the single range channel is repeated on the
+three image channels so the camera VAE is reused unchanged (decoding averages them).
+
+No return. A ray with no return (``LidarSpec.no_return`` = 0.0) saw nothing within range, so
+before normalization it is treated as ``max_range`` (+1.0), *not* as 0 m: 0 m would be the
+nearest possible obstacle and resizing would smear it into its neighbours as phantom close
+returns. On decoding, ranges at or above ``VaeConfig.lidar_no_return_fraction * max_range`` read back as
+``no_return``.
+
+Latent normalization: after VAE training, per-channel mean/std of the posterior means are stored
+in buffers so :meth:`SensorVAE.encode` returns roughly unit-variance latents (what rectified
+flow expects) and :meth:`SensorVAE.decode` undoes it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from world_model.model.config import ModelConfig, VaeConfig
+from world_model.sensors import LidarSpec
+
+
+def _groups(channels: int) -> int:
+    for g in (8, 4, 2, 1):
+        if channels % g == 0:
+            return g
+    return 1
+
+
+class ResBlock(nn.Module):
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.norm1 = nn.GroupNorm(_groups(cin), cin)
+        self.conv1 = nn.Conv2d(cin, cout, 3, padding=1)
+        self.norm2 = nn.GroupNorm(_groups(cout), cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1)
+        self.skip = nn.Conv2d(cin, cout, 1) if cin != cout else nn.Identity()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = self.conv1(F.silu(self.norm1(x)))
+        h = self.conv2(F.silu(self.norm2(h)))
+        return self.skip(x) + h
+
+
+class Encoder(nn.Module):
+    """(N, 3, H, W) -> mean, logvar (N, C, H/d, W/d)."""
+
+    def __init__(self, cfg: VaeConfig) -> None:
+        super().__init__()
+        chans = [cfg.base_channels * m for m in cfg.channel_mults]
+        self.conv_in = nn.Conv2d(cfg.image_channels, chans[0], 3, padding=1)
+        layers: list[nn.Module] = []
+        cin = chans[0]
+        for c in chans:
+            layers += [ResBlock(cin, c), nn.Conv2d(c, c, 3, stride=2, padding=1)]
+            cin = c
+        layers += [ResBlock(cin, cin), nn.GroupNorm(_groups(cin), cin), nn.SiLU()]
+        self.body = nn.Sequential(*layers)
+        self.conv_out = nn.Conv2d(cin, 2 * cfg.latent_channels, 3, padding=1)
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, logvar = self.conv_out(self.body(self.conv_in(x))).chunk(2, dim=1)
+        return mean, logvar.clamp(-30.0, 20.0)
+
+
+class Decoder(nn.Module):
+    """(N, C, h, w) -> (N, 3, h*d, w*d). Channels shrink as resolution grows to keep decoding cheap."""
+
+    def __init__(self, cfg: VaeConfig) -> None:
+        super().__init__()
+        chans = [cfg.decoder_base_channels * m for m in reversed(cfg.channel_mults)]
+        self.conv_in = nn.Conv2d(cfg.latent_channels, chans[0], 3, padding=1)
+        self.mid = ResBlock(chans[0], chans[0])
+        ups: list[nn.Module] = []
+        cin = chans[0]
+        for c in chans:
+            # One conv per level after nearest upsampling: the full-resolution levels dominate cost.
+            ups += [
+                nn.Upsample(scale_factor=2.0, mode="nearest"),
+                nn.Conv2d(cin, c, 3, padding=1),
+                nn.GroupNorm(_groups(c), c),
+                nn.SiLU(),
+            ]
+            cin = c
+        self.up = nn.Sequential(*ups)
+        self.conv_out = nn.Conv2d(cin, cfg.image_channels, 3, padding=1)
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        return self.conv_out(self.up(self.mid(self.conv_in(z))))
+
+
+class SensorVAE(nn.Module):
+    """The shared autoencoder plus sensor-specific (de)normalization."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = Encoder(cfg.vae)
+        self.decoder = Decoder(cfg.vae)
+        c = cfg.vae.latent_channels
+        self.register_buffer("latent_mean", torch.zeros(c))
+        self.register_buffer("latent_std", torch.ones(c))
+
+    # -- raw autoencoder --
+    def posterior(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unnormalized posterior mean/logvar of (N, 3, H, W) images."""
+        return self.encoder(images)
+
+    def decode_raw(self, z: torch.Tensor) -> torch.Tensor:
+        return self.decoder(z)
+
+    # -- normalized latents (what the DiT sees) --
+    def _norm(self, z: torch.Tensor) -> torch.Tensor:
+        return (z - self.latent_mean[:, None, None]) / self.latent_std[:, None, None]
+
+    def encode(self, images: torch.Tensor) -> torch.Tensor:
+        """(N, 3, H, W) in [-1, 1] -> normalized latent means (N, C, h, w)."""
+        return self._norm(self.encoder(images)[0])
+
+    def decode(self, latents: torch.Tensor) -> torch.Tensor:
+        """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1]."""
+        z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
+        return self.decoder(z)
+
+    @torch.no_grad()
+    def set_latent_stats(self, images: torch.Tensor) -> None:
+        """Fit the per-channel latent normalization on a sample of (N, 3, H, W) images."""
+        mean = self.encoder(images)[0].transpose(0, 1).flatten(1)
+        self.latent_mean.copy_(mean.mean(dim=1))
+        self.latent_std.copy_(mean.std(dim=1).clamp_min(1e-4))
+
+    # -- whole observations --
+    @torch.no_grad()
+    def encode_frames(self, cameras: np.ndarray, lidar: np.ndarray, batch: int = 64) -> torch.Tensor:
+        """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) -> latents (T, V+1, C, h, w)."""
+        t, v = cameras.shape[:2]
+        images = torch.cat(
+            [
+                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(
+                    t, v, 3, *cameras.shape[2:4]
+                ),
+                lidar_to_images(lidar, self.cfg)[:, None],
+            ],
+            dim=1,
+        )
+        flat = images.flatten(0, 1)
+        out = torch.cat([self.encode(flat[i : i + batch]) for i in range(0, len(flat), batch)])
+        return out.reshape(t, v + 1, *out.shape[1:])
+
+    @torch.no_grad()
+    def decode_frames(
+        self, latents: torch.Tensor, lidar_spec: LidarSpec | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth)."""
+        t, v1 = latents.shape[:2]
+        images = self.decode(latents.flatten(0, 1).float()).reshape(t, v1, 3, *self.cfg_hw)
+        cams = images_to_cameras(images[:, :-1])
+        lid = images_to_lidar(
+            images[:, -1], lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
+        )
+        return cams, lid
+
+    @property
+    def cfg_hw(self) -> tuple[int, int]:
+        return self.cfg.sensors.height, self.cfg.sensors.width
+
+
+def kl_loss(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
+    """KL(q || N(0, I)), averaged over elements."""
+    return 0.5 * (mean.pow(2) + logvar.exp() - 1.0 - logvar).mean()
+
+
+# -- sensor normalization --------------------------------------------------------------------
+
+
+def cameras_to_images(cameras: np.ndarray | torch.Tensor) -> torch.Tensor:
+    """uint8 (..., H, W, 3) -> float32 (..., 3, H, W) in [-1, 1]."""
+    if isinstance(cameras, np.ndarray) and not cameras.flags.writeable:
+        cameras = np.array(cameras)  # memory-mapped clips are read-only; torch wants writable memory
+    x = torch.as_tensor(cameras)
+    if x.dtype != torch.uint8 or x.shape[-1] != 3:
+        raise ValueError(f"cameras must be uint8 (..., H, W, 3), got {x.dtype} {tuple(x.shape)}")
+    return x.movedim(-1, -3).float() / 127.5 - 1.0
+
+
+def images_to_cameras(images: torch.Tensor) -> np.ndarray:
+    """float (..., 3, H, W) in [-1, 1] -> uint8 (..., H, W, 3)."""
+    x = ((images.float().clamp(-1, 1) + 1.0) * 127.5).round().to(torch.uint8)
+    return x.movedim(-3, -1).cpu().numpy()
+
+
+def lidar_to_images(ranges: np.ndarray | torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
+    """Range maps metres (..., beams, azimuth) -> (..., 3, H, W) in [-1, 1] at the view resolution."""
+    spec = cfg.sensors.lidar
+    r = torch.as_tensor(np.asarray(ranges, dtype=np.float32))
+    if r.ndim < 2:
+        raise ValueError(f"lidar must be (..., beams, azimuth), got shape {tuple(r.shape)}")
+    r = torch.where(r <= spec.no_return, torch.full_like(r, spec.max_range), r).clamp(0.0, spec.max_range)
+    x = r / spec.max_range * 2.0 - 1.0
+    lead = x.shape[:-2]
+    x = x.reshape(-1, 1, *x.shape[-2:])
+    # Antialiased bilinear: azimuth is decimated (1024 -> 112) while beams are upsampled (32 -> 64).
+    x = F.interpolate(
+        x, size=(cfg.sensors.height, cfg.sensors.width), mode="bilinear", antialias=True, align_corners=False
+    ).clamp(-1.0, 1.0)
+    return x.expand(-1, 3, -1, -1).reshape(*lead, 3, cfg.sensors.height, cfg.sensors.width).contiguous()
+
+
+def images_to_lidar(images: torch.Tensor, spec: LidarSpec, no_return_fraction: float) -> np.ndarray:
+    """(..., 3, H, W) in [-1, 1] -> float32 metres (..., beams, azimuth), no-return restored."""
+    x = images.float().mean(dim=-3)
+    lead = x.shape[:-2]
+    x = F.interpolate(
+        x.reshape(-1, 1, *x.shape[-2:]), size=(spec.beams, spec.azimuth), mode="bilinear", align_corners=False
+    )
+    r = ((x.clamp(-1, 1) + 1.0) * 0.5 * spec.max_range).reshape(*lead, spec.beams, spec.azimuth)
+    r = torch.where(r >= no_return_fraction * spec.max_range, torch.full_like(r, spec.no_return), r)
+    return r.cpu().numpy().astype(np.float32)

@@ -1,0 +1,54 @@
+"""CLI: train one stage of the world model.
+
+``python -m world_model.train --stage {vae,teacher} --data DIR --run RUN --preset tiny|default [--steps N]``
+
+Rerunning the same command resumes from the stage's last checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from world_model.model.config import PRESETS
+from world_model.train.stages import STAGES, train_stage
+from world_model.train.trainer import TrainingDivergedError
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m world_model.train", description=__doc__.splitlines()[0])
+    p.add_argument("--stage", required=True, choices=STAGES)
+    p.add_argument("--data", required=True, help="dataset directory (m4world-clips format)")
+    p.add_argument("--run", required=True, help="run directory; each stage writes RUN/<stage>/")
+    p.add_argument("--preset", default="default", choices=sorted(PRESETS))
+    p.add_argument("--steps", type=int, default=None, help="total optimizer steps (default: per preset)")
+    p.add_argument("--batch-size", type=int, default=None)
+    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--ckpt-every", type=int, default=None)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-progress", action="store_true")
+    a = p.parse_args(argv)
+    try:
+        out = train_stage(
+            a.stage,
+            a.data,
+            a.run,
+            preset=a.preset,
+            steps=a.steps,
+            batch_size=a.batch_size,
+            lr=a.lr,
+            ckpt_every=a.ckpt_every,
+            seed=a.seed,
+            progress=not a.no_progress,
+        )
+    except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    out.pop("losses", None)
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

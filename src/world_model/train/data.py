@@ -1,0 +1,127 @@
+"""Training data: random sensor frames for the VAE, cached latent windows + conditions for the DiT."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+from world_model.data import Clip, iter_clips
+from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
+from world_model.model.config import ModelConfig
+from world_model.model.imagedesc import ImageDescriptionEncoder
+from world_model.model.text import TextEncoder
+from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
+
+
+def load_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
+    """All clips of a dataset, checked against the model's sensors."""
+    clips = list(iter_clips(data_dir))
+    if not clips:
+        raise FileNotFoundError(f"{data_dir} has no complete clips; record some first (m4world record)")
+    s = cfg.sensors
+    for c in clips:
+        t, v, h, w, _ = c.cameras.shape
+        if (v, h, w) != (s.num_cameras, s.height, s.width):
+            raise ValueError(
+                f"clip {c.name}: cameras are {v} x {h}x{w} but preset {cfg.name!r} expects "
+                f"{s.num_cameras} x {s.height}x{s.width}; record at the preset's resolution"
+            )
+        if c.bev.shape[1:] != s.bev.shape:
+            raise ValueError(f"clip {c.name}: bev {c.bev.shape[1:]} but the config expects {s.bev.shape}")
+    return clips
+
+
+class FrameSampler:
+    """Random (clip, frame, view) images for the VAE; view == num_cameras is the LiDAR map."""
+
+    def __init__(self, clips: list[Clip], cfg: ModelConfig) -> None:
+        self.clips, self.cfg = clips, cfg
+
+    def image(self, clip: int, frame: int, view: int) -> torch.Tensor:
+        c = self.clips[clip]
+        if view == self.cfg.sensors.lidar_view:
+            return lidar_to_images(np.asarray(c.lidar[frame], dtype=np.float32), self.cfg)
+        return cameras_to_images(np.asarray(c.cameras[frame, view]))
+
+    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """images (B, 3, H, W) in [-1, 1] and is_lidar (B,) bool."""
+        ci = rng.integers(len(self.clips), size=batch)
+        fi = [int(rng.integers(self.clips[c].num_frames)) for c in ci]
+        vi = rng.integers(self.cfg.sensors.num_views, size=batch)
+        images = torch.stack([self.image(int(c), f, int(v)) for c, f, v in zip(ci, fi, vi, strict=True)])
+        return images, torch.as_tensor(vi == self.cfg.sensors.lidar_view)
+
+    def eval_frames(self, count: int) -> list[tuple[int, int]]:
+        """Up to ``count`` (clip, frame) pairs spread over the dataset (deterministic)."""
+        pairs = [(ci, f) for ci, c in enumerate(self.clips) for f in range(c.num_frames)]
+        idx = np.linspace(0, len(pairs) - 1, num=min(count, len(pairs))).round().astype(int)
+        return [pairs[i] for i in sorted(set(idx.tolist()))]
+
+
+def file_digest(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def cached_latents(clip: Clip, vae: SensorVAE, cache_dir: Path, vae_digest: str) -> torch.Tensor:
+    """Latents (T, V, C, h, w) of a clip, encoded once per VAE version and stored on disk."""
+    path = cache_dir / f"{clip.name}.safetensors"
+    if path.exists():
+        try:
+            from safetensors import safe_open
+
+            with safe_open(str(path), "pt") as f:
+                if (f.metadata() or {}).get("vae") == vae_digest:
+                    return load_file(str(path))["latents"]
+        except Exception:  # noqa: BLE001 - a corrupt cache entry is re-encoded
+            pass
+    lat = vae.encode_frames(np.asarray(clip.cameras), np.asarray(clip.lidar, dtype=np.float32))
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    save_file({"latents": lat.contiguous()}, str(tmp), metadata={"vae": vae_digest})
+    os.replace(tmp, path)
+    return lat
+
+
+class LatentWindows:
+    """Windows of cached latents with their conditions, at mixed lengths (``clip.train_frames``)."""
+
+    def __init__(
+        self,
+        clips: list[Clip],
+        latents: list[torch.Tensor],
+        cfg: ModelConfig,
+        text_encoder: TextEncoder,
+        image_encoder: ImageDescriptionEncoder | None,
+    ) -> None:
+        self.clips, self.latents, self.cfg = clips, latents, cfg
+        self.arrays: list[ConditionArrays] = [
+            build_condition_arrays(c.frames, np.asarray(c.bev), cfg, text_encoder, image_encoder, c.crops)
+            for c in clips
+        ]
+
+    def window(self, clip: int, start: int, frames: int) -> tuple[torch.Tensor, ConditionArrays]:
+        c, stop = self.clips[clip], start + frames
+        arr = self.arrays[clip].frames(start, stop)
+        # The ego condition is relative to the first frame of the sequence the model sees.
+        first = c.frames[start].ego
+        ego = np.stack([fr.ego_pose_condition(first) for fr in c.frames[start:stop]]).astype(np.float32)
+        return self.latents[clip][start:stop], replace(arr, ego=ego)
+
+    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, Conditions]:
+        """x0 (B, T, V, C, h, w) and conditions; T drawn from ``clip.train_frames`` per batch."""
+        lengths = [c.num_frames for c in self.clips]
+        t = int(rng.choice(self.cfg.clip.train_frames))
+        eligible = [i for i, n in enumerate(lengths) if n >= t]
+        if not eligible:  # every clip is shorter: use the longest available length
+            t = max(lengths)
+            eligible = [i for i, n in enumerate(lengths) if n == t]
+        picks = rng.choice(eligible, size=batch)
+        items = [self.window(int(ci), int(rng.integers(lengths[ci] - t + 1)), t) for ci in picks]
+        x0 = torch.stack([x for x, _ in items]).float()
+        return x0, Conditions.collate([a for _, a in items])

@@ -1,0 +1,78 @@
+"""VAE: shapes, camera/LiDAR normalization round trips, no-return handling, sampling to Observations."""
+
+from dataclasses import replace
+
+import numpy as np
+import torch
+from model_fixtures import make_sensors, perturbed, tiny_conditions
+
+from world_model import Observation
+from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
+from world_model.model.vae import cameras_to_images, images_to_cameras, images_to_lidar, lidar_to_images
+
+
+def test_lidar_normalization_round_trip_and_no_return():
+    cfg = get_preset("default")
+    spec = cfg.sensors.lidar
+    rng = np.random.default_rng(0)
+    # Smooth ranges (a resize round trip cannot keep per-column noise), with a no-return band on top.
+    az = np.linspace(0, 2 * np.pi, spec.azimuth)
+    ranges = np.broadcast_to(30 + 20 * np.sin(az)[None], (spec.beams, spec.azimuth)).astype(np.float32).copy()
+    ranges[:4] = spec.no_return
+    img = lidar_to_images(ranges, cfg)
+    assert img.shape == (3, cfg.sensors.height, cfg.sensors.width)
+    assert img.min() >= -1 and img.max() <= 1
+    assert torch.allclose(img[:, :4], torch.ones_like(img[:, :4]))  # no return -> far (+1), not 0 m
+    back = images_to_lidar(img, spec, cfg.vae.lidar_no_return_fraction)
+    assert back.shape == (spec.beams, spec.azimuth) and back.dtype == np.float32
+    assert (back[:3] == spec.no_return).all()  # the boundary row blends on resampling
+    assert np.abs(back[5:] - ranges[5:]).mean() < 0.5
+    # Exact linear map: 0 m -> -1, 50 m -> 0, 100 m -> +1 (before resizing).
+    flat = torch.as_tensor(rng.uniform(1, 95, size=(4, 7)).astype(np.float32))
+    tiny = replace(
+        cfg, sensors=replace(cfg.sensors, height=8, width=8), vae=replace(cfg.vae, channel_mults=(1,))
+    )
+    tiny_spec = replace(spec, beams=8, azimuth=8)
+    full = torch.nn.functional.interpolate(flat[None, None], size=(8, 8), mode="nearest")[0, 0].numpy()
+    norm = lidar_to_images(full, tiny)[0]
+    assert torch.allclose(norm, torch.as_tensor(full / 50.0 - 1.0), atol=1e-5)
+    assert np.allclose(images_to_lidar(norm[None].expand(3, -1, -1), tiny_spec, 0.97), full, atol=1e-3)
+
+
+def test_camera_round_trip_exact():
+    cams = np.random.default_rng(0).integers(0, 256, size=(2, 5, 6, 3), dtype=np.uint8)
+    img = cameras_to_images(cams)
+    assert img.shape == (2, 3, 5, 6) and img.min() >= -1 and img.max() <= 1
+    assert np.array_equal(images_to_cameras(img), cams)
+
+
+def test_vae_shapes_and_latent_normalization():
+    cfg = get_preset("tiny")
+    torch.manual_seed(0)
+    vae = SensorVAE(cfg).eval()
+    cams, lidar, _ = make_sensors(cfg, 3)
+    lat = vae.encode_frames(cams, lidar.astype(np.float32))
+    assert lat.shape == cfg.latent_shape(3)
+    images = cameras_to_images(cams.reshape(-1, *cams.shape[2:]))
+    vae.set_latent_stats(images)
+    z = vae.encode(images)
+    assert torch.allclose(z.mean(dim=(0, 2, 3)), torch.zeros(cfg.vae.latent_channels), atol=1e-4)
+    assert torch.allclose(
+        z.transpose(0, 1).flatten(1).std(dim=1), torch.ones(cfg.vae.latent_channels), atol=1e-3
+    )
+    out_cams, out_lidar = vae.decode_frames(lat)
+    assert out_cams.shape == cams.shape and out_cams.dtype == np.uint8
+    assert out_lidar.shape == lidar.shape and out_lidar.dtype == np.float32
+
+
+def test_generate_returns_observations():
+    cfg = get_preset("tiny")
+    torch.manual_seed(0)
+    model, vae = perturbed(MultiViewDiT(cfg)), SensorVAE(cfg).eval()
+    cond = tiny_conditions(cfg, 2, batch=2)
+    obs = generate(model, vae, cond, torch.Generator().manual_seed(0))
+    again = generate(model, vae, cond, torch.Generator().manual_seed(0))
+    assert len(obs) == 2 and len(obs[0]) == 2 and isinstance(obs[0][0], Observation)
+    assert obs[0][0].cameras.shape == (cfg.sensors.num_cameras, cfg.sensors.height, cfg.sensors.width, 3)
+    assert obs[0][0].lidar.shape == (cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth)
+    assert np.array_equal(obs[1][1].cameras, again[1][1].cameras)  # deterministic given the generator

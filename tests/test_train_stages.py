@@ -1,0 +1,145 @@
+"""Training stages end to end on a tiny synthetic dataset: export, resume, determinism, kill, NaN."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from model_fixtures import make_dataset
+from safetensors.torch import load_file
+
+from world_model.model import get_preset, sample_latents
+from world_model.model.conditions import Conditions
+from world_model.train import (
+    TrainConfig,
+    Trainer,
+    TrainingDivergedError,
+    load_latest,
+    load_teacher,
+    load_vae,
+    train_stage,
+)
+from world_model.train.checkpoint import save_checkpoint
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return make_dataset(tmp_path_factory.mktemp("data"), get_preset("tiny"), lengths=(4, 3))
+
+
+def test_vae_then_teacher_end_to_end_and_resume(dataset, tmp_path):
+    run = tmp_path / "run"
+    out = train_stage("vae", dataset, run, preset="tiny", steps=4, ckpt_every=2, progress=False)
+    assert out["step"] == 4 and out["resumed_from"] is None
+    assert {"camera_psnr_db", "lidar_range_mae_m", "lidar_return_accuracy"} <= set(out["metrics"])
+    again = train_stage("vae", dataset, run, preset="tiny", steps=6, ckpt_every=2, progress=False)
+    assert again["resumed_from"] == 4 and again["step"] == 6 and len(again["losses"]) == 2
+    vae = load_vae(run / "vae" / "model")
+    assert vae.latent_std.ne(1.0).any()  # latent normalization was fitted
+
+    t1 = train_stage("teacher", dataset, run, preset="tiny", steps=3, ckpt_every=1, progress=False)
+    assert t1["step"] == 3 and all(torch.isfinite(torch.tensor(t1["losses"])))
+    cache = sorted((run / "teacher" / "latents").glob("*.safetensors"))
+    assert len(cache) == 2
+    stamp = [p.stat().st_mtime_ns for p in cache]
+    t2 = train_stage("teacher", dataset, run, preset="tiny", steps=5, ckpt_every=1, progress=False)
+    assert t2["resumed_from"] == 3 and t2["step"] == 5
+    assert [p.stat().st_mtime_ns for p in cache] == stamp  # latents encoded once, then reused
+    model = load_teacher(run / "teacher" / "model")
+    # The exported teacher samples with its own conditions pipeline.
+    from world_model.model import make_text_encoder
+    from world_model.train.data import LatentWindows, load_clips
+
+    clips = load_clips(dataset, model.cfg)
+    lat = [torch.zeros(c.num_frames, *model.cfg.latent_shape(1)[1:]) for c in clips]
+    _, arr = LatentWindows(clips, lat, model.cfg, make_text_encoder(model.cfg.text), None).window(0, 0, 2)
+    out = sample_latents(model, Conditions.collate([arr]), torch.Generator().manual_seed(0))
+    assert out.shape == (1, *model.cfg.latent_shape(2)) and torch.isfinite(out).all()
+
+
+def test_resume_gives_the_same_state_as_uninterrupted(dataset, tmp_path):
+    straight = train_stage(
+        "vae", dataset, tmp_path / "a", preset="tiny", steps=4, ckpt_every=2, progress=False
+    )
+    train_stage("vae", dataset, tmp_path / "b", preset="tiny", steps=2, ckpt_every=2, progress=False)
+    resumed = train_stage(
+        "vae", dataset, tmp_path / "b", preset="tiny", steps=4, ckpt_every=2, progress=False
+    )
+    assert resumed["losses"] == straight["losses"][2:]
+    a = load_file(str(tmp_path / "a" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))
+    b = load_file(str(tmp_path / "b" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_killed_run_resumes_from_last_checkpoint(dataset, tmp_path):
+    run = tmp_path / "run"
+    cmd = [
+        sys.executable,
+        "-m",
+        "world_model.train",
+        "--stage",
+        "vae",
+        "--data",
+        str(dataset),
+        "--run",
+        str(run),
+        "--preset",
+        "tiny",
+        "--steps",
+        "100000",
+        "--ckpt-every",
+        "2",
+        "--no-progress",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    latest = run / "vae" / "checkpoints" / "latest.json"
+    deadline = time.time() + 60
+    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    ck = load_latest(run / "vae" / "checkpoints")
+    assert ck is not None and ck.step >= 4
+    out = train_stage("vae", dataset, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
+    assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
+
+
+def test_nan_loss_stops_with_clear_error_and_keeps_last_checkpoint(tmp_path):
+    model = torch.nn.Linear(2, 1)
+    trainer = Trainer(tmp_path, model, TrainConfig(steps=10, batch_size=1, lr=1e-2, ckpt_every=1), {}, False)
+
+    def step(tr):
+        loss = model(torch.ones(1, 2)).sum() ** 2
+        return (loss * float("nan") if tr.step == 3 else loss), 1
+
+    with pytest.raises(TrainingDivergedError, match="loss is nan at step 4"):
+        trainer.run(step, "toy")
+    assert load_latest(tmp_path / "checkpoints").step == 3
+
+
+def test_half_written_checkpoint_is_ignored(tmp_path):
+    root = tmp_path / "ck"
+    save_checkpoint(root, 1, {"model": {"w": torch.ones(2)}}, {"x": 1}, {"a": 1})
+    (root / ".tmp-step_00000002-999").mkdir()  # a writer killed mid-save
+    (root / ".tmp-step_00000002-999" / "model.safetensors").write_bytes(b"garbage")
+    ck = load_latest(root)
+    assert ck.step == 1 and torch.equal(ck.tensors["model"]["w"], torch.ones(2))
+    save_checkpoint(root, 2, {"model": {"w": torch.zeros(2)}}, {"x": 2}, {"a": 2}, keep=1)
+    assert sorted(p.name for p in root.iterdir()) == ["latest.json", "step_00000002"]
+
+
+def test_stage_errors_are_actionable(dataset, tmp_path):
+    with pytest.raises(FileNotFoundError, match="run --stage vae"):
+        train_stage("teacher", dataset, tmp_path / "run", preset="tiny", steps=1, progress=False)
+    with pytest.raises(ValueError, match="unknown stage"):
+        train_stage("student", dataset, tmp_path / "run", preset="tiny", steps=1, progress=False)
+    with pytest.raises(ValueError, match="expects"):
+        train_stage("vae", dataset, tmp_path / "run2", preset="default", steps=1, progress=False)
