@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from model_fixtures import perturbed, tiny_conditions
+from tests.model_fixtures import perturbed, tiny_conditions
 
 from world_model.model import MultiViewDiT, get_preset
 from world_model.model.attention import block_causal_mask

@@ -2,7 +2,7 @@
 
 import numpy as np
 import torch
-from model_fixtures import make_sensors, tiny_conditions
+from tests.model_fixtures import make_sensors, tiny_conditions
 
 from world_model.model import (
     Conditions,

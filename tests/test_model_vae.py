@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from model_fixtures import make_sensors, perturbed, tiny_conditions
+from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 
 from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset

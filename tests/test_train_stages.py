@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from model_fixtures import make_dataset
+from tests.model_fixtures import make_dataset
 from safetensors.torch import load_file
 
 from world_model.model import get_preset, sample_latents
