@@ -102,6 +102,31 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    import json
+
+    from world_model.train.stages import STAGES, train_stage
+
+    stages = list(STAGES) if args.all else [args.stage]
+    if not args.all and args.stage is None:
+        raise ValueError(f"give --stage (one of {STAGES}) or --all")
+    for stage in stages:
+        summary = train_stage(
+            stage,
+            args.data,
+            args.run,
+            preset=args.preset,
+            steps=args.steps if not args.all else None,
+            batch_size=args.batch_size,
+            lr=args.lr,
+            seed=args.seed,
+            progress=not args.no_progress,
+        )
+        summary.pop("losses", None)
+        print(json.dumps(summary, indent=1, default=float))
+    return 0
+
+
 def _cmd_gallery(args: argparse.Namespace) -> int:
     from m4world_env.gallery import make_gallery
 
@@ -147,6 +172,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-steps", type=int, default=None)
     e.add_argument("--out", default=None, help="write the JSON report here")
     e.set_defaults(func=_cmd_eval)
+
+    t = sub.add_parser("train", help="train world-model stages (resumable: rerun the same command)")
+    t.add_argument(
+        "--stage", default=None, help="one stage (vae, teacher, ...); see --help of python -m world_model.train"
+    )
+    t.add_argument("--all", action="store_true", help="every stage in order; finished stages are skipped")
+    t.add_argument("--data", default="data/train", help="dataset directory (m4world record output)")
+    t.add_argument("--run", default="runs/default", help="run directory; each stage writes RUN/<stage>/")
+    t.add_argument("--preset", default="default")
+    t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
+    t.add_argument("--batch-size", type=int, default=None)
+    t.add_argument("--lr", type=float, default=None)
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--no-progress", action="store_true")
+    t.set_defaults(func=_cmd_train)
 
     g = sub.add_parser("gallery", help="render PNG mosaics of scenarios under several weathers/times")
     g.add_argument("--out", default="docs/images")

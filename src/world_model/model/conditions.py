@@ -170,9 +170,7 @@ def build_condition_arrays(
             txt[f, idx] = text_encoder.pooled([descs[i] for i in idx])
             has_txt[f, idx] = True
         if image_encoder is not None:
-            pairs = [
-                (i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)
-            ]
+            pairs = [(i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)]
             pairs = [(i, c) for i, c in pairs if c is not None]
             if pairs:
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
@@ -234,8 +232,7 @@ class Conditions:
         if len({it.num_frames for it in items}) != 1:
             raise ValueError("Conditions.collate needs sequences of equal length")
         kw = {
-            f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items]))
-            for f in fields(ConditionArrays)
+            f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items])) for f in fields(ConditionArrays)
         }
         kw["bev"] = kw["bev"].float()
         return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
@@ -258,6 +255,4 @@ class Conditions:
     @staticmethod
     def cat(items: Sequence[Conditions]) -> Conditions:
         """Concatenate along the batch (e.g. conditional + unconditional for guidance)."""
-        return Conditions(
-            **{f.name: torch.cat([getattr(it, f.name) for it in items]) for f in fields(Conditions)}
-        )
+        return Conditions(**{f.name: torch.cat([getattr(it, f.name) for it in items]) for f in fields(Conditions)})

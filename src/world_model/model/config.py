@@ -77,7 +77,7 @@ class TextConfig:
 class ControlConfig:
     """Control tokenizer (§3.2): sensor, ego, map and object tokens."""
 
-    dim: int = 192  # control-token width fed to the DiT's control cross-attention
+    dim: int = 128  # control-token width fed to the DiT's control cross-attention
     fourier_freqs: int = 6  # NeRF-style frequencies per coordinate
     position_scale_m: float = 50.0  # metres mapped to 1.0 before Fourier embedding
     map_patch: int = 10  # BEV pixels per map-token side
@@ -90,7 +90,9 @@ class ControlConfig:
 class DitConfig:
     """Multi-view + LiDAR diffusion transformer (§3.2)."""
 
-    dim: int = 192
+    # Sized for the env's CPU speed target (8 batched envs, 4 denoising steps per chunk): see
+    # benchmarks/bench_model.py and bench_student.py. 4.7 M parameters at these values.
+    dim: int = 128
     depth: int = 10
     heads: int = 4
     mlp_ratio: float = 4.0
@@ -156,9 +158,7 @@ class ModelConfig:
     def __post_init__(self) -> None:
         s, v, d, c = self.sensors, self.vae, self.dit, self.control
         if s.height % v.downsample or s.width % v.downsample:
-            raise ValueError(
-                f"image {s.height}x{s.width} must be divisible by the VAE downsampling {v.downsample}"
-            )
+            raise ValueError(f"image {s.height}x{s.width} must be divisible by the VAE downsampling {v.downsample}")
         if self.latent_hw[0] % d.patch or self.latent_hw[1] % d.patch:
             raise ValueError(f"latent grid {self.latent_hw} must be divisible by the DiT patch {d.patch}")
         if d.dim % d.heads or d.head_dim % 2:
@@ -260,9 +260,7 @@ def _gpu() -> ModelConfig:
     return ModelConfig(
         name="gpu",
         sensors=SensorConfig(num_cameras=6, height=224, width=400, bev=BevSpec(m_per_px=0.5)),
-        vae=VaeConfig(
-            latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64
-        ),
+        vae=VaeConfig(latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64),
         text=TextConfig(encoder="minilm", dim=384, max_tokens=128),
         control=ControlConfig(dim=1536, fourier_freqs=8, map_patch=8, max_objects=64, crop_size=64),
         dit=DitConfig(dim=1536, depth=30, heads=12, patch=2, autocast_bf16=True),

@@ -59,9 +59,7 @@ def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Te
     the mask (B*T, 1, V*N, V + Nf) letting a query of view v see sensor v and the valid controls."""
     b, t, nf, dc = tokens.frame.shape
     v = tokens.sensor.shape[1]
-    keys = torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(
-        b * t, v + nf, dc
-    )
+    keys = torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(b * t, v + nf, dc)
     sensor_ok = torch.eye(v, dtype=torch.bool, device=keys.device).repeat_interleave(n, dim=0)  # (V*N, V)
     frame_ok = tokens.frame_mask.reshape(b * t, 1, 1, nf).expand(b * t, 1, v * n, nf)
     mask = torch.cat([sensor_ok[None, None].expand(b * t, 1, v * n, v), frame_ok], dim=-1)
@@ -131,9 +129,7 @@ class DiTBlock(nn.Module):
 
     def _view_major(self, x: torch.Tensor, run: _Run) -> torch.Tensor:
         """(B*T, V*N, D) -> (B*V, T*N, D)."""
-        return (
-            x.view(run.b, run.t, run.v, run.n, -1).transpose(1, 2).reshape(run.b * run.v, run.t * run.n, -1)
-        )
+        return x.view(run.b, run.t, run.v, run.n, -1).transpose(1, 2).reshape(run.b * run.v, run.t * run.n, -1)
 
     def forward(self, x: torch.Tensor, run: _Run, context: KV | None) -> tuple[torch.Tensor, KV]:
         """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v)."""
@@ -238,9 +234,7 @@ class MultiViewDiT(nn.Module):
         if t.shape != (b, t_len):
             raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
         if kv_context is not None and len(kv_context) != len(self.blocks):
-            raise ValueError(
-                f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}"
-            )
+            raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}")
         with self._autocast(x.device.type):
             tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
             if tokens.frame.shape[1] != t_len:

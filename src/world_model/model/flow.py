@@ -63,9 +63,7 @@ def predict_x0(x_t: torch.Tensor, v: torch.Tensor, t: torch.Tensor) -> torch.Ten
     return x_t + (1.0 - _bcast(t, x_t)) * v
 
 
-def flow_matching_loss(
-    velocity_fn: VelocityFn, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor
-) -> torch.Tensor:
+def flow_matching_loss(velocity_fn: VelocityFn, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
     """Mean squared error between v_theta(x_t, t) and x0 - noise."""
     v = velocity_fn(interpolate(x0, noise, t), t)
     return (v.float() - velocity_target(x0, noise).float()).pow(2).mean()

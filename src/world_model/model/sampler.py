@@ -41,9 +41,7 @@ class GuidedVelocity:
         both = Conditions.cat([cond, cond.with_drop(True)]) if self.guided else cond
         self.tokens = model.tokenize(both)
         s = self.sampler
-        self.apg = AdaptiveProjectedGuidance(
-            s.lidar_apg_scale, s.apg_eta, s.apg_norm_threshold, s.apg_momentum
-        )
+        self.apg = AdaptiveProjectedGuidance(s.lidar_apg_scale, s.apg_eta, s.apg_norm_threshold, s.apg_momentum)
 
     def __call__(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         if not self.guided:
@@ -78,9 +76,7 @@ def sample_latents(
     was_training = model.training
     model.eval()
     try:
-        return euler_sample(
-            GuidedVelocity(model, cond.to(device), sampler), noise, sampler.steps, cfg.flow.shift
-        )
+        return euler_sample(GuidedVelocity(model, cond.to(device), sampler), noise, sampler.steps, cfg.flow.shift)
     finally:
         model.train(was_training)
 
@@ -98,9 +94,7 @@ def latents_to_observations(
         cams, lidar = vae.decode_frames(latents[b], lidar_spec)
         out.append(
             [
-                Observation(
-                    cameras=cams[i], lidar=lidar[i], bev=None if bev is None else np.asarray(bev[b, i])
-                )
+                Observation(cameras=cams[i], lidar=lidar[i], bev=None if bev is None else np.asarray(bev[b, i]))
                 for i in range(len(cams))
             ]
         )

@@ -146,9 +146,7 @@ class SensorVAE(nn.Module):
         t, v = cameras.shape[:2]
         images = torch.cat(
             [
-                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(
-                    t, v, 3, *cameras.shape[2:4]
-                ),
+                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(t, v, 3, *cameras.shape[2:4]),
                 lidar_to_images(lidar, self.cfg)[:, None],
             ],
             dim=1,

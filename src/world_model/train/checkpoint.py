@@ -63,9 +63,7 @@ def save_checkpoint(
         shutil.rmtree(tmp)
     tmp.mkdir()
     for stem, state in tensors.items():
-        save_file(
-            {k: v.detach().contiguous().cpu() for k, v in state.items()}, str(tmp / f"{stem}.safetensors")
-        )
+        save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(tmp / f"{stem}.safetensors"))
     torch.save(train_state, tmp / "train_state.pt")
     with open(tmp / "meta.json", "w") as f:
         json.dump({**meta, "step": step}, f, indent=1)

@@ -96,9 +96,7 @@ def _train_config(
     n = steps if steps is not None else DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"])
     if n < 1:
         raise ValueError(f"steps must be >= 1, got {n}")
-    return TrainConfig(
-        steps=n, batch_size=batch_size or b, lr=lr or l, ckpt_every=ckpt_every or every, seed=seed
-    )
+    return TrainConfig(steps=n, batch_size=batch_size or b, lr=lr or l, ckpt_every=ckpt_every or every, seed=seed)
 
 
 # -- vae ---------------------------------------------------------------------------------------
@@ -166,9 +164,7 @@ def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainCon
 # -- teacher -----------------------------------------------------------------------------------
 
 
-def _teacher_stage(
-    data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainConfig, progress: bool
-) -> dict:
+def _teacher_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainConfig, progress: bool) -> dict:
     vae_path = stage_dir.parent / "vae" / EXPORT
     if not vae_path.with_suffix(".safetensors").exists():
         raise FileNotFoundError(
@@ -177,9 +173,7 @@ def _teacher_stage(
         )
     vae = load_vae(vae_path)
     if vae.cfg.vae != cfg.vae or vae.cfg.sensors != cfg.sensors:
-        raise ValueError(
-            f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}"
-        )
+        raise ValueError(f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
     clips = load_clips(data_dir, cfg)
     digest = file_digest(vae_path.with_suffix(".safetensors"))
     latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]

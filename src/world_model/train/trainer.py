@@ -45,9 +45,7 @@ StepFn = Callable[["Trainer"], tuple[torch.Tensor, int]]
 
 
 class Trainer:
-    def __init__(
-        self, stage_dir: Path, model: nn.Module, tcfg: TrainConfig, meta: dict, progress: bool = True
-    ):
+    def __init__(self, stage_dir: Path, model: nn.Module, tcfg: TrainConfig, meta: dict, progress: bool = True):
         self.dir = Path(stage_dir)
         self.ckpt_dir = self.dir / "checkpoints"
         self.model = model
