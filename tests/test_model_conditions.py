@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 import torch
-from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_conditions
 
+from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_conditions
 from world_model import Box3D, SceneObject, default_rig
 from world_model.model import (
     ControlTokenizer,

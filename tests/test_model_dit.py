@@ -4,8 +4,8 @@ from dataclasses import replace
 
 import pytest
 import torch
-from tests.model_fixtures import perturbed, tiny_conditions
 
+from tests.model_fixtures import perturbed, tiny_conditions
 from world_model.model import MultiViewDiT, get_preset
 from world_model.model.attention import block_causal_mask
 from world_model.model.config import PRESETS, ModelConfig

@@ -2,8 +2,8 @@
 
 import numpy as np
 import torch
-from tests.model_fixtures import make_sensors, tiny_conditions
 
+from tests.model_fixtures import make_sensors, tiny_conditions
 from world_model.model import (
     Conditions,
     MultiViewDiT,

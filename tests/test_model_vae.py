@@ -4,8 +4,8 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 
+from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
 from world_model.model.vae import cameras_to_images, images_to_cameras, images_to_lidar, lidar_to_images

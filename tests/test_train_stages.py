@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from tests.model_fixtures import make_dataset
 from safetensors.torch import load_file
 
+from tests.model_fixtures import make_dataset
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
 from world_model.train import (
