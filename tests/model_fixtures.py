@@ -47,9 +47,7 @@ def make_frames(cfg: ModelConfig, num_frames: int, num_objects: int = 3, seed: i
     return frames
 
 
-def make_sensors(
-    cfg: ModelConfig, num_frames: int, phase: float = 0.0
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_sensors(cfg: ModelConfig, num_frames: int, phase: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """cameras uint8 (T, V, H, W, 3), lidar float16 (T, B, A) metres, bev uint8 (T, h, w, c).
 
     Cameras: sky/road split plus stripes that move with the frame index, tinted per view.
@@ -64,9 +62,7 @@ def make_sensors(
     stripes = np.sin(2 * np.pi * (cols / 16.0 - 0.15 * t_idx + phase) + v_idx) > 0
     base = np.where(sky, 180, 60 + 80 * stripes)
     cams = np.stack([base + 10 * v_idx, base, np.where(sky, 230, base - 20 * v_idx % 40)], axis=-1)
-    cams = np.clip(np.broadcast_to(cams, (num_frames, s.num_cameras, s.height, s.width, 3)), 0, 255).astype(
-        np.uint8
-    )
+    cams = np.clip(np.broadcast_to(cams, (num_frames, s.num_cameras, s.height, s.width, 3)), 0, 255).astype(np.uint8)
 
     spec = s.lidar
     el = spec.elevations()[None, :, None]

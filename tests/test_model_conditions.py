@@ -24,9 +24,7 @@ def test_default_rig_cross_view_neighbours():
     adj = view_adjacency(rig)
     idx = {n: i for i, n in enumerate(rig.names)}
     lidar = rig.num_views
-    neighbours = {
-        n: {rig.names[j] if j < lidar else "LIDAR" for j in np.flatnonzero(adj[i])} for n, i in idx.items()
-    }
+    neighbours = {n: {rig.names[j] if j < lidar else "LIDAR" for j in np.flatnonzero(adj[i])} for n, i in idx.items()}
     assert neighbours["FRONT"] == {"FRONT_LEFT", "FRONT_RIGHT", "LIDAR"}
     assert neighbours["FRONT_LEFT"] == {"FRONT", "BACK_LEFT", "LIDAR"}
     assert neighbours["BACK"] == {"BACK_LEFT", "BACK_RIGHT", "LIDAR"}
@@ -133,9 +131,7 @@ def test_object_text_falls_back_to_colour_and_category():
     frames = make_frames(cfg, 1, num_objects=1)
     obj = frames[0].objects[0]
     assert obj.description == ""
-    bare = SceneObject(
-        track_id="x", category="cone", box=Box3D((90.0, 0.0, 0.4), (0.4, 0.4, 0.75), 0.0), color_name=""
-    )
+    bare = SceneObject(track_id="x", category="cone", box=Box3D((90.0, 0.0, 0.4), (0.4, 0.4, 0.75), 0.0), color_name="")
     _, _, bev = make_sensors(cfg, 1)
     enc = HashTextEncoder(cfg.text.dim)
     arr = build_condition_arrays([frames[0].with_objects((obj, bare))], bev, cfg, enc)

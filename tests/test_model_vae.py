@@ -29,9 +29,7 @@ def test_lidar_normalization_round_trip_and_no_return():
     assert np.abs(back[5:] - ranges[5:]).mean() < 0.5
     # Exact linear map: 0 m -> -1, 50 m -> 0, 100 m -> +1 (before resizing).
     flat = torch.as_tensor(rng.uniform(1, 95, size=(4, 7)).astype(np.float32))
-    tiny = replace(
-        cfg, sensors=replace(cfg.sensors, height=8, width=8), vae=replace(cfg.vae, channel_mults=(1,))
-    )
+    tiny = replace(cfg, sensors=replace(cfg.sensors, height=8, width=8), vae=replace(cfg.vae, channel_mults=(1,)))
     tiny_spec = replace(spec, beams=8, azimuth=8)
     full = torch.nn.functional.interpolate(flat[None, None], size=(8, 8), mode="nearest")[0, 0].numpy()
     norm = lidar_to_images(full, tiny)[0]
@@ -57,9 +55,7 @@ def test_vae_shapes_and_latent_normalization():
     vae.set_latent_stats(images)
     z = vae.encode(images)
     assert torch.allclose(z.mean(dim=(0, 2, 3)), torch.zeros(cfg.vae.latent_channels), atol=1e-4)
-    assert torch.allclose(
-        z.transpose(0, 1).flatten(1).std(dim=1), torch.ones(cfg.vae.latent_channels), atol=1e-3
-    )
+    assert torch.allclose(z.transpose(0, 1).flatten(1).std(dim=1), torch.ones(cfg.vae.latent_channels), atol=1e-3)
     out_cams, out_lidar = vae.decode_frames(lat)
     assert out_cams.shape == cams.shape and out_cams.dtype == np.uint8
     assert out_lidar.shape == lidar.shape and out_lidar.dtype == np.float32

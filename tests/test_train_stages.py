@@ -65,13 +65,9 @@ def test_vae_then_teacher_end_to_end_and_resume(dataset, tmp_path):
 
 
 def test_resume_gives_the_same_state_as_uninterrupted(dataset, tmp_path):
-    straight = train_stage(
-        "vae", dataset, tmp_path / "a", preset="tiny", steps=4, ckpt_every=2, progress=False
-    )
+    straight = train_stage("vae", dataset, tmp_path / "a", preset="tiny", steps=4, ckpt_every=2, progress=False)
     train_stage("vae", dataset, tmp_path / "b", preset="tiny", steps=2, ckpt_every=2, progress=False)
-    resumed = train_stage(
-        "vae", dataset, tmp_path / "b", preset="tiny", steps=4, ckpt_every=2, progress=False
-    )
+    resumed = train_stage("vae", dataset, tmp_path / "b", preset="tiny", steps=4, ckpt_every=2, progress=False)
     assert resumed["losses"] == straight["losses"][2:]
     a = load_file(str(tmp_path / "a" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))
     b = load_file(str(tmp_path / "b" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))

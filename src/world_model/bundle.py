@@ -1,0 +1,163 @@
+"""A world-model checkpoint *bundle*: everything the env's world-model backend loads, in one folder.
+
+Layout::
+
+    BUNDLE/
+      manifest.json            format, version, model config, and per component: file, sha256, bytes, stage
+      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
+      student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
+      reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
+      adapters/                optional LoRA adapters (``lora`` stage output)
+
+:func:`export_bundle` collects the stage exports of a training run; :func:`load_bundle_files`
+verifies every file against the manifest before anything is deserialized, so a missing, truncated
+or tampered checkpoint fails with :class:`CheckpointError` naming the file, never deep in torch.
+The shipped default bundle lives in ``world_model/checkpoints/default`` (package data).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file
+
+from world_model.data.clips import write_json_atomic
+
+BUNDLE_FORMAT = "m4world-bundle"
+BUNDLE_VERSION = 1
+DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
+# Component -> the run stages that may provide it, preferred first.
+COMPONENT_STAGES = {
+    "vae": ("vae",),
+    "student": ("long", "dmd", "ode"),
+    "reference": ("reference",),
+}
+REQUIRED = ("vae", "student")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint bundle that is missing, incomplete, corrupt or of an unknown format."""
+
+
+class CheckpointNotFoundError(CheckpointError, FileNotFoundError):
+    """The checkpoint path does not exist."""
+
+
+@dataclass
+class BundleFiles:
+    """Verified tensors and configs of a bundle (deserialized, not yet turned into modules)."""
+
+    path: Path
+    manifest: dict
+    tensors: dict[str, dict[str, torch.Tensor]]  # component -> state dict
+
+    @property
+    def model_config(self) -> dict:
+        return self.manifest["model_config"]
+
+    def has(self, component: str) -> bool:
+        return component in self.tensors
+
+
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
+    """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically)."""
+    run_dir, out_dir = Path(run_dir), Path(out_dir)
+    found: dict[str, tuple[str, Path]] = {}
+    for component, stages in COMPONENT_STAGES.items():
+        for stage in stages:
+            file = run_dir / stage / "model.safetensors"
+            if file.exists():
+                found[component] = (stage, file)
+                break
+    missing = [c for c in REQUIRED if c not in found]
+    if missing:
+        raise CheckpointError(
+            f"{run_dir} has no export for {missing}: train stages {[COMPONENT_STAGES[c] for c in missing]} first"
+        )
+    config = json.loads(found["student"][1].with_suffix(".json").read_text())["model_config"]
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    components = {}
+    for component, (stage, file) in found.items():
+        dst = tmp / f"{component}.safetensors"
+        shutil.copyfile(file, dst)
+        components[component] = {
+            "file": dst.name,
+            "sha256": sha256_file(dst),
+            "bytes": dst.stat().st_size,
+            "stage": stage,
+        }
+    adapters = run_dir / "lora"
+    if adapters.is_dir():
+        shutil.copytree(adapters, tmp / "adapters", ignore=shutil.ignore_patterns("checkpoints", "*.partial"))
+    write_json_atomic(
+        tmp / "manifest.json",
+        {"format": BUNDLE_FORMAT, "version": BUNDLE_VERSION, "model_config": config, "components": components},
+    )
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp, out_dir)
+    return out_dir
+
+
+def resolve_bundle(path: str | Path | None) -> Path:
+    """``None`` → the shipped default bundle; a path must exist."""
+    p = DEFAULT_BUNDLE if path is None else Path(path)
+    if not p.exists():
+        hint = (
+            "the shipped default checkpoint is missing from this install (reinstall the package)"
+            if path is None
+            else "give the folder written by `m4world export` (or omit checkpoint= for the shipped default)"
+        )
+        raise CheckpointNotFoundError(f"checkpoint {p} does not exist: {hint}")
+    return p
+
+
+def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
+    """Read and verify a bundle. Raises :class:`CheckpointError` with the offending file named."""
+    root = resolve_bundle(path)
+    manifest_path = root / "manifest.json"
+    try:
+        manifest = json.loads(manifest_path.read_text())
+    except FileNotFoundError as e:
+        raise CheckpointError(f"{root} is not a checkpoint bundle: {manifest_path.name} is missing") from e
+    except json.JSONDecodeError as e:
+        raise CheckpointError(f"{manifest_path} is corrupt (not valid JSON: {e})") from e
+    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != BUNDLE_VERSION:
+        raise CheckpointError(
+            f"{manifest_path}: format {manifest.get('format')!r} v{manifest.get('version')} is not "
+            f"{BUNDLE_FORMAT!r} v{BUNDLE_VERSION}"
+        )
+    components = manifest.get("components", {})
+    missing = [c for c in REQUIRED if c not in components]
+    if missing:
+        raise CheckpointError(f"{manifest_path} lists no {missing} component: the bundle is incomplete")
+    tensors = {}
+    for name, info in components.items():
+        file = root / info["file"]
+        if not file.exists():
+            raise CheckpointError(f"checkpoint file {file} is missing (listed in {manifest_path.name})")
+        if file.stat().st_size != info["bytes"] or sha256_file(file) != info["sha256"]:
+            raise CheckpointError(f"checkpoint file {file} is corrupt: its size or sha256 differs from the manifest")
+        try:
+            tensors[name] = load_file(str(file))
+        except SafetensorError as e:  # pragma: no cover - caught by the hash check first
+            raise CheckpointError(f"checkpoint file {file} cannot be read: {e}") from e
+    return BundleFiles(path=root, manifest=manifest, tensors=tensors)

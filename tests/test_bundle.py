@@ -1,0 +1,55 @@
+import json
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from world_model.bundle import (
+    CheckpointError,
+    CheckpointNotFoundError,
+    export_bundle,
+    load_bundle_files,
+)
+
+
+def _fake_run(root):
+    for stage, tensor in (("vae", torch.ones(3)), ("dmd", torch.arange(4.0)), ("reference", torch.zeros(2))):
+        d = root / stage
+        d.mkdir(parents=True)
+        save_file({"w": tensor}, str(d / "model.safetensors"))
+        (d / "model.json").write_text(json.dumps({"stage": stage, "model_config": {"name": "tiny"}}))
+    return root
+
+
+def test_export_and_load_roundtrip(tmp_path):
+    bundle = export_bundle(_fake_run(tmp_path / "run"), tmp_path / "bundle")
+    files = load_bundle_files(bundle)
+    assert files.manifest["components"]["student"]["stage"] == "dmd"
+    assert torch.equal(files.tensors["student"]["w"], torch.arange(4.0))
+    assert files.has("reference") and files.model_config == {"name": "tiny"}
+
+
+def test_missing_and_corrupt_checkpoints_are_named(tmp_path):
+    with pytest.raises(CheckpointNotFoundError, match="does not exist"):
+        load_bundle_files(tmp_path / "nope")
+    with pytest.raises(CheckpointError, match="manifest.json is missing"):
+        load_bundle_files(tmp_path)
+    bundle = export_bundle(_fake_run(tmp_path / "run"), tmp_path / "bundle")
+    student = bundle / "student.safetensors"
+    data = bytearray(student.read_bytes())
+    data[-1] ^= 0xFF
+    student.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="student.safetensors is corrupt"):
+        load_bundle_files(bundle)
+    student.unlink()
+    with pytest.raises(CheckpointError, match="student.safetensors is missing"):
+        load_bundle_files(bundle)
+    (bundle / "manifest.json").write_text("{not json")
+    with pytest.raises(CheckpointError, match="not valid JSON"):
+        load_bundle_files(bundle)
+
+
+def test_export_requires_vae_and_student(tmp_path):
+    (tmp_path / "run" / "vae").mkdir(parents=True)
+    with pytest.raises(CheckpointError, match="student"):
+        export_bundle(tmp_path / "run", tmp_path / "b")
