@@ -56,6 +56,7 @@ class ReferenceConfig:
     lidar_reference_prob: float = 0.5  # first_frame_all also observes the LiDAR this often
     first_frame_only_prob: float = 0.25  # batches cut to one frame: the reset() case (T = 1)
     near_plane_m: float = 0.1  # box corners closer than this to a camera are clipped (as the simulator)
+    margin_px: int = 2  # object regions grow by this many view pixels: rendered edges are anti-aliased
     edge_samples: int = 16  # points per box edge when bounding the box in the LiDAR range map
     paste_observed: bool = True  # copy observed regions from the reference after sampling
 
@@ -132,7 +133,7 @@ def camera_box_pixels(frame: SceneFrame, corners: np.ndarray, view: int, near: f
     return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
 
-def _lidar_box_region(corners: np.ndarray, cfg: ModelConfig, samples: int) -> np.ndarray:
+def _lidar_box_region(corners: np.ndarray, cfg: ModelConfig, samples: int, margin: int) -> np.ndarray:
     """(h, w) bool latent cells of the LiDAR view that the box's azimuth/elevation span touches.
 
     The range map's column k is centred on azimuth pi - 2 pi k / A and row r on elevation
@@ -157,6 +158,7 @@ def _lidar_box_region(corners: np.ndarray, cfg: ModelConfig, samples: int) -> np
     v_lo = (el_max - el.max()) / step * row
     v_hi = ((el_max - el.min()) / step + 1.0) * row
     out = np.zeros((h, w), bool)
+    u_lo, u_hi, v_lo, v_hi = u_lo - margin, u_hi + margin, v_lo - margin, v_hi + margin
     rows = _cells(v_lo, v_hi, h, d)
     if u_hi - u_lo >= s.width:
         out[rows] = True
@@ -169,7 +171,8 @@ def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: Refe
     """(V, h, w) bool: latent cells covered by object ``track_id``'s projected 3D box in each view.
 
     Cameras: every latent cell intersecting the box's pixel extent (:func:`camera_box_pixels`).
-    LiDAR: the cells of the range-map view spanned by the box's azimuth/elevation.
+    LiDAR: the cells of the range-map view spanned by the box's azimuth/elevation. Both extents
+    grow by ``rcfg.margin_px`` view pixels first (0 = exactly the projected box).
     """
     ids = [o.track_id for o in frame.objects]
     if track_id not in ids:
@@ -182,8 +185,9 @@ def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: Refe
         box = camera_box_pixels(frame, corners, v, rcfg.near_plane_m)
         if box is not None:
             x0, y0, x1, y1 = box
-            out[v, _cells(y0, y1, h, d), _cells(x0, x1, w, d)] = True
-    out[cfg.sensors.lidar_view] = _lidar_box_region(corners, cfg, rcfg.edge_samples)
+            m = rcfg.margin_px
+            out[v, _cells(y0 - m, y1 + m, h, d), _cells(x0 - m, x1 + m, w, d)] = True
+    out[cfg.sensors.lidar_view] = _lidar_box_region(corners, cfg, rcfg.edge_samples, rcfg.margin_px)
     return out
 
 
