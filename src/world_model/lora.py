@@ -28,6 +28,7 @@ import hashlib
 import json
 import os
 import re
+import warnings
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -132,7 +133,10 @@ def add_adapter(model: nn.Module, name: str, cfg: LoraConfig | None = None) -> l
     if name in loaded_adapters(model):
         raise ValueError(f"adapter {name!r} is already loaded; remove_adapters(model, [{name!r}]) first")
     active = loaded_adapters(model)
-    peft.inject_adapter_in_model((cfg or LoraConfig()).peft_config(), model, adapter_name=name)
+    with warnings.catch_warnings():
+        # peft warns that a second adapter joins the first: stacking adapters is intended here.
+        warnings.filterwarnings("ignore", message="Already found a `peft_config`")
+        peft.inject_adapter_in_model((cfg or LoraConfig()).peft_config(), model, adapter_name=name)
     _set_active(model, [*active, name], trainable=name)
     return [p for p in model.parameters() if p.requires_grad]
 
