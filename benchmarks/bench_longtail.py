@@ -7,20 +7,19 @@ rare-object view crop) and JSON numbers: a pluggable ``Scorer(generated_crop, tr
 inside the object's projected box, median over crops. The default scorer is the L1 distance
 (0-255) between the crops' mean colours: a simple appearance proxy until the judge lands.
 
-The whole long-tail recipe, e.g. at the tiny preset (16x32 views)::
+The whole long-tail recipe, e.g. at the tiny preset::
 
-    m4world record --scenario tree_truck_highway --episodes 5 --duration 3 --height 16 --width 32 --out D/rare
-    m4world record --scenario all --exclude-category tree_truck --episodes 2 --duration 3 --height 16 --width 32 \
-        --out D/all
-    python benchmarks/bench_longtail.py filter --data D/all --case tree_truck --out D/base
+    python benchmarks/bench_longtail.py record --preset tiny --out D      # D/rare (5 clips), D/base
     python -m world_model.train --stage vae     --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage teacher --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage lora --case tree_truck --data D/base --case-data D/rare --run R --preset tiny
     python benchmarks/bench_longtail.py eval --run R --data D/rare --case tree_truck --out out/longtail
 
-``--exclude-category`` drops the scenarios' scripted objects only; random traffic can still draw
-the rare category, so ``filter`` links the clips free of it into a new dataset (the base model
-must never see the case).
+``record`` runs ``m4world record``'s recorder at the preset's sensors (views and BEV): the rare
+clips from scenario ``tree_truck_highway``, the base set from every scenario with
+``exclude_categories``. That drops the scenarios' scripted objects only and random traffic can
+still draw the rare category, so clips holding it are then left out of D/base (``filter``): the
+base model never sees the case.
 """
 
 from __future__ import annotations
@@ -206,9 +205,39 @@ def filter_dataset(src: str | Path, dst: str | Path, category: str) -> list[str]
     return kept
 
 
+def record_case(
+    out: str | Path, preset: str, case: str, scenario: str, rare_episodes: int, base_episodes: int, duration: float
+) -> dict[str, int]:
+    """Record ``out/rare`` (``scenario``), ``out/all`` (every scenario, scripted ``case`` objects
+    dropped) and ``out/base`` (the clips of ``out/all`` without any ``case`` object)."""
+    from m4world_env.recorder import RecordConfig, record
+    from m4world_env.scenario import list_scenarios
+    from world_model.model.config import get_preset
+
+    s = get_preset(preset).sensors
+    out = Path(out)
+    common = {"height": s.height, "width": s.width, "lidar": s.lidar, "bev": s.bev, "duration": duration}
+    rare = record(RecordConfig(scenarios=[scenario], episodes=rare_episodes, out=out / "rare", **common))
+    everything = record(
+        RecordConfig(
+            scenarios=list_scenarios(), episodes=base_episodes, out=out / "all", exclude_categories=(case,), **common
+        )
+    )
+    base = filter_dataset(out / "all", out / "base", case)
+    return {"rare": len(rare), "recorded_base": len(everything), "base": len(base)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record", help="record the rare clips and a base dataset without the case")
+    r.add_argument("--preset", default="tiny")
+    r.add_argument("--case", default="tree_truck")
+    r.add_argument("--scenario", default="tree_truck_highway")
+    r.add_argument("--rare-episodes", type=int, default=5, help="rare clips (the paper: fewer than five)")
+    r.add_argument("--base-episodes", type=int, default=2, help="episodes per scenario of the base set")
+    r.add_argument("--duration", type=float, default=3.0, help="seconds per clip")
+    r.add_argument("--out", required=True)
     f = sub.add_parser("filter", help="link the clips without the case's category into a base dataset")
     f.add_argument("--data", required=True)
     f.add_argument("--case", default="tree_truck")
@@ -223,6 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out/longtail")
     a = parser.parse_args(argv)
+    if a.cmd == "record":
+        counts = record_case(a.out, a.preset, a.case, a.scenario, a.rare_episodes, a.base_episodes, a.duration)
+        print(f"recorded {counts} under {a.out}")
+        return 0
     if a.cmd == "filter":
         kept = filter_dataset(a.data, a.out, a.case)
         print(f"{len(kept)} clips without {a.case!r} linked into {a.out}")
