@@ -76,6 +76,8 @@ def test_task_masks_follow_their_definitions():
     assert m[0, :vc].all() and not m[0, lidar].any()
     with pytest.raises(ValueError, match="unknown task"):
         task_mask("inpaint", cfg, frames, rng, RCFG)
+    with pytest.raises(ValueError, match="sum to 1"):
+        ReferenceConfig(p_unconditional=0.5)
 
 
 def test_object_completion_masks_exactly_the_projected_box_in_every_frame():

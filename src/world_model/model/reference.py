@@ -60,13 +60,15 @@ class ReferenceConfig:
     edge_samples: int = 16  # points per box edge when bounding the box in the LiDAR range map
     paste_observed: bool = True  # copy observed regions from the reference after sampling
 
+    def __post_init__(self) -> None:
+        p = self.task_probs
+        if min(p) < 0 or not math.isclose(sum(p), 1.0, abs_tol=1e-6):
+            raise ValueError(f"task probabilities must be >= 0 and sum to 1, got {p}")
+
     @property
     def task_probs(self) -> tuple[float, ...]:
         """Probabilities in the order of :data:`TASKS`."""
-        p = (self.p_unconditional, self.p_first_frame_all, self.p_first_frame_single, self.p_object_completion)
-        if min(p) < 0 or not math.isclose(sum(p), 1.0, abs_tol=1e-6):
-            raise ValueError(f"task probabilities must be >= 0 and sum to 1, got {p}")
-        return p
+        return (self.p_unconditional, self.p_first_frame_all, self.p_first_frame_single, self.p_object_completion)
 
 
 def reference_channels(cfg: ModelConfig) -> int:

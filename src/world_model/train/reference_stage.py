@@ -98,7 +98,6 @@ def reference_stage(
 ) -> dict:
     """Train (or resume) the reference model of ``stage_dir.parent`` (see module docstring)."""
     rcfg = rcfg or ReferenceConfig()
-    rcfg.task_probs  # noqa: B018 - validates the probabilities before any work
     run_dir = stage_dir.parent
     teacher_path = run_dir / "teacher" / EXPORT
     if not teacher_path.with_suffix(".safetensors").exists():
