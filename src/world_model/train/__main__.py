@@ -1,6 +1,9 @@
 """CLI: train one stage of the world model.
 
-``python -m world_model.train --stage {vae,teacher} --data DIR --run RUN --preset tiny|default [--steps N]``
+``python -m world_model.train --stage STAGE --data DIR --run RUN --preset tiny|default [--steps N]``
+with STAGE one of vae, teacher, reference, lora.
+
+``--stage lora --case NAME [--case-data DIR] [--base PATH]`` trains one long-tail adapter into RUN/lora/NAME/.
 
 Rerunning the same command resumes from the stage's last checkpoint.
 """
@@ -28,6 +31,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ckpt-every", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
+    p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
+    p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
+    p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
     a = p.parse_args(argv)
     try:
         out = train_stage(
@@ -41,6 +48,10 @@ def main(argv: list[str] | None = None) -> int:
             ckpt_every=a.ckpt_every,
             seed=a.seed,
             progress=not a.no_progress,
+            case=a.case,
+            case_data=a.case_data,
+            case_clips=a.case_clips.split(",") if a.case_clips else None,
+            base=a.base,
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -4,6 +4,8 @@ A run directory holds one sub-directory per stage (later issues add the student 
 
     RUN_DIR/vae/       checkpoints/, model.safetensors + model.json (EMA weights), metrics.json
     RUN_DIR/teacher/   checkpoints/, latents/ (cached clip latents), model.safetensors + model.json
+    RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
+    RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
 
 The teacher stage reads the VAE export of the same run. Rerunning a command resumes from the
 stage's latest checkpoint; a finished stage rerun with a larger ``steps`` continues training.
@@ -30,11 +32,16 @@ from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, LatentWindows, cached_latents, file_digest, load_clips
 from world_model.train.trainer import TrainConfig, Trainer
 
-STAGES = ("vae", "teacher")
+STAGES = ("vae", "teacher", "reference", "lora")
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
 
 # Per stage: (batch size, learning rate, checkpoint period). Batch sizes are CPU-sized.
-STAGE_DEFAULTS = {"vae": (16, 2e-3, 100), "teacher": (4, 1e-3, 100)}
+STAGE_DEFAULTS = {
+    "vae": (16, 2e-3, 100),
+    "teacher": (4, 1e-3, 100),
+    "reference": (4, 5e-4, 100),
+    "lora": (4, 1e-3, 50),
+}
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
@@ -213,15 +220,38 @@ def train_stage(
     seed: int = 0,
     progress: bool = True,
     config: ModelConfig | None = None,
+    case: str | None = None,
+    case_data: str | Path | None = None,
+    case_clips: list[str] | None = None,
+    base: str | Path | None = None,
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
     ``config`` overrides the preset's config (it must then stay the same across resumes).
+    ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
+    dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
+    (default ``run_dir/teacher/model``).
     """
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
-    data_dir, stage_dir = Path(data_dir), Path(run_dir) / stage
+    if stage == "lora":
+        from world_model.train.lora_stage import LORA_STEPS, lora_stage_dir
+
+        stage_dir = lora_stage_dir(run_dir, case)
+        steps = LORA_STEPS if steps is None else steps
+    else:
+        stage_dir = Path(run_dir) / stage
+    data_dir = Path(data_dir)
     cfg = _stage_config(stage_dir, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
-    run = _vae_stage if stage == "vae" else _teacher_stage
+    if stage == "reference":
+        from world_model.train.reference_stage import reference_stage as run
+    elif stage == "lora":
+        from functools import partial
+
+        from world_model.train.lora_stage import lora_stage
+
+        run = partial(lora_stage, case=case, case_data=case_data, case_clips=case_clips, base=base)
+    else:
+        run = _vae_stage if stage == "vae" else _teacher_stage
     return {"stage": stage, "stage_dir": str(stage_dir), **run(data_dir, stage_dir, cfg, tcfg, progress)}

@@ -1,0 +1,208 @@
+"""``--stage lora --case NAME`` (§5): one LoRA adapter per long-tail case, base model frozen.
+
+Layout::
+
+    RUN_DIR/lora/NAME/   model_config.json, checkpoints/, latents/, adapter.safetensors + adapter.json
+
+Data selection: the *rare* clips are the clips containing an object of category ``NAME`` (or the
+explicit ``case_clips``), taken from ``case_data`` when given, else from ``data``; the *ordinary*
+clips are the clips of ``data`` without that category. :class:`BalancedSampler` draws every
+training example from the rare pool with probability ``rare_fraction`` (paper: 50%) and from the
+ordinary pool otherwise; a rare window starts on a frame where the rare object is present, so
+its object token is in the conditions.
+
+The base (default ``RUN_DIR/teacher/model``; ``base`` may point at any exported DiT, e.g. the
+causal student) is loaded, fingerprinted (:func:`world_model.lora.base_fingerprint`) and frozen;
+only the adapter trains. The adapter's EMA weights are exported (the EMA warm-up makes them track
+a few-hundred-step run closely).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from world_model.data import Clip
+from world_model.lora import LoraConfig, add_adapter, base_fingerprint, save_adapter
+from world_model.model.conditions import Conditions
+from world_model.model.config import ModelConfig
+from world_model.model.flow import flow_matching_loss, sample_timesteps
+from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.text import make_text_encoder
+from world_model.train.data import LatentWindows, cached_latents, load_clips
+from world_model.train.reference_stage import run_vae
+from world_model.train.stages import EXPORT, load_teacher
+from world_model.train.trainer import TrainConfig, Trainer
+
+LORA_STEPS = 300  # "a few hundred iterations" (§5), whatever the preset
+
+
+@dataclass(frozen=True)
+class LoraStageConfig:
+    rare_fraction: float = 0.5  # share of training examples drawn from the rare-case clips
+    lora: LoraConfig = field(default_factory=LoraConfig)
+
+
+def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
+    """``run_dir/lora/<case>``; the case names the adapter."""
+    from world_model.lora import _check_name
+
+    if not case:
+        raise ValueError("--stage lora needs --case NAME (the rare object category, e.g. tree_truck)")
+    return Path(run_dir) / "lora" / _check_name(case)
+
+
+def has_category(clip: Clip, category: str) -> bool:
+    return any(o.category == category for fr in clip.frames for o in fr.objects)
+
+
+class BalancedSampler:
+    """Windows drawn ``rare_fraction`` of the time from the rare clips, else from the ordinary ones.
+
+    ``windows`` holds all clips; ``rare``/``ordinary`` are clip indices into it.
+    """
+
+    def __init__(
+        self, windows: LatentWindows, rare: list[int], ordinary: list[int], category: str, rare_fraction: float
+    ) -> None:
+        if not rare:
+            raise ValueError(f"no rare-case clips: none contains an object of category {category!r}")
+        if not ordinary and rare_fraction < 1.0:
+            raise ValueError("no ordinary clips to balance the rare ones with; record a base dataset")
+        if not 0.0 <= rare_fraction <= 1.0:
+            raise ValueError(f"rare_fraction must be in [0, 1], got {rare_fraction}")
+        self.windows, self.rare, self.ordinary, self.fraction = windows, rare, ordinary, rare_fraction
+        # Rare windows start where the rare object is present; fall back to every frame otherwise.
+        self.rare_starts = {}
+        for ci in rare:
+            frames = windows.clips[ci].frames
+            present = [f for f, fr in enumerate(frames) if any(o.category == category for o in fr.objects)]
+            self.rare_starts[ci] = present or list(range(len(frames)))
+
+    def draw(self, rng: np.random.Generator, batch: int, frames: int) -> tuple[list[tuple[int, int]], np.ndarray]:
+        """``batch`` (clip, start) windows of ``frames`` frames and whether each is rare (B,) bool."""
+        is_rare = rng.random(batch) < self.fraction
+        out = []
+        for rare in is_rare:
+            if rare:
+                pool = [(ci, s) for ci in self.rare for s in self.rare_starts[ci]]
+            else:
+                pool = [(ci, s) for ci in self.ordinary for s in range(self.windows.clips[ci].num_frames)]
+            fits = [(ci, s) for ci, s in pool if s + frames <= self.windows.clips[ci].num_frames]
+            if not fits:  # windows too long for this pool: start at frame 0 of its longest clip
+                ci = max({ci for ci, _ in pool}, key=lambda i: self.windows.clips[i].num_frames)
+                fits = [(ci, 0)]
+            out.append(fits[int(rng.integers(len(fits)))])
+        return out, is_rare
+
+    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, Conditions, np.ndarray]:
+        """x0 (B, T, V, C, h, w), conditions and is_rare (B,); T from ``clip.train_frames``."""
+        t = int(rng.choice(self.windows.cfg.clip.train_frames))
+        spans, is_rare = self.draw(rng, batch, t)
+        t = min([t, *(self.windows.clips[ci].num_frames - s for ci, s in spans)])
+        items = [self.windows.window(ci, s, t) for ci, s in spans]
+        return torch.stack([x for x, _ in items]).float(), Conditions.collate([a for _, a in items]), is_rare
+
+
+def select_clips(
+    data_dir: Path, case_data: Path | None, cfg: ModelConfig, category: str, case_clips: list[str] | None
+) -> tuple[list[Clip], list[int], list[int]]:
+    """All clips, rare indices, ordinary indices (module docstring)."""
+    base = load_clips(data_dir, cfg)
+    extra = load_clips(case_data, cfg) if case_data is not None else []
+    pool = extra or base
+    if case_clips:
+        names = {c.name for c in pool}
+        missing = sorted(set(case_clips) - names)
+        if missing:
+            raise ValueError(f"case clips {missing} are not in {case_data or data_dir}")
+        rare_clips = [c for c in pool if c.name in set(case_clips)]
+    else:
+        rare_clips = [c for c in pool if has_category(c, category)]
+    rare_names = {c.name for c in rare_clips}
+    ordinary = [c for c in base if c.name not in rare_names and not has_category(c, category)]
+    clips = ordinary + rare_clips
+    return clips, list(range(len(ordinary), len(clips))), list(range(len(ordinary)))
+
+
+def lora_stage(
+    data_dir: Path,
+    stage_dir: Path,
+    cfg: ModelConfig,
+    tcfg: TrainConfig,
+    progress: bool,
+    *,
+    case: str,
+    case_data: str | Path | None = None,
+    case_clips: list[str] | None = None,
+    base: str | Path | None = None,
+    scfg: LoraStageConfig | None = None,
+) -> dict:
+    """Train (or resume) adapter ``case`` on top of the frozen ``base`` (module docstring)."""
+    scfg = scfg or LoraStageConfig()
+    run_dir = stage_dir.parent.parent
+    base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT
+    if not base_path.with_suffix(".safetensors").exists():
+        raise FileNotFoundError(
+            f"--stage lora adapts {base_path}.safetensors, which does not exist; "
+            "run --stage teacher first or pass --base"
+        )
+    model = load_teacher(base_path)
+    plain = replace(model.cfg, dit=replace(model.cfg.dit, in_channels_extra=0))
+    if plain != cfg:
+        raise ValueError(f"the base model {base_path} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
+    vae, digest = run_vae(run_dir, cfg, "lora")
+    clips, rare, ordinary = select_clips(data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
+    latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]
+    windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
+    sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
+
+    fingerprint = base_fingerprint(model)
+    torch.manual_seed(tcfg.seed)
+    add_adapter(model, case, scfg.lora)
+    model.train()
+    meta = {"stage": "lora", "case": case, "base_sha256": fingerprint, "model_config": model.cfg.to_dict()}
+    trainer = Trainer(stage_dir, model, tcfg, meta, progress)
+    extra_channels = model.cfg.dit.in_channels_extra
+    drawn = {"rare": 0, "ordinary": 0}
+
+    def step(tr: Trainer) -> tuple[torch.Tensor, int]:
+        x0, cond, is_rare = sampler.sample(tr.rng, tcfg.batch_size)
+        drawn["rare"] += int(is_rare.sum())
+        drawn["ordinary"] += int((~is_rare).sum())
+        b = x0.shape[0]
+        cond = cond.with_drop(torch.rand(b, generator=tr.gen) < cfg.flow.cond_drop_prob)
+        t = sample_timesteps((b,), cfg.flow, tr.gen)
+        noise = torch.randn(x0.shape, generator=tr.gen)
+        # A reference model as base is adapted in its controls-only mode (all-zero reference).
+        pad = torch.zeros(*x0.shape[:3], extra_channels, *x0.shape[4:])
+        loss = flow_matching_loss(lambda xt, tt: model(torch.cat([xt, pad], dim=3), tt, cond), x0, t, noise)
+        return loss, b * x0.shape[1]
+
+    summary = trainer.run(step, f"lora:{case}")
+    ema = trainer.ema.model_state(model)
+    # Only adapter tensors come from the EMA: the frozen base stays bit-identical.
+    model.load_state_dict({k: v for k, v in ema.items() if ".lora_" in k}, strict=False)
+    save_adapter(
+        model,
+        case,
+        stage_dir,
+        scfg.lora,
+        fingerprint,
+        {
+            "base_path": str(base_path.with_suffix(".safetensors")),
+            "base_file_sha256": hashlib.sha256(base_path.with_suffix(".safetensors").read_bytes()).hexdigest(),
+            "model_config": model.cfg.to_dict(),
+            "train": {
+                "step": trainer.step,
+                "rare_clips": [clips[i].name for i in rare],
+                "ordinary_clips": len(ordinary),
+                "rare_fraction": scfg.rare_fraction,
+            },
+        },
+    )
+    return {**summary, "drawn": drawn, "adapter_dir": str(stage_dir), "config": asdict(scfg)}

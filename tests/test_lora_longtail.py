@@ -1,0 +1,77 @@
+"""benchmarks/bench_longtail.py: base-set filtering, rare views, before/after scoring with a pluggable scorer."""
+
+import importlib.util
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from tests.model_fixtures import make_frames, make_sensors, perturbed
+from world_model.data import iter_clips, write_clip
+from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
+from world_model.model import MultiViewDiT, SensorVAE, get_preset
+
+CFG = get_preset("tiny")
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_longtail.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_longtail", BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)
+
+
+def _clip(root, name, seed, rare):
+    frames = make_frames(CFG, 3, seed=seed)
+    if rare:
+        frames = [
+            fr.with_objects(tuple(replace(o, category="tree_truck") if o.track_id == "car1" else o for o in fr.objects))
+            for fr in frames
+        ]
+    cams, lidar, bev = make_sensors(CFG, 3, phase=seed)
+    write_clip(root, name, frames, cams, lidar, bev)
+
+
+def test_filter_keeps_only_clips_without_the_case(bench, tmp_path):
+    _clip(tmp_path / "all", "plain", 0, False)
+    _clip(tmp_path / "all", "rare", 1, True)
+    kept = bench.filter_dataset(tmp_path / "all", tmp_path / "base", "tree_truck")
+    assert kept == ["plain"] and [c.name for c in iter_clips(tmp_path / "base")] == ["plain"]
+
+
+def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench, tmp_path):
+    _clip(tmp_path / "rare", "rare", 1, True)
+    clips = list(iter_clips(tmp_path / "rare"))
+    views = bench.rare_views(clips, "tree_truck", 2, 0.1)
+    assert views and all(any(o.category == "tree_truck" for o in clips[v.clip].frames[v.frame].objects) for v in views)
+    torch.manual_seed(0)
+    vae, model = perturbed(SensorVAE(CFG), scale=0.05), perturbed(MultiViewDiT(CFG))
+    fingerprint = base_fingerprint(model)
+    for p in add_adapter(model, "tree_truck", LoraConfig(rank=2)):
+        torch.nn.init.normal_(p, std=0.3)
+    save_adapter(model, "tree_truck", tmp_path / "adapters" / "tree_truck", LoraConfig(rank=2), fingerprint)
+    remove_adapters(model)
+    calls = []
+
+    def scorer(generated, truth):
+        calls.append((generated.shape, truth.shape))
+        return float(np.abs(generated.astype(int) - truth).mean())
+
+    result = bench.evaluate(
+        model, vae, clips, views, ["tree_truck"], scorer, steps=1, search_dirs=[tmp_path / "adapters"]
+    )
+    assert len(calls) == 2 * len(views) and all(g == t for g, t in calls)  # crops of the same box
+    assert result["scorer"] == "scorer" and np.isfinite([result["base_median"], result["adapted_median"]]).all()
+    assert result["base_median"] != result["adapted_median"]  # the adapter changed the rendering
+    assert base_fingerprint(model) == fingerprint and not any(".lora_" in k for k in model.state_dict())
+    bench.figure(result, views, tmp_path / "fig.png")
+    img = cv2.imread(str(tmp_path / "fig.png"))
+    assert img is not None and img.shape[1] > bench.CROP_PX * len(views)

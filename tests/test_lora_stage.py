@@ -1,0 +1,161 @@
+"""``--stage lora``: rare/ordinary clip selection, 50/50 balanced sampling, frozen base, export, kill/resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_conditions
+from world_model.data import write_clip
+from world_model.lora import apply_adapters, base_fingerprint, read_adapter, remove_adapters
+from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
+from world_model.train import load_latest, load_teacher, train_stage
+from world_model.train.checkpoint import export_weights
+from world_model.train.data import LatentWindows
+from world_model.train.lora_stage import BalancedSampler, select_clips
+from world_model.train.stages import EXPORT
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+CFG = get_preset("tiny")
+CASE = "tree_truck"
+
+
+def _write(root: Path, name: str, n: int, seed: int, rare_from: int | None) -> None:
+    """A clip; from frame ``rare_from`` on, object car1 is a tree-hauling truck."""
+    frames = make_frames(CFG, n, seed=seed)
+    if rare_from is not None:
+        frames = [
+            fr.with_objects(
+                tuple(replace(o, category=CASE) if o.track_id == "car1" and f >= rare_from else o for o in fr.objects)
+            )
+            for f, fr in enumerate(frames)
+        ]
+    cams, lidar, bev = make_sensors(CFG, n, phase=0.37 * seed)
+    write_clip(root, name, frames, cams, lidar, bev)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    """Base dataset (ordinary clips + one rare clip) and a separate rare-case dataset."""
+    root = tmp_path_factory.mktemp("lora")
+    base, rare = root / "base", root / "rare"
+    for i in range(3):
+        _write(base, f"ordinary{i}", 4, i, None)
+    _write(base, "rare_in_base", 5, 7, rare_from=2)
+    _write(rare, "rare0", 4, 11, rare_from=0)
+    _write(rare, "rare1", 3, 12, rare_from=1)
+    return base, rare
+
+
+def make_run(run: Path) -> Path:
+    torch.manual_seed(0)
+    meta = {"model_config": CFG.to_dict()}
+    export_weights(run / "vae" / EXPORT, perturbed(SensorVAE(CFG), scale=0.05).state_dict(), {"stage": "vae", **meta})
+    export_weights(run / "teacher" / EXPORT, perturbed(MultiViewDiT(CFG)).state_dict(), {"stage": "teacher", **meta})
+    return run
+
+
+def test_clip_selection_by_category_dataset_or_list(data):
+    base, rare = data
+    clips, r, o = select_clips(base, None, CFG, CASE, None)
+    assert [clips[i].name for i in r] == ["rare_in_base"] and len(o) == 3
+    clips, r, o = select_clips(base, rare, CFG, CASE, None)
+    assert sorted(clips[i].name for i in r) == ["rare0", "rare1"]
+    assert "rare_in_base" not in {clips[i].name for i in o}  # ordinary clips never hold the rare object
+    clips, r, o = select_clips(base, None, CFG, CASE, ["ordinary2"])
+    assert [clips[i].name for i in r] == ["ordinary2"] and len(o) == 2
+    with pytest.raises(ValueError, match="not in"):
+        select_clips(base, None, CFG, CASE, ["missing"])
+
+
+def test_balanced_sampler_draws_half_rare_half_ordinary(data):
+    base, rare = data
+    clips, r, o = select_clips(base, rare, CFG, CASE, None)
+    lat = [torch.zeros(c.num_frames, *CFG.latent_shape(1)[1:]) for c in clips]
+    windows = LatentWindows(clips, lat, CFG, make_text_encoder(CFG.text), None)
+    sampler = BalancedSampler(windows, r, o, CASE, 0.5)
+    rng = np.random.default_rng(0)
+    n, rare_count = 0, 0
+    for _ in range(500):
+        spans, is_rare = sampler.draw(rng, 4, 2)
+        for (ci, start), flag in zip(spans, is_rare, strict=True):
+            assert (ci in r) == flag
+            if flag:  # rare windows start where the rare object is present
+                assert any(ob.category == CASE for ob in clips[ci].frames[start].objects)
+        n += len(spans)
+        rare_count += int(is_rare.sum())
+    assert abs(rare_count / n - 0.5) < 4 * np.sqrt(0.25 / n), rare_count / n
+    x0, cond, is_rare = sampler.sample(rng, 3)
+    assert x0.shape[0] == 3 and cond.num_frames == x0.shape[1]
+    with pytest.raises(ValueError, match="no rare-case clips"):
+        BalancedSampler(windows, [], o, CASE, 0.5)
+
+
+def test_lora_stage_trains_only_the_adapter_and_exports_it(data, tmp_path):
+    base, rare = data
+    run = make_run(tmp_path / "run")
+    out = train_stage(
+        "lora", base, run, preset="tiny", steps=3, ckpt_every=1, progress=False, case=CASE, case_data=rare
+    )
+    assert out["step"] == 3 and out["drawn"]["rare"] + out["drawn"]["ordinary"] == 3 * 4
+    teacher = load_teacher(run / "teacher" / EXPORT)
+    info, tensors = read_adapter(run / "lora" / CASE)
+    assert info.base_sha256 == base_fingerprint(teacher) and all(".lora_" in k for k in tensors)
+    assert sorted(info.meta["train"]["rare_clips"]) == ["rare0", "rare1"]
+    # The frozen base inside the training checkpoint is bit-identical to the teacher export.
+    state = load_latest(run / "lora" / CASE / "checkpoints").tensors["model"]
+    base_state = {k.replace(".base_layer.", "."): v for k, v in state.items() if ".lora_" not in k}
+    ref = teacher.state_dict()
+    assert base_state.keys() == ref.keys() and all(torch.equal(base_state[k], ref[k]) for k in ref)
+    assert any(not torch.all(v == 0) for k, v in tensors.items() if "lora_B" in k)  # the adapter learned
+    cond = tiny_conditions(CFG, 2)
+    x = torch.randn(1, *CFG.latent_shape(2), generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([0.5])
+    with torch.no_grad():
+        y0 = teacher(x, t, cond)
+        apply_adapters(teacher, [CASE], search_dirs=[run / "lora"])
+        assert not torch.equal(teacher(x, t, cond), y0)
+        remove_adapters(teacher)
+        assert torch.equal(teacher(x, t, cond), y0)
+
+
+def test_lora_stage_errors_are_actionable(data, tmp_path):
+    base, _ = data
+    with pytest.raises(ValueError, match="needs --case"):
+        train_stage("lora", base, tmp_path / "r", preset="tiny", steps=1, progress=False)
+    with pytest.raises(FileNotFoundError, match="run --stage teacher first"):
+        train_stage("lora", base, tmp_path / "r", preset="tiny", steps=1, progress=False, case=CASE)
+    with pytest.raises(ValueError, match="no rare-case clips"):
+        train_stage("lora", base, make_run(tmp_path / "r2"), preset="tiny", steps=1, progress=False, case="bus")
+
+
+def test_killed_lora_run_resumes_from_last_checkpoint(data, tmp_path):
+    base, rare = data
+    run = make_run(tmp_path / "run")
+    cmd = [sys.executable, "-m", "world_model.train", "--stage", "lora", "--case", CASE, "--data", str(base)]
+    cmd += ["--case-data", str(rare), "--run", str(run), "--preset", "tiny", "--steps", "100000"]
+    cmd += ["--ckpt-every", "2", "--no-progress"]
+    proc = subprocess.Popen(
+        cmd, env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    latest = run / "lora" / CASE / "checkpoints" / "latest.json"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    ck = load_latest(latest.parent)
+    assert ck is not None and ck.step >= 4
+    out = train_stage(
+        "lora", base, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False, case=CASE, case_data=rare
+    )
+    assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
+    assert (run / "lora" / CASE / "adapter.safetensors").exists()
