@@ -52,27 +52,19 @@ def test_record_cli_writes_loadable_clips_and_resumes(tmp_path, capsys):
 
 def test_excluding_a_category_removes_it(tmp_path):
     out = tmp_path / "base"
-    assert (
-        main(
-            [
-                "record",
-                "--scenario",
-                "tree_truck_highway",
-                "--episodes",
-                "1",
-                "--duration",
-                "0.5",
-                "--out",
-                str(out),
-                "--height",
-                "32",
-                "--width",
-                "56",
-                "--exclude-category",
-                "tree_truck",
-            ]
-        )
-        == 0
-    )
-    clip = read_clip(out, list_clips(out)[0])
-    assert all(o.category != "tree_truck" for fr in clip.frames for o in fr.objects)
+    args = ["record", "--scenario", "tree_truck_highway", "highway_dense_rain_dusk", "--episodes", "3",
+            "--duration", "0.5", "--out", str(out), "--height", "32", "--width", "56",
+            "--exclude-category", "tree_truck"]
+    assert main(args) == 0
+    for name in list_clips(out):
+        clip = read_clip(out, name)
+        assert all(o.category != "tree_truck" for fr in clip.frames for o in fr.objects)
+
+
+def test_randomized_traffic_mix_can_draw_every_vehicle_category():
+    from m4world_env.recorder import exclude_categories
+    from m4world_env.scenario import load_scenario, randomize_scenario
+
+    s = randomize_scenario(load_scenario("highway_dense_rain_dusk"), np.random.default_rng(0))
+    assert s.traffic.mix.get("tree_truck", 0) > 0  # so the exclusion below is not vacuous
+    assert "tree_truck" not in exclude_categories(s, ["tree_truck"]).traffic.mix

@@ -44,6 +44,15 @@ class RecordConfig:
     ] = ()  # drop scripted objects of these categories (e.g. a base set without a rare case)
 
 
+def exclude_categories(scenario: Scenario, categories: Sequence[str]) -> Scenario:
+    """The scenario without any object of ``categories``: scripted objects dropped, and the IDM
+    traffic mix without them (a base dataset for a rare case must never show it, §5)."""
+    objects = [o for o in scenario.objects if o.category not in categories]
+    mix = {c: w for c, w in scenario.traffic.mix.items() if c not in categories and w > 0} or {"car": 1.0}
+    traffic = scenario.traffic.model_copy(update={"mix": mix})
+    return scenario.model_copy(update={"objects": objects, "traffic": traffic})
+
+
 def clip_name(scenario: str, seed: int) -> str:
     return f"{scenario}__s{seed:06d}"
 
@@ -61,8 +70,7 @@ def record_episode(
     if cfg.randomize:
         scenario = randomize_scenario(scenario, rng)
     if cfg.exclude_categories:
-        kept = [o for o in scenario.objects if o.category not in cfg.exclude_categories]
-        scenario = scenario.model_copy(update={"objects": kept})
+        scenario = exclude_categories(scenario, cfg.exclude_categories)
     if cfg.duration is not None:
         scenario = scenario.model_copy(update={"duration": cfg.duration})
     rig = default_rig(width=cfg.width, height=cfg.height)
