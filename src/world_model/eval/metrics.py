@@ -179,11 +179,19 @@ def _nearest(a: torch.Tensor, b: torch.Tensor, chunk: int) -> torch.Tensor:
 
 
 def chamfer_distance(
-    generated: np.ndarray, target: np.ndarray, spec: LidarSpec | None = None, chunk: int = 2048
+    generated: np.ndarray,
+    target: np.ndarray,
+    spec: LidarSpec | None = None,
+    max_points: int | None = None,
+    chunk: int = 2048,
 ) -> float:
     """Symmetric Chamfer distance (m): mean nearest-neighbour distance from each generated point to
-    the ground truth plus the reverse, on back-projected returns of two range maps."""
+    the ground truth plus the reverse, on back-projected returns of two range maps.
+
+    ``max_points`` keeps every k-th point of each cloud (deterministic) to bound the cost."""
     a, b = lidar_points(generated, spec), lidar_points(target, spec)
+    if max_points is not None:
+        a, b = a[:: max(1, -(-len(a) // max_points))], b[:: max(1, -(-len(b) // max_points))]
     if len(a) == 0 and len(b) == 0:
         return 0.0
     if len(a) == 0 or len(b) == 0:
