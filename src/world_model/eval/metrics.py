@@ -133,14 +133,14 @@ def clip_window_features(frame_features: np.ndarray, window: int) -> np.ndarray:
 
 
 def frechet_judge_frame(generated: np.ndarray, target: np.ndarray, features: FrameFeatures) -> float:
-    """"FID-like": Fréchet distance of judge frame features. Frames (N, V, H, W, 3) uint8 each."""
+    """ "FID-like": Fréchet distance of judge frame features. Frames (N, V, H, W, 3) uint8 each."""
     return frechet_features(features(generated), features(target))
 
 
 def frechet_judge_clip(
     generated: list[np.ndarray], target: list[np.ndarray], features: FrameFeatures, window: int = 8
 ) -> float:
-    """"FVD-like": Fréchet distance of judge features of ``window``-frame clip windows.
+    """ "FVD-like": Fréchet distance of judge features of ``window``-frame clip windows.
 
     ``generated`` / ``target``: lists of clips, each (T, V, H, W, 3) uint8.
     """
@@ -175,7 +175,11 @@ def lidar_points(ranges: np.ndarray, spec: LidarSpec | None = None) -> np.ndarra
 
 
 def _nearest(a: torch.Tensor, b: torch.Tensor, chunk: int) -> torch.Tensor:
-    return torch.cat([torch.cdist(a[i : i + chunk], b).min(dim=1).values for i in range(0, len(a), chunk)])
+    # Direct differences, not the matmul expansion: identical clouds then give exactly 0.
+    mode = "donot_use_mm_for_euclid_dist"
+    return torch.cat(
+        [torch.cdist(a[i : i + chunk], b, compute_mode=mode).min(dim=1).values for i in range(0, len(a), chunk)]
+    )
 
 
 def chamfer_distance(
