@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -77,7 +78,7 @@ def _collect_many(items: list[tuple[Path, str]], config: CollectConfig) -> Judge
     return merged
 
 
-def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log) -> CropNet:
+def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str], None]) -> CropNet:
     rng = np.random.default_rng([cfg.seed, 1])
     size = cfg.net.crop_size
     arr = data.arrays()
@@ -133,7 +134,7 @@ def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log) -> CropNet:
     return net.eval()
 
 
-def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log) -> SceneNet:
+def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str], None]) -> SceneNet:
     rng = np.random.default_rng([cfg.seed, 2])
     frames = np.stack(data.scene_frames)
     weather, tod = torch.tensor(data.weather), torch.tensor(data.time_of_day)
@@ -196,13 +197,31 @@ def calibrate(judge: CnnJudge, data: JudgeData, seed: int = 0) -> JudgeThreshold
     return JudgeThresholds(**t)
 
 
-def train_judge(data_dirs: list[str | Path], out_dir: str | Path, config: TrainJudgeConfig = TrainJudgeConfig(),
-                log=print) -> CnnJudge:  # fmt: skip
-    """Train, calibrate and save the judge; returns it. ``judge.json`` records the validation accuracy."""
-    start = time.time()
-    torch.manual_seed(config.seed)
+def train_judge(
+    data_dirs: Sequence[str | Path],
+    out_dir: str | Path,
+    config: TrainJudgeConfig = TrainJudgeConfig(),
+    log: Callable[[str], None] = print,
+) -> CnnJudge:
+    """Train, calibrate and save the judge; returns it. ``judge.json`` records the validation accuracy.
+
+    Torch's thread count and deterministic-algorithms flag are set for the run and restored after.
+    """
+    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(config.threads)
     torch.use_deterministic_algorithms(True)
+    try:
+        return _train_judge(data_dirs, out_dir, config, log)
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(deterministic)
+
+
+def _train_judge(
+    data_dirs: Sequence[str | Path], out_dir: str | Path, config: TrainJudgeConfig, log: Callable[[str], None]
+) -> CnnJudge:
+    start = time.time()
+    torch.manual_seed(config.seed)
     roots = [Path(d) for d in data_dirs]
     train_items, val_items = _split(roots, config.val_every)
     if not train_items or not val_items:
