@@ -130,7 +130,7 @@ def group_by_track_time(crops: Iterable[ObjectCrop]) -> dict[tuple[str, int], li
 def normalize_crops(images: Sequence[np.ndarray], size: int) -> np.ndarray:
     """Resize crops to ``size`` x ``size`` and stack them as float32 (N, 3, size, size) in [0, 1].
 
-    The square resize drops the aspect ratio; the networks get it from :func:`crop_aspects`.
+    The square resize drops the aspect ratio and fine detail; see :func:`crop_statistics`.
     """
     if not images:
         return np.zeros((0, 3, size, size), dtype=np.float32)
@@ -142,6 +142,30 @@ def normalize_crops(images: Sequence[np.ndarray], size: int) -> np.ndarray:
     return out.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
 
 
-def crop_aspects(images: Sequence[np.ndarray]) -> np.ndarray:
-    """log(width / height) of each crop, float32 (N,): the shape a square resize throws away."""
-    return np.array([np.log(img.shape[1] / img.shape[0]) for img in images], dtype=np.float32)
+# Per-crop statistics given to the crop network next to the resized pixels (see crop_statistics).
+NUM_CROP_STATS = 6
+
+
+def crop_statistics(images: Sequence[np.ndarray]) -> np.ndarray:
+    """What a square resize to the network's input throws away, per crop -> float32 (N, 6):
+    log aspect (w / h), and at the crop's *native* resolution: log Laplacian variance, log mean
+    gradient magnitude, log contrast (std of luma), Laplacian variance relative to contrast, and
+    log median absolute Laplacian (a noise level). Blur and noise show at native resolution but
+    mostly vanish when a large crop is shrunk to 32 x 32, so clarity needs these."""
+    eps = 1e-6
+    out = np.empty((len(images), NUM_CROP_STATS), dtype=np.float32)
+    for i, img in enumerate(images):
+        g = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY).astype(np.float64) / 255.0
+        lap = cv2.Laplacian(g, cv2.CV_64F, borderType=cv2.BORDER_REFLECT)
+        gx = cv2.Sobel(g, cv2.CV_64F, 1, 0, borderType=cv2.BORDER_REFLECT)
+        gy = cv2.Sobel(g, cv2.CV_64F, 0, 1, borderType=cv2.BORDER_REFLECT)
+        lap_var, contrast = lap.var(), g.std()
+        out[i] = (
+            np.log(img.shape[1] / img.shape[0]),
+            np.log(lap_var + eps),
+            np.log(np.mean(np.hypot(gx, gy)) + eps),
+            np.log(contrast + eps),
+            np.log(lap_var + eps) - 2.0 * np.log(contrast + eps),
+            np.log(np.median(np.abs(lap)) + eps),
+        )
+    return out

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from world_model.eval.crops import CropConfig, crop_aspects, normalize_crops
+from world_model.eval.crops import CropConfig, crop_statistics, normalize_crops
 from world_model.eval.nets import COLOR_CLASSES, CROP_CLASSES, CropNet, JudgeNetConfig, SceneNet
 from world_model.eval.text import parse_description
 from world_model.scene import CATEGORIES, TIMES_OF_DAY, WEATHERS
@@ -118,7 +118,7 @@ class CnnJudge:
         outs: dict[str, list[np.ndarray]] = {"category": [], "color": [], "clarity": [], "embedding": []}
         for i in range(0, len(crops), self.batch_size):
             chunk = crops[i : i + self.batch_size]
-            o = self.crop_net(torch.from_numpy(normalize_crops(chunk, size)), torch.from_numpy(crop_aspects(chunk)))
+            o = self.crop_net(torch.from_numpy(normalize_crops(chunk, size)), torch.from_numpy(crop_statistics(chunk)))
             outs["category"].append(o["category"].softmax(1).numpy())
             outs["color"].append(o["color"].softmax(1).numpy())
             outs["clarity"].append(o["clarity"].sigmoid().numpy())

@@ -1,6 +1,6 @@
 """The default judge backend's networks: a crop network and a scene network (small CNNs).
 
-``CropNet`` reads one object crop (3, S, S) plus its log aspect ratio and gives
+``CropNet`` reads one object crop (3, S, S) plus its native-resolution statistics and gives
 category logits (``CATEGORIES`` + background), colour logits (``NAMED_COLORS``), a clarity logit
 and a unit embedding; two embeddings are compared by :meth:`CropNet.same_logit` (visual fidelity,
 cross-view consistency). ``SceneNet`` reads a multi-view frame (V, 3, H, W), encodes each view with
@@ -16,6 +16,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from world_model.eval.crops import NUM_CROP_STATS
 from world_model.scene import CATEGORIES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS
 
 BACKGROUND = "background"
@@ -59,7 +60,7 @@ class CropNet(nn.Module):
         super().__init__()
         self.config = config
         self.trunk = _trunk(config.crop_channels)
-        feat = 2 * config.crop_channels[-1] + 1  # mean + max pooling, log aspect
+        feat = 2 * config.crop_channels[-1] + NUM_CROP_STATS  # mean + max pooling, crop statistics
         self.mlp = nn.Sequential(nn.Linear(feat, config.crop_hidden), nn.ReLU())
         self.category = nn.Linear(config.crop_hidden, len(CROP_CLASSES))
         self.color = nn.Linear(config.crop_hidden, len(COLOR_CLASSES))
@@ -69,11 +70,11 @@ class CropNet(nn.Module):
         self.pair_scale = nn.Parameter(torch.tensor(10.0))
         self.pair_bias = nn.Parameter(torch.tensor(-5.0))
 
-    def forward(self, crops: torch.Tensor, aspect: torch.Tensor) -> dict[str, torch.Tensor]:
-        """crops (N, 3, S, S) in [0, 1], aspect (N,) -> category (N, 12), color (N, 17),
-        clarity (N,), embedding (N, E) unit-norm."""
+    def forward(self, crops: torch.Tensor, stats: torch.Tensor) -> dict[str, torch.Tensor]:
+        """crops (N, 3, S, S) in [0, 1], stats (N, NUM_CROP_STATS) from ``crop_statistics`` ->
+        category (N, 12), color (N, 17), clarity (N,), embedding (N, E) unit-norm."""
         f = self.trunk(crops * 2.0 - 1.0)
-        f = torch.cat([f.mean(dim=(2, 3)), f.amax(dim=(2, 3)), aspect[:, None]], dim=1)
+        f = torch.cat([f.mean(dim=(2, 3)), f.amax(dim=(2, 3)), stats], dim=1)
         h = self.mlp(f)
         return {
             "category": self.category(h),

@@ -20,7 +20,7 @@ import torch
 from torch.nn import functional as F
 
 from world_model.data import list_clips
-from world_model.eval.crops import crop_aspects, normalize_crops
+from world_model.eval.crops import crop_statistics, normalize_crops
 from world_model.eval.judge import CnnJudge, JudgeThresholds
 from world_model.eval.judge_data import CollectConfig, DegradeConfig, JudgeData, collect, degrade
 from world_model.eval.nets import BACKGROUND, COLOR_CLASSES, CROP_CLASSES, CropNet, JudgeNetConfig, SceneNet
@@ -82,9 +82,11 @@ def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str],
     rng = np.random.default_rng([cfg.seed, 1])
     size = cfg.net.crop_size
     arr = data.arrays()
+    degraded = [degrade(c, rng, cfg.degrade) for c in data.crops]
     clean = torch.from_numpy(normalize_crops(data.crops, size))
-    dirty = torch.from_numpy(normalize_crops([degrade(c, rng, cfg.degrade) for c in data.crops], size))
-    aspect = torch.from_numpy(crop_aspects(data.crops))
+    dirty = torch.from_numpy(normalize_crops(degraded, size))
+    stats_clean = torch.from_numpy(crop_statistics(data.crops))
+    stats_dirty = torch.from_numpy(crop_statistics(degraded))
     category, color = torch.from_numpy(arr["category"]), torch.from_numpy(arr["color"])
     bg = CROP_CLASSES.index(BACKGROUND)
     background = np.flatnonzero(arr["category"] == bg)
@@ -110,7 +112,8 @@ def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str],
         x = torch.where(flip[:, None, None, None], x.flip(3), x)
         half = torch.from_numpy(rng.random(len(idx)) < 0.5)
         x_clarity = torch.where(half[:, None, None, None], dirty[idx_t], x)
-        out = net(torch.cat([x, x_clarity]), torch.cat([aspect[idx_t], aspect[idx_t]]))
+        s_clarity = torch.where(half[:, None], stats_dirty[idx_t], stats_clean[idx_t])
+        out = net(torch.cat([x, x_clarity]), torch.cat([stats_clean[idx_t], s_clarity]))
         k = len(idx)
         loss = F.cross_entropy(out["category"][:k], category[idx_t])
         col = color[idx_t]
