@@ -58,7 +58,7 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
         "blurred": lambda c: Generated(blur(np.asarray(c.cameras), 2.0), np.asarray(c.lidar, np.float32) + 2.0),
         "color_shifted": lambda c: Generated(color_shift(np.asarray(c.cameras))),
     }
-    cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=15)
+    cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=15, chamfer_max_points=2048)
     report = evaluate_rows(rows, clips, judge=judge, config=cfg)
     o, b, s = (report["rows"][k] for k in rows)
     t1 = o["table1"]

@@ -141,7 +141,7 @@ class CnnJudge:
         outs: dict[str, list[np.ndarray]] = {"weather": [], "time_of_day": [], "features": []}
         step = max(1, self.batch_size // (4 * frames.shape[1]))
         for i in range(0, len(frames), step):
-            x = torch.from_numpy(np.ascontiguousarray(frames[i : i + step])).permute(0, 1, 4, 2, 3).float() / 255.0
+            x = torch.from_numpy(np.array(frames[i : i + step])).permute(0, 1, 4, 2, 3).float() / 255.0
             o = self.scene_net(x)
             outs["weather"].append(o["weather"].softmax(1).numpy())
             outs["time_of_day"].append(o["time_of_day"].softmax(1).numpy())

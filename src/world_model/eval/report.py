@@ -163,7 +163,9 @@ def evaluate_rows(
             _check_generated(gen, clip, row)
             answers += judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
             gt = np.asarray(clip.cameras)
-            per_frame = np.minimum(psnr(gen.cameras, gt).mean(axis=1), config.psnr_cap_db)
+            # Frame by frame: a 600-frame clip in float64 at once would take gigabytes.
+            per_frame = np.array([psnr(gen.cameras[t], gt[t]).mean() for t in range(clip.num_frames)])
+            per_frame = np.minimum(per_frame, config.psnr_cap_db)
             sl = slice(None, None, config.frame_stride)
             psnrs.append(per_frame[sl])
             ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
