@@ -1,0 +1,204 @@
+"""Yes/no question sets with known answers, built from ground-truth :class:`JudgeData`: they train
+the thresholds of the CNN judge (calibration) and measure any :class:`JudgeBackend`'s accuracy.
+
+Each question type gets positives (the true attribute / the same object) and as many negatives
+(a wrong weather, time, category or colour; a degraded crop; another track's crop; another
+object's description). Accuracy is reported as balanced accuracy (mean of the yes-rate on
+positives and the no-rate on negatives), overall and per category of the asked-about object.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from world_model.eval.judge import JudgeBackend
+from world_model.eval.judge_data import DegradeConfig, JudgeData, degrade
+from world_model.eval.nets import BACKGROUND, COLOR_CLASSES, CROP_CLASSES
+from world_model.eval.text import parse_description
+from world_model.scene import CATEGORIES, TIMES_OF_DAY, WEATHERS
+
+QUESTION_TYPES = (
+    "weather",
+    "time_of_day",
+    "existence",
+    "clarity",
+    "visual_fidelity",
+    "textual_fidelity",
+    "cross_view_consistency",
+)
+
+
+@dataclass
+class QuestionSet:
+    """One question type: inputs (frames array, or crop lists), what is asked, the true answers."""
+
+    a: list | np.ndarray
+    label: np.ndarray  # bool (N,)
+    group: list[str]  # category of the asked-about object ("scene" for scene questions)
+    b: list | None = None  # second crop of pair questions
+    asked: list[str] | None = None  # the weather / time / category / description asked about
+    extra: dict = field(default_factory=dict)
+
+
+def _pick_other(rng: np.random.Generator, options: tuple[str, ...], true: str) -> str:
+    others = [o for o in options if o != true]
+    return others[int(rng.integers(len(others)))]
+
+
+def build_questions(
+    data: JudgeData, seed: int = 0, max_per_type: int = 2000, degrade_config: DegradeConfig | None = None
+) -> dict[str, QuestionSet]:
+    """Question sets of every type in :data:`QUESTION_TYPES` plus ``"color"`` (calibration only).
+    Deterministic in ``seed``; at most ``max_per_type`` source items per type."""
+    rng = np.random.default_rng(seed)
+    degrade_config = degrade_config or DegradeConfig()
+    arr = data.arrays()
+    n = len(data.crops)
+    bg = CROP_CLASSES.index(BACKGROUND)
+    obj = np.flatnonzero((arr["category"] != bg) & ~arr["reference"])
+    background = np.flatnonzero(arr["category"] == bg)
+
+    def sub(idx: np.ndarray) -> np.ndarray:
+        return np.sort(rng.choice(idx, size=max_per_type, replace=False)) if len(idx) > max_per_type else idx
+
+    def cat(i: int) -> str:
+        return CROP_CLASSES[arr["category"][i]]
+
+    qs: dict[str, QuestionSet] = {}
+    frames = np.stack(data.scene_frames) if data.scene_frames else np.zeros((0, 1, 1, 1, 3), np.uint8)
+    fidx = sub(np.arange(len(frames)))
+    for name, labels, vocab in (("weather", data.weather, WEATHERS), ("time_of_day", data.time_of_day, TIMES_OF_DAY)):
+        true = [vocab[labels[i]] for i in fidx]
+        asked = true + [_pick_other(rng, vocab, t) for t in true]
+        qs[name] = QuestionSet(
+            a=np.concatenate([frames[fidx], frames[fidx]]),
+            asked=asked,
+            label=np.r_[np.ones(len(fidx), bool), np.zeros(len(fidx), bool)],
+            group=["scene"] * (2 * len(fidx)),
+        )
+
+    o, g = sub(obj), sub(background)
+    qs["existence"] = QuestionSet(
+        a=[data.crops[i] for i in o] * 2 + [data.crops[i] for i in g],
+        asked=[cat(i) for i in o] + [_pick_other(rng, CATEGORIES, cat(i)) for i in o]
+        + [CATEGORIES[int(rng.integers(len(CATEGORIES)))] for _ in g],
+        label=np.r_[np.ones(len(o), bool), np.zeros(len(o) + len(g), bool)],
+        group=[cat(i) for i in o] * 2 + [BACKGROUND] * len(g),
+    )
+    qs["clarity"] = QuestionSet(
+        a=[data.crops[i] for i in o] + [degrade(data.crops[i], rng, degrade_config) for i in o],
+        label=np.r_[np.ones(len(o), bool), np.zeros(len(o), bool)],
+        group=[cat(i) for i in o] * 2,
+    )
+    colored = sub(obj[arr["color"][obj] >= 0])
+    qs["color"] = QuestionSet(
+        a=[data.crops[i] for i in colored] * 2,
+        asked=[COLOR_CLASSES[arr["color"][i]] for i in colored]
+        + [_pick_other(rng, COLOR_CLASSES, COLOR_CLASSES[arr["color"][i]]) for i in colored],
+        label=np.r_[np.ones(len(colored), bool), np.zeros(len(colored), bool)],
+        group=[cat(i) for i in colored] * 2,
+    )
+
+    ref_of = {int(arr["track"][i]): i for i in range(n) if arr["reference"][i]}
+    refs = np.array(sorted(ref_of.values()), dtype=np.int64)
+    with_ref = sub(np.array([i for i in obj if int(arr["track"][i]) in ref_of], dtype=np.int64))
+    pa, pb, lab, grp = [], [], [], []
+    for i in with_ref:
+        others = refs[arr["track"][refs] != arr["track"][i]]
+        if len(others) == 0:
+            continue
+        pa += [data.crops[i], data.crops[i]]
+        pb += [data.crops[ref_of[int(arr["track"][i])]], data.crops[int(rng.choice(others))]]
+        lab += [True, False]
+        grp += [cat(i)] * 2
+    qs["visual_fidelity"] = QuestionSet(a=pa, b=pb, label=np.array(lab, bool), group=grp)
+
+    parsed = {i: parse_description(data.description[i]) for i in obj}
+    readable = sub(np.array([i for i in obj if not parsed[i].empty], dtype=np.int64))
+    ta, asked, lab, grp = [], [], [], []
+    for i in readable:
+        wrong = [j for j in readable if parsed[j] != parsed[i]]
+        if not wrong:
+            continue
+        ta += [data.crops[i]] * 2
+        asked += [data.description[i], data.description[int(wrong[int(rng.integers(len(wrong)))])]]
+        lab += [True, False]
+        grp += [cat(i)] * 2
+    qs["textual_fidelity"] = QuestionSet(a=ta, asked=asked, label=np.array(lab, bool), group=grp)
+
+    by_frame: dict[int, list[int]] = defaultdict(list)
+    for i in obj:
+        by_frame[int(arr["frame"][i])].append(int(i))
+    ca, cb, lab, grp = [], [], [], []
+    for members in by_frame.values():
+        for i in members:
+            same = [j for j in members if arr["track"][j] == arr["track"][i] and arr["view"][j] > arr["view"][i]]
+            diff = [j for j in members if arr["track"][j] != arr["track"][i] and arr["view"][j] != arr["view"][i]]
+            if not same:
+                continue
+            j = min(same, key=lambda k: arr["view"][k])
+            ca.append(data.crops[i])
+            cb.append(data.crops[j])
+            lab.append(True)
+            grp.append(cat(i))
+            if diff:
+                ca.append(data.crops[i])
+                cb.append(data.crops[int(diff[int(rng.integers(len(diff)))])])
+                lab.append(False)
+                grp.append(cat(i))
+    qs["cross_view_consistency"] = QuestionSet(a=ca, b=cb, label=np.array(lab, bool), group=grp)
+    return qs
+
+
+def answer(backend: JudgeBackend, qtype: str, q: QuestionSet) -> np.ndarray:
+    """The backend's yes/no answers (N,) to one question set."""
+    if len(q.label) == 0:
+        return np.zeros(0, dtype=bool)
+    if qtype == "weather":
+        return backend.is_weather(q.a, q.asked)
+    if qtype == "time_of_day":
+        return backend.is_time_of_day(q.a, q.asked)
+    if qtype == "existence":
+        return backend.is_category(q.a, q.asked)
+    if qtype == "clarity":
+        return backend.is_clear(q.a)
+    if qtype == "visual_fidelity":
+        return backend.same_object(q.a, q.b)
+    if qtype == "textual_fidelity":
+        return backend.matches_description(q.a, q.asked)
+    if qtype == "cross_view_consistency":
+        return backend.consistent(q.a, q.b)
+    raise ValueError(f"unknown question type {qtype!r}; choose from {QUESTION_TYPES}")
+
+
+def balanced_accuracy(pred: np.ndarray, label: np.ndarray) -> dict[str, float]:
+    """Yes-rate on positives (tpr), no-rate on negatives (tnr), their mean, and counts."""
+    pos, neg = label, ~label
+    tpr = float(pred[pos].mean()) if pos.any() else float("nan")
+    tnr = float((~pred[neg]).mean()) if neg.any() else float("nan")
+    both = [v for v in (tpr, tnr) if v == v]
+    return {
+        "balanced_accuracy": float(np.mean(both)) if both else float("nan"),
+        "tpr": tpr,
+        "tnr": tnr,
+        "n_pos": int(pos.sum()),
+        "n_neg": int(neg.sum()),
+    }
+
+
+def judge_accuracy(backend: JudgeBackend, questions: dict[str, QuestionSet]) -> dict[str, dict]:
+    """Accuracy per question type, overall and per category of the asked-about object."""
+    report = {}
+    for qtype in QUESTION_TYPES:
+        q = questions[qtype]
+        pred = np.asarray(answer(backend, qtype, q), dtype=bool)
+        entry = balanced_accuracy(pred, q.label)
+        groups = np.array(q.group)
+        entry["per_category"] = {
+            g: balanced_accuracy(pred[groups == g], q.label[groups == g]) for g in sorted(set(q.group)) if g != "scene"
+        }
+        report[qtype] = entry
+    return report

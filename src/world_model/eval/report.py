@@ -1,0 +1,237 @@
+"""Evaluation rows -> the paper's tables (§9): Table 1 (frame / clip Fréchet distances on judge
+features, plus PSNR, SSIM and LiDAR errors) and Table 2 (judge yes-frequencies), as markdown + JSON.
+
+A *row* is any generator of sensors for a recorded clip at equal controls: the Oracle (the ground
+truth itself), a geometry-only baseline, the full model, teacher vs student, refresh on/off. The
+API takes them as callables ``Clip -> Generated`` so that the world model plugs in unchanged.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from world_model.data import Clip
+from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_by_track_time
+from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
+from world_model.eval.metrics import (
+    chamfer_distance,
+    clip_window_features,
+    frechet_features,
+    lidar_range_mae,
+    long_horizon_ratio,
+    per_second_curve,
+    psnr,
+    ssim,
+)
+from world_model.eval.questions import QUESTION_TYPES
+from world_model.sim import ProceduralSimulator
+
+
+@dataclass
+class Generated:
+    """A row's sensors for one clip: cameras uint8 (T, V, H, W, 3), optional LiDAR (T, beams, azimuth) m."""
+
+    cameras: np.ndarray
+    lidar: np.ndarray | None = None
+
+
+RowFn = Callable[[Clip], Generated]
+
+
+@dataclass(frozen=True)
+class ReportConfig:
+    """Sampling of the evaluation (every default visible)."""
+
+    frame_stride: int = 5  # judge questions, PSNR/SSIM and frame Fréchet on every k-th frame
+    clip_window: int = 8  # frames per window of the clip Fréchet distance
+    lidar_stride: int = 10  # LiDAR MAE / Chamfer on every k-th frame
+    chamfer_max_points: int = 8192
+    psnr_cap_db: float = 100.0  # identical frames (PSNR inf) count as this when averaged
+    long_window_s: int = 10  # long-horizon ratio: last vs first window, seconds
+
+
+def oracle_row(clip: Clip) -> Generated:
+    """The ground truth itself: the upper bound of every judge score, Fréchet 0."""
+    return Generated(cameras=np.asarray(clip.cameras), lidar=np.asarray(clip.lidar, dtype=np.float32))
+
+
+@dataclass
+class Answer:
+    question: str
+    yes: bool
+    category: str | None  # the asked-about object's category; None for scene questions
+
+
+def judge_clip(
+    backend: JudgeBackend, clip: Clip, cameras: np.ndarray, sim: ProceduralSimulator, config: ReportConfig,
+    crop_config: CropConfig,
+) -> list[Answer]:  # fmt: skip
+    """Ask every question of Table 2 about ``cameras`` (T, V, H, W, 3), the row's frames of ``clip``."""
+    idx = list(range(0, clip.num_frames, config.frame_stride))
+    prompt = clip.frames[0].prompt
+    frames = np.ascontiguousarray(cameras[idx])
+    answers = [Answer("weather", bool(y), None) for y in backend.is_weather(frames, [prompt.weather] * len(idx))]
+    answers += [
+        Answer("time_of_day", bool(y), None) for y in backend.is_time_of_day(frames, [prompt.time_of_day] * len(idx))
+    ]
+    crops: list[ObjectCrop] = []
+    for i in idx:
+        crops += extract_crops(clip.frames[i], np.ascontiguousarray(cameras[i]), sim, crop_config)
+    if not crops:
+        return answers
+    images, cats = [c.image for c in crops], [c.category for c in crops]
+    answers += [Answer("existence", bool(y), c) for y, c in zip(backend.is_category(images, cats), cats, strict=True)]
+    answers += [Answer("clarity", bool(y), c) for y, c in zip(backend.is_clear(images), cats, strict=True)]
+    ref = [c for c in crops if c.track_id in clip.crops]
+    if ref:
+        same = backend.same_object([c.image for c in ref], [clip.crops[c.track_id] for c in ref])
+        answers += [Answer("visual_fidelity", bool(y), c.category) for y, c in zip(same, ref, strict=True)]
+    text = [c for c in crops if backend.understands(c.description)]
+    if text:
+        match = backend.matches_description([c.image for c in text], [c.description for c in text])
+        answers += [Answer("textual_fidelity", bool(y), c.category) for y, c in zip(match, text, strict=True)]
+    pairs = [(g[k], g[k + 1]) for g in group_by_track_time(crops).values() for k in range(len(g) - 1)]
+    if pairs:
+        ok = backend.consistent([a.image for a, _ in pairs], [b.image for _, b in pairs])
+        answers += [Answer("cross_view_consistency", bool(y), a.category) for y, (a, _) in zip(ok, pairs, strict=True)]
+    return answers
+
+
+def yes_frequencies(answers: Sequence[Answer]) -> dict[str, float | None]:
+    """Fraction of yes per question type (None where the question was never asked)."""
+    out: dict[str, float | None] = {}
+    for q in QUESTION_TYPES:
+        ys = [a.yes for a in answers if a.question == q]
+        out[q] = float(np.mean(ys)) if ys else None
+    return out
+
+
+def per_category(answers: Sequence[Answer]) -> dict[str, dict[str, float]]:
+    """Yes-frequency per object question and category: {question: {category: frequency}}."""
+    groups: dict[str, dict[str, list[bool]]] = defaultdict(lambda: defaultdict(list))
+    for a in answers:
+        if a.category is not None:
+            groups[a.question][a.category].append(a.yes)
+    return {q: {c: float(np.mean(v)) for c, v in sorted(d.items())} for q, d in groups.items()}
+
+
+def _check_generated(gen: Generated, clip: Clip, row: str) -> None:
+    if not isinstance(gen, Generated):
+        raise TypeError(f"row {row!r} must return a Generated, got {type(gen).__name__}")
+    if gen.cameras.dtype != np.uint8 or gen.cameras.shape != clip.cameras.shape:
+        raise ValueError(
+            f"row {row!r} on clip {clip.name}: cameras must be uint8 {clip.cameras.shape}, "
+            f"got {gen.cameras.dtype} {gen.cameras.shape}"
+        )
+    if gen.lidar is not None and gen.lidar.shape != clip.lidar.shape:
+        raise ValueError(f"row {row!r} on clip {clip.name}: lidar must be {clip.lidar.shape}, got {gen.lidar.shape}")
+
+
+def evaluate_rows(
+    rows: dict[str, RowFn],
+    clips: Sequence[Clip],
+    judge: JudgeBackend | None = None,
+    config: ReportConfig = ReportConfig(),
+) -> dict:
+    """Score every row on every clip. Returns a JSON-ready report: per row ``table1`` (Fréchet
+    distances, PSNR, SSIM, LiDAR MAE / Chamfer), ``table2`` (yes-frequencies), ``per_category`` and,
+    for clips of at least twice ``long_window_s`` seconds, ``long_horizon`` PSNR curves and ratios.
+
+    ``judge`` answers the questions (default: the shipped CNN judge); its ``frame_features`` feed
+    the Fréchet distances (a backend without them gets None there).
+    """
+    if not rows or not clips:
+        raise ValueError("evaluate_rows needs at least one row and one clip")
+    judge = judge if judge is not None else load_default_judge()
+    features = getattr(judge, "frame_features", None)
+    crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
+    sim = ProceduralSimulator()
+    gt_feats = [features(np.asarray(c.cameras)) for c in clips] if features else []
+    report: dict = {"rows": {}, "clips": [c.name for c in clips], "config": config.__dict__}
+    for row, fn in rows.items():
+        answers: list[Answer] = []
+        psnrs, ssims, maes, chamfers, feats = [], [], [], [], []
+        long_curves = []
+        for clip in clips:
+            gen = fn(clip)
+            _check_generated(gen, clip, row)
+            answers += judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
+            gt = np.asarray(clip.cameras)
+            # Frame by frame: a 600-frame clip in float64 at once would take gigabytes.
+            per_frame = np.array([psnr(gen.cameras[t], gt[t]).mean() for t in range(clip.num_frames)])
+            per_frame = np.minimum(per_frame, config.psnr_cap_db)
+            sl = slice(None, None, config.frame_stride)
+            psnrs.append(per_frame[sl])
+            ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
+            if features:
+                feats.append(features(gen.cameras))
+            if clip.num_frames / clip.fps >= 2 * config.long_window_s:
+                curve = per_second_curve(per_frame, clip.fps)
+                long_curves.append({"clip": clip.name, "psnr_per_second": curve.tolist(),
+                                    "ratio_last_first": long_horizon_ratio(curve, config.long_window_s)})  # fmt: skip
+            if gen.lidar is not None:
+                spec = clip.frames[0].lidar
+                for i in range(0, clip.num_frames, config.lidar_stride):
+                    g, t = np.asarray(gen.lidar[i], np.float32), np.asarray(clip.lidar[i], np.float32)
+                    maes.append(lidar_range_mae(g, t, spec))
+                    chamfers.append(chamfer_distance(g, t, spec, max_points=config.chamfer_max_points))
+        table1 = {
+            "frechet_judge_frame": None,
+            "frechet_judge_clip": None,
+            "psnr_db": float(np.mean(np.concatenate(psnrs))),
+            "ssim": float(np.mean(np.concatenate(ssims))),
+            "lidar_range_mae_m": float(np.mean(maes)) if maes else None,
+            "lidar_chamfer_m": float(np.mean(chamfers)) if chamfers else None,
+        }
+        if features:
+            sl = slice(None, None, config.frame_stride)
+            table1["frechet_judge_frame"] = frechet_features(
+                np.concatenate([f[sl] for f in feats]), np.concatenate([f[sl] for f in gt_feats])
+            )
+            w = config.clip_window
+            table1["frechet_judge_clip"] = frechet_features(
+                np.concatenate([clip_window_features(f, w) for f in feats]),
+                np.concatenate([clip_window_features(f, w) for f in gt_feats]),
+            )
+        report["rows"][row] = {
+            "table1": table1,
+            "table2": yes_frequencies(answers),
+            "per_category": per_category(answers),
+            "answers": len(answers),
+            "long_horizon": long_curves,
+        }
+    return report
+
+
+def _fmt(v: float | None, digits: int = 3) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def format_markdown(report: dict) -> str:
+    """Table 1 and Table 2 of a report as markdown."""
+    t1 = ["frechet_judge_frame", "frechet_judge_clip", "psnr_db", "ssim", "lidar_range_mae_m", "lidar_chamfer_m"]
+    lines = ["### Table 1: generation quality (judge-feature Fréchet distances, not Inception FID/FVD)", ""]
+    lines += ["| row | " + " | ".join(t1) + " |", "|---" * (len(t1) + 1) + "|"]
+    for row, r in report["rows"].items():
+        lines.append(f"| {row} | " + " | ".join(_fmt(r["table1"][k]) for k in t1) + " |")
+    lines += ["", "### Table 2: controllability (judge yes-frequencies)", ""]
+    lines += ["| row | " + " | ".join(QUESTION_TYPES) + " |", "|---" * (len(QUESTION_TYPES) + 1) + "|"]
+    for row, r in report["rows"].items():
+        lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_report(report: dict, out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``report.md`` and ``report.json`` into ``out_dir``; returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "report.md", out / "report.json"
+    md.write_text(format_markdown(report))
+    js.write_text(json.dumps(report, indent=1))
+    return md, js
