@@ -127,6 +127,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_evalset(args: argparse.Namespace) -> int:
+    from m4world_env.evalset import record_evalset
+
+    clips = record_evalset(args.out)
+    print(f"{len(clips)} evaluation clips in {args.out}")
+    return 0
+
+
 def _cmd_gallery(args: argparse.Namespace) -> int:
     from m4world_env.gallery import make_gallery
 
@@ -187,6 +195,10 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--no-progress", action="store_true")
     t.set_defaults(func=_cmd_train)
+
+    v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
+    v.add_argument("--out", default="data/evalset")
+    v.set_defaults(func=_cmd_evalset)
 
     g = sub.add_parser("gallery", help="render PNG mosaics of scenarios under several weathers/times")
     g.add_argument("--out", default="docs/images")
