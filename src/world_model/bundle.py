@@ -89,7 +89,8 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
         raise CheckpointError(
             f"{run_dir} has no export for {missing}: train stages {[COMPONENT_STAGES[c] for c in missing]} first"
         )
-    config = json.loads(found["student"][1].with_suffix(".json").read_text())["model_config"]
+    student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
+    config = student_meta["model_config"]
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -107,14 +108,58 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
     adapters = run_dir / "lora"
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=shutil.ignore_patterns("checkpoints", "*.partial"))
-    write_json_atomic(
-        tmp / "manifest.json",
-        {"format": BUNDLE_FORMAT, "version": BUNDLE_VERSION, "model_config": config, "components": components},
-    )
+    _write_manifest(tmp, config, components, student_meta.get("student_config"))
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return out_dir
+
+
+def save_bundle(
+    out_dir: str | Path,
+    model_config: dict,
+    components: dict[str, dict[str, torch.Tensor]],
+    student_config: dict | None = None,
+    stages: dict[str, str] | None = None,
+) -> Path:
+    """Write state dicts (``vae``, ``student``, optional ``reference``) as a bundle, atomically."""
+    from safetensors.torch import save_file
+
+    out_dir = Path(out_dir)
+    missing = [c for c in REQUIRED if c not in components]
+    if missing:
+        raise CheckpointError(f"a bundle needs the {missing} component(s)")
+    tmp = out_dir.with_name(out_dir.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    entries = {}
+    for name, state in components.items():
+        dst = tmp / f"{name}.safetensors"
+        save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(dst))
+        entries[name] = {
+            "file": dst.name,
+            "sha256": sha256_file(dst),
+            "bytes": dst.stat().st_size,
+            "stage": (stages or {}).get(name, "unknown"),
+        }
+    _write_manifest(tmp, model_config, entries, student_config)
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    os.replace(tmp, out_dir)
+    return out_dir
+
+
+def _write_manifest(root: Path, model_config: dict, components: dict, student_config: dict | None) -> None:
+    manifest = {
+        "format": BUNDLE_FORMAT,
+        "version": BUNDLE_VERSION,
+        "model_config": model_config,
+        "components": components,
+    }
+    if student_config is not None:
+        manifest["student_config"] = student_config
+    write_json_atomic(root / "manifest.json", manifest)
 
 
 def resolve_bundle(path: str | Path | None) -> Path:

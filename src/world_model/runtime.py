@@ -1,0 +1,190 @@
+"""Run a trained world model: load a checkpoint bundle and stream batched rollouts from SceneFrames.
+
+    wm = load_world_model()                        # the shipped default bundle (or a path)
+    rollouts = RolloutBatch(wm, num_rollouts=8)
+    obs0 = rollouts.reset_row(0, first_frame, seed=0)          # first frame via the reference model (§6)
+    obs = rollouts.step([chunk_0, ..., chunk_7])               # one causal chunk per rollout (§4.2)
+
+Each rollout owns a ``torch.Generator`` seeded at its reset, and every noise tensor of that rollout
+(first frame, every chunk, every re-noising) is drawn from it, so a rollout's observations do not
+depend on which other rollouts share its batch: a vector env equals N single envs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from world_model.bundle import CheckpointError, load_bundle_files, save_bundle  # noqa: F401 (re-export)
+from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
+from world_model.model.config import ModelConfig
+from world_model.model.dit import MultiViewDiT
+from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.reference import ReferenceGenerator, reference_model_config
+from world_model.model.sampler import latents_to_observations
+from world_model.model.text import TextEncoder, make_text_encoder
+from world_model.model.vae import SensorVAE
+from world_model.observation import Observation
+from world_model.scene import SceneFrame
+from world_model.sensors import CameraRig
+from world_model.sim import ProceduralSimulator
+from world_model.student.config import StudentConfig
+from world_model.student.engine import StreamingEngine
+
+__all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle"]
+
+
+@dataclass
+class WorldModel:
+    """The modules of one bundle, in eval mode, plus what turns SceneFrames into their conditions."""
+
+    cfg: ModelConfig
+    student_cfg: StudentConfig
+    vae: SensorVAE
+    student: MultiViewDiT
+    reference: MultiViewDiT | None
+    text: TextEncoder
+    path: Path | None = None
+
+    def __post_init__(self) -> None:
+        self.image = VaeCropEncoder(self.vae)
+        self.rig: CameraRig = self.cfg.sensors.rig()
+        self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
+        self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
+
+    def condition_arrays(
+        self, frames: Sequence[SceneFrame], first: SceneFrame, crops: Mapping[str, np.ndarray] | None = None
+    ) -> ConditionArrays:
+        """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2)."""
+        bev = np.stack([self._bev.render_bev(f) for f in frames])
+        return build_condition_arrays(frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego)
+
+    def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations."""
+        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar)
+
+
+def load_world_model(
+    path: str | Path | None = None, student: StudentConfig | None = None, device: str = "cpu"
+) -> WorldModel:
+    """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
+    bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation)."""
+    files = load_bundle_files(path)
+    try:
+        cfg = ModelConfig.from_dict(files.model_config)
+        scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
+        vae = SensorVAE(cfg)
+        vae.load_state_dict(files.tensors["vae"])
+        dit = MultiViewDiT(cfg)
+        dit.load_state_dict(files.tensors["student"])
+        ref = None
+        if files.has("reference"):
+            ref = MultiViewDiT(reference_model_config(cfg))
+            ref.load_state_dict(files.tensors["reference"])
+    except (KeyError, RuntimeError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {files.path} does not match this version of the model: {e}") from e
+    for module in (vae, dit, ref):
+        if module is not None:
+            module.to(device).eval().requires_grad_(False)
+    return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path)
+
+
+class RolloutBatch:
+    """``num_rollouts`` independent rollouts advanced together, one causal chunk per :meth:`step`."""
+
+    def __init__(self, wm: WorldModel, num_rollouts: int, every_frame: bool = False) -> None:
+        self.wm = wm
+        self.n = num_rollouts
+        self.every_frame = every_frame
+        self.engine = StreamingEngine(wm.student, wm.student_cfg)
+        self.gens: list[torch.Generator | None] = [None] * num_rollouts
+        self.first: list[SceneFrame | None] = [None] * num_rollouts
+        self.crops: list[dict[str, np.ndarray]] = [{} for _ in range(num_rollouts)]
+        self.last_arrays: list[ConditionArrays | None] = [None] * num_rollouts
+        self._pending: dict[int, tuple[torch.Tensor, ConditionArrays]] = {}
+        self.engine.noise_fn = self._noise
+
+    @property
+    def chunk_frames(self) -> int:
+        return self.wm.cfg.clip.chunk_frames
+
+    def _noise(self, shape: Sequence[int]) -> torch.Tensor:
+        """Batch noise, each row from its own rollout's generator."""
+        return torch.stack([torch.randn(tuple(shape[1:]), generator=g) for g in self.gens])
+
+    def reset_row(
+        self,
+        row: int,
+        frame: SceneFrame,
+        seed: int,
+        reference: Mapping[str, np.ndarray] | None = None,
+        crops: Mapping[str, np.ndarray] | None = None,
+    ) -> Observation:
+        """(Re)start rollout ``row`` at ``frame``: its first frame comes from the reference model,
+        anchored on ``reference`` images when given (§6), and seeds the student's cache."""
+        self.gens[row] = torch.Generator().manual_seed(int(seed))
+        self.first[row], self.crops[row] = frame, dict(crops or {})
+        arrays = self.wm.condition_arrays([frame], frame, self.crops[row])
+        cond = Conditions.collate([arrays])
+        with torch.no_grad():
+            latents, obs = self.wm.first_frames.first_frame(cond, reference, seed=int(seed))
+        self.last_arrays[row] = arrays
+        if self.engine.batch_size == self.n:
+            self.engine.start_rows([row], latents, cond)
+        else:
+            self._pending[row] = (latents, arrays)
+            if len(self._pending) == self.n:
+                rows = sorted(self._pending)
+                first = torch.cat([self._pending[r][0] for r in rows])
+                self.engine.start(first, Conditions.collate([self._pending[r][1] for r in rows]))
+                self._pending.clear()
+        return obs[0]
+
+    def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
+        """Advance every rollout whose chunk is given (``None``: idle, its output is discarded)."""
+        if len(chunks) != self.n:
+            raise ValueError(f"need one chunk (or None) per rollout: {self.n}, got {len(chunks)}")
+        if self.engine.batch_size != self.n:
+            missing = [i for i in range(self.n) if i not in self._pending]
+            raise RuntimeError(f"rollouts {missing} were never reset; reset every rollout before stepping")
+        lengths = {len(c) for c in chunks if c is not None}
+        if len(lengths) > 1 or (lengths and next(iter(lengths)) % self.chunk_frames):
+            raise ValueError(
+                f"every chunk must have the same multiple of the model's {self.chunk_frames} frames, got {lengths}"
+            )
+        total = next(iter(lengths), 0)
+        outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
+        with torch.no_grad():
+            for k in range(0, total, self.chunk_frames):
+                arrays = []
+                for i, chunk in enumerate(chunks):
+                    if chunk is not None:
+                        self.last_arrays[i] = self.wm.condition_arrays(
+                            chunk[k : k + self.chunk_frames], self.first[i], self.crops[i]
+                        )
+                    # An idle row repeats its last controls: its output is thrown away.
+                    arr = self.last_arrays[i]
+                    arrays.append(
+                        arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames)
+                    )
+                latents = self.engine.step(Conditions.collate(arrays))
+                for i in range(self.n):
+                    outs[i].append(latents[i : i + 1])
+        results: list[list[Observation] | None] = []
+        for i, chunk in enumerate(chunks):
+            if chunk is None:
+                results.append(None)
+                continue
+            lat = torch.cat(outs[i], dim=1)
+            results.append(self.wm.decode(lat if self.every_frame else lat[:, -1:])[0])
+        return results
+
+
+def _repeat_frames(arrays: ConditionArrays, frames: int) -> ConditionArrays:
+    """The last frame of ``arrays`` repeated ``frames`` times (controls of an idle rollout)."""
+    last = arrays.frames(arrays.num_frames - 1, arrays.num_frames)
+    return replace(last, **{k: np.repeat(getattr(last, k), frames, axis=0) for k in ConditionArrays.TIME_FIELDS})
