@@ -105,9 +105,7 @@ def test_context_refresh_recomputes_the_last_frame_keys():
                 cached, _ = eng.cache.context()
                 x_in = torch.cat([eng.last, noise[1]], 1)
                 t = torch.tensor([[1.0, 0.0, 0.0]])
-                _, kv = model(
-                    x_in, t, cond.frames(2, 5), frame_offset=eng.position - 1, kv_context=ctx, return_kv=True
-                )
+                _, kv = model(x_in, t, cond.frames(2, 5), frame_offset=eng.position - 1, kv_context=ctx, return_kv=True)
                 # Block 0 keys see no attention yet; the last block's keys carry the chunk noise.
                 refreshed_k, cached_k = kv[-1][0][:, :, :n], cached[-1][0][:, :, -n:]
                 assert refreshed_k.shape == cached_k.shape
@@ -166,7 +164,7 @@ def _rss_mb() -> float:
 
 
 def test_kv_cache_memory_is_bounded_over_600_frames():
-    model = _model(chunk=4, window=4)
+    model = _model(chunk=10, window=10)  # long chunks: 60 engine steps cover 600 frames
     scfg = StudentConfig(sink_frames=1)
     chunk, frames = model.cfg.clip.chunk_frames, 600
     cond = tiny_conditions(model.cfg, chunk + 1)
