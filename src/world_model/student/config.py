@@ -46,7 +46,6 @@ class StudentConfig:
     # -- Self-Forcing + DMD --
     critic_updates: int = 5  # critic steps per generator step (DMD2)
     denoise_loss_prob: float = 0.1  # probability of adding the supervised denoising loss
-    critic_lr_scale: float = 1.0  # critic lr = generator lr * this
     dmd_min_t: float = 0.02  # DMD noise times are drawn in [dmd_min_t, dmd_max_t]: the guided
     dmd_max_t: float = 0.98  # score is undefined at t = 1 and uninformative at t = 0
 

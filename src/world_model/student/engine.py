@@ -201,6 +201,23 @@ class StreamingEngine:
         self.last[r.to(dev)] = x[:, -1:]
         self.last_controls = set_rows(self.last_controls, r.to(dev), controls.frames(f0 - 1, f0))
 
+    def snapshot(self) -> dict:
+        """The rollout state, cheaply: the cache never modifies its tensors in place, so holding
+        references is enough. :meth:`restore` rewinds to it (e.g. to draw extra samples from the
+        same context for the DMD critic without advancing the rollout)."""
+        keys = ("position", "prefix", "last", "last_controls", "history", "history_controls")
+        state = {k: getattr(self, k) for k in keys}
+        if self.cache is not None:
+            state["cache"] = (self.cache.layers, self.cache.count)
+        return state
+
+    def restore(self, state: dict) -> None:
+        for k, v in state.items():
+            if k == "cache":
+                self.cache.layers, self.cache.count = v
+            else:
+                setattr(self, k, v)
+
     # -- one chunk --
     def chunk_x0_fn(self, controls: Conditions) -> X0Fn:
         """x0-prediction of the next chunk given the current context: (x_t, t (B,)) -> x0."""

@@ -1,6 +1,7 @@
 """CLI: train one stage of the world model.
 
-``python -m world_model.train --stage {vae,teacher} --data DIR --run RUN --preset tiny|default [--steps N]``
+``python -m world_model.train --stage {vae,teacher,tf,ode,dmd,long} --data DIR --run RUN
+--preset tiny|default [--steps N] [--long-frames N]``
 
 Rerunning the same command resumes from the stage's last checkpoint.
 """
@@ -12,6 +13,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS
+from world_model.student.config import StudentConfig
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -28,6 +30,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ckpt-every", type=int, default=None)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (default 600)")
     a = p.parse_args(argv)
     try:
         out = train_stage(
@@ -41,6 +44,7 @@ def main(argv: list[str] | None = None) -> int:
             ckpt_every=a.ckpt_every,
             seed=a.seed,
             progress=not a.no_progress,
+            student=None if a.long_frames is None else StudentConfig(long_frames=a.long_frames),
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

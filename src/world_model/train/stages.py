@@ -26,15 +26,23 @@ from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
+from world_model.student.config import StudentConfig
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, LatentWindows, cached_latents, file_digest, load_clips
 from world_model.train.trainer import TrainConfig, Trainer
 
-STAGES = ("vae", "teacher")
+STAGES = ("vae", "teacher", "tf", "ode", "dmd", "long")  # the last four: train/student_stages.py
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
 
 # Per stage: (batch size, learning rate, checkpoint period). Batch sizes are CPU-sized.
-STAGE_DEFAULTS = {"vae": (16, 2e-3, 100), "teacher": (4, 1e-3, 100)}
+STAGE_DEFAULTS = {
+    "vae": (16, 2e-3, 100),
+    "teacher": (4, 1e-3, 100),
+    "tf": (4, 5e-4, 100),
+    "ode": (4, 5e-4, 100),
+    "dmd": (2, 1e-4, 50),  # each step = 1 + critic_updates self-rollouts
+    "long": (2, 5e-5, 50),
+}
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
@@ -219,15 +227,22 @@ def train_stage(
     seed: int = 0,
     progress: bool = True,
     config: ModelConfig | None = None,
+    student: StudentConfig | None = None,
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
-    ``config`` overrides the preset's config (it must then stay the same across resumes).
+    ``config`` overrides the preset's config (it must then stay the same across resumes);
+    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
     """
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
     data_dir, stage_dir = Path(data_dir), Path(run_dir) / stage
     cfg = _stage_config(stage_dir, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
-    run = _vae_stage if stage == "vae" else _teacher_stage
-    return {"stage": stage, "stage_dir": str(stage_dir), **run(data_dir, stage_dir, cfg, tcfg, progress)}
+    if stage in ("vae", "teacher"):
+        run = _vae_stage if stage == "vae" else _teacher_stage
+        return {"stage": stage, "stage_dir": str(stage_dir), **run(data_dir, stage_dir, cfg, tcfg, progress)}
+    from world_model.train.student_stages import run_student_stage  # it imports this module
+
+    out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student)
+    return {"stage": stage, "stage_dir": str(stage_dir), **out}
