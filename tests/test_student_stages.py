@@ -73,3 +73,20 @@ def test_reflected_playback_keeps_frames_adjacent():
     assert seq == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
     assert all(abs(a - b) == 1 for a, b in zip(seq, seq[1:], strict=False))
     assert reflected_index(7, 1) == 0
+
+
+def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run, tmp_path):
+    import shutil
+
+    from world_model.train import TrainingDivergedError, load_latest
+
+    data, rundir = run
+    mine = tmp_path / "run"
+    for stage in ("vae", "teacher"):
+        shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
+    for stage in ("tf", "ode"):
+        train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, ckpt_every=1, progress=False)
+    with pytest.raises(TrainingDivergedError, match="loss is (nan|inf).*last good checkpoint"):
+        train_stage("dmd", data, mine, preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30, progress=False)
+    assert load_latest(mine / "dmd" / "checkpoints").step == 1
