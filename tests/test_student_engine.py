@@ -183,6 +183,12 @@ def test_kv_cache_memory_is_bounded_over_600_frames():
     assert rss[frames] - rss[100] < 20.0  # MB; a leak of one frame's K/V per chunk would exceed it
 
 
+def test_few_step_schedule_maps_the_step_list_to_flow_times():
+    assert torch.allclose(StudentConfig().times(), torch.tensor([0.0, 0.25, 0.5, 0.75]))
+    shifted = StudentConfig(timestep_shift=5.0).times()  # Wan's shift: 1 - 5s / (1 + 4s), s = step / 1000
+    assert torch.allclose(shifted, torch.tensor([0.0, 1 - 3.75 / 4.0, 1 - 2.5 / 3.0, 1 - 1.25 / 2.0]))
+
+
 def test_bad_input_is_rejected():
     model = _model(chunk=1, window=2)
     eng = StreamingEngine(model)
@@ -196,3 +202,5 @@ def test_bad_input_is_rejected():
         eng.step(cond)
     with pytest.raises(ValueError, match="denoising_steps"):
         StudentConfig(denoising_steps=(750, 1000))
+    with pytest.raises(ValueError, match="denoising_steps"):
+        StudentConfig(denoising_steps=(1000, 500, 500))

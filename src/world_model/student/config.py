@@ -40,9 +40,6 @@ class StudentConfig:
     prefix_frames: int = 1  # clean conditioning frames a rollout starts from (the reset frame)
     kv_cache: bool = True  # False: recompute the whole window at every denoising step (ablation)
 
-    # -- ODE initialization --
-    ode_batch: int = 2  # target chunks per ODE regression step
-
     # -- Self-Forcing + DMD --
     critic_updates: int = 5  # critic steps per generator step (DMD2)
     denoise_loss_prob: float = 0.1  # probability of adding the supervised denoising loss
@@ -55,7 +52,11 @@ class StudentConfig:
 
     def __post_init__(self) -> None:
         steps = self.denoising_steps
-        if not steps or any(not 0 < s <= DIFFUSION_STEPS for s in steps) or list(steps) != sorted(steps)[::-1]:
+        if (
+            not steps
+            or any(not 0 < s <= DIFFUSION_STEPS for s in steps)
+            or any(a <= b for a, b in zip(steps, steps[1:], strict=False))
+        ):
             raise ValueError(f"denoising_steps must be decreasing values in (0, {DIFFUSION_STEPS}], got {steps}")
         if steps[0] != DIFFUSION_STEPS:
             raise ValueError(f"denoising_steps must start at pure noise ({DIFFUSION_STEPS}), got {steps}")
