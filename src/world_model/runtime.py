@@ -100,13 +100,12 @@ class RolloutBatch:
         self.wm = wm
         self.n = num_rollouts
         self.every_frame = every_frame
-        self.engine = StreamingEngine(wm.student, wm.student_cfg)
+        self.engine = StreamingEngine(wm.student, wm.student_cfg, generator=self._noise)
         self.gens: list[torch.Generator | None] = [None] * num_rollouts
         self.first: list[SceneFrame | None] = [None] * num_rollouts
         self.crops: list[dict[str, np.ndarray]] = [{} for _ in range(num_rollouts)]
         self.last_arrays: list[ConditionArrays | None] = [None] * num_rollouts
         self._pending: dict[int, tuple[torch.Tensor, ConditionArrays]] = {}
-        self.engine.noise_fn = self._noise
 
     @property
     def chunk_frames(self) -> int:

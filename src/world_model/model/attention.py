@@ -26,13 +26,16 @@ def block_causal_mask(
     chunk_frames: int,
     context_frames: int = 0,
     device: torch.device | str = "cpu",
+    blocks: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """(S, Sc + S) bool for S = frames * tokens_per_frame queries and Sc context tokens.
 
     Query frame f (chunk ``f // chunk_frames``) sees every context frame and the frames of its
-    own and earlier chunks: a chunk's output never depends on later chunks.
+    own and earlier chunks: a chunk's output never depends on later chunks. ``blocks`` (frames,)
+    non-decreasing ints, when given, replaces the regular chunking (e.g. a rollout whose first
+    block is a single conditioning frame).
     """
-    chunk = torch.arange(frames, device=device) // chunk_frames
+    chunk = torch.arange(frames, device=device) // chunk_frames if blocks is None else blocks.to(device)
     allowed = chunk[:, None] >= chunk[None, :]  # (T, T)
     allowed = torch.cat([torch.ones(frames, context_frames, dtype=torch.bool, device=device), allowed], dim=1)
     return allowed.repeat_interleave(tokens_per_frame, 0).repeat_interleave(tokens_per_frame, 1)
@@ -89,7 +92,7 @@ class SelfAttention(nn.Module):
         mask: torch.Tensor | None = None,
         context: KV | None = None,
     ) -> tuple[torch.Tensor, KV]:
-        """x (N, S, D); cos/sin (S, head_dim/2); mask (S, Sc+S) or None (full);
+        """x (N, S, D); cos/sin (S, head_dim/2); mask (S, Sc+S) or (N, 1, S, Sc+S) or None (full);
         context keys/values (N, H, Sc, head_dim). Returns output (N, S, D) and this call's own
         (k, v) (N, H, S, head_dim), already rotated, ready to be cached."""
         q = apply_rope(_heads(self.q(x), self.heads, self.q_norm), cos, sin)

@@ -66,6 +66,19 @@ def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Te
     return keys, mask
 
 
+def _context_mask(
+    self_mask: torch.Tensor | None, valid: torch.Tensor, t_len: int, n: int, v: int
+) -> torch.Tensor:
+    """Per-sample self-attention mask (B*V, 1, S, Sc + S) from per-frame context validity (B, Fc)."""
+    b, fc = valid.shape
+    s = t_len * n
+    keys = torch.cat([valid.repeat_interleave(n, dim=1), valid.new_ones(b, s)], dim=1)  # (B, Sc + S)
+    mask = keys[:, None, :].expand(b, s, fc * n + s)
+    if self_mask is not None:
+        mask = mask & self_mask
+    return mask.repeat_interleave(v, dim=0)[:, None]
+
+
 def _sincos_2d(dim: int, rows: int, cols: int) -> torch.Tensor:
     """(rows * cols, dim) fixed sin-cos embedding; half the channels for rows, half for columns."""
     quarter = dim // 4
@@ -210,6 +223,8 @@ class MultiViewDiT(nn.Module):
         frame_offset: int = 0,
         kv_context: list[KV] | None = None,
         return_kv: bool = False,
+        blocks: torch.Tensor | None = None,
+        context_valid: torch.Tensor | None = None,
     ) -> torch.Tensor | tuple[torch.Tensor, list[KV]]:
         """Predict the velocity.
 
@@ -221,6 +236,10 @@ class MultiViewDiT(nn.Module):
             frame_offset: RoPE frame index of the first frame of ``x``.
             kv_context: per block, cached self-attention (k, v) (B*V, H, Sc, hd) of earlier frames.
             return_kv: also return each block's own (k, v) for caching.
+            blocks: (T,) non-decreasing block index per frame for ``causal`` (default: chunks of
+                ``clip.chunk_frames``); a streaming rollout's conditioning frames form block 0.
+            context_valid: (B, Sc / N) bool, which ``kv_context`` frames each sample may attend to
+                (rollouts of one batch restarted at different times); default all.
         Returns:
             velocity (B, T, V, C, h, w) float32 [and the list of per-block (k, v)].
         """
@@ -254,8 +273,13 @@ class MultiViewDiT(nn.Module):
             cos, sin = cos.to(x.device), sin.to(x.device)
             ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
             self_mask = None
-            if causal and t_len > cfg.clip.chunk_frames:  # one chunk sees all of itself: no mask needed
-                self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device)
+            if blocks is not None and blocks.shape != (t_len,):
+                raise ValueError(f"blocks must be ({t_len},) block indices, got {tuple(blocks.shape)}")
+            many = t_len > cfg.clip.chunk_frames if blocks is None else bool(blocks[-1] > blocks[0])
+            if causal and many:  # one chunk sees all of itself: no mask needed
+                self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device, blocks)
+            if context_valid is not None:
+                self_mask = _context_mask(self_mask, context_valid, t_len, n, v)
             control_keys, control_mask = _control_keys(tokens, n)
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
             run = _Run(

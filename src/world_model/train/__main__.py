@@ -1,7 +1,7 @@
 """CLI: train one stage of the world model.
 
 ``python -m world_model.train --stage STAGE --data DIR --run RUN --preset tiny|default [--steps N]``
-with STAGE one of vae, teacher, reference, lora.
+with STAGE one of vae, teacher, tf, ode, dmd, long, reference, lora (``--long-frames N`` for long).
 
 ``--stage lora --case NAME [--case-data DIR] [--base PATH]`` trains one long-tail adapter into RUN/lora/NAME/.
 
@@ -15,6 +15,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS
+from world_model.student.config import StudentConfig
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -35,6 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
     p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
+    p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (default 600)")
     a = p.parse_args(argv)
     try:
         out = train_stage(
@@ -52,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
             case_data=a.case_data,
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
+            student=None if a.long_frames is None else StudentConfig(long_frames=a.long_frames),
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

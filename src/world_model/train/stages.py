@@ -28,11 +28,12 @@ from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
+from world_model.student.config import StudentConfig
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, LatentWindows, cached_latents, file_digest, load_clips
 from world_model.train.trainer import TrainConfig, Trainer
 
-STAGES = ("vae", "teacher", "reference", "lora")
+STAGES = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference", "lora")  # tf..long: student_stages.py
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
 
 # Per stage: (batch size, learning rate, checkpoint period). Batch sizes are CPU-sized.
@@ -41,6 +42,10 @@ STAGE_DEFAULTS = {
     "teacher": (4, 1e-3, 100),
     "reference": (4, 5e-4, 100),
     "lora": (4, 1e-3, 50),
+    "tf": (4, 5e-4, 100),
+    "ode": (4, 5e-4, 100),
+    "dmd": (2, 1e-4, 50),  # each step = 1 + critic_updates self-rollouts
+    "long": (2, 5e-5, 50),
 }
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
@@ -224,10 +229,12 @@ def train_stage(
     case_data: str | Path | None = None,
     case_clips: list[str] | None = None,
     base: str | Path | None = None,
+    student: StudentConfig | None = None,
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
-    ``config`` overrides the preset's config (it must then stay the same across resumes).
+    ``config`` overrides the preset's config (it must then stay the same across resumes);
+    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
     ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
     dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
     (default ``run_dir/teacher/model``).
@@ -244,7 +251,9 @@ def train_stage(
     data_dir = Path(data_dir)
     cfg = _stage_config(stage_dir, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
-    if stage == "reference":
+    if stage in ("vae", "teacher"):
+        run = _vae_stage if stage == "vae" else _teacher_stage
+    elif stage == "reference":
         from world_model.train.reference_stage import reference_stage as run
     elif stage == "lora":
         from functools import partial
@@ -253,5 +262,8 @@ def train_stage(
 
         run = partial(lora_stage, case=case, case_data=case_data, case_clips=case_clips, base=base)
     else:
-        run = _vae_stage if stage == "vae" else _teacher_stage
+        from world_model.train.student_stages import run_student_stage  # it imports this module
+
+        out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student)
+        return {"stage": stage, "stage_dir": str(stage_dir), **out}
     return {"stage": stage, "stage_dir": str(stage_dir), **run(data_dir, stage_dir, cfg, tcfg, progress)}

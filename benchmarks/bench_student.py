@@ -1,0 +1,184 @@
+"""Causal student benchmark (untrained weights: timing and memory only), medians of one run.
+
+1. ``student_vs_teacher``: one chunk (``clip.chunk_frames`` frames) for ``--envs`` rollouts: the
+   4-step student's engine step (4 denoising forwards + 1 cache write, with context refresh over a
+   full window of ``clip.context_frames`` cached frames) vs the bidirectional teacher sampling
+   with ``sampler.steps`` guided Euler steps (CFG + APG: doubled batch), (a) in context: the
+   teacher has no cache (its attention is bidirectional), so continuing a rollout means sampling
+   the window + chunk jointly, ``context_frames + chunk_frames`` frames per step; (b) the chunk
+   alone, no context: a lower bound that no streaming teacher achieves. Teacher samples are long
+   (tens of forwards), so they are timed without a warm-up run.
+2. ``cache_vs_recompute``: the engine with its KV cache vs the same engine recomputing the whole
+   window at every denoising step (``StudentConfig(kv_cache=False)``), window full.
+3. ``rollout``: a ``--frames`` long rollout (``--rollout-envs`` rows): per-chunk latency, process
+   RSS along the way, cache bytes; memory growth from frame 100 to the end.
+
+    python benchmarks/bench_student.py [--preset default] [--envs 8] [--frames 600] --out FILE.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_model import synthetic_conditions  # noqa: E402
+
+from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
+from world_model.model.config import ModelConfig  # noqa: E402
+from world_model.student import StreamingEngine, StudentConfig  # noqa: E402
+
+RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
+
+
+def rss_mb() -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError("VmRSS not found in /proc/self/status")
+
+
+def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    for _ in range(warmup):
+        fn()
+    out = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def make_model(cfg: ModelConfig) -> MultiViewDiT:
+    torch.manual_seed(0)
+    model = MultiViewDiT(cfg).eval()
+    return model.to(torch.bfloat16) if cfg.dit.autocast_bf16 else model  # bf16 weights, as the env runs
+
+
+def warm_engine(model: MultiViewDiT, scfg: StudentConfig, envs: int) -> tuple[StreamingEngine, Callable[[], object]]:
+    """An engine whose window is full, and a closure running one more chunk."""
+    cfg = model.cfg
+    c, w = cfg.clip.chunk_frames, cfg.clip.context_frames
+    cond = synthetic_conditions(cfg, 1 + c, envs)
+    eng = StreamingEngine(model, scfg, torch.Generator().manual_seed(0))
+    eng.start(torch.zeros(envs, *cfg.latent_shape(1)), cond.frames(0, 1))
+    chunk = cond.frames(1, 1 + c)
+    while eng.position < w + c:
+        eng.step(chunk)
+    return eng, lambda: eng.step(chunk)
+
+
+@torch.no_grad()
+def student_vs_teacher(model: MultiViewDiT, envs: int, repeats: int) -> dict:
+    cfg = model.cfg
+    _, step = warm_engine(model, StudentConfig(), envs)
+    student = timed(step, repeats)
+    s = statistics.median(student)
+    out = {
+        "envs": envs,
+        "chunk_frames": cfg.clip.chunk_frames,
+        "context_frames": cfg.clip.context_frames,
+        "student_steps": StudentConfig().num_steps,
+        "teacher_steps": cfg.sampler.steps,
+        "student_chunk_s": s,
+    }
+    gen = torch.Generator().manual_seed(0)
+    for name, frames in (
+        ("in_context", cfg.clip.context_frames + cfg.clip.chunk_frames),
+        ("alone", cfg.clip.chunk_frames),
+    ):
+        cond = synthetic_conditions(cfg, frames, envs)
+        t = statistics.median(timed(lambda cond=cond: sample_latents(model, cond, gen), max(1, repeats // 2), 0))
+        out[f"teacher_{name}_chunk_s"] = t
+        out[f"teacher_{name}_over_student"] = t / s
+    return out
+
+
+@torch.no_grad()
+def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
+    out = {"envs": envs, "window": model.cfg.clip.context_frames}
+    for name, scfg in {
+        "cached_refresh": StudentConfig(),
+        "cached_no_refresh": StudentConfig(context_refresh=False),
+        "recompute": StudentConfig(kv_cache=False),
+    }.items():
+        _, step = warm_engine(model, scfg, envs)
+        out[f"{name}_chunk_s"] = statistics.median(timed(step, repeats))
+    out["recompute_over_cached_refresh"] = out["recompute_chunk_s"] / out["cached_refresh_chunk_s"]
+    out["recompute_over_cached_no_refresh"] = out["recompute_chunk_s"] / out["cached_no_refresh_chunk_s"]
+    return out
+
+
+@torch.no_grad()
+def rollout(model: MultiViewDiT, envs: int, frames: int) -> dict:
+    cfg = model.cfg
+    c = cfg.clip.chunk_frames
+    cond = synthetic_conditions(cfg, 1 + c, envs)
+    eng = StreamingEngine(model, StudentConfig(), torch.Generator().manual_seed(0))
+    eng.start(torch.zeros(envs, *cfg.latent_shape(1)), cond.frames(0, 1))
+    chunk = cond.frames(1, 1 + c)
+    first = min(RSS_FROM_FRAME, frames // 2)  # short smoke runs measure from half way
+    times, rss, cache_bytes = [], {}, set()
+    while eng.position + c <= frames:
+        t0 = time.perf_counter()
+        eng.step(chunk)
+        times.append(time.perf_counter() - t0)
+        rss[eng.position] = rss_mb()
+        if eng.position >= first:
+            cache_bytes.add(eng.cache.nbytes())
+    start, end = min(p for p in rss if p >= first), max(rss)
+    report = {p: v for p, v in rss.items() if p % 50 < c or p in (start, end)}
+    return {
+        "envs": envs,
+        "frames": eng.position,
+        "chunk_latency_median_s": statistics.median(times),
+        "chunk_latency_p90_s": sorted(times)[int(0.9 * (len(times) - 1))],
+        "rss_mb_by_frame": report,
+        "rss_growth_pct": 100.0 * (rss[end] - rss[start]) / rss[start],
+        "rss_growth_from_frame": start,
+        "cache_bytes_from_that_frame": sorted(cache_bytes),
+    }
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--preset", default="default")
+    p.add_argument("--envs", type=int, default=8, help="batched rollouts for the speed comparisons")
+    p.add_argument("--rollout-envs", type=int, default=1, help="rows of the long rollout")
+    p.add_argument("--frames", type=int, default=600)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument("--out", required=True)
+    a = p.parse_args()
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    cfg = get_preset(a.preset)
+    model = make_model(cfg)
+    result = {
+        "preset": a.preset,
+        "threads": torch.get_num_threads(),
+        "model_config": {"clip": dataclasses.asdict(cfg.clip), "sampler_steps": cfg.sampler.steps},
+        "student_vs_teacher": student_vs_teacher(model, a.envs, a.repeats),
+        "cache_vs_recompute": cache_vs_recompute(model, a.envs, a.repeats),
+        "rollout": rollout(model, a.rollout_envs, a.frames),
+    }
+    Path(a.out).write_text(json.dumps(result, indent=1))
+    print(json.dumps({k: v for k, v in result.items() if k != "rollout"}, indent=1))
+    r = result["rollout"]
+    print(
+        f"rollout: {r['frames']} frames, chunk latency median {r['chunk_latency_median_s']:.3f}s, "
+        f"RSS growth {r['rss_growth_pct']:.2f}% from frame {r['rss_growth_from_frame']}"
+    )
+
+
+if __name__ == "__main__":
+    main()

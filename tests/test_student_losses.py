@@ -1,0 +1,180 @@
+"""DMD / critic / ODE losses: sign convention, and distillation on a 2-D toy with the SAME functions."""
+
+import copy
+import math
+
+import torch
+from torch import nn
+
+from world_model.model.flow import flow_matching_loss, interpolate, predict_x0
+from world_model.student import StudentConfig, few_step_sample
+from world_model.student.losses import (
+    critic_loss,
+    dmd_gradient,
+    dmd_loss,
+    ode_grid,
+    ode_regression_loss,
+    ode_trajectory,
+)
+
+MODES = torch.tensor([[1.5, 1.5], [-1.5, 1.5], [1.5, -1.5], [-1.5, -1.5]])
+MODE_STD = 0.25
+
+
+def data(n, gen):
+    idx = torch.randint(len(MODES), (n,), generator=gen)
+    return MODES[idx] + MODE_STD * torch.randn(n, 2, generator=gen)
+
+
+class Net(nn.Module):
+    """(x (B, 2), t (B,)) -> 2-D output (a velocity, or an x0 for the toy generator)."""
+
+    def __init__(self, width=96):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Linear(2 + 8, width), nn.SiLU(), nn.Linear(width, width), nn.SiLU(), nn.Linear(width, 2)
+        )
+
+    def forward(self, x, t):
+        f = torch.arange(1, 5, dtype=x.dtype) * math.pi
+        emb = torch.cat([torch.sin(t[:, None] * f), torch.cos(t[:, None] * f)], 1)
+        return self.net(torch.cat([x, emb], 1))
+
+
+def sliced_w1(a, b, projections=64, seed=0):
+    """Sliced 1-Wasserstein distance between two equal-size 2-D point sets."""
+    d = torch.randn(projections, 2, generator=torch.Generator().manual_seed(seed))
+    d = d / d.norm(dim=1, keepdim=True)
+    pa, pb = (a @ d.T).sort(0).values, (b @ d.T).sort(0).values
+    return (pa - pb).abs().mean().item()
+
+
+def train_teacher(gen, steps=700, batch=256):
+    torch.manual_seed(0)
+    teacher = Net()
+    opt = torch.optim.Adam(teacher.parameters(), lr=3e-3)
+    for _ in range(steps):
+        x0 = data(batch, gen)
+        loss = flow_matching_loss(teacher, x0, torch.rand(batch, generator=gen), torch.randn(batch, 2, generator=gen))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return teacher.requires_grad_(False)
+
+
+_TEACHER = {}
+
+
+def teacher():
+    if "net" not in _TEACHER:
+        _TEACHER["net"] = train_teacher(torch.Generator().manual_seed(0))
+    return _TEACHER["net"]
+
+
+def test_dmd_gradient_is_the_normalized_score_difference_and_descends_toward_real():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 4, 5, generator=gen, requires_grad=True)
+    x0_fake, x0_real = torch.randn(3, 4, 5, generator=gen), torch.randn(3, 4, 5, generator=gen)
+    dmd_loss(x, x0_fake, x0_real).backward()
+    g = dmd_gradient(x.detach(), x0_fake, x0_real)
+    assert torch.allclose(x.grad * x.numel(), g, atol=1e-6)  # dL/dx = g / numel
+    norm = (x.detach() - x0_real).abs().mean(dim=(1, 2), keepdim=True)
+    assert torch.allclose(g, (x0_fake - x0_real) / norm, atol=1e-5)
+
+    # Scores of Gaussian data N(mu, 1) noised with x_t = t x0 + (1 - t) eps, fake/real means differ.
+    t, xt = torch.tensor(0.4), torch.randn(6, generator=gen)
+
+    def score_and_x0(mu):
+        var = t**2 + (1 - t) ** 2
+        score = -(xt - t * mu) / var
+        x0 = mu + t / var * (xt - t * mu)  # E[x0 | x_t]
+        return score, x0
+
+    (s_fake, d_fake), (s_real, d_real) = score_and_x0(torch.tensor(2.0)), score_and_x0(torch.tensor(-1.0))
+    ratio = (s_fake - s_real) / (d_fake - d_real)
+    assert torch.allclose(ratio, t / (1 - t) ** 2 * torch.ones(6), atol=1e-5)  # positive: same direction
+
+    # A gradient step on the DMD loss moves samples toward the real denoised estimate.
+    y = torch.zeros(8, 2, requires_grad=True)
+    real, fake = torch.full((8, 2), 1.0), torch.full((8, 2), -1.0)
+    dmd_loss(y, fake, real).backward()
+    assert torch.all(-y.grad * (real - y.detach()) > 0)
+
+
+def test_dmd_with_online_critic_moves_a_few_step_student_to_the_teacher_distribution():
+    gen = torch.Generator().manual_seed(1)
+    real_net = teacher()
+    critic = copy.deepcopy(real_net).requires_grad_(True)  # fake score initialized from the teacher
+    torch.manual_seed(1)
+    student = Net()  # a generator predicting x0 directly, initialized far away from the data
+    with torch.no_grad():
+        student.net[-1].bias.copy_(torch.tensor([4.0, -4.0]))
+    scfg = StudentConfig()
+    times = scfg.times()
+    g_opt = torch.optim.Adam(student.parameters(), lr=2e-3)
+    c_opt = torch.optim.Adam(critic.parameters(), lr=2e-3)
+    batch = 256
+
+    def sample(n, exit_step=None, grad=False):
+        return few_step_sample(student, torch.randn(n, 2, generator=gen), times, "fresh", exit_step, grad, gen)
+
+    ref = data(2000, torch.Generator().manual_seed(9))
+    with torch.no_grad():
+        before = sliced_w1(sample(2000), ref)
+    for _ in range(250):
+        for _ in range(scfg.critic_updates):
+            with torch.no_grad():
+                fake = sample(batch)
+            loss = critic_loss(critic, fake, torch.rand(batch, generator=gen), torch.randn(batch, 2, generator=gen))
+            c_opt.zero_grad()
+            loss.backward()
+            c_opt.step()
+        exit_step = int(torch.randint(len(times), (1,), generator=gen))
+        x = sample(batch, exit_step, grad=True)
+        t = scfg.dmd_min_t + (scfg.dmd_max_t - scfg.dmd_min_t) * torch.rand(batch, generator=gen)
+        xt = interpolate(x.detach(), torch.randn(batch, 2, generator=gen), t)
+        with torch.no_grad():
+            x0_real, x0_fake = predict_x0(xt, real_net(xt, t), t), predict_x0(xt, critic(xt, t), t)
+        loss = dmd_loss(x, x0_fake, x0_real)
+        g_opt.zero_grad()
+        loss.backward()
+        g_opt.step()
+    with torch.no_grad():
+        after = sliced_w1(sample(2000), ref)
+    assert after * 5 <= before, (before, after)
+
+
+def test_ode_regression_reduces_the_few_step_error_against_the_teacher_ode():
+    """The "4-step error": the student's x0-prediction at each of the 4 schedule times along held-out
+    teacher ODE trajectories, against the trajectory's endpoint (the teacher's sample)."""
+    gen = torch.Generator().manual_seed(2)
+    real_net = teacher()
+    student = copy.deepcopy(real_net).requires_grad_(True)  # initialized from the (TF) teacher
+    times = StudentConfig().times()
+    grid = ode_grid(32, 1.0, times)
+    opt = torch.optim.Adam(student.parameters(), lr=1e-3)
+
+    def x0_student(x, t):
+        return predict_x0(x, student(x, t), t)
+
+    held_out = torch.randn(1000, 2, generator=torch.Generator().manual_seed(5))
+    points, end = ode_trajectory(real_net, held_out, grid, times)
+
+    @torch.no_grad()
+    def error():
+        per_step = [(x0_student(points[k], times[k].expand(1000)) - end).norm(dim=1).mean() for k in range(4)]
+        one_step = (few_step_sample(x0_student, held_out, times, "ddim", exit_step=0) - end).norm(dim=1).mean()
+        return torch.stack(per_step).mean().item(), one_step.item()
+
+    before, before_one = error()
+    for _ in range(300):
+        noise = torch.randn(256, 2, generator=gen)
+        traj, target = ode_trajectory(real_net, noise, grid, times)
+        k = torch.randint(len(times), (256,), generator=gen)
+        loss = ode_regression_loss(x0_student(traj[k, torch.arange(256)], times[k]), target)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after, after_one = error()
+    assert after * 3 <= before, (before, after)
+    assert after_one * 3 <= before_one, (before_one, after_one)

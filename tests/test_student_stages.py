@@ -1,0 +1,92 @@
+"""Student stages tf -> ode -> dmd -> long end to end from the CLI on a tiny dataset, resume, errors."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from world_model.model import get_preset
+from world_model.student import StreamingEngine
+from world_model.train import train_stage
+from world_model.train.student_stages import load_student, reflected_index
+
+from .model_fixtures import make_dataset, tiny_conditions
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+def _cli(*args: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(SRC), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "world_model.train", *args, "--preset", "tiny", "--no-progress"]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A run with a (barely) trained VAE and teacher, the student stages' inputs."""
+    root = tmp_path_factory.mktemp("student")
+    data = make_dataset(root / "data", get_preset("tiny"), lengths=(4, 3))
+    for stage in ("vae", "teacher"):
+        train_stage(stage, data, root / "run", preset="tiny", steps=2, ckpt_every=2, progress=False)
+    return data, root / "run"
+
+
+def test_student_stages_end_to_end_from_the_cli_and_resume(run):
+    data, rundir = run
+    common = ["--data", str(data), "--run", str(rundir)]
+    for stage in ("tf", "ode", "dmd", "long"):
+        extra = ["--long-frames", "4"] if stage == "long" else []
+        out = _cli("--stage", stage, *common, "--steps", "2", "--ckpt-every", "1", "--batch-size", "1", *extra)
+        assert out["step"] == 2 and out["resumed_from"] is None, out
+        assert (rundir / stage / "model.safetensors").exists() and (rundir / stage / "model.json").exists()
+        again = _cli("--stage", stage, *common, "--steps", "3", "--ckpt-every", "1", "--batch-size", "1", *extra)
+        assert again["resumed_from"] == 2 and again["step"] == 3
+        assert all(torch.isfinite(torch.tensor(again["final_loss"])).reshape(-1))
+    assert (rundir / "dmd" / "critic.safetensors").exists()
+
+    # The exported student streams with the engine.
+    student, scfg = load_student(rundir / "long" / "model")
+    assert scfg.num_steps == 4
+    cfg = student.cfg
+    cond = tiny_conditions(cfg, 3, batch=2)
+    eng = StreamingEngine(student, scfg, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        eng.start(torch.zeros(2, *cfg.latent_shape(1)), cond.frames(0, 1))
+        out = eng.step(cond.frames(1, 2))
+    assert out.shape == (2, *cfg.latent_shape(1)) and torch.isfinite(out).all()
+
+
+def test_student_stage_needs_its_predecessor(run, tmp_path):
+    data, _ = run
+    with pytest.raises(FileNotFoundError, match="run --stage ode"):
+        train_stage("dmd", data, tmp_path / "fresh", preset="tiny", steps=1, progress=False)
+
+
+def test_reflected_playback_keeps_frames_adjacent():
+    seq = [reflected_index(i, 4) for i in range(10)]
+    assert seq == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
+    assert all(abs(a - b) == 1 for a, b in zip(seq, seq[1:], strict=False))
+    assert reflected_index(7, 1) == 0
+
+
+def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run, tmp_path):
+    import shutil
+
+    from world_model.train import TrainingDivergedError, load_latest
+
+    data, rundir = run
+    mine = tmp_path / "run"
+    for stage in ("vae", "teacher"):
+        shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
+    for stage in ("tf", "ode"):
+        train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, ckpt_every=1, progress=False)
+    with pytest.raises(TrainingDivergedError, match="loss is (nan|inf).*last good checkpoint"):
+        train_stage("dmd", data, mine, preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30, progress=False)
+    assert load_latest(mine / "dmd" / "checkpoints").step == 1
