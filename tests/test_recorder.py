@@ -52,9 +52,24 @@ def test_record_cli_writes_loadable_clips_and_resumes(tmp_path, capsys):
 
 def test_excluding_a_category_removes_it(tmp_path):
     out = tmp_path / "base"
-    args = ["record", "--scenario", "tree_truck_highway", "highway_dense_rain_dusk", "--episodes", "3",
-            "--duration", "0.5", "--out", str(out), "--height", "32", "--width", "56",
-            "--exclude-category", "tree_truck"]
+    args = [
+        "record",
+        "--scenario",
+        "tree_truck_highway",
+        "highway_dense_rain_dusk",
+        "--episodes",
+        "3",
+        "--duration",
+        "0.5",
+        "--out",
+        str(out),
+        "--height",
+        "32",
+        "--width",
+        "56",
+        "--exclude-category",
+        "tree_truck",
+    ]
     assert main(args) == 0
     for name in list_clips(out):
         clip = read_clip(out, name)

@@ -13,17 +13,23 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
 
+import cv2
+import numpy as np
+import torch
+
 from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
+from world_model.student.config import DIFFUSION_STEPS
 
 
 class SensorBackend(Protocol):
     """What the env needs from a backend."""
 
-    def reset(self, index: int, frame: SceneFrame, options: dict | None) -> Observation:
-        """Start rollout ``index`` of the batch at ``frame``; returns its first observation."""
+    def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:
+        """Start rollout ``index`` of the batch at ``frame`` (``seed`` seeds its sampling noise);
+        returns its first observation."""
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         """Advance every rollout whose chunk is given (``None`` = idle this step) by one chunk.
@@ -52,7 +58,7 @@ class ProceduralBackend:
         self.with_bev = with_bev
         self.every_frame = every_frame
 
-    def reset(self, index: int, frame: SceneFrame, options: dict | None) -> Observation:
+    def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:
         if options and options.get("reference") is not None:
             raise ValueError(
                 "reset option 'reference' anchors the rollout on an image through the world model; "
@@ -80,8 +86,63 @@ def make_backend(
             raise InvalidOptionError("checkpoint is only used by backend='world_model'")
         return ProceduralBackend(with_bev=with_bev, num_rollouts=num_rollouts)
     if backend == "world_model":
-        raise InvalidOptionError(
-            "backend='world_model' needs the causal student's streaming engine, which this version does not "
-            "ship yet; use backend='procedural'"
-        )
+        return WorldModelBackend(checkpoint, num_rollouts, with_bev, config)
     raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
+
+
+class WorldModelBackend:
+    """The causal student of a checkpoint bundle (default: the shipped one) as the env's dynamics.
+
+    ``reset`` samples the first frame through the reference-conditioned model (anchored on the
+    user's images when ``options["reference"]`` is given) and seeds the student's KV cache; each
+    ``step`` runs one batched causal chunk for every rollout and decodes the newest frame.
+    The BEV observation, when asked for, is the map raster the model is conditioned on.
+    """
+
+    def __init__(self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig) -> None:
+        from world_model.runtime import RolloutBatch, load_world_model
+
+        mc = config.model
+        torch.set_num_threads(max(1, torch.get_num_threads()))
+        self.wm = load_world_model(checkpoint, device=mc.device)
+        n = mc.denoising_steps
+        if n < 1:
+            raise InvalidOptionError(f"config.model.denoising_steps must be >= 1, got {n}")
+        steps = tuple(round(DIFFUSION_STEPS * (1 - k / n)) for k in range(n))  # 4 -> 1000, 750, 500, 250
+        self.wm.student_cfg = replace(self.wm.student_cfg, denoising_steps=steps, context_refresh=mc.context_refresh)
+        self.rollouts = RolloutBatch(self.wm, num_rollouts)
+        self.rig = self.wm.rig
+        self.with_bev = with_bev
+        self._images: dict[str, np.ndarray] = {}
+
+    def _crops(self, frame: SceneFrame) -> dict[str, np.ndarray]:
+        """Reference crops (image descriptions) of objects whose scenario names an image file."""
+        out = {}
+        for obj in frame.objects:
+            if obj.image is not None:
+                out[obj.track_id] = obj.image
+            elif obj.image_path:
+                if obj.image_path not in self._images:
+                    img = cv2.imread(obj.image_path, cv2.IMREAD_COLOR)
+                    if img is None:
+                        raise FileNotFoundError(f"object {obj.track_id!r}: image {obj.image_path} cannot be read")
+                    self._images[obj.image_path] = img[..., ::-1].copy()
+                out[obj.track_id] = self._images[obj.image_path]
+        return out
+
+    def _with_bev(self, obs: Observation, frame: SceneFrame) -> Observation:
+        if self.with_bev:
+            obs.bev = self.wm.condition_bev(frame)
+        return obs
+
+    def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:
+        reference = (options or {}).get("reference")
+        obs = self.rollouts.reset_row(index, frame, seed, reference=reference, crops=self._crops(frame))
+        return self._with_bev(obs, frame)
+
+    def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
+        outs = self.rollouts.step(chunks)
+        return [
+            None if out is None else [self._with_bev(o, chunk[-1]) for o in out]
+            for out, chunk in zip(outs, chunks, strict=True)
+        ]

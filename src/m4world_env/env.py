@@ -83,13 +83,17 @@ class M4WorldEnv(gym.Env):
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.render_mode = render_mode
         self.backend_name = backend
-        self.rig = default_rig(width=self.cfg.width, height=self.cfg.height)
-        self.lidar_spec = LidarSpec()
-        self.bev_spec = BevSpec()
         self.backend: SensorBackend = shared_backend or make_backend(
             backend, checkpoint, num_rollouts=1, with_bev=self.needs_bev, config=self.cfg
         )
         self.backend_index = backend_index
+        # The world model fixes its own sensors (the checkpoint's); the procedural rig is configurable.
+        model_cfg = getattr(getattr(self.backend, "wm", None), "cfg", None)
+        if model_cfg is not None:
+            self.rig, self.lidar_spec, self.bev_spec = self.backend.rig, model_cfg.sensors.lidar, model_cfg.sensors.bev
+        else:
+            self.rig = default_rig(width=self.cfg.width, height=self.cfg.height)
+            self.lidar_spec, self.bev_spec = LidarSpec(), BevSpec()
         self.bridge = TrafficBridge(
             self.scenario, action_type=self.cfg.action_type, rig=self.rig, lidar=self.lidar_spec, bev=self.bev_spec
         )
@@ -142,7 +146,8 @@ class M4WorldEnv(gym.Env):
             raise UnknownOptionError(f"unknown reset option(s) {sorted(unknown)}; valid: {list(RESET_OPTIONS)}")
         bridge_seed = int(self.np_random.integers(0, 2**31 - 1))
         self._frame = self.bridge.reset(seed=bridge_seed)
-        self._obs = self.backend.reset(self.backend_index, self._frame, options)
+        model_seed = int(self.np_random.integers(0, 2**31 - 1))
+        self._obs = self.backend.reset(self.backend_index, self._frame, options, model_seed)
         self._metrics = EpisodeMetrics(
             dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.cfg.reward.speed_range[1]
         )

@@ -196,9 +196,7 @@ def _record_config(config: EvalsetConfig, out: Path) -> RecordConfig:
     )
 
 
-def record_evalset(
-    out_dir: str | Path, config: EvalsetConfig = EvalsetConfig(), progress: bool = True
-) -> list[dict]:
+def record_evalset(out_dir: str | Path, config: EvalsetConfig = EvalsetConfig(), progress: bool = True) -> list[dict]:
     """Record the evaluation set into ``out_dir`` (resumable) and write ``evalset.json``.
 
     Returns the manifest entries (one per clip: name, kind, scenario, road, weather, time_of_day,

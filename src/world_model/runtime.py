@@ -56,11 +56,15 @@ class WorldModel:
         self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
 
+    def condition_bev(self, frame: SceneFrame) -> np.ndarray:
+        """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
+        return self._bev.render_bev(frame)
+
     def condition_arrays(
         self, frames: Sequence[SceneFrame], first: SceneFrame, crops: Mapping[str, np.ndarray] | None = None
     ) -> ConditionArrays:
         """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2)."""
-        bev = np.stack([self._bev.render_bev(f) for f in frames])
+        bev = np.stack([self.condition_bev(f) for f in frames])
         return build_condition_arrays(frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego)
 
     def decode(self, latents: torch.Tensor) -> list[list[Observation]]:

@@ -83,7 +83,8 @@ def build_questions(
     o, g = sub(obj), sub(background)
     qs["existence"] = QuestionSet(
         a=[data.crops[i] for i in o] * 2 + [data.crops[i] for i in g],
-        asked=[cat(i) for i in o] + [_pick_other(rng, CATEGORIES, cat(i)) for i in o]
+        asked=[cat(i) for i in o]
+        + [_pick_other(rng, CATEGORIES, cat(i)) for i in o]
         + [CATEGORIES[int(rng.integers(len(CATEGORIES)))] for _ in g],
         label=np.r_[np.ones(len(o), bool), np.zeros(len(o) + len(g), bool)],
         group=[cat(i) for i in o] * 2 + [BACKGROUND] * len(g),

@@ -66,9 +66,7 @@ def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Te
     return keys, mask
 
 
-def _context_mask(
-    self_mask: torch.Tensor | None, valid: torch.Tensor, t_len: int, n: int, v: int
-) -> torch.Tensor:
+def _context_mask(self_mask: torch.Tensor | None, valid: torch.Tensor, t_len: int, n: int, v: int) -> torch.Tensor:
     """Per-sample self-attention mask (B*V, 1, S, Sc + S) from per-frame context validity (B, Fc)."""
     b, fc = valid.shape
     s = t_len * n

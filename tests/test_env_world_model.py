@@ -1,0 +1,91 @@
+"""The env on the world-model backend (untrained tiny bundle: plumbing, seeding, errors)."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import m4world_env  # noqa: F401
+from m4world_env.env import M4WorldEnv
+from world_model.bundle import CheckpointError, CheckpointNotFoundError
+
+KEYS = {"observation_keys": ["cameras", "lidar", "bev", "state"]}
+
+
+def test_check_env_world_model_backend(tiny_bundle):
+    env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=KEYS)
+    check_env(env, skip_render_check=True)
+    obs, _ = env.reset(seed=0)
+    cfg = env.backend.wm.cfg
+    assert obs["cameras"].shape == (6, cfg.sensors.height, cfg.sensors.width, 3)
+    assert obs["lidar"].shape == (32, 1024) and obs["lidar"].dtype == np.float32
+    assert env.observation_space.contains(obs)
+    assert env.rig.resolution == (cfg.sensors.height, cfg.sensors.width)  # the checkpoint's sensors
+
+
+def test_world_model_same_seed_same_observations(tiny_bundle):
+    def run(seed):
+        env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=KEYS)
+        out = [env.reset(seed=seed)[0]]
+        for a in ([0.3, 0.0], [0.0, 0.1]):
+            out.append(env.step(np.array(a, np.float32))[0])
+        return out
+
+    a, b, c = run(3), run(3), run(4)
+    for oa, ob in zip(a, b, strict=True):
+        for k in oa:
+            assert np.array_equal(oa[k], ob[k]), k
+    assert not np.array_equal(a[-1]["cameras"], c[-1]["cameras"])
+
+
+def test_world_model_vector_env_equals_single_envs(tiny_bundle):
+    n, seed = 3, 5
+    cfg = {"observation_keys": ["cameras", "lidar"]}
+    venv = gym.make_vec(
+        "M4World-v0",
+        num_envs=n,
+        vectorization_mode="vector_entry_point",
+        scenario="merge_cut_in",
+        backend="world_model",
+        checkpoint=str(tiny_bundle),
+        config=cfg,
+    )
+    singles = [
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=cfg) for _ in range(n)
+    ]
+    vobs, _ = venv.reset(seed=seed)
+    sobs = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    rng = np.random.default_rng(0)
+    for step in range(3):
+        if step:
+            actions = rng.uniform(-0.5, 0.5, size=(n, 2)).astype(np.float32)
+            vobs = venv.step(actions)[0]
+            sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
+        for i in range(n):
+            # One batched forward vs N batch-of-one forwards: equal up to float summation order.
+            diff = np.abs(vobs["cameras"][i].astype(int) - sobs[i]["cameras"].astype(int))
+            assert diff.max() <= 2 and diff.mean() < 0.05, (step, i)
+            assert np.allclose(vobs["lidar"][i], sobs[i]["lidar"], atol=0.5)
+
+
+def test_reset_with_reference_image_and_bad_references(tiny_bundle):
+    env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=KEYS)
+    h, w = env.rig.resolution
+    front = np.full((h, w, 3), 200, np.uint8)
+    obs, _ = env.reset(seed=0, options={"reference": {"FRONT": front}})
+    assert obs["cameras"].shape[1:3] == (h, w)
+    with pytest.raises(ValueError, match="FRONT"):
+        env.reset(seed=0, options={"reference": {"FRONT": np.zeros((h + 1, w, 3), np.uint8)}})
+    env.reset(seed=0)  # still usable
+
+
+def test_missing_or_corrupt_checkpoint_is_a_clear_error(tiny_bundle, tmp_path):
+    with pytest.raises(CheckpointNotFoundError, match="does not exist"):
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tmp_path / "none"))
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_bundle, broken)
+    (broken / "vae.safetensors").write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="vae.safetensors is corrupt"):
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(broken))
