@@ -29,7 +29,7 @@ lint: install
 	$(VENV)/bin/ruff check src tests benchmarks examples
 
 bench: install
-	$(PY) benchmarks/run_all.py
+	$(VENV)/bin/m4world bench --out out/bench
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -102,28 +102,68 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     return 0
 
 
+PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # `m4world train --all`
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
     from world_model.train.stages import STAGES, train_stage
 
-    stages = list(STAGES) if args.all else [args.stage]
-    if not args.all and args.stage is None:
-        raise ValueError(f"give --stage (one of {STAGES}) or --all")
-    for stage in stages:
+    if args.all == (args.stage is not None):
+        raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
+    # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
+    # rerunning the same command after an interruption loses nothing.
+    for stage in PIPELINE if args.all else (args.stage,):
         summary = train_stage(
             stage,
             args.data,
             args.run,
             preset=args.preset,
-            steps=args.steps if not args.all else None,
+            steps=None if args.all else args.steps,
             batch_size=args.batch_size,
             lr=args.lr,
             seed=args.seed,
             progress=not args.no_progress,
+            case=args.case,
+            case_data=args.case_data,
         )
         summary.pop("losses", None)
         print(json.dumps(summary, indent=1, default=float))
+    if args.all:
+        from world_model.bundle import export_bundle
+
+        print(f"bundle: {export_bundle(args.run, Path(args.run) / 'bundle')}")
+    return 0
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from world_model.bundle import export_bundle
+
+    print(f"wrote {export_bundle(args.run, args.out)}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    import subprocess
+
+    root = Path(__file__).resolve().parents[2] / "benchmarks"
+    if not root.is_dir():
+        raise FileNotFoundError(f"benchmarks/ not found next to the package ({root}); run from a source checkout")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scripts = {
+        "render": ["bench_render.py"],
+        "traffic": ["bench_traffic.py"],
+        "env": ["bench_env.py"],
+        "model": ["bench_model.py"],
+        "student": ["bench_student.py"],
+        "judge": ["bench_judge.py"],
+    }
+    for name in args.only or list(scripts):
+        cmd = [sys.executable, str(root / scripts[name][0]), "--out", str(out / f"bench_{name}.json")]
+        print("$", " ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True)
     return 0
 
 
@@ -185,7 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument(
         "--stage", default=None, help="one stage (vae, teacher, ...); see --help of python -m world_model.train"
     )
-    t.add_argument("--all", action="store_true", help="every stage in order; finished stages are skipped")
+    t.add_argument(
+        "--all", action="store_true", help="vae → teacher → tf → ode → dmd → long → reference, then a bundle"
+    )
     t.add_argument("--data", default="data/train", help="dataset directory (m4world record output)")
     t.add_argument("--run", default="runs/default", help="run directory; each stage writes RUN/<stage>/")
     t.add_argument("--preset", default="default")
@@ -194,7 +236,19 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=None)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--no-progress", action="store_true")
+    t.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
+    t.add_argument("--case-data", default=None, help="lora: dataset of the rare-case clips")
     t.set_defaults(func=_cmd_train)
+
+    x = sub.add_parser("export", help="collect a training run's stage exports into a checkpoint bundle")
+    x.add_argument("--run", required=True)
+    x.add_argument("--out", required=True)
+    x.set_defaults(func=_cmd_export)
+
+    b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
+    b.add_argument("--out", default="out/bench")
+    b.add_argument("--only", nargs="+", choices=("render", "traffic", "env", "model", "student", "judge"))
+    b.set_defaults(func=_cmd_bench)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
     v.add_argument("--out", default="data/evalset")
