@@ -158,10 +158,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         "env": ["bench_env.py"],
         "model": ["bench_model.py"],
         "student": ["bench_student.py"],
-        "judge": ["bench_judge.py"],
+        "judge": ["bench_judge.py", "--evalset", args.evalset],
     }
     for name in args.only or list(scripts):
-        cmd = [sys.executable, str(root / scripts[name][0]), "--out", str(out / f"bench_{name}.json")]
+        script, *extra = scripts[name]
+        cmd = [sys.executable, str(root / script), *extra, "--out", str(out / f"bench_{name}.json")]
         print("$", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     return 0
@@ -248,6 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
     b.add_argument("--out", default="out/bench")
     b.add_argument("--only", nargs="+", choices=("render", "traffic", "env", "model", "student", "judge"))
+    b.add_argument("--evalset", default="data/evalset", help="evaluation set for the judge benchmark")
     b.set_defaults(func=_cmd_bench)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
