@@ -22,30 +22,13 @@ from pathlib import Path
 
 import gymnasium as gym
 
+from world_model.runtime import save_untrained_bundle
+
 
 def rss_mb() -> float:
     with open("/proc/self/statm") as f:
         pages = int(f.read().split()[1])
     return pages * resource.getpagesize() / 2**20
-
-
-def tiny_bundle(root: Path) -> Path:
-    import torch
-
-    from world_model.bundle import save_bundle
-    from world_model.model.config import get_preset
-    from world_model.model.dit import MultiViewDiT
-    from world_model.model.reference import reference_model_config
-    from world_model.model.vae import SensorVAE
-
-    cfg = get_preset("tiny")
-    torch.manual_seed(0)
-    parts = {
-        "vae": SensorVAE(cfg).state_dict(),
-        "student": MultiViewDiT(cfg).state_dict(),
-        "reference": MultiViewDiT(reference_model_config(cfg)).state_dict(),
-    }
-    return save_bundle(root / "tiny_bundle", cfg.to_dict(), parts)
 
 
 def soak(backend: str, steps: int, sample_every: int, checkpoint: str | None, scenario: str) -> dict:
@@ -96,7 +79,7 @@ def main() -> int:
     ap.add_argument("--max-growth", type=float, default=0.05)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        checkpoint = args.checkpoint or str(tiny_bundle(Path(tmp)))
+        checkpoint = args.checkpoint or str(save_untrained_bundle(Path(tmp) / "tiny_bundle"))
         runs = []
         if args.procedural_steps:
             runs.append(soak("procedural", args.procedural_steps, args.sample_every, None, args.scenario))

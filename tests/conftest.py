@@ -18,17 +18,6 @@ import pytest  # noqa: E402
 def tiny_bundle(tmp_path_factory):
     """An untrained tiny-preset checkpoint bundle (VAE + student + reference model): enough to
     exercise the world-model backend's plumbing, shapes, seeding and errors."""
-    from world_model.bundle import save_bundle
-    from world_model.model.config import get_preset
-    from world_model.model.dit import MultiViewDiT
-    from world_model.model.reference import reference_model_config
-    from world_model.model.vae import SensorVAE
+    from world_model.runtime import save_untrained_bundle
 
-    cfg = get_preset("tiny")
-    torch.manual_seed(0)
-    parts = {
-        "vae": SensorVAE(cfg).state_dict(),
-        "student": MultiViewDiT(cfg).state_dict(),
-        "reference": MultiViewDiT(reference_model_config(cfg)).state_dict(),
-    }
-    return save_bundle(tmp_path_factory.mktemp("bundle") / "tiny", cfg.to_dict(), parts)
+    return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny")

@@ -35,7 +35,7 @@ from world_model.sim import ProceduralSimulator
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 
-__all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle"]
+__all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle", "save_untrained_bundle"]
 
 
 @dataclass
@@ -95,6 +95,21 @@ def load_world_model(
         if module is not None:
             module.to(device).eval().requires_grad_(False)
     return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path)
+
+
+def save_untrained_bundle(out_dir: str | Path, preset: str = "tiny", seed: int = 0) -> Path:
+    """A bundle of freshly initialized modules of ``preset``: exercises every code path of the
+    world-model backend (shapes, seeding, batching, memory) without training; outputs are noise."""
+    from world_model.model.config import get_preset
+
+    cfg = get_preset(preset)
+    torch.manual_seed(seed)
+    parts = {
+        "vae": SensorVAE(cfg).state_dict(),
+        "student": MultiViewDiT(cfg).state_dict(),
+        "reference": MultiViewDiT(reference_model_config(cfg)).state_dict(),
+    }
+    return save_bundle(out_dir, cfg.to_dict(), parts, stages={k: "untrained" for k in parts})
 
 
 class RolloutBatch:
