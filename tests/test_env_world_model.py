@@ -89,3 +89,40 @@ def test_missing_or_corrupt_checkpoint_is_a_clear_error(tiny_bundle, tmp_path):
     (broken / "vae.safetensors").write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match="vae.safetensors is corrupt"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(broken))
+
+
+def test_scenario_adapters_are_applied_to_the_student(tiny_bundle, tmp_path):
+
+    import torch
+
+    from m4world_env.scenario import load_scenario
+    from world_model.bundle import load_bundle_files, save_bundle
+    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, loaded_adapters, save_adapter
+    from world_model.runtime import load_world_model
+
+    # adaLN-Zero leaves an untrained DiT's output independent of its blocks: give it weights.
+    files = load_bundle_files(tiny_bundle)
+    gen = torch.Generator().manual_seed(0)
+    student = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in files.tensors["student"].items()}
+    bundle = save_bundle(tmp_path / "bundle", files.model_config, {**files.tensors, "student": student})
+    wm = load_world_model(bundle)
+    base = base_fingerprint(wm.student)
+    lora = LoraConfig(rank=2)
+    add_adapter(wm.student, "rare_case", lora)
+    with torch.no_grad():
+        for name, p in wm.student.named_parameters():
+            if "lora_B" in name:
+                p.normal_()  # a non-trivial adapter
+    save_adapter(wm.student, "rare_case", bundle / "adapters" / "rare_case", lora, base)
+    scenario = load_scenario("merge_cut_in").model_copy(update={"adapters": ["rare_case"]})
+    env = M4WorldEnv(scenario, backend="world_model", checkpoint=str(bundle), config=KEYS)
+    assert loaded_adapters(env.backend.wm.student) == ["rare_case"]
+    plain = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(bundle), config=KEYS)
+    a, _ = env.reset(seed=0)
+    b, _ = plain.reset(seed=0)
+    a = env.step(np.zeros(2, np.float32))[0]
+    b = plain.step(np.zeros(2, np.float32))[0]
+    assert not np.array_equal(a["cameras"], b["cameras"])
+    bad = load_scenario("merge_cut_in").model_copy(update={"adapters": ["no_such_adapter"]})
+    with pytest.raises((FileNotFoundError, ValueError, KeyError), match="no_such_adapter"):
+        M4WorldEnv(bad, backend="world_model", checkpoint=str(bundle), config=KEYS)

@@ -115,6 +115,15 @@ class WorldModelBackend:
         self.with_bev = with_bev
         self._images: dict[str, np.ndarray] = {}
 
+    def apply_adapters(self, names: Sequence[str]) -> list[str]:
+        """Load a scenario's LoRA adapters (§5) into the student: names are looked up in the bundle's
+        ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and the package; paths are used as given."""
+        from world_model.lora import apply_adapters, loaded_adapters
+
+        wanted = [n for n in names if n not in loaded_adapters(self.wm.student)]
+        search = [self.wm.path / "adapters"] if self.wm.path is not None else []
+        return apply_adapters(self.wm.student, wanted, search_dirs=search)
+
     def _crops(self, frame: SceneFrame) -> dict[str, np.ndarray]:
         """Reference crops (image descriptions) of objects whose scenario names an image file."""
         out = {}

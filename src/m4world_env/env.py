@@ -87,6 +87,10 @@ class M4WorldEnv(gym.Env):
             backend, checkpoint, num_rollouts=1, with_bev=self.needs_bev, config=self.cfg
         )
         self.backend_index = backend_index
+        if self.scenario.adapters and hasattr(self.backend, "apply_adapters"):
+            # Long-tail LoRA adapters named by the scenario (§5); the procedural backend renders
+            # ground truth and needs none.
+            self.backend.apply_adapters(self.scenario.adapters)
         # The world model fixes its own sensors (the checkpoint's); the procedural rig is configurable.
         model_cfg = getattr(getattr(self.backend, "wm", None), "cfg", None)
         if model_cfg is not None:
