@@ -69,7 +69,32 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_report(args: argparse.Namespace) -> int:
+    from world_model.data import iter_clips
+    from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
+    from world_model.eval.rows import world_model_row
+    from world_model.runtime import load_world_model
+
+    clips = list(iter_clips(args.evalset))[: args.max_clips or None]
+    if not clips:
+        raise ValueError(f"no clips in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
+    wm = load_world_model(args.checkpoint)
+    rows = {
+        "oracle": oracle_row,
+        "student": world_model_row(wm, seed=args.seed),
+        "student_no_refresh": world_model_row(wm, seed=args.seed, context_refresh=False),
+    }
+    report = evaluate_rows(rows, clips)
+    print(format_markdown(report))
+    if args.out:
+        md, js = write_report(report, args.out)
+        print(f"wrote {md} and {js}")
+    return 0
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
+    if args.report:
+        return _cmd_report(args)
     from m4world_env.evaluate import evaluate, format_table, write_report
     from m4world_env.scenario import list_scenarios
 
@@ -219,7 +244,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--backend", default="procedural", choices=("procedural", "world_model"))
     e.add_argument("--checkpoint", default=None)
     e.add_argument("--max-steps", type=int, default=None)
-    e.add_argument("--out", default=None, help="write the JSON report here")
+    e.add_argument("--out", default=None, help="write the JSON report here (with --report: a folder)")
+    e.add_argument(
+        "--report",
+        action="store_true",
+        help="score the world model against the procedural ground truth on an evaluation set "
+        "(the paper's Tables 1-2: oracle, student, refresh-off ablation)",
+    )
+    e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
+    e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")
     e.set_defaults(func=_cmd_eval)
 
     t = sub.add_parser("train", help="train world-model stages (resumable: rerun the same command)")

@@ -195,10 +195,12 @@ def evaluate_rows(
                 np.concatenate([f[sl] for f in feats]), np.concatenate([f[sl] for f in gt_feats])
             )
             w = config.clip_window
-            table1["frechet_judge_clip"] = frechet_features(
-                np.concatenate([clip_window_features(f, w) for f in feats]),
-                np.concatenate([clip_window_features(f, w) for f in gt_feats]),
-            )
+            long_enough = [i for i, f in enumerate(feats) if len(f) >= w]  # clips shorter than a window
+            if long_enough:
+                table1["frechet_judge_clip"] = frechet_features(
+                    np.concatenate([clip_window_features(feats[i], w) for i in long_enough]),
+                    np.concatenate([clip_window_features(gt_feats[i], w) for i in long_enough]),
+                )
         report["rows"][row] = {
             "table1": table1,
             "table2": yes_frequencies(answers),
