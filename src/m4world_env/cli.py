@@ -28,7 +28,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
     def frame() -> np.ndarray:
         img = env.render()
-        return cv2.resize(img, (img.shape[1] * args.scale, img.shape[0] * args.scale), interpolation=cv2.INTER_NEAREST)
+        img = cv2.resize(img, (img.shape[1] * args.scale, img.shape[0] * args.scale), interpolation=cv2.INTER_NEAREST)
+        # H.264 wants even sizes: pad one black row/column rather than let ffmpeg rescale.
+        return np.pad(img, ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0)))
 
     with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
         writer.append_data(frame())
