@@ -167,9 +167,10 @@ def resolve_bundle(path: str | Path | None) -> Path:
     p = DEFAULT_BUNDLE if path is None else Path(path)
     if not p.exists():
         hint = (
-            "the shipped default checkpoint is missing from this install (reinstall the package)"
+            "this install has no default checkpoint (world_model/checkpoints/default); train one with "
+            "`m4world train --all --data DIR --run RUN` and pass checkpoint='RUN/bundle'"
             if path is None
-            else "give the folder written by `m4world export` (or omit checkpoint= for the shipped default)"
+            else "give the folder written by `m4world export` or `m4world train --all` (RUN/bundle)"
         )
         raise CheckpointNotFoundError(f"checkpoint {p} does not exist: {hint}")
     return p
