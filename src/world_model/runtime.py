@@ -94,6 +94,11 @@ def load_world_model(
     for module in (vae, dit, ref):
         if module is not None:
             module.to(device).eval().requires_grad_(False)
+    if cfg.dit.autocast_bf16:
+        # Weights kept in bf16 once, instead of autocast re-casting them at every call (~15% of a step).
+        for module in (dit, ref):
+            if module is not None:
+                module.to(torch.bfloat16)
     return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path)
 
 

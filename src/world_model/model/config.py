@@ -94,7 +94,9 @@ class DitConfig:
     # benchmarks/bench_model.py and bench_student.py. 4.7 M parameters at these values.
     dim: int = 128
     depth: int = 10
-    heads: int = 4
+    # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
+    # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).
+    heads: int = 2
     mlp_ratio: float = 4.0
     patch: int = 2
     cross_view_every: int = 5  # a cross-view attention in blocks 5, 10, ... (1-based)
