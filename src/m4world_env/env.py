@@ -20,7 +20,7 @@ from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError, UnknownO
 from m4world_env.metrics import EpisodeMetrics
 from m4world_env.rewards import combine_reward, reward_terms
 from m4world_env.scenario import Scenario, load_scenario
-from m4world_env.traffic import TrafficBridge
+from m4world_env.traffic import ActionError, TrafficBridge  # noqa: F401 (ActionError: part of the env API)
 from world_model.geometry import world_to_ego_xy, wrap_angle
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
@@ -29,10 +29,6 @@ from world_model.sensors import BevSpec, LidarSpec, default_rig
 STATE_FEATURES = ("presence", "x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "length", "width")
 RESET_OPTIONS = ("reference",)
 STATE_BOUND = 1.0e4  # metres / m/s; values are clipped to it (roads are at most a few km long)
-
-
-class ActionError(ValueError):
-    """An action the env cannot apply (wrong shape or type, NaN/inf, out of range)."""
 
 
 def state_from_frame(frame: SceneFrame, n_objects: int) -> np.ndarray:
@@ -159,32 +155,6 @@ class M4WorldEnv(gym.Env):
         self._needs_reset = False
         return self._observation(), self._info({})
 
-    def validate_action(self, action: Any) -> Any:
-        """Check an action against the action space; returns it in canonical form or raises ActionError."""
-        if self.cfg.action_type == "discrete_meta":
-            arr = np.asarray(action)
-            if arr.shape not in ((), (1,)) or not np.issubdtype(arr.dtype, np.integer):
-                raise ActionError(f"discrete_meta action must be one integer in [0, 4], got {action!r}")
-            value = int(arr.reshape(()))
-            if not 0 <= value < 5:
-                raise ActionError(
-                    f"discrete_meta action must be in [0, 4] (LANE_LEFT, IDLE, LANE_RIGHT, FASTER, SLOWER), got {value}"
-                )
-            return value
-        try:
-            arr = np.asarray(action, dtype=np.float64)
-        except (TypeError, ValueError) as e:
-            raise ActionError(f"continuous action must be numeric [acceleration, steering], got {action!r}") from e
-        if arr.shape != (2,):
-            raise ActionError(
-                f"continuous action must have shape (2,) = [acceleration, steering], got shape {arr.shape}"
-            )
-        if not np.all(np.isfinite(arr)):
-            raise ActionError(f"continuous action contains NaN or inf: {arr.tolist()}")
-        if np.any(np.abs(arr) > 1.0 + 1e-6):
-            raise ActionError(f"continuous action must lie in [-1, 1]^2, got {arr.tolist()}")
-        return np.clip(arr, -1.0, 1.0).astype(np.float32)
-
     def step(self, action: Any):
         frames = self.advance(action)
         (observations,) = self.backend.step([frames])
@@ -194,7 +164,8 @@ class M4WorldEnv(gym.Env):
         """First half of a step: validate the action and run the traffic for one chunk."""
         if self._needs_reset:
             raise ResetNeeded("call env.reset() before env.step() (the episode ended or never started)")
-        return self.bridge.step(self.validate_action(action))
+        # The bridge checks the action (highway-env's ranges, ActionError) before touching any state.
+        return self.bridge.step(action)
 
     def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""

@@ -47,13 +47,13 @@ def continuous_controls(action: object, cfg: ActionConfig) -> dict[str, float]:
     try:
         a = np.asarray(action, dtype=np.float64)
     except (TypeError, ValueError) as err:
-        raise ActionError(f"continuous action must be 2 numbers [acceleration, steering], got {action!r}") from err
+        raise ActionError(f"continuous action must be numeric [acceleration, steering], got {action!r}") from err
     if a.shape != (2,):
         raise ActionError(f"continuous action must have shape (2,) [acceleration, steering], got shape {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ActionError(f"continuous action must be finite, got {a.tolist()}")
+        raise ActionError(f"continuous action contains NaN or inf: {a.tolist()}")
     if np.any(np.abs(a) > 1.0):
-        raise ActionError(f"continuous action values must lie in [-1, 1], got {a.tolist()}")
+        raise ActionError(f"continuous action must lie in [-1, 1]^2, got {a.tolist()}")
     return {
         "acceleration": _lmap(float(a[0]), cfg.acceleration_range),
         "steering": _lmap(float(a[1]), cfg.steering_range),
