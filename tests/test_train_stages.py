@@ -139,3 +139,30 @@ def test_stage_errors_are_actionable(dataset, tmp_path):
         train_stage("student", dataset, tmp_path / "run", preset="tiny", steps=1, progress=False)
     with pytest.raises(ValueError, match="expects"):
         train_stage("vae", dataset, tmp_path / "run2", preset="default", steps=1, progress=False)
+
+
+def test_vae_stage_resumes_after_a_dit_only_config_change(dataset, tmp_path):
+    from dataclasses import replace
+
+    tiny = get_preset("tiny")
+    run = tmp_path / "run"
+    train_stage("vae", dataset, run, config=tiny, steps=2, ckpt_every=1, progress=False)
+    wider_dit = replace(tiny, dit=replace(tiny.dit, heads=1))  # the VAE does not depend on the DiT
+    out = train_stage("vae", dataset, run, config=wider_dit, steps=3, ckpt_every=1, progress=False)
+    assert out["resumed_from"] == 2 and out["step"] == 3
+    other_vae = replace(tiny, vae=replace(tiny.vae, kl_weight=tiny.vae.kl_weight * 2))
+    with pytest.raises(ValueError, match="different config"):
+        train_stage("vae", dataset, run, config=other_vae, steps=4, progress=False)
+    train_stage("teacher", dataset, run, config=tiny, steps=1, progress=False)
+    with pytest.raises(ValueError, match="different config"):  # the teacher depends on everything
+        train_stage("teacher", dataset, run, config=wider_dit, steps=2, progress=False)
+
+
+def test_expensive_stages_have_their_own_default_step_counts():
+    from world_model.train.stages import DEFAULT_STEPS, _train_config
+
+    cfg = get_preset("default")
+    teacher = _train_config("teacher", cfg, None, None, None, None, 0).steps
+    assert teacher == DEFAULT_STEPS["default"]
+    assert _train_config("dmd", cfg, None, None, None, None, 0).steps < teacher
+    assert _train_config("dmd", cfg, 7, None, None, None, 0).steps == 7  # explicit steps win

@@ -48,6 +48,10 @@ STAGE_DEFAULTS = {
     "long": (2, 5e-5, 50),
 }
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
+# Stages whose steps cost far more than a teacher step get their own default per preset. Sized for
+# the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step runs the
+# TF model's 20-step guided ODE, one ``dmd``/``long`` step runs 1 + critic_updates self-rollouts.
+STAGE_STEPS = {"default": {"tf": 500, "ode": 150, "dmd": 80, "long": 30, "reference": 800}}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
 
@@ -79,12 +83,22 @@ def _load(path: Path) -> dict[str, torch.Tensor]:
     return load_file(str(file))
 
 
-def _stage_config(stage_dir: Path, preset: str, config: ModelConfig | None) -> ModelConfig:
+# The config sections a stage's weights depend on; None = the whole config. The VAE ignores the
+# DiT, so re-sizing the DiT of a preset keeps a trained VAE usable.
+STAGE_CONFIG_SECTIONS: dict[str, tuple[str, ...] | None] = {"vae": ("sensors", "vae")}
+
+
+def _stage_config(stage_dir: Path, stage: str, preset: str, config: ModelConfig | None) -> ModelConfig:
     cfg = config or get_preset(preset)
     saved = stage_dir / "model_config.json"
+    sections = STAGE_CONFIG_SECTIONS.get(stage)
+
+    def relevant(c: ModelConfig) -> object:
+        return c if sections is None else tuple(getattr(c, name) for name in sections)
+
     if saved.exists():
         prev = ModelConfig.from_dict(json.loads(saved.read_text()))
-        if prev != cfg:
+        if relevant(prev) != relevant(cfg):
             raise ValueError(
                 f"{stage_dir} was started with preset {prev.name!r} and a different config; "
                 "use the same preset to resume, or a new run directory"
@@ -105,7 +119,8 @@ def _train_config(
     seed: int,
 ) -> TrainConfig:
     b, l, every = STAGE_DEFAULTS[stage]
-    n = steps if steps is not None else DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"])
+    preset_steps = STAGE_STEPS.get(cfg.name, {}).get(stage, DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"]))
+    n = steps if steps is not None else preset_steps
     if n < 1:
         raise ValueError(f"steps must be >= 1, got {n}")
     return TrainConfig(steps=n, batch_size=batch_size or b, lr=lr or l, ckpt_every=ckpt_every or every, seed=seed)
@@ -249,7 +264,7 @@ def train_stage(
     else:
         stage_dir = Path(run_dir) / stage
     data_dir = Path(data_dir)
-    cfg = _stage_config(stage_dir, preset, config)
+    cfg = _stage_config(stage_dir, stage, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
     if stage in ("vae", "teacher"):
         run = _vae_stage if stage == "vae" else _teacher_stage
