@@ -74,18 +74,22 @@ def _cmd_record(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.data import iter_clips
     from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
-    from world_model.eval.rows import world_model_row
+    from world_model.eval.rows import teacher_row, world_model_row
     from world_model.runtime import load_world_model
 
     clips = list(iter_clips(args.evalset))[: args.max_clips or None]
     if not clips:
         raise ValueError(f"no clips in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
     wm = load_world_model(args.checkpoint)
-    rows = {
-        "oracle": oracle_row,
-        "student": world_model_row(wm, seed=args.seed),
-        "student_no_refresh": world_model_row(wm, seed=args.seed, context_refresh=False),
-    }
+    rows = {"oracle": oracle_row}
+    if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
+        rows["geometry_only"] = world_model_row(load_world_model(args.baseline), seed=args.seed)
+    rows["student"] = world_model_row(wm, seed=args.seed)
+    rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
+    if args.teacher:
+        from world_model.train.stages import load_teacher
+
+        rows["teacher"] = teacher_row(wm, load_teacher(args.teacher), seed=args.seed)
     report = evaluate_rows(rows, clips)
     print(format_markdown(report))
     if args.out:
@@ -135,6 +139,7 @@ PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # `m4wor
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
+    from world_model.model.config import get_preset
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
@@ -147,6 +152,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             args.data,
             args.run,
             preset=args.preset,
+            config=get_preset(args.preset, geometry_only=True) if args.geometry_only else None,
             steps=None if args.all else args.steps,
             batch_size=args.batch_size,
             lr=args.lr,
@@ -251,10 +257,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--report",
         action="store_true",
         help="score the world model against the procedural ground truth on an evaluation set "
-        "(the paper's Tables 1-2: oracle, student, refresh-off ablation)",
+        "(the paper's Tables 1-2: oracle, [geometry-only], student, refresh-off ablation, [teacher])",
     )
     e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
     e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")
+    e.add_argument("--baseline", default=None, help="--report: bundle of the geometry-only baseline (a row)")
+    e.add_argument("--teacher", default=None, help="--report: a teacher export, RUN/teacher/model (a row)")
     e.set_defaults(func=_cmd_eval)
 
     t = sub.add_parser("train", help="train world-model stages (resumable: rerun the same command)")
@@ -267,6 +275,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--data", default="data/train", help="dataset directory (m4world record output)")
     t.add_argument("--run", default="runs/default", help="run directory; each stage writes RUN/<stage>/")
     t.add_argument("--preset", default="default")
+    t.add_argument(
+        "--geometry-only",
+        action="store_true",
+        help="the evaluation's baseline: object tokens without image/text descriptions (use its own --run; "
+        "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
+    )
     t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
     t.add_argument("--batch-size", type=int, default=None)
     t.add_argument("--lr", type=float, default=None)

@@ -102,12 +102,14 @@ def load_world_model(
     return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path)
 
 
-def save_untrained_bundle(out_dir: str | Path, preset: str = "tiny", seed: int = 0) -> Path:
+def save_untrained_bundle(
+    out_dir: str | Path, preset: str = "tiny", seed: int = 0, geometry_only: bool = False
+) -> Path:
     """A bundle of freshly initialized modules of ``preset``: exercises every code path of the
     world-model backend (shapes, seeding, batching, memory) without training; outputs are noise."""
     from world_model.model.config import get_preset
 
-    cfg = get_preset(preset)
+    cfg = get_preset(preset, geometry_only=geometry_only)
     torch.manual_seed(seed)
     parts = {
         "vae": SensorVAE(cfg).state_dict(),

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
@@ -84,6 +84,10 @@ class ControlConfig:
     max_objects: int = 16  # nearest objects kept per frame; the rest are dropped
     crop_size: int = 32  # object reference crops are resized to this square before encoding
     image_feature: str = "vae"  # image-description encoder: pooled VAE-encoder latents
+    # False: the geometry-only baseline of the evaluation (MagicDriveV2-style controls): every
+    # object token gets the learned nulls for its image and text descriptions, in training and
+    # at inference, so only box, category and track reach the model.
+    object_descriptions: bool = True
 
 
 @dataclass(frozen=True)
@@ -274,9 +278,11 @@ def _gpu() -> ModelConfig:
 PRESETS = {"tiny": _tiny, "default": _default, "gpu": _gpu}
 
 
-def get_preset(name: str) -> ModelConfig:
-    """A fresh config for preset ``name`` (one of :data:`PRESETS`)."""
+def get_preset(name: str, geometry_only: bool = False) -> ModelConfig:
+    """A fresh config for preset ``name`` (one of :data:`PRESETS`); ``geometry_only`` turns off
+    object descriptions (the evaluation's baseline, same recipe otherwise)."""
     try:
-        return PRESETS[name]()
+        cfg = PRESETS[name]()
     except KeyError:
         raise ValueError(f"unknown preset {name!r}; choose one of {sorted(PRESETS)}") from None
+    return replace(cfg, control=replace(cfg.control, object_descriptions=False)) if geometry_only else cfg

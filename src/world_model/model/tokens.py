@@ -96,8 +96,11 @@ class ControlTokenizer(nn.Module):
         scale = self.cfg.control.position_scale_m
         box = self.box_mlp(self.fourier(cond.obj_corners / scale).flatten(-2))
         cat = self.category_proj(cond.obj_category)
-        txt = torch.where(cond.obj_has_text[..., None], self.text_desc_proj(cond.obj_text), self.null_text_desc)
-        img = torch.where(cond.obj_has_image[..., None], self.image_desc_proj(cond.obj_image), self.null_image_desc)
+        has_text, has_image = cond.obj_has_text, cond.obj_has_image
+        if not self.cfg.control.object_descriptions:  # geometry-only baseline
+            has_text, has_image = torch.zeros_like(has_text), torch.zeros_like(has_image)
+        txt = torch.where(has_text[..., None], self.text_desc_proj(cond.obj_text), self.null_text_desc)
+        img = torch.where(has_image[..., None], self.image_desc_proj(cond.obj_image), self.null_image_desc)
         tok = self.object_mlp(torch.cat([box, cat, img, txt], dim=-1))
         return torch.where(cond.obj_mask[..., None], tok, self.pad_object)
 
