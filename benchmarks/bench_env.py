@@ -4,8 +4,13 @@
 
 Reports, per backend: one env's median step time and steps/s; a vector env of ``--num-envs``
 (one batched backend call per step) vs the same number of single envs stepped one after another;
-the split of a step into traffic (bridge) and sensor time; peak RSS. highway-v0 and highway-fast-v0
-are measured in the same run. The policy is the lane-keeping reference policy; its time is not counted.
+the split of a step into traffic (bridge) and sensor time; for the world-model backend the share
+of the vector step spent outside the networks (traffic, condition building: BEV raster, text,
+crops; everything but the student and the VAE decoder); the peak RSS of a process running one env
+(a subprocess per backend). highway-v0 and highway-fast-v0 are measured in the same run. The
+policy is the lane-keeping reference policy; its time is not counted.
+
+    python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import argparse
 import json
 import resource
 import statistics
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,8 +58,32 @@ def _time_single(env, steps: int, seed: int) -> tuple[list[float], list[float]]:
     return totals, traffic
 
 
-def bench_backend(backend: str, scenario: str, steps: int, num_envs: int, seed: int) -> dict:
-    single = gym.make("M4World-v0", scenario=scenario, backend=backend, config=CONFIG)
+def _make_kwargs(backend: str, checkpoint: str | None) -> dict:
+    kw = {"backend": backend, "config": CONFIG}
+    if backend == "world_model" and checkpoint:
+        kw["checkpoint"] = checkpoint
+    return kw
+
+
+def peak_rss_one_env(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None) -> float:
+    """Peak RSS (MB) of a fresh process that makes one env and steps it ``steps`` times."""
+    cmd = [sys.executable, __file__, "--memory-probe", backend, "--scenario", scenario, "--steps", str(steps)]
+    cmd += ["--seed", str(seed), "--out", "-"] + (["--checkpoint", checkpoint] if checkpoint else [])
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return float(out.strip().splitlines()[-1])
+
+
+def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None) -> None:
+    env = gym.make("M4World-v0", scenario=scenario, **_make_kwargs(backend, checkpoint))
+    _time_single(env, steps, seed)
+    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def bench_backend(
+    backend: str, scenario: str, steps: int, num_envs: int, seed: int, checkpoint: str | None = None
+) -> dict:
+    kw = _make_kwargs(backend, checkpoint)
+    single = gym.make("M4World-v0", scenario=scenario, **kw)
     totals, traffic = _time_single(single, steps, seed)
     step_s = statistics.median(totals)
     result = {
@@ -67,18 +97,24 @@ def bench_backend(backend: str, scenario: str, steps: int, num_envs: int, seed: 
         num_envs=num_envs,
         vectorization_mode="vector_entry_point",
         scenario=scenario,
-        backend=backend,
-        config=CONFIG,
+        **kw,
     )
     venv.reset(seed=seed)
+    rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
-    vec_times = []
+    vec_times, model_times = [], []
     for _ in range(max(steps // num_envs, 10)):
         actions = np.stack([p(e.bridge) for p, e in zip(policies, venv.unwrapped.envs, strict=True)])
+        before = dict(rollouts.seconds) if rollouts is not None else {}
         t0 = time.perf_counter()
         venv.step(actions)
         vec_times.append(time.perf_counter() - t0)
+        if rollouts is not None:
+            model_times.append(sum(rollouts.seconds[k] - before[k] for k in ("student", "decode")))
     vec_s = statistics.median(vec_times)
+    if model_times:
+        outside = [total - model for total, model in zip(vec_times, model_times, strict=True)]
+        result["vector_outside_model_share"] = statistics.median(outside) / vec_s
     sequential_s = num_envs * step_s
     result.update(
         {
@@ -101,10 +137,17 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
+    ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
     args = ap.parse_args()
+    if args.memory_probe:
+        _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint)
+        return
     result: dict = {"scenario": args.scenario, "backends": {}}
     for backend in args.backend:
-        result["backends"][backend] = bench_backend(backend, args.scenario, args.steps, args.num_envs, args.seed)
+        r = bench_backend(backend, args.scenario, args.steps, args.num_envs, args.seed, args.checkpoint)
+        r["one_env_peak_rss_mb"] = peak_rss_one_env(backend, args.scenario, 50, args.seed, args.checkpoint)
+        result["backends"][backend] = r
     result["highway_env"] = {
         e: bench_highway_env(e, max(args.steps // 6, 20), args.seed) for e in ("highway-v0", "highway-fast-v0")
     }

@@ -12,6 +12,7 @@ depend on which other rollouts share its batch: a vector env equals N single env
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -132,6 +133,9 @@ class RolloutBatch:
         self.crops: list[dict[str, np.ndarray]] = [{} for _ in range(num_rollouts)]
         self.last_arrays: list[ConditionArrays | None] = [None] * num_rollouts
         self._pending: dict[int, tuple[torch.Tensor, ConditionArrays]] = {}
+        # Wall seconds spent by step() building conditions (BEV raster, text, crops: outside the
+        # networks), in the student and in VAE decoding; benchmarks read and reset them.
+        self.seconds = {"conditions": 0.0, "student": 0.0, "decode": 0.0}
 
     @property
     def chunk_frames(self) -> int:
@@ -185,6 +189,7 @@ class RolloutBatch:
         outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
         with torch.no_grad():
             for k in range(0, total, self.chunk_frames):
+                t0 = time.perf_counter()
                 arrays = []
                 for i, chunk in enumerate(chunks):
                     if chunk is not None:
@@ -196,9 +201,14 @@ class RolloutBatch:
                     arrays.append(
                         arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames)
                     )
-                latents = self.engine.step(Conditions.collate(arrays))
+                cond = Conditions.collate(arrays)
+                t1 = time.perf_counter()
+                latents = self.engine.step(cond)
+                self.seconds["conditions"] += t1 - t0
+                self.seconds["student"] += time.perf_counter() - t1
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
+        t0 = time.perf_counter()
         results: list[list[Observation] | None] = []
         for i, chunk in enumerate(chunks):
             if chunk is None:
@@ -206,6 +216,7 @@ class RolloutBatch:
                 continue
             lat = torch.cat(outs[i], dim=1)
             results.append(self.wm.decode(lat if self.every_frame else lat[:, -1:])[0])
+        self.seconds["decode"] += time.perf_counter() - t0
         return results
 
 
