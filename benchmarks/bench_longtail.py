@@ -5,7 +5,11 @@ first frame of rare-case frames from their controls twice (same noise seed): wit
 and with the adapter applied. It writes a PNG (rows: ground truth, base, adapted; one column per
 rare-object view crop) and JSON numbers: a pluggable ``Scorer(generated_crop, truth_crop) -> float``
 inside the object's projected box, median over crops. The default scorer is the L1 distance
-(0-255) between the crops' mean colours: a simple appearance proxy until the judge lands.
+(0-255) between the crops' mean colours. With the evaluation judge (``world_model.eval``, the
+shipped CNN judge by default) it also reports the judge's existence score for the case ("is it a
+<case>?" yes-frequency over the rare crops: truth, base, adapted) and, on ``--ordinary-data``
+frames (clips without the case), the weather, time-of-day and existence yes-frequencies with and
+without the adapter, to show ordinary controllability is preserved.
 
 The whole long-tail recipe, e.g. at the tiny preset::
 
@@ -13,7 +17,8 @@ The whole long-tail recipe, e.g. at the tiny preset::
     python -m world_model.train --stage vae     --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage teacher --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage lora --case tree_truck --data D/base --case-data D/rare --run R --preset tiny
-    python benchmarks/bench_longtail.py eval --run R --data D/rare --case tree_truck --out out/longtail
+    python benchmarks/bench_longtail.py eval --run R --data D/rare --case tree_truck --ordinary-data D/base \
+        --out out/longtail
 
 ``record`` runs ``m4world record``'s recorder at the preset's sensors (views and BEV): the rare
 clips from scenario ``tree_truck_highway``, the base set from every scenario with
@@ -162,6 +167,82 @@ def evaluate(
     }
 
 
+def judge_rare(judge, result: dict, views: Sequence[RareView], case: str) -> dict[str, float]:  # noqa: ANN001
+    """Yes-frequency of "is it a <case>?" over the rare objects' box crops, per row of the figure."""
+    out = {}
+    for name in ("truth", "base", "adapted"):
+        crops = [_crop(img, rv.box) for rv, img in zip(views, result["images"][name], strict=True)]
+        out[name] = float(np.mean(judge.is_category(crops, [case] * len(crops))))
+    return out
+
+
+def ordinary_frames(clips: Sequence[Clip], count: int, near: float) -> list[RareView]:
+    """``count`` frames spread over ordinary clips, each with its largest visible object's box."""
+    out: list[RareView] = []
+    for ci in np.linspace(0, len(clips) - 1, num=min(count, len(clips))).round().astype(int):
+        clip = clips[int(ci)]
+        f = clip.num_frames // 2
+        fr = clip.frames[f]
+        corners = fr.object_corners_lidar()
+        best = None
+        for o in range(len(fr.objects)):
+            for v in range(fr.rig.num_views):
+                box = camera_box_pixels(fr, corners[o], v, near)
+                if box is not None and (best is None or _area(box) > _area(best[2])):
+                    best = (v, o, box)
+        if best is not None:
+            out.append(RareView(int(ci), f, best[0], best[2]))
+    return out
+
+
+def judge_ordinary(
+    judge,  # noqa: ANN001 - a JudgeBackend
+    model,  # noqa: ANN001 - MultiViewDiT
+    vae: SensorVAE,
+    clips: Sequence[Clip],
+    frames: Sequence[RareView],
+    adapters: Sequence[str | Path],
+    steps: int | None,
+    seed: int,
+    search_dirs: Sequence[str | Path] = (),
+) -> dict[str, dict[str, float]]:
+    """Weather, time-of-day and existence (largest object) yes-frequencies on ordinary frames,
+    for the truth and for the model without / with the adapters (same noise)."""
+    cond = _conditions(clips, frames, vae)
+    gen = ReferenceGenerator(model, vae)
+    _, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
+    apply_adapters(model, adapters, search_dirs)
+    try:
+        _, adapted_obs = gen.first_frame(cond, steps=steps, seed=seed)
+    finally:
+        remove_adapters(model)
+    meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
+    weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
+    cats = []
+    for rv, m in zip(frames, meta, strict=True):
+        corners = m.object_corners_lidar()
+        sizes = [
+            _area(b) if (b := camera_box_pixels(m, corners[o], rv.view, ReferenceConfig().near_plane_m)) else -1
+            for o in range(len(m.objects))
+        ]
+        cats.append(m.objects[int(np.argmax(sizes))].category)
+    rows = {
+        "truth": [np.asarray(clips[rv.clip].cameras[rv.frame]) for rv in frames],
+        "base": [o.cameras for o in base_obs],
+        "adapted": [o.cameras for o in adapted_obs],
+    }
+    out = {}
+    for name, cams in rows.items():
+        scene = np.stack(cams)
+        crops = [_crop(c[rv.view], rv.box) for c, rv in zip(cams, frames, strict=True)]
+        out[name] = {
+            "weather": float(np.mean(judge.is_weather(scene, weathers))),
+            "time_of_day": float(np.mean(judge.is_time_of_day(scene, times))),
+            "existence": float(np.mean(judge.is_category(crops, cats))),
+        }
+    return out
+
+
 def figure(result: dict, views: Sequence[RareView], path: Path, margin: float = 0.5) -> None:
     """PNG grid: rows truth / base / adapted, one column per rare view (box crop with context)."""
     cells = []
@@ -250,6 +331,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-views", type=int, default=8)
     p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the preset's)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ordinary-data", default=None, help="clips without the case: controllability check")
+    p.add_argument("--ordinary-frames", type=int, default=16)
+    p.add_argument("--no-judge", action="store_true", help="skip the judge scores")
     p.add_argument("--out", default="out/longtail")
     a = parser.parse_args(argv)
     if a.cmd == "record":
@@ -270,12 +354,27 @@ def main(argv: list[str] | None = None) -> int:
     figure(result, views, out / "longtail.png")
     numbers = {k: v for k, v in result.items() if k != "images"}
     numbers.update(case=a.case, run=str(run), data=a.data, steps=a.steps, seed=a.seed)
+    if not a.no_judge:
+        from world_model.eval import load_default_judge
+
+        judge = load_default_judge()
+        numbers["judge_existence"] = judge_rare(judge, result, views, a.case)
+        if a.ordinary_data:
+            ordinary = list(iter_clips(a.ordinary_data))
+            frames = ordinary_frames(ordinary, a.ordinary_frames, ReferenceConfig().near_plane_m)
+            numbers["ordinary_judge"] = judge_ordinary(
+                judge, model, vae, ordinary, frames, [a.case], a.steps, a.seed, [run / "lora"]
+            )
     (out / "longtail.json").write_text(json.dumps(numbers, indent=1))
     print(
         f"{a.case}: {numbers['views']} rare-object views, {numbers['scorer']} median "
         f"base {numbers['base_median']:.2f} -> adapted {numbers['adapted_median']:.2f} "
         f"(lower is better); wrote {out / 'longtail.png'} and {out / 'longtail.json'}"
     )
+    if "judge_existence" in numbers:
+        print(f"judge 'is it a {a.case}?' yes-frequency: {numbers['judge_existence']}")
+    if "ordinary_judge" in numbers:
+        print(f"ordinary frames (weather, time of day, existence): {numbers['ordinary_judge']}")
     return 0
 
 

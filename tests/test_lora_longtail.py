@@ -75,3 +75,31 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench,
     bench.figure(result, views, tmp_path / "fig.png")
     img = cv2.imread(str(tmp_path / "fig.png"))
     assert img is not None and img.shape[1] > bench.CROP_PX * len(views)
+    # judge scores: a fake judge that says yes to tree trucks and records what it was asked
+    asked = []
+
+    class Judge:
+        def is_category(self, crops, categories):
+            asked.append(("category", len(crops), tuple(categories)))
+            return np.array([c == "tree_truck" for c in categories])
+
+        def is_weather(self, frames, weathers):
+            asked.append(("weather", frames.shape, tuple(weathers)))
+            return np.ones(len(frames), bool)
+
+        def is_time_of_day(self, frames, times):
+            return np.zeros(len(frames), bool)
+
+    assert bench.judge_rare(Judge(), result, views, "tree_truck") == {"truth": 1.0, "base": 1.0, "adapted": 1.0}
+    _clip(tmp_path / "base", "plain", 0, False)
+    plain = list(iter_clips(tmp_path / "base"))
+    frames = bench.ordinary_frames(plain, 3, 0.1)
+    assert len(frames) == 1  # one clip: one frame
+    scores = bench.judge_ordinary(
+        Judge(), model, vae, plain, frames, ["tree_truck"], 1, 0, search_dirs=[tmp_path / "adapters"]
+    )
+    assert set(scores) == {"truth", "base", "adapted"}
+    assert all(s["weather"] == 1.0 and s["time_of_day"] == 0.0 and s["existence"] == 0.0 for s in scores.values())
+    weather_calls = [a for a in asked if a[0] == "weather"]
+    assert weather_calls and all(shape[1:] == (CFG.sensors.num_cameras,) + (16, 32, 3) for _, shape, _ in weather_calls)
+    assert not any(".lora_" in k for k in model.state_dict())  # the adapter was removed again
