@@ -53,3 +53,14 @@ def test_export_requires_vae_and_student(tmp_path):
     (tmp_path / "run" / "vae").mkdir(parents=True)
     with pytest.raises(CheckpointError, match="student"):
         export_bundle(tmp_path / "run", tmp_path / "b")
+
+
+def test_export_stores_dits_in_bf16_when_the_model_runs_them_in_bf16(tmp_path):
+    run = _fake_run(tmp_path / "run")
+    meta = {"stage": "dmd", "model_config": {"name": "tiny", "dit": {"autocast_bf16": True}}}
+    (run / "dmd" / "model.json").write_text(json.dumps(meta))
+    files = load_bundle_files(export_bundle(run, tmp_path / "bundle"))
+    assert files.tensors["student"]["w"].dtype == torch.bfloat16
+    assert files.tensors["reference"]["w"].dtype == torch.bfloat16
+    assert files.tensors["vae"]["w"].dtype == torch.float32  # the autoencoder is not cast
+    assert torch.equal(files.tensors["student"]["w"].float(), torch.arange(4.0))

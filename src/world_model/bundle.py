@@ -40,6 +40,7 @@ COMPONENT_STAGES = {
     "reference": ("reference",),
 }
 REQUIRED = ("vae", "student")
+BF16_COMPONENTS = ("student", "reference")  # DiTs; the VAE stays float32
 
 
 class CheckpointError(ValueError):
@@ -96,9 +97,15 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     components = {}
+    # The runtime runs the DiTs with bf16 weights when the config says so: storing them in bf16
+    # halves the bundle and changes no output.
+    bf16 = bool(config.get("dit", {}).get("autocast_bf16", False))
     for component, (stage, file) in found.items():
         dst = tmp / f"{component}.safetensors"
-        shutil.copyfile(file, dst)
+        if bf16 and component in BF16_COMPONENTS:
+            _save_bf16(file, dst)
+        else:
+            shutil.copyfile(file, dst)
         components[component] = {
             "file": dst.name,
             "sha256": sha256_file(dst),
@@ -113,6 +120,13 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return out_dir
+
+
+def _save_bf16(src: Path, dst: Path) -> None:
+    from safetensors.torch import save_file
+
+    state = load_file(str(src))
+    save_file({k: v.to(torch.bfloat16) if v.is_floating_point() else v for k, v in state.items()}, str(dst))
 
 
 def save_bundle(
