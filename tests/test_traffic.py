@@ -253,3 +253,28 @@ def test_map_geometry_and_state():
     assert np.all(np.diff(dists) >= 0)
     assert b.num_lanes == 4 and b.on_road and not b.crashed and abs(b.lane_offset) < 1e-9
     assert math.isfinite(b.ego.yaw_rate)
+
+
+def test_vectorized_separation_never_skips_a_pair_highway_env_would_collide():
+    from highway_env import utils
+
+    from m4world_env.traffic.sim import swept_apart
+
+    rng = np.random.default_rng(0)
+    n = 400
+    pos = rng.uniform(-6, 6, (n, 2))
+    head = rng.uniform(-np.pi, np.pi, n)
+    half = np.stack([rng.uniform(0.5, 6, n), rng.uniform(0.3, 1.5, n)], -1)
+    disp = rng.normal(0, 1.5, (n, 2))
+    ii, jj = np.arange(0, n, 2), np.arange(1, n, 2)
+    apart = swept_apart(pos, head, half, disp, ii, jj)
+
+    def polygon(k):
+        c, s = np.cos(head[k]), np.sin(head[k])
+        local = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1], [-1, -1]]) * half[k]
+        return local @ np.array([[c, s], [-s, c]]) + pos[k]
+
+    will = np.array([utils.are_polygons_intersecting(polygon(i), polygon(j), disp[i], disp[j])[1] for i, j in zip(ii, jj)])
+    assert not (apart & will).any()  # never skips a collision
+    assert (apart == ~will).mean() > 0.97  # and skips nearly every pair that is apart
+    assert apart.any() and will.any()
