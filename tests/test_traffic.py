@@ -274,7 +274,8 @@ def test_vectorized_separation_never_skips_a_pair_highway_env_would_collide():
         local = np.array([[-1, -1], [-1, 1], [1, 1], [1, -1], [-1, -1]]) * half[k]
         return local @ np.array([[c, s], [-s, c]]) + pos[k]
 
-    will = np.array([utils.are_polygons_intersecting(polygon(i), polygon(j), disp[i], disp[j])[1] for i, j in zip(ii, jj)])
+    pairs = zip(ii, jj, strict=True)
+    will = np.array([utils.are_polygons_intersecting(polygon(i), polygon(j), disp[i], disp[j])[1] for i, j in pairs])
     assert not (apart & will).any()  # never skips a collision
     assert (apart == ~will).mean() > 0.97  # and skips nearly every pair that is apart
     assert apart.any() and will.any()
