@@ -3,6 +3,7 @@
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 from gymnasium.utils.env_checker import check_env
 
 import m4world_env  # noqa: F401
@@ -126,3 +127,17 @@ def test_scenario_adapters_are_applied_to_the_student(tiny_bundle, tmp_path):
     bad = load_scenario("merge_cut_in").model_copy(update={"adapters": ["no_such_adapter"]})
     with pytest.raises((FileNotFoundError, ValueError, KeyError), match="no_such_adapter"):
         M4WorldEnv(bad, backend="world_model", checkpoint=str(bundle), config=KEYS)
+
+
+def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
+    for dtype, want in (("bfloat16", torch.bfloat16), ("float32", torch.float32)):
+        env = M4WorldEnv(
+            "merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": {"dtype": dtype}}
+        )
+        obs, _ = env.reset(seed=0)
+        student = env.backend.wm.student
+        assert next(student.parameters()).dtype == want
+        assert student.cfg.dit.autocast_bf16 == (dtype == "bfloat16")
+        obs, *_ = env.step(env.action_space.sample())
+        assert np.isfinite(obs["lidar"]).all()
+        env.close()

@@ -140,3 +140,19 @@ def test_cpu_attention_matches_sdpa_and_survives_fully_masked_rows():
     mask[0, 0, 2] = False  # a query that may attend to nothing: the mean of the values, not NaN
     out = attention(q, k, v, mask)
     assert torch.isfinite(out).all() and torch.allclose(out[0, :, 2], v[0].mean(dim=1), atol=1e-6)
+
+
+@pytest.mark.slow
+def test_compiled_blocks_match_eager():
+    cfg = get_preset("tiny")
+    torch.manual_seed(0)
+    model = MultiViewDiT(cfg).eval()
+    for p in model.parameters():  # adaLN-zero starts at zero output: perturb so every path counts
+        torch.nn.init.normal_(p, std=0.05)
+    cond = tiny_conditions(cfg, 2, batch=2)
+    x, t = torch.randn(2, *cfg.latent_shape(2)), torch.rand(2)
+    with torch.no_grad():
+        eager = model(x, t, cond)
+        model.compile_blocks()
+        compiled = model(x, t, cond)
+    assert torch.allclose(compiled, eager, atol=1e-4, rtol=1e-4)

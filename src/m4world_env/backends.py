@@ -104,12 +104,14 @@ class WorldModelBackend:
 
         mc = config.model
         torch.set_num_threads(max(1, torch.get_num_threads()))
-        self.wm = load_world_model(checkpoint, device=mc.device)
+        self.wm = load_world_model(checkpoint, device=mc.device, dtype=mc.dtype)
         n = mc.denoising_steps
         if n < 1:
             raise InvalidOptionError(f"config.model.denoising_steps must be >= 1, got {n}")
         steps = tuple(round(DIFFUSION_STEPS * (1 - k / n)) for k in range(n))  # 4 -> 1000, 750, 500, 250
         self.wm.student_cfg = replace(self.wm.student_cfg, denoising_steps=steps, context_refresh=mc.context_refresh)
+        if mc.compile:
+            self.wm.student.compile_blocks()
         self.rollouts = RolloutBatch(self.wm, num_rollouts)
         self.rig = self.wm.rig
         self.with_bev = with_bev

@@ -48,7 +48,15 @@ class ModelBackendConfig:
     context_refresh: bool = True
     guidance_scale: float = 1.0
     device: str = "cpu"
-    dtype: str = "float32"  # float32 | bfloat16
+    # DiT weights and activations: "auto" = as the checkpoint was trained (bf16 for the default
+    # preset), or force "float32" / "bfloat16". The VAE always runs in float32.
+    dtype: str = "auto"
+    # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
+    # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
+    compile: bool = False
+
+
+DTYPES = ("auto", "float32", "bfloat16")
 
 
 @dataclass
@@ -78,8 +86,8 @@ class EnvConfig:
         lo, hi = self.reward.speed_range
         if not lo < hi:
             raise InvalidOptionError(f"config.reward.speed_range must be (low, high) with low < high, got {(lo, hi)}")
-        if self.model.dtype not in ("float32", "bfloat16"):
-            raise InvalidOptionError(f"config.model.dtype must be float32 or bfloat16, got {self.model.dtype!r}")
+        if self.model.dtype not in DTYPES:
+            raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> EnvConfig:

@@ -74,13 +74,18 @@ class WorldModel:
 
 
 def load_world_model(
-    path: str | Path | None = None, student: StudentConfig | None = None, device: str = "cpu"
+    path: str | Path | None = None, student: StudentConfig | None = None, device: str = "cpu", dtype: str = "auto"
 ) -> WorldModel:
     """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
-    bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation)."""
+    bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation). ``dtype`` of the
+    DiTs: "auto" (the checkpoint's ``dit.autocast_bf16``), "float32" or "bfloat16"."""
+    if dtype not in ("auto", "float32", "bfloat16"):
+        raise ValueError(f"dtype must be auto, float32 or bfloat16, got {dtype!r}")
     files = load_bundle_files(path)
     try:
         cfg = ModelConfig.from_dict(files.model_config)
+        if dtype != "auto":
+            cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype == "bfloat16"))
         scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])

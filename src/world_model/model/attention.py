@@ -108,9 +108,9 @@ class SelfAttention(nn.Module):
         mask: torch.Tensor | None = None,
         context: KV | None = None,
     ) -> tuple[torch.Tensor, KV]:
-        """x (N, S, D); cos/sin (S, head_dim/2); mask (S, Sc+S) or (N, 1, S, Sc+S) or None (full);
-        context keys/values (N, H, Sc, head_dim). Returns output (N, S, D) and this call's own
-        (k, v) (N, H, S, head_dim), already rotated, ready to be cached."""
+        """x (N, S, D); cos/sin (S, head_dim) from ``rope.rotation_tables``; mask (S, Sc+S) or
+        (N, 1, S, Sc+S) or None (full); context keys/values (N, H, Sc, head_dim). Returns output
+        (N, S, D) and this call's own (k, v) (N, H, S, head_dim), rotated, ready to be cached."""
         q = apply_rope(_heads(self.q(x), self.heads, self.q_norm), cos, sin)
         k = apply_rope(_heads(self.k(x), self.heads, self.k_norm), cos, sin)
         v = _heads(self.v(x), self.heads)

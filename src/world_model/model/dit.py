@@ -30,7 +30,7 @@ from torch import nn
 from world_model.model.attention import KV, CrossAttention, SelfAttention, block_causal_mask, cross_view_mask
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
-from world_model.model.rope import rope_tables
+from world_model.model.rope import rope_tables, rotation_tables
 from world_model.model.tokens import ControlTokenizer, ControlTokens
 
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
@@ -148,9 +148,9 @@ class DiTBlock(nn.Module):
         m = (run.mod + self.modulation)[:, None, :, None]  # (B, 1, T, 1, 6, D)
         shift1, scale1, gate1, shift2, scale2, gate2 = m.unbind(dim=-2)
 
-        h = (self._per_frame(self.norm1(x), run) * (1 + scale1) + shift1).view_as(x)
+        h = torch.addcmul(shift1, self._per_frame(self.norm1(x), run), 1 + scale1).view_as(x)
         a, kv = self.attn(h, run.cos, run.sin, run.self_mask, context)
-        x = x + (self._per_frame(a, run) * gate1).view_as(x)
+        x = torch.addcmul(self._per_frame(x, run), self._per_frame(a, run), gate1).view_as(x)
 
         tk = self.text_attn.kv(run.tokens.text)  # (B, H, L, hd)
         q = self.norm_text(x).reshape(b, v * t * n, -1)
@@ -166,9 +166,9 @@ class DiTBlock(nn.Module):
             hv = self._frame_major(self.norm_view(x), run)
             x = x + self._view_major(self.cross_view(hv, hv, run.view_mask), run)
 
-        h = (self._per_frame(self.norm2(x), run) * (1 + scale2) + shift2).view_as(x)
+        h = torch.addcmul(shift2, self._per_frame(self.norm2(x), run), 1 + scale2).view_as(x)
         h = self.fc2(F.gelu(self.fc1(h)))
-        x = x + (self._per_frame(h, run) * gate2).view_as(x)
+        x = torch.addcmul(self._per_frame(x, run), self._per_frame(h, run), gate2).view_as(x)
         return x, kv
 
 
@@ -199,6 +199,13 @@ class MultiViewDiT(nn.Module):
 
     def _autocast(self, device_type: str) -> torch.autocast:
         return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
+
+    def compile_blocks(self) -> None:
+        """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
+        modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
+        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time."""
+        for block in self.blocks:
+            block.forward = torch.compile(block.forward, dynamic=False)
 
     def tokenize(self, cond: Conditions) -> ControlTokens:
         """Control tokens for ``cond``; pass them to :meth:`forward` to reuse across denoising steps."""
@@ -268,7 +275,7 @@ class MultiViewDiT(nn.Module):
             temb = self.time_embed(t)  # (B, T, D)
             mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
             cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta)
-            cos, sin = cos.to(x.device), sin.to(x.device)
+            cos, sin = rotation_tables(cos.to(x.device), sin.to(x.device), h.dtype)
             ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
             self_mask = None
             if blocks is not None and blocks.shape != (t_len,):

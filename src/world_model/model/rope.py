@@ -35,9 +35,15 @@ def rope_tables(
     return ang.cos().float(), ang.sin().float()
 
 
-def apply_rope(x: torch.Tensor, cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Rotate (..., S, head_dim) by tables (S, head_dim / 2): pairs are (i, i + head_dim / 2)."""
+def rotation_tables(cos: torch.Tensor, sin: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Half tables (S, head_dim / 2) -> the full (S, head_dim) tables :func:`apply_rope` takes:
+    ``[cos, cos]`` and ``[-sin, sin]``, in ``dtype``. Built once per forward, shared by every layer."""
+    return torch.cat([cos, cos], dim=-1).to(dtype), torch.cat([-sin, sin], dim=-1).to(dtype)
+
+
+def apply_rope(x: torch.Tensor, cos_full: torch.Tensor, sin_signed: torch.Tensor) -> torch.Tensor:
+    """Rotate (..., S, head_dim) by :func:`rotation_tables` (S, head_dim); pairs are (i, i + head_dim / 2):
+    ``[x1 cos - x2 sin, x1 sin + x2 cos] = x * [cos, cos] + [x2, x1] * [-sin, sin]``, three kernels."""
     half = x.shape[-1] // 2
-    x1, x2 = x[..., :half], x[..., half:]
-    cos, sin = cos.to(x.dtype), sin.to(x.dtype)
-    return torch.cat([x1 * cos - x2 * sin, x1 * sin + x2 * cos], dim=-1)
+    swapped = torch.cat([x[..., half:], x[..., :half]], dim=-1)
+    return torch.addcmul(x * cos_full, swapped, sin_signed)
