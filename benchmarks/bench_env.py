@@ -58,10 +58,13 @@ def _time_single(env, steps: int, seed: int) -> tuple[list[float], list[float]]:
     return totals, traffic
 
 
-def _make_kwargs(backend: str, checkpoint: str | None) -> dict:
+def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False) -> dict:
     kw = {"backend": backend, "config": CONFIG}
-    if backend == "world_model" and checkpoint:
-        kw["checkpoint"] = checkpoint
+    if backend == "world_model":
+        if checkpoint:
+            kw["checkpoint"] = checkpoint
+        if compile_model:
+            kw["config"] = {**CONFIG, "model": {"compile": True}}
     return kw
 
 
@@ -80,9 +83,15 @@ def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint
 
 
 def bench_backend(
-    backend: str, scenario: str, steps: int, num_envs: int, seed: int, checkpoint: str | None = None
+    backend: str,
+    scenario: str,
+    steps: int,
+    num_envs: int,
+    seed: int,
+    checkpoint: str | None = None,
+    compile_model: bool = False,
 ) -> dict:
-    kw = _make_kwargs(backend, checkpoint)
+    kw = _make_kwargs(backend, checkpoint, compile_model)
     single = gym.make("M4World-v0", scenario=scenario, **kw)
     totals, traffic = _time_single(single, steps, seed)
     step_s = statistics.median(totals)
@@ -138,6 +147,7 @@ def main() -> None:
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
+    ap.add_argument("--compile", action="store_true", help="world model: config model.compile (torch.compile)")
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
     args = ap.parse_args()
     if args.memory_probe:
@@ -145,7 +155,7 @@ def main() -> None:
         return
     result: dict = {"scenario": args.scenario, "backends": {}}
     for backend in args.backend:
-        r = bench_backend(backend, args.scenario, args.steps, args.num_envs, args.seed, args.checkpoint)
+        r = bench_backend(backend, args.scenario, args.steps, args.num_envs, args.seed, args.checkpoint, args.compile)
         r["one_env_peak_rss_mb"] = peak_rss_one_env(backend, args.scenario, 50, args.seed, args.checkpoint)
         result["backends"][backend] = r
     result["highway_env"] = {

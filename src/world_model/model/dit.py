@@ -204,6 +204,11 @@ class MultiViewDiT(nn.Module):
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
         modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
         compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time."""
+        import torch._dynamo
+
+        # One graph per (block kind, chunk/context shape): a rollout's first chunks see shorter
+        # contexts, so allow more graphs than dynamo's default before it falls back to eager.
+        torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
         for block in self.blocks:
             block.forward = torch.compile(block.forward, dynamic=False)
 
