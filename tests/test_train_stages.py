@@ -166,3 +166,23 @@ def test_expensive_stages_have_their_own_default_step_counts():
     assert teacher == DEFAULT_STEPS["default"]
     assert _train_config("dmd", cfg, None, None, None, None, 0).steps < teacher
     assert _train_config("dmd", cfg, 7, None, None, None, 0).steps == 7  # explicit steps win
+
+
+def test_latent_cache_is_keyed_by_vae_and_clip(dataset, tmp_path):
+    from dataclasses import replace
+
+    from world_model.data import iter_clips
+    from world_model.model import SensorVAE
+    from world_model.train.data import cached_latents
+
+    clip = next(iter(iter_clips(dataset)))
+    vae = SensorVAE(get_preset("tiny")).eval()
+    calls = []
+    encode = vae.encode_frames
+    vae.encode_frames = lambda *a: calls.append(1) or encode(*a)
+    first = cached_latents(clip, vae, tmp_path, "vae-a")
+    assert torch.equal(cached_latents(clip, vae, tmp_path, "vae-a"), first) and len(calls) == 1  # reused
+    cached_latents(clip, vae, tmp_path, "vae-b")  # another VAE: re-encoded
+    other = replace(clip, meta={**clip.meta, "seed": -1})  # same name, another recording
+    cached_latents(other, vae, tmp_path, "vae-b")
+    assert len(calls) == 3

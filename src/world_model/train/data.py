@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -68,24 +69,48 @@ def file_digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
+def latent_cache_dir(run_dir: str | Path) -> Path:
+    """The run's one latent cache, shared by every stage that encodes clips (teacher, student
+    stages, reference, LoRA): entries are keyed by clip name, clip fingerprint and VAE digest."""
+    return Path(run_dir) / "teacher" / "latents"
+
+
+def clip_fingerprint(clip: Clip) -> str:
+    """Identity of a recording: its metadata (scenario, seed, fps, frames, sensors) and array shapes."""
+    blob = json.dumps([clip.meta, list(clip.cameras.shape), list(clip.lidar.shape)], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
 def cached_latents(clip: Clip, vae: SensorVAE, cache_dir: Path, vae_digest: str) -> torch.Tensor:
-    """Latents (T, V, C, h, w) of a clip, encoded once per VAE version and stored on disk."""
+    """Latents (T, V, C, h, w) of a clip, encoded once per VAE version and stored on disk.
+
+    An entry is reused when its VAE digest and clip fingerprint match; entries written before
+    fingerprints existed (digest only) get the fingerprint added on first use."""
     path = cache_dir / f"{clip.name}.safetensors"
+    key = clip_fingerprint(clip)
     if path.exists():
         try:
             from safetensors import safe_open
 
             with safe_open(str(path), "pt") as f:
-                if (f.metadata() or {}).get("vae") == vae_digest:
-                    return load_file(str(path))["latents"]
+                meta = f.metadata() or {}
+            if meta.get("vae") == vae_digest and meta.get("clip", key) == key:
+                lat = load_file(str(path))["latents"]
+                if "clip" not in meta:
+                    _write_latents(path, lat, vae_digest, key)
+                return lat
         except Exception:  # noqa: BLE001 - a corrupt cache entry is re-encoded
             pass
     lat = vae.encode_frames(np.asarray(clip.cameras), np.asarray(clip.lidar, dtype=np.float32))
-    cache_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    save_file({"latents": lat.contiguous()}, str(tmp), metadata={"vae": vae_digest})
-    os.replace(tmp, path)
+    _write_latents(path, lat, vae_digest, key)
     return lat
+
+
+def _write_latents(path: Path, lat: torch.Tensor, vae_digest: str, clip_key: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    save_file({"latents": lat.contiguous()}, str(tmp), metadata={"vae": vae_digest, "clip": clip_key})
+    os.replace(tmp, path)
 
 
 class LatentWindows:

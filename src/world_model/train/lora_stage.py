@@ -2,7 +2,7 @@
 
 Layout::
 
-    RUN_DIR/lora/NAME/   model_config.json, checkpoints/, latents/, adapter.safetensors + adapter.json
+    RUN_DIR/lora/NAME/   model_config.json, checkpoints/, adapter.safetensors + adapter.json
 
 Data selection: the *rare* clips are the clips containing an object of category ``NAME`` (or the
 explicit ``case_clips``), taken from ``case_data`` when given, else from ``data``; the *ordinary*
@@ -33,7 +33,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
-from world_model.train.data import LatentWindows, cached_latents, load_clips
+from world_model.train.data import LatentWindows, cached_latents, latent_cache_dir, load_clips
 from world_model.train.reference_stage import run_vae
 from world_model.train.stages import EXPORT, load_teacher
 from world_model.train.trainer import TrainConfig, Trainer
@@ -157,7 +157,7 @@ def lora_stage(
         raise ValueError(f"the base model {base_path} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
     vae, digest = run_vae(run_dir, cfg, "lora")
     clips, rare, ordinary = select_clips(data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
-    latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]
+    latents = [cached_latents(c, vae, latent_cache_dir(run_dir), digest) for c in clips]
     windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
     sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
 

@@ -2,7 +2,7 @@
 
 Layout::
 
-    RUN_DIR/reference/   checkpoints/, latents/, model.safetensors + model.json (EMA weights;
+    RUN_DIR/reference/   checkpoints/, model.safetensors + model.json (EMA weights;
                          model_config has in_channels_extra = C + 1, "reference" the task mix)
 
 The model starts as ``RUN_DIR/teacher/model`` with zero-initialized reference input channels
@@ -36,7 +36,7 @@ from world_model.model.reference import (
 )
 from world_model.model.text import make_text_encoder
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import LatentWindows, cached_latents, file_digest, load_clips
+from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
 from world_model.train.stages import EXPORT, load_teacher, load_vae
 from world_model.train.trainer import TrainConfig, Trainer
 
@@ -111,7 +111,7 @@ def reference_stage(
             f"the teacher in {teacher_path.parent} has preset {teacher.cfg.name!r}'s config, not {cfg.name!r}'s"
         )
     clips = load_clips(data_dir, cfg)
-    latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]
+    latents = [cached_latents(c, vae, latent_cache_dir(stage_dir.parent), digest) for c in clips]
     windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
     model = expand_teacher(teacher).train()
     ref_cfg = reference_model_config(cfg)

@@ -3,7 +3,7 @@
 A run directory holds one sub-directory per stage (later issues add the student stages)::
 
     RUN_DIR/vae/       checkpoints/, model.safetensors + model.json (EMA weights), metrics.json
-    RUN_DIR/teacher/   checkpoints/, latents/ (cached clip latents), model.safetensors + model.json
+    RUN_DIR/teacher/   checkpoints/, latents/ (the run's latent cache, every stage), model.safetensors + model.json
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
     RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
 
@@ -30,7 +30,14 @@ from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
 from world_model.student.config import StudentConfig
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import FrameSampler, LatentWindows, cached_latents, file_digest, load_clips
+from world_model.train.data import (
+    FrameSampler,
+    LatentWindows,
+    cached_latents,
+    file_digest,
+    latent_cache_dir,
+    load_clips,
+)
 from world_model.train.trainer import TrainConfig, Trainer
 
 STAGES = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference", "lora")  # tf..long: student_stages.py
@@ -203,7 +210,7 @@ def _teacher_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: Trai
         raise ValueError(f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
     clips = load_clips(data_dir, cfg)
     digest = file_digest(vae_path.with_suffix(".safetensors"))
-    latents = [cached_latents(c, vae, stage_dir / "latents", digest) for c in clips]
+    latents = [cached_latents(c, vae, latent_cache_dir(stage_dir.parent), digest) for c in clips]
     windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
     torch.manual_seed(tcfg.seed)
     model = MultiViewDiT(cfg)

@@ -55,7 +55,7 @@ from world_model.student.training import (
     teacher_forcing_velocity,
 )
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import LatentWindows, cached_latents, file_digest, load_clips
+from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
 from world_model.train.stages import EXPORT, load_teacher, load_vae
 from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedError
 
@@ -101,7 +101,7 @@ def _windows(data_dir: Path, run_dir: Path, cfg: ModelConfig) -> LatentWindows:
     vae = load_vae(vae_path)
     clips = load_clips(data_dir, cfg)
     digest = file_digest(vae_path.with_suffix(".safetensors"))
-    latents = [cached_latents(c, vae, run_dir / "teacher" / "latents", digest) for c in clips]
+    latents = [cached_latents(c, vae, latent_cache_dir(run_dir), digest) for c in clips]
     return LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
 
 
