@@ -50,15 +50,15 @@ STAGE_DEFAULTS = {
     "reference": (4, 5e-4, 100),
     "lora": (4, 1e-3, 50),
     "tf": (4, 5e-4, 100),
-    "ode": (4, 5e-4, 100),
-    "dmd": (2, 1e-4, 50),  # each step = 1 + critic_updates self-rollouts
-    "long": (2, 5e-5, 50),
+    "ode": (4, 5e-4, 20),  # a step runs a 20-step guided ODE: checkpoint often
+    "dmd": (2, 1e-4, 10),  # each step = 1 + critic_updates self-rollouts
+    "long": (2, 5e-5, 10),
 }
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 # Stages whose steps cost far more than a teacher step get their own default per preset. Sized for
 # the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step runs the
 # TF model's 20-step guided ODE, one ``dmd``/``long`` step runs 1 + critic_updates self-rollouts.
-STAGE_STEPS = {"default": {"tf": 500, "ode": 150, "dmd": 80, "long": 30, "reference": 800}}
+STAGE_STEPS = {"default": {"tf": 500, "ode": 80, "dmd": 50, "long": 20, "reference": 800}}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
 
