@@ -158,8 +158,12 @@ def evaluate_rows(
         answers: list[Answer] = []
         psnrs, ssims, maes, chamfers, feats = [], [], [], [], []
         long_curves = []
-        for clip in clips:
-            gen = fn(clip)
+        # A row may generate every clip at once (batched rollouts): then all of them up front.
+        generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
+        for ci, clip in enumerate(clips):
+            gen = generated[ci] if generated is not None else fn(clip)
+            if generated is not None:
+                generated[ci] = None  # scored below: let it go
             _check_generated(gen, clip, row)
             answers += judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
             gt = np.asarray(clip.cameras)
