@@ -188,7 +188,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     scripts = {
         "render": ["bench_render.py"],
         "traffic": ["bench_traffic.py"],
-        "env": ["bench_env.py"],
+        "env": ["bench_env.py", "--backend", "procedural", "world_model"],
         "model": ["bench_model.py"],
         "student": ["bench_student.py"],
         "judge": ["bench_judge.py", "--evalset", args.evalset],
