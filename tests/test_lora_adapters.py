@@ -121,3 +121,18 @@ def test_adapter_on_another_base_or_missing_gets_clear_errors(setup, tmp_path):
         add_adapter(model, "case")
     with pytest.raises(KeyError, match="not loaded"):
         remove_adapters(model, ["zzz"])
+
+
+def test_fingerprint_is_the_same_for_float32_and_bf16_copies_of_a_base():
+    import copy
+
+    from world_model.lora import base_fingerprint
+    from world_model.model import MultiViewDiT, get_preset
+
+    torch.manual_seed(0)
+    model = MultiViewDiT(get_preset("tiny"))
+    rounded = copy.deepcopy(model).to(torch.bfloat16)  # what a bf16 bundle serves
+    assert base_fingerprint(model) == base_fingerprint(rounded)
+    with torch.no_grad():
+        next(rounded.parameters()).add_(1.0)
+    assert base_fingerprint(model) != base_fingerprint(rounded)

@@ -160,6 +160,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             case=args.case,
             case_data=args.case_data,
+            base=args.base,
         )
         summary.pop("losses", None)
         print(json.dumps(summary, indent=1, default=float))
@@ -223,7 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("demo", help="run a scenario and write an mp4 of the sensor mosaic")
     d.add_argument("--scenario", default="highway_sunny_day")
-    d.add_argument("--backend", default="procedural", choices=("procedural", "world_model"))
+    d.add_argument("--backend", default="world_model", choices=("procedural", "world_model"))
     d.add_argument("--checkpoint", default=None)
     d.add_argument("--policy", default="idm", help="built-in (random, lane_keeping, idm) or module:callable")
     d.add_argument("--seed", type=int, default=0)
@@ -286,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=None)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--no-progress", action="store_true")
+    t.add_argument(
+        "--base", default=None, help="lora: base model export to adapt (default RUN/teacher/model; e.g. RUN/long/model)"
+    )
     t.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
     t.add_argument("--case-data", default=None, help="lora: dataset of the rare-case clips")
     t.set_defaults(func=_cmd_train)

@@ -13,8 +13,9 @@ On disk an adapter is two files in one directory (``DIR/<name>/`` of ``--stage l
                            "base_file_sha256", "lora": LoraConfig, "model_config", "train": {...}}
 
 ``base_sha256`` is :func:`base_fingerprint` of the model the adapter was trained on: the sha256
-of its base weights' content (sorted names, dtypes, shapes, bytes), so it does not depend on how
-a checkpoint file was serialized. Loading onto a model with another fingerprint fails.
+of its base weights' content (sorted names, shapes, values rounded to bf16), so it does not
+depend on how a checkpoint file was serialized nor on float32 vs bf16 copies of the same base.
+Loading onto a model with another fingerprint fails.
 
 Name resolution of :func:`apply_adapters`: an existing path (an adapter directory or its
 ``.json``/``.safetensors`` file) is used as is; a bare name is looked up as ``<dir>/<name>/`` in
@@ -105,11 +106,14 @@ def base_state(model: nn.Module) -> dict[str, torch.Tensor]:
 
 
 def base_fingerprint(model: nn.Module) -> str:
-    """sha256 of the base weights' content (names, dtypes, shapes, bytes); LoRA tensors excluded."""
+    """sha256 of the base weights' content (names, shapes, values rounded to bfloat16); LoRA
+    tensors excluded. Rounding makes the float32 model an adapter was trained on and the bf16 copy
+    the runtime serves (bundles store the DiTs in bf16) the same base."""
     h = hashlib.sha256()
     for k, v in sorted(base_state(model).items()):
-        t = v.detach().cpu().contiguous()
-        h.update(f"{k}|{t.dtype}|{tuple(t.shape)}\n".encode())
+        t = v.detach().cpu()
+        t = (t.to(torch.bfloat16) if t.is_floating_point() else t).contiguous()
+        h.update(f"{k}|{tuple(t.shape)}\n".encode())
         h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()
 

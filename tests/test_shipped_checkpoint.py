@@ -1,0 +1,27 @@
+"""The shipped default checkpoint: in the package, verified, and what `make demo` runs on."""
+
+import json
+
+import pytest
+
+from m4world_env.cli import main
+from world_model.bundle import DEFAULT_BUNDLE, load_bundle_files
+
+
+def test_default_bundle_is_package_data_and_verifies():
+    files = load_bundle_files(None)  # None = the shipped bundle; checks every sha256 of the manifest
+    assert files.path == DEFAULT_BUNDLE
+    assert {"vae", "student", "reference"} <= set(files.tensors)
+    assert files.manifest["components"]["student"]["stage"] in ("long", "dmd")
+    size = sum(p.stat().st_size for p in DEFAULT_BUNDLE.rglob("*") if p.is_file())
+    assert size <= 100 * 2**20  # the shipped weights stay under 100 MB
+
+
+@pytest.mark.slow
+def test_demo_runs_on_the_shipped_checkpoint(tmp_path, capsys):
+    out = tmp_path / "demo.mp4"
+    assert main(["demo", "--steps", "2", "--out", str(out)]) == 0
+    assert out.stat().st_size > 0
+    printed = capsys.readouterr().out
+    assert "backend world_model" in printed and "episode score" in printed
+    assert json.loads((DEFAULT_BUNDLE / "manifest.json").read_text())["format"] == "m4world-bundle"
