@@ -115,6 +115,19 @@ def _crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return img[y0:y1, x0:x1]
 
 
+def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs):  # noqa: ANN001, ANN202
+    """First frames of ``views``' frames from their controls without, then with, the adapters (same noise)."""
+    cond = _conditions(clips, views, vae)
+    gen = ReferenceGenerator(model, vae)
+    _, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
+    apply_adapters(model, adapters, search_dirs)
+    try:
+        _, adapted_obs = gen.first_frame(cond, steps=steps, seed=seed)
+    finally:
+        remove_adapters(model)
+    return base_obs, adapted_obs
+
+
 def evaluate(
     model,  # noqa: ANN001 - MultiViewDiT
     vae: SensorVAE,
@@ -133,14 +146,7 @@ def evaluate(
     """
     if not views:
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
-    cond = _conditions(clips, views, vae)
-    gen = ReferenceGenerator(model, vae)
-    _, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
-    apply_adapters(model, adapters, search_dirs)
-    try:
-        _, adapted_obs = gen.first_frame(cond, steps=steps, seed=seed)
-    finally:
-        remove_adapters(model)
+    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs)
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
     adapted = [o.cameras[rv.view] for o, rv in zip(adapted_obs, views, strict=True)]
@@ -208,14 +214,7 @@ def judge_ordinary(
 ) -> dict[str, dict[str, float]]:
     """Weather, time-of-day and existence (largest object) yes-frequencies on ordinary frames,
     for the truth and for the model without / with the adapters (same noise)."""
-    cond = _conditions(clips, frames, vae)
-    gen = ReferenceGenerator(model, vae)
-    _, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
-    apply_adapters(model, adapters, search_dirs)
-    try:
-        _, adapted_obs = gen.first_frame(cond, steps=steps, seed=seed)
-    finally:
-        remove_adapters(model)
+    base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, steps, seed, search_dirs)
     meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
     weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
     cats = []
