@@ -3,10 +3,14 @@
 One causal chunk of the gym env = ``clip.chunk_frames`` new frames for 8 batched envs x all views,
 attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cache-write forward
 of the DiT, then VAE decoding of 8 x views x chunk frames. This script times one DiT forward and
-the VAE decode the way the env runs them (bf16 weights when ``dit.autocast_bf16``), measures the
-machine's matmul peak in the same run (a 4096^2 matmul, fp32 and bf16) and reports medians.
+the VAE decode the way the env runs them (``--dtypes auto``: bf16 weights when
+``dit.autocast_bf16``; ``fp32``/``bf16`` force one), optionally with the blocks compiled
+(``--compile``, as env ``config.model.compile``), measures the machine's matmul peak in the same
+run (a 4096^2 matmul, fp32 and bf16) and reports medians. Each row's fraction of peak is against
+the peak of its own dtype.
 
-    python benchmarks/bench_model.py [--presets tiny default] [--repeats 7] [--out results.json]
+    python benchmarks/bench_model.py [--presets tiny default] [--dtypes auto fp32 bf16] [--compile]
+        [--repeats 7] [--out results.json]
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import json
 import statistics
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import torch
 
@@ -27,6 +32,7 @@ ENVS = 8  # batched envs of one vector-env step
 DENOISE_FORWARDS = 4  # the 4-step causal student
 CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
+DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 
 
 def median_time(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -61,10 +67,15 @@ def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
 
 
 @torch.no_grad()
-def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float]) -> dict:
+def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_name: str, compile_: bool) -> dict:
     torch.manual_seed(0)
-    dtype = torch.bfloat16 if cfg.dit.autocast_bf16 else torch.float32
+    if dtype_name == "auto":
+        dtype_name = "bf16" if cfg.dit.autocast_bf16 else "fp32"
+    dtype = DTYPES[dtype_name]
+    cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype_name == "bf16"))  # as runtime.load_world_model
     model = MultiViewDiT(cfg).eval().to(dtype)
+    if compile_:
+        model.compile_blocks()
     vae = SensorVAE(cfg).eval().to(dtype)
     chunk, ctx = cfg.clip.chunk_frames, cfg.clip.context_frames
     n, v = cfg.tokens_per_frame, cfg.sensors.num_views
@@ -79,15 +90,15 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float]) -> dic
     def forward() -> torch.Tensor:
         return model(x, t, tokens, causal=True, frame_offset=ctx, kv_context=kv)
 
-    fwd = median_time(forward, repeats)
+    fwd = median_time(forward, repeats, warmup=3 if compile_ else 2)
     z = torch.randn(ENVS * v * chunk, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)
     dec = median_time(lambda: vae.decode(z), repeats)
     flops = dit_forward_flops(cfg, ENVS, chunk, ctx)
-    peak_key = "bf16" if dtype == torch.bfloat16 else "fp32"
     achieved = flops["total"] / fwd / 1e9
     return {
         "preset": cfg.name,
-        "dtype": peak_key,
+        "dtype": dtype_name,
+        "compiled": compile_,
         "dit_params_m": sum(p.numel() for p in model.parameters()) / 1e6,
         "vae_params_m": sum(p.numel() for p in vae.parameters()) / 1e6,
         "tokens_per_forward": ENVS * v * chunk * n,
@@ -95,7 +106,7 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float]) -> dic
         "forward_linear_gflop": flops["linear"] / 1e9,
         "forward_s": fwd,
         "achieved_gflops": achieved,
-        "fraction_of_peak": achieved / peaks[peak_key],
+        "fraction_of_peak": achieved / peaks[dtype_name],
         "vae_decode_s": dec,
         "vae_decode_ms_per_frame": 1e3 * dec / (ENVS * v * chunk),
         "env_step_estimate_s": (DENOISE_FORWARDS + CACHE_FORWARDS) * fwd + dec,
@@ -105,11 +116,15 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float]) -> dic
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
+    p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto = the preset's own")
+    p.add_argument("--compile", action="store_true", help="torch.compile the DiT blocks (needs a C++ compiler)")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--out", default=None, help="write the results as JSON here")
     a = p.parse_args()
     peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
-    rows = [bench_config(get_preset(name), a.repeats, peaks) for name in a.presets]
+    rows = [
+        bench_config(get_preset(name), a.repeats, peaks, dtype, a.compile) for name in a.presets for dtype in a.dtypes
+    ]
     print(
         f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
         f"({torch.get_num_threads()} threads)"
@@ -117,6 +132,7 @@ def main() -> None:
     cols = [
         "preset",
         "dtype",
+        "compiled",
         "dit_params_m",
         "forward_gflop",
         "forward_s",
