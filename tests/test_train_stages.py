@@ -1,6 +1,7 @@
 """Training stages end to end on a tiny synthetic dataset: export, resume, determinism, kill, NaN."""
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -119,6 +120,15 @@ def test_nan_loss_stops_with_clear_error_and_keeps_last_checkpoint(tmp_path):
     with pytest.raises(TrainingDivergedError, match="loss is nan at step 4"):
         trainer.run(step, "toy")
     assert load_latest(tmp_path / "checkpoints").step == 3
+
+
+def test_progress_file_follows_the_run(tmp_path):
+    model = torch.nn.Linear(2, 1)
+    trainer = Trainer(tmp_path, model, TrainConfig(steps=4, batch_size=1, lr=1e-2, ckpt_every=2), {}, False)
+    trainer.run(lambda tr: (model(torch.ones(1, 2)).sum() ** 2, 1), "toy")
+    report = json.loads((tmp_path / "progress.json").read_text())
+    assert report["stage"] == "toy" and report["step"] == report["total_steps"] == 4
+    assert report["eta_s"] == 0 and report["steps_per_s"] > 0 and math.isfinite(report["loss"])
 
 
 def test_half_written_checkpoint_is_ignored(tmp_path):

@@ -1,5 +1,9 @@
 """The training loop every stage shares: resume, step, EMA, progress, checkpoints, NaN guard.
 
+Progress goes to a tqdm bar and, for background jobs without a terminal, to
+``<stage_dir>/progress.json`` (step, total, loss, throughput, ETA), rewritten atomically at most
+every ``PROGRESS_PERIOD_S`` seconds and at every checkpoint: ``cat`` it to follow a run.
+
 Determinism: all randomness of a stage (data sampling, noise, timesteps, condition dropout) comes
 from one ``numpy.random.Generator`` and one ``torch.Generator`` owned by the :class:`Trainer`;
 both are checkpointed, so a run killed and restarted continues exactly as if uninterrupted.
@@ -18,8 +22,12 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from world_model.data.clips import write_json_atomic
 from world_model.train.checkpoint import load_latest, save_checkpoint
 from world_model.train.ema import EMA
+
+PROGRESS_PERIOD_S = 30.0
+LOSS_WINDOW = 50  # steps in the progress file's running-mean loss
 
 
 class TrainingDivergedError(RuntimeError):
@@ -92,6 +100,24 @@ class Trainer:
             keep=self.tcfg.keep_checkpoints,
         )
 
+    def write_progress(self, desc: str, losses: list[float], rate_steps: float, rate_samples: float) -> None:
+        recent = losses[-LOSS_WINDOW:]
+        left = self.tcfg.steps - self.step
+        write_json_atomic(
+            self.dir / "progress.json",
+            {
+                "stage": desc,
+                "step": self.step,
+                "total_steps": self.tcfg.steps,
+                "loss": self.last_loss,
+                f"loss_mean_last_{LOSS_WINDOW}": sum(recent) / len(recent) if recent else None,
+                "steps_per_s": rate_steps,
+                "samples_per_s": rate_samples,
+                "eta_s": left / rate_steps if rate_steps > 0 else None,
+                "updated": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            },
+        )
+
     def _lr(self) -> float:
         return self.tcfg.lr * min(1.0, (self.step + 1) / max(1, self.tcfg.warmup_steps))
 
@@ -102,6 +128,7 @@ class Trainer:
         self.model.train()
         losses: list[float] = []
         samples, t0 = 0, time.perf_counter()
+        last_report = t0
         bar = tqdm(
             total=self.tcfg.steps,
             initial=self.step,
@@ -132,11 +159,16 @@ class Trainer:
                 self.last_loss = value
                 losses.append(value)
                 samples += n
-                rate = samples / max(time.perf_counter() - t0, 1e-9)
+                now = time.perf_counter()
+                rate = samples / max(now - t0, 1e-9)
                 bar.set_postfix(loss=f"{value:.4f}", samples_per_s=f"{rate:.1f}")
                 bar.update(1)
-                if self.step % self.tcfg.ckpt_every == 0 or self.step == self.tcfg.steps:
+                checkpoint = self.step % self.tcfg.ckpt_every == 0 or self.step == self.tcfg.steps
+                if checkpoint:
                     self.save()
+                if checkpoint or now - last_report >= PROGRESS_PERIOD_S:
+                    self.write_progress(desc, losses, len(losses) / max(now - t0, 1e-9), rate)
+                    last_report = now
         finally:
             bar.close()
         elapsed = time.perf_counter() - t0
