@@ -86,3 +86,25 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
 def test_rows_with_wrong_shapes_are_rejected(clips, judge):
     with pytest.raises(ValueError, match="cameras must be uint8"):
         evaluate_rows({"bad": lambda c: Generated(np.asarray(c.cameras)[:, :2])}, clips[:1], judge=judge)
+
+
+def test_finished_rows_are_cached_by_key(clips, judge, tmp_path):
+    calls = []
+
+    def counted(clip):
+        calls.append(clip.name)
+        return oracle_row(clip)
+
+    cfg = ReportConfig(frame_stride=4, lidar_stride=30, chamfer_max_points=512)
+    two = clips[:2]
+    first = evaluate_rows({"a": counted, "b": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A"})
+    assert len(calls) == 4 and (tmp_path / "a.json").exists() and not (tmp_path / "b.json").exists()
+    again = evaluate_rows({"a": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A"})
+    assert len(calls) == 4 and again["rows"]["a"] == first["rows"]["a"]  # reused, not regenerated
+    # Another generator id, other clips or another config: generated again.
+    evaluate_rows({"a": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A2"})
+    evaluate_rows({"a": counted}, clips[:1], judge, cfg, cache_dir=tmp_path, row_ids={"a": "A2"})
+    evaluate_rows(
+        {"a": counted}, clips[:1], judge, ReportConfig(frame_stride=3), cache_dir=tmp_path, row_ids={"a": "A2"}
+    )
+    assert len(calls) == 4 + 2 + 1 + 1

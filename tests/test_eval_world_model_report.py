@@ -38,6 +38,12 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert oracle["psnr_db"] > student["psnr_db"]  # an untrained model is far from the ground truth
     assert student["lidar_range_mae_m"] > oracle["lidar_range_mae_m"] == 0.0
     assert "student_no_refresh" in capsys.readouterr().out
+    # Each finished row is kept: a rerun (e.g. adding a --baseline row) reuses them, same numbers.
+    assert sorted(p.stem for p in (out / "rows").iterdir()) == ["oracle", "student", "student_no_refresh"]
+    stamp = (out / "rows" / "student.json").stat().st_mtime_ns
+    assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
+    assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp
+    assert json.loads((out / "report.json").read_text())["rows"] == report["rows"]
 
 
 def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):

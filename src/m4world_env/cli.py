@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -72,25 +73,38 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
+    from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
     from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
     from world_model.eval.rows import teacher_row, world_model_row
     from world_model.runtime import load_world_model
 
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     clips = list(iter_clips(args.evalset))[: args.max_clips or None]
     if not clips:
         raise ValueError(f"no clips in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
+
+    def bundle_id(path: str | None) -> str:
+        return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
+
     wm = load_world_model(args.checkpoint)
-    rows = {"oracle": oracle_row}
+    model_id = f"bundle={bundle_id(args.checkpoint)},seed={args.seed}"
+    rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
         rows["geometry_only"] = world_model_row(load_world_model(args.baseline), seed=args.seed)
+        ids["geometry_only"] = f"student,bundle={bundle_id(args.baseline)},seed={args.seed},refresh=1"
     rows["student"] = world_model_row(wm, seed=args.seed)
+    ids["student"] = f"student,{model_id},refresh=1"
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
+    ids["student_no_refresh"] = f"student,{model_id},refresh=0"
     if args.teacher:
         from world_model.train.stages import load_teacher
 
         rows["teacher"] = teacher_row(wm, load_teacher(args.teacher), seed=args.seed)
-    report = evaluate_rows(rows, clips)
+        weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
+        ids["teacher"] = f"teacher={sha256_file(weights)[:16] if weights.exists() else args.teacher},{model_id}"
+    cache = Path(args.out) / "rows" if args.out else None
+    report = evaluate_rows(rows, clips, cache_dir=cache, row_ids=ids)
     print(format_markdown(report))
     if args.out:
         md, js = write_report(report, args.out)

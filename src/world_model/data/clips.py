@@ -21,6 +21,7 @@ leaves no half clip behind and a restarted one skips the clips that exist.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -199,3 +200,9 @@ def read_clip(root: str | Path, name: str, mmap: bool = True) -> Clip:
 def iter_clips(root: str | Path, mmap: bool = True) -> Iterator[Clip]:
     for name in list_clips(root):
         yield read_clip(root, name, mmap=mmap)
+
+
+def clip_fingerprint(clip: Clip) -> str:
+    """Identity of a recording: its metadata (scenario, seed, fps, frames, sensors) and array shapes."""
+    blob = json.dumps([clip.meta, list(clip.cameras.shape), list(clip.lidar.shape)], sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]

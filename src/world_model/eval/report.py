@@ -8,7 +8,10 @@ API takes them as callables ``Clip -> Generated`` so that the world model plugs 
 
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
+import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -17,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from world_model.data import Clip
+from world_model.data.clips import write_json_atomic
 from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_by_track_time
 from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
 from world_model.eval.metrics import (
@@ -31,6 +35,9 @@ from world_model.eval.metrics import (
 )
 from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
+from world_model.train.data import clip_fingerprint
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -138,6 +145,8 @@ def evaluate_rows(
     clips: Sequence[Clip],
     judge: JudgeBackend | None = None,
     config: ReportConfig = ReportConfig(),
+    cache_dir: str | Path | None = None,
+    row_ids: dict[str, str] | None = None,
 ) -> dict:
     """Score every row on every clip. Returns a JSON-ready report: per row ``table1`` (Fréchet
     distances, PSNR, SSIM, LiDAR MAE / Chamfer), ``table2`` (yes-frequencies), ``per_category`` and,
@@ -145,74 +154,130 @@ def evaluate_rows(
 
     ``judge`` answers the questions (default: the shipped CNN judge); its ``frame_features`` feed
     the Fréchet distances (a backend without them gets None there).
+
+    Rows take minutes to hours, so with ``cache_dir`` each finished row is written there
+    (``<row>.json``, atomically) under a key made of ``row_ids[row]`` (what generates it: model
+    digest, seed, switches), the clips, ``config`` and the judge; a later call with the same key
+    reuses it instead of generating again — a killed report resumes at the row it was on, and a
+    new row (e.g. the geometry-only baseline) costs only itself. Rows without an id are never cached.
     """
     if not rows or not clips:
         raise ValueError("evaluate_rows needs at least one row and one clip")
     judge = judge if judge is not None else load_default_judge()
     features = getattr(judge, "frame_features", None)
-    crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
-    sim = ProceduralSimulator()
     gt_feats = [features(np.asarray(c.cameras)) for c in clips] if features else []
     report: dict = {"rows": {}, "clips": [c.name for c in clips], "config": config.__dict__}
     for row, fn in rows.items():
-        answers: list[Answer] = []
-        psnrs, ssims, maes, chamfers, feats = [], [], [], [], []
-        long_curves = []
-        # A row may generate every clip at once (batched rollouts): then all of them up front.
-        generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
-        for ci, clip in enumerate(clips):
-            gen = generated[ci] if generated is not None else fn(clip)
-            if generated is not None:
-                generated[ci] = None  # scored below: let it go
-            _check_generated(gen, clip, row)
-            answers += judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
-            gt = np.asarray(clip.cameras)
-            # Frame by frame: a 600-frame clip in float64 at once would take gigabytes.
-            per_frame = np.array([psnr(gen.cameras[t], gt[t]).mean() for t in range(clip.num_frames)])
-            per_frame = np.minimum(per_frame, config.psnr_cap_db)
-            sl = slice(None, None, config.frame_stride)
-            psnrs.append(per_frame[sl])
-            ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
-            if features:
-                feats.append(features(gen.cameras))
-            if clip.num_frames / clip.fps >= 2 * config.long_window_s:
-                curve = per_second_curve(per_frame, clip.fps)
-                long_curves.append({"clip": clip.name, "psnr_per_second": curve.tolist(),
-                                    "ratio_last_first": long_horizon_ratio(curve, config.long_window_s)})  # fmt: skip
-            if gen.lidar is not None:
-                spec = clip.frames[0].lidar
-                for i in range(0, clip.num_frames, config.lidar_stride):
-                    g, t = np.asarray(gen.lidar[i], np.float32), np.asarray(clip.lidar[i], np.float32)
-                    maes.append(lidar_range_mae(g, t, spec))
-                    chamfers.append(chamfer_distance(g, t, spec, max_points=config.chamfer_max_points))
-        table1 = {
-            "frechet_judge_frame": None,
-            "frechet_judge_clip": None,
-            "psnr_db": float(np.mean(np.concatenate(psnrs))),
-            "ssim": float(np.mean(np.concatenate(ssims))),
-            "lidar_range_mae_m": float(np.mean(maes)) if maes else None,
-            "lidar_chamfer_m": float(np.mean(chamfers)) if chamfers else None,
-        }
-        if features:
-            sl = slice(None, None, config.frame_stride)
-            table1["frechet_judge_frame"] = frechet_features(
-                np.concatenate([f[sl] for f in feats]), np.concatenate([f[sl] for f in gt_feats])
-            )
-            w = config.clip_window
-            long_enough = [i for i, f in enumerate(feats) if len(f) >= w]  # clips shorter than a window
-            if long_enough:
-                table1["frechet_judge_clip"] = frechet_features(
-                    np.concatenate([clip_window_features(feats[i], w) for i in long_enough]),
-                    np.concatenate([clip_window_features(gt_feats[i], w) for i in long_enough]),
-                )
-        report["rows"][row] = {
-            "table1": table1,
-            "table2": yes_frequencies(answers),
-            "per_category": per_category(answers),
-            "answers": len(answers),
-            "long_horizon": long_curves,
-        }
+        rid = (row_ids or {}).get(row)
+        cache = Path(cache_dir) / f"{row}.json" if cache_dir is not None and rid is not None else None
+        key = row_cache_key(rid, clips, config, judge) if cache is not None else None
+        if cache is not None and cache.exists():
+            saved = json.loads(cache.read_text())
+            if saved.get("key") == key:
+                log.info("report row %s: reused from %s", row, cache)
+                report["rows"][row] = saved["result"]
+                continue
+        t0 = time.perf_counter()
+        log.info("report row %s: generating and scoring %d clips", row, len(clips))
+        report["rows"][row] = score_row(row, fn, clips, judge, config, gt_feats)
+        log.info("report row %s: done in %.0f s", row, time.perf_counter() - t0)
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(cache, {"key": key, "row_id": rid, "result": report["rows"][row]})
     return report
+
+
+def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
+    """Identity of one row's scores: generator id, clips (name + recording fingerprint), config, judge."""
+    blob = json.dumps(
+        [row_id, [(c.name, clip_fingerprint(c)) for c in clips], config.__dict__, judge_identity(judge)],
+        sort_keys=True,
+    )
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def judge_identity(judge: JudgeBackend) -> str:
+    """The CNN judge's weights and thresholds digest; other backends: their class name."""
+    if not isinstance(judge, CnnJudge):
+        return type(judge).__qualname__
+    h = hashlib.sha256(json.dumps(judge.thresholds.__dict__, sort_keys=True, default=str).encode())
+    for net in (judge.crop_net, judge.scene_net):
+        for name, tensor in sorted(net.state_dict().items()):
+            h.update(name.encode())
+            h.update(tensor.detach().float().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def score_row(
+    row: str,
+    fn: RowFn,
+    clips: Sequence[Clip],
+    judge: JudgeBackend,
+    config: ReportConfig,
+    gt_feats: Sequence[np.ndarray],
+) -> dict:
+    """One row of the report (see :func:`evaluate_rows`); ``gt_feats``: the judge's frame features
+    of each clip's ground truth (empty when the judge has none)."""
+    features = getattr(judge, "frame_features", None)
+    crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
+    sim = ProceduralSimulator()
+    answers: list[Answer] = []
+    psnrs, ssims, maes, chamfers, feats = [], [], [], [], []
+    long_curves = []
+    # A row may generate every clip at once (batched rollouts): then all of them up front.
+    generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
+    for ci, clip in enumerate(clips):
+        gen = generated[ci] if generated is not None else fn(clip)
+        if generated is not None:
+            generated[ci] = None  # scored below: let it go
+        _check_generated(gen, clip, row)
+        answers += judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
+        gt = np.asarray(clip.cameras)
+        # Frame by frame: a 600-frame clip in float64 at once would take gigabytes.
+        per_frame = np.array([psnr(gen.cameras[t], gt[t]).mean() for t in range(clip.num_frames)])
+        per_frame = np.minimum(per_frame, config.psnr_cap_db)
+        sl = slice(None, None, config.frame_stride)
+        psnrs.append(per_frame[sl])
+        ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
+        if features:
+            feats.append(features(gen.cameras))
+        if clip.num_frames / clip.fps >= 2 * config.long_window_s:
+            curve = per_second_curve(per_frame, clip.fps)
+            long_curves.append({"clip": clip.name, "psnr_per_second": curve.tolist(),
+                                "ratio_last_first": long_horizon_ratio(curve, config.long_window_s)})  # fmt: skip
+        if gen.lidar is not None:
+            spec = clip.frames[0].lidar
+            for i in range(0, clip.num_frames, config.lidar_stride):
+                g, t = np.asarray(gen.lidar[i], np.float32), np.asarray(clip.lidar[i], np.float32)
+                maes.append(lidar_range_mae(g, t, spec))
+                chamfers.append(chamfer_distance(g, t, spec, max_points=config.chamfer_max_points))
+    table1 = {
+        "frechet_judge_frame": None,
+        "frechet_judge_clip": None,
+        "psnr_db": float(np.mean(np.concatenate(psnrs))),
+        "ssim": float(np.mean(np.concatenate(ssims))),
+        "lidar_range_mae_m": float(np.mean(maes)) if maes else None,
+        "lidar_chamfer_m": float(np.mean(chamfers)) if chamfers else None,
+    }
+    if features:
+        sl = slice(None, None, config.frame_stride)
+        table1["frechet_judge_frame"] = frechet_features(
+            np.concatenate([f[sl] for f in feats]), np.concatenate([f[sl] for f in gt_feats])
+        )
+        w = config.clip_window
+        long_enough = [i for i, f in enumerate(feats) if len(f) >= w]  # clips shorter than a window
+        if long_enough:
+            table1["frechet_judge_clip"] = frechet_features(
+                np.concatenate([clip_window_features(feats[i], w) for i in long_enough]),
+                np.concatenate([clip_window_features(gt_feats[i], w) for i in long_enough]),
+            )
+    return {
+        "table1": table1,
+        "table2": yes_frequencies(answers),
+        "per_category": per_category(answers),
+        "answers": len(answers),
+        "long_horizon": long_curves,
+    }
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from dataclasses import replace
 from pathlib import Path
@@ -13,6 +12,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from world_model.data import Clip, iter_clips
+from world_model.data.clips import clip_fingerprint
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder
@@ -73,12 +73,6 @@ def latent_cache_dir(run_dir: str | Path) -> Path:
     """The run's one latent cache, shared by every stage that encodes clips (teacher, student
     stages, reference, LoRA): entries are keyed by clip name, clip fingerprint and VAE digest."""
     return Path(run_dir) / "teacher" / "latents"
-
-
-def clip_fingerprint(clip: Clip) -> str:
-    """Identity of a recording: its metadata (scenario, seed, fps, frames, sensors) and array shapes."""
-    blob = json.dumps([clip.meta, list(clip.cameras.shape), list(clip.lidar.shape)], sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def cached_latents(clip: Clip, vae: SensorVAE, cache_dir: Path, vae_digest: str) -> torch.Tensor:
