@@ -58,7 +58,8 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
         "blurred": lambda c: Generated(blur(np.asarray(c.cameras), 2.0), np.asarray(c.lidar, np.float32) + 2.0),
         "color_shifted": lambda c: Generated(color_shift(np.asarray(c.cameras))),
     }
-    cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=15, chamfer_max_points=2048)
+    # 3 s clips with a 1 s long-horizon window: every clip also gets the long-horizon curves
+    cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=15, chamfer_max_points=2048, long_window_s=1)
     report = evaluate_rows(rows, clips, judge=judge, config=cfg)
     o, b, s = (report["rows"][k] for k in rows)
     t1 = o["table1"]
@@ -71,6 +72,13 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
         assert bad["table1"]["psnr_db"] < 40
         assert np.mean(list(bad["table2"].values())) < np.mean(list(o["table2"].values()))
     assert b["table1"]["lidar_range_mae_m"] == pytest.approx(2.0, abs=1e-3)
+    assert b["table1"]["lidar_range_mae_first_s_m"] == pytest.approx(2.0, abs=1e-3)
+    assert t1["lidar_range_mae_first_s_m"] == 0.0
+    for lo, lb in zip(o["long_horizon"], b["long_horizon"], strict=True):
+        assert lo["seconds"] == 3 and lo["ratio_last_first"] == 1.0 and lo["frechet_judge_frame_first"] < 1e-6
+        assert lo["lidar_mae_per_second"] == [0.0] * 3
+        assert lb["frechet_judge_frame_first"] > 0 and lb["frechet_ratio_last_first"] > 0
+        assert lb["lidar_mae_per_second"] == pytest.approx([2.0] * 3, abs=1e-3)
     assert s["table1"]["lidar_range_mae_m"] is None
     assert b["table2"]["clarity"] < o["table2"]["clarity"]
     assert s["table2"]["textual_fidelity"] < o["table2"]["textual_fidelity"]

@@ -38,6 +38,7 @@ from world_model.sim import ProceduralSimulator
 from world_model.train.data import clip_fingerprint
 
 log = logging.getLogger(__name__)
+REPORT_VERSION = 2  # part of a cached row's key: bump when score_row computes something new
 
 
 @dataclass
@@ -190,7 +191,13 @@ def evaluate_rows(
 def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
     """Identity of one row's scores: generator id, clips (name + recording fingerprint), config, judge."""
     blob = json.dumps(
-        [row_id, [(c.name, clip_fingerprint(c)) for c in clips], config.__dict__, judge_identity(judge)],
+        [
+            REPORT_VERSION,
+            row_id,
+            [(c.name, clip_fingerprint(c)) for c in clips],
+            config.__dict__,
+            judge_identity(judge),
+        ],
         sort_keys=True,
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -222,7 +229,7 @@ def score_row(
     crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
     sim = ProceduralSimulator()
     answers: list[Answer] = []
-    psnrs, ssims, maes, chamfers, feats = [], [], [], [], []
+    psnrs, ssims, maes, maes_first_s, chamfers, feats = [], [], [], [], [], []
     long_curves = []
     # A row may generate every clip at once (batched rollouts): then all of them up front.
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
@@ -241,22 +248,23 @@ def score_row(
         ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
         if features:
             feats.append(features(gen.cameras))
-        if clip.num_frames / clip.fps >= 2 * config.long_window_s:
-            curve = per_second_curve(per_frame, clip.fps)
-            long_curves.append({"clip": clip.name, "psnr_per_second": curve.tolist(),
-                                "ratio_last_first": long_horizon_ratio(curve, config.long_window_s)})  # fmt: skip
+        spec = clip.frames[0].lidar
         if gen.lidar is not None:
-            spec = clip.frames[0].lidar
             for i in range(0, clip.num_frames, config.lidar_stride):
                 g, t = np.asarray(gen.lidar[i], np.float32), np.asarray(clip.lidar[i], np.float32)
                 maes.append(lidar_range_mae(g, t, spec))
                 chamfers.append(chamfer_distance(g, t, spec, max_points=config.chamfer_max_points))
+            maes_first_s += [_lidar_mae(gen, clip, i) for i in range(min(clip.num_frames, round(clip.fps)))]
+        if clip.num_frames / clip.fps >= 2 * config.long_window_s:
+            long_curves.append(long_horizon(clip, gen, per_frame, feats[-1] if features else None,
+                                            gt_feats[ci] if features else None, config))  # fmt: skip
     table1 = {
         "frechet_judge_frame": None,
         "frechet_judge_clip": None,
         "psnr_db": float(np.mean(np.concatenate(psnrs))),
         "ssim": float(np.mean(np.concatenate(ssims))),
         "lidar_range_mae_m": float(np.mean(maes)) if maes else None,
+        "lidar_range_mae_first_s_m": float(np.mean(maes_first_s)) if maes_first_s else None,
         "lidar_chamfer_m": float(np.mean(chamfers)) if chamfers else None,
     }
     if features:
@@ -280,13 +288,59 @@ def score_row(
     }
 
 
+def long_horizon(
+    clip: Clip,
+    gen: Generated,
+    psnr_per_frame: np.ndarray,
+    gen_feats: np.ndarray | None,
+    gt_feats: np.ndarray | None,
+    config: ReportConfig,
+) -> dict:
+    """Stability of a long rollout: per-second PSNR (and LiDAR MAE) curves, and the last
+    ``long_window_s`` seconds against the first — PSNR ratio (1 = no degradation, < 1 worse) and
+    the frame Fréchet distance of each window to the ground truth's same window (ratio > 1 worse)."""
+    curve = per_second_curve(psnr_per_frame, clip.fps)
+    out: dict = {
+        "clip": clip.name,
+        "seconds": len(curve),
+        "psnr_per_second": curve.tolist(),
+        "ratio_last_first": long_horizon_ratio(curve, config.long_window_s),
+    }
+    w = round(config.long_window_s * clip.fps)
+    if gen_feats is not None and gt_feats is not None:
+        first = frechet_features(gen_feats[:w], gt_feats[:w])
+        last = frechet_features(gen_feats[-w:], gt_feats[-w:])
+        out |= {
+            "frechet_judge_frame_first": first,
+            "frechet_judge_frame_last": last,
+            "frechet_ratio_last_first": last / first if first > 0 else None,
+        }
+    if gen.lidar is not None:
+        mae = np.array([_lidar_mae(gen, clip, i) for i in range(clip.num_frames)])
+        out["lidar_mae_per_second"] = per_second_curve(mae, clip.fps).tolist()
+    return out
+
+
+def _lidar_mae(gen: Generated, clip: Clip, frame: int) -> float:
+    truth = np.asarray(clip.lidar[frame], np.float32)
+    return lidar_range_mae(np.asarray(gen.lidar[frame], np.float32), truth, clip.frames[0].lidar)
+
+
 def _fmt(v: float | None, digits: int = 3) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
 
 def format_markdown(report: dict) -> str:
     """Table 1 and Table 2 of a report as markdown."""
-    t1 = ["frechet_judge_frame", "frechet_judge_clip", "psnr_db", "ssim", "lidar_range_mae_m", "lidar_chamfer_m"]
+    t1 = [
+        "frechet_judge_frame",
+        "frechet_judge_clip",
+        "psnr_db",
+        "ssim",
+        "lidar_range_mae_m",
+        "lidar_range_mae_first_s_m",
+        "lidar_chamfer_m",
+    ]
     lines = ["### Table 1: generation quality (judge-feature Fréchet distances, not Inception FID/FVD)", ""]
     lines += ["| row | " + " | ".join(t1) + " |", "|---" * (len(t1) + 1) + "|"]
     for row, r in report["rows"].items():
@@ -295,6 +349,15 @@ def format_markdown(report: dict) -> str:
     lines += ["| row | " + " | ".join(QUESTION_TYPES) + " |", "|---" * (len(QUESTION_TYPES) + 1) + "|"]
     for row, r in report["rows"].items():
         lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
+    long_rows = [(row, c) for row, r in report["rows"].items() for c in r.get("long_horizon", [])]
+    if long_rows:
+        w = report.get("config", {}).get("long_window_s", "?")
+        lines += ["", f"### Long horizon: last {w} s vs first {w} s of each long clip", ""]
+        cols = ["seconds", "ratio_last_first", "frechet_judge_frame_first", "frechet_judge_frame_last",
+                "frechet_ratio_last_first"]  # fmt: skip
+        lines += ["| row | clip | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
+        for row, c in long_rows:
+            lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
     return "\n".join(lines) + "\n"
 
 
