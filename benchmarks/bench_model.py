@@ -2,12 +2,12 @@
 
 One causal chunk of the gym env = ``clip.chunk_frames`` new frames for 8 batched envs x all views,
 attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cache-write forward
-of the DiT, then VAE decoding of 8 x views x chunk frames. This script times one DiT forward and
-the VAE decode the way the env runs them (``--dtypes auto``: bf16 weights when
-``dit.autocast_bf16``; ``fp32``/``bf16`` force one), optionally with the blocks compiled
-(``--compile``, as env ``config.model.compile``), measures the machine's matmul peak in the same
-run (a 4096^2 matmul, fp32 and bf16) and reports medians. Each row's fraction of peak is against
-the peak of its own dtype.
+of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does. This script
+times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
+when ``dit.autocast_bf16``; ``fp32``/``bf16`` force one); ``--compile`` adds rows with the blocks
+compiled (env ``config.model.compile``). It measures the machine's matmul peak in the same run (a
+4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of peak is against the
+peak of its own dtype.
 
     python benchmarks/bench_model.py [--presets tiny default] [--dtypes auto fp32 bf16] [--compile]
         [--repeats 7] [--out results.json]
@@ -91,7 +91,7 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_
         return model(x, t, tokens, causal=True, frame_offset=ctx, kv_context=kv)
 
     fwd = median_time(forward, repeats, warmup=3 if compile_ else 2)
-    z = torch.randn(ENVS * v * chunk, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)
+    z = torch.randn(ENVS * v, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)  # the newest frame
     dec = median_time(lambda: vae.decode(z), repeats)
     flops = dit_forward_flops(cfg, ENVS, chunk, ctx)
     achieved = flops["total"] / fwd / 1e9
@@ -108,7 +108,7 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_
         "achieved_gflops": achieved,
         "fraction_of_peak": achieved / peaks[dtype_name],
         "vae_decode_s": dec,
-        "vae_decode_ms_per_frame": 1e3 * dec / (ENVS * v * chunk),
+        "vae_decode_ms_per_frame": 1e3 * dec / (ENVS * v),
         "env_step_estimate_s": (DENOISE_FORWARDS + CACHE_FORWARDS) * fwd + dec,
     }
 
@@ -117,13 +117,18 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
     p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto = the preset's own")
-    p.add_argument("--compile", action="store_true", help="torch.compile the DiT blocks (needs a C++ compiler)")
+    p.add_argument(
+        "--compile", action="store_true", help="also rows with the DiT blocks torch.compile'd (needs a C++ compiler)"
+    )
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--out", default=None, help="write the results as JSON here")
     a = p.parse_args()
     peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
     rows = [
-        bench_config(get_preset(name), a.repeats, peaks, dtype, a.compile) for name in a.presets for dtype in a.dtypes
+        bench_config(get_preset(name), a.repeats, peaks, dtype, compiled)
+        for name in a.presets
+        for dtype in a.dtypes
+        for compiled in ((False, True) if a.compile else (False,))
     ]
     print(
         f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
