@@ -193,6 +193,7 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
+    import shutil
     import subprocess
 
     root = Path(__file__).resolve().parents[2] / "benchmarks"
@@ -204,7 +205,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         "render": ["bench_render.py"],
         "traffic": ["bench_traffic.py"],
         "env": ["bench_env.py", "--backend", "procedural", "world_model"],
-        "model": ["bench_model.py"],
+        # compiled rows only where inductor can build its kernels (a C++ compiler)
+        "model": ["bench_model.py", "--dtypes", "bf16", "fp32", *(["--compile"] if shutil.which("c++") else [])],
         "student": ["bench_student.py"],
         "judge": ["bench_judge.py", "--evalset", args.evalset],
     }
