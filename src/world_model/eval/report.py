@@ -358,7 +358,49 @@ def format_markdown(report: dict) -> str:
         lines += ["| row | clip | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
         for row, c in long_rows:
             lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
+    lines += quality_bars(report)
     return "\n".join(lines) + "\n"
+
+
+QUALITY_RATIOS = {"existence": 0.8, "weather": 0.85, "time_of_day": 0.85}  # x Oracle (issue 7)
+FIDELITY_MARGIN = 0.30  # visual/textual fidelity above the geometry-only baseline
+LONG_TOLERANCE = 0.20  # last vs first long-horizon window
+LIDAR_FIRST_S_MAX_M = 2.0
+
+
+def quality_bars(report: dict, model: str = "student") -> list[str]:
+    """Markdown lines: the shipped checkpoint's quality bars (issue 7) from the report's rows —
+    judge ratios to the Oracle, fidelity margins over ``geometry_only``, long-horizon stability
+    and first-second LiDAR MAE. Empty without an ``oracle`` and a ``model`` row."""
+    rows = report["rows"]
+    if "oracle" not in rows or model not in rows:
+        return []
+    o, m, g = rows["oracle"]["table2"], rows[model]["table2"], rows.get("geometry_only", {}).get("table2")
+    out = ["", f"### Quality bars ({model})", "", "| bar | measured | status |", "|---|---|---|"]
+
+    def add(bar: str, measured: str, ok: bool | None) -> None:
+        out.append(f"| {bar} | {measured} | {'not measured' if ok is None else ('met' if ok else 'missed')} |")
+
+    for q, bar in QUALITY_RATIOS.items():
+        r = None if m[q] is None or not o[q] else m[q] / o[q]
+        add(f"{q} ≥ {bar} x oracle", f"{_fmt(m[q])} / {_fmt(o[q])} = {_fmt(r)} x", None if r is None else r >= bar)
+    for q in ("visual_fidelity", "textual_fidelity"):
+        base = None if g is None else g[q]
+        d = None if base is None or m[q] is None else m[q] - base
+        ok = None if d is None else d >= FIDELITY_MARGIN
+        add(f"{q} ≥ geometry_only + {FIDELITY_MARGIN:.2f}", f"{_fmt(m[q])} - {_fmt(base)} = {_fmt(d)}", ok)
+    q = "cross_view_consistency"
+    base = None if g is None else g[q]
+    add(f"{q} > geometry_only", f"{_fmt(m[q])} vs {_fmt(base)}", None if base is None or m[q] is None else m[q] > base)
+    for c in rows[model].get("long_horizon", []):
+        fr, pr = c.get("frechet_ratio_last_first"), c["ratio_last_first"]
+        ok = abs(pr - 1) <= LONG_TOLERANCE and (fr is None or fr <= 1 + LONG_TOLERANCE)
+        bar = f"{c['clip']}: last vs first window within {LONG_TOLERANCE:.0%} (PSNR, Fréchet)"
+        add(bar, f"{_fmt(pr)}, {_fmt(fr)}", ok)
+    mae = rows[model]["table1"].get("lidar_range_mae_first_s_m")
+    ok = None if mae is None else mae <= LIDAR_FIRST_S_MAX_M
+    add(f"LiDAR range MAE first second ≤ {LIDAR_FIRST_S_MAX_M} m", _fmt(mae), ok)
+    return out
 
 
 def write_report(report: dict, out_dir: str | Path) -> tuple[Path, Path]:
