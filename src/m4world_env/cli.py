@@ -87,22 +87,25 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
+    def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
+        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)}"
+
     wm = load_world_model(args.checkpoint)
-    model_id = f"bundle={bundle_id(args.checkpoint)},seed={args.seed}"
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
         rows["geometry_only"] = world_model_row(load_world_model(args.baseline), seed=args.seed)
-        ids["geometry_only"] = f"student,bundle={bundle_id(args.baseline)},seed={args.seed},refresh=1"
+        ids["geometry_only"] = student_id(args.baseline)
     rows["student"] = world_model_row(wm, seed=args.seed)
-    ids["student"] = f"student,{model_id},refresh=1"
+    ids["student"] = student_id(args.checkpoint)
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
-    ids["student_no_refresh"] = f"student,{model_id},refresh=0"
+    ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     if args.teacher:
         from world_model.train.stages import load_teacher
 
         rows["teacher"] = teacher_row(wm, load_teacher(args.teacher), seed=args.seed)
         weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
-        ids["teacher"] = f"teacher={sha256_file(weights)[:16] if weights.exists() else args.teacher},{model_id}"
+        teacher = sha256_file(weights)[:16] if weights.exists() else args.teacher
+        ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed}"
     cache = Path(args.out) / "rows" if args.out else None
     report = evaluate_rows(rows, clips, cache_dir=cache, row_ids=ids)
     print(format_markdown(report))

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from world_model.data import Clip
-from world_model.data.clips import write_json_atomic
+from world_model.data.clips import clip_fingerprint, write_json_atomic
 from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_by_track_time
 from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
 from world_model.eval.metrics import (
@@ -35,7 +35,6 @@ from world_model.eval.metrics import (
 )
 from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
-from world_model.train.data import clip_fingerprint
 
 log = logging.getLogger(__name__)
 REPORT_VERSION = 2  # part of a cached row's key: bump when score_row computes something new
@@ -248,15 +247,18 @@ def score_row(
         ssims.append(ssim(gen.cameras[sl], gt[sl]).mean(axis=1))
         if features:
             feats.append(features(gen.cameras))
-        spec = clip.frames[0].lidar
+        lidar_mae = None  # (T,) per-frame range MAE: cheap, so every frame once
         if gen.lidar is not None:
-            for i in range(0, clip.num_frames, config.lidar_stride):
-                g, t = np.asarray(gen.lidar[i], np.float32), np.asarray(clip.lidar[i], np.float32)
-                maes.append(lidar_range_mae(g, t, spec))
-                chamfers.append(chamfer_distance(g, t, spec, max_points=config.chamfer_max_points))
-            maes_first_s += [_lidar_mae(gen, clip, i) for i in range(min(clip.num_frames, round(clip.fps)))]
+            spec = clip.frames[0].lidar
+            lidar_mae = np.array([lidar_range_mae(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec)
+                                  for i in range(clip.num_frames)])  # fmt: skip
+            maes += lidar_mae[:: config.lidar_stride].tolist()
+            maes_first_s += lidar_mae[: round(clip.fps)].tolist()
+            chamfers += [chamfer_distance(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec,
+                                          max_points=config.chamfer_max_points)
+                         for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
-            long_curves.append(long_horizon(clip, gen, per_frame, feats[-1] if features else None,
+            long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
     table1 = {
         "frechet_judge_frame": None,
@@ -290,8 +292,8 @@ def score_row(
 
 def long_horizon(
     clip: Clip,
-    gen: Generated,
     psnr_per_frame: np.ndarray,
+    lidar_mae_per_frame: np.ndarray | None,
     gen_feats: np.ndarray | None,
     gt_feats: np.ndarray | None,
     config: ReportConfig,
@@ -315,15 +317,13 @@ def long_horizon(
             "frechet_judge_frame_last": last,
             "frechet_ratio_last_first": last / first if first > 0 else None,
         }
-    if gen.lidar is not None:
-        mae = np.array([_lidar_mae(gen, clip, i) for i in range(clip.num_frames)])
-        out["lidar_mae_per_second"] = per_second_curve(mae, clip.fps).tolist()
+    if lidar_mae_per_frame is not None:
+        out["lidar_mae_per_second"] = per_second_curve(lidar_mae_per_frame, clip.fps).tolist()
     return out
 
 
-def _lidar_mae(gen: Generated, clip: Clip, frame: int) -> float:
-    truth = np.asarray(clip.lidar[frame], np.float32)
-    return lidar_range_mae(np.asarray(gen.lidar[frame], np.float32), truth, clip.frames[0].lidar)
+def _ranges(lidar: np.ndarray, frame: int) -> np.ndarray:
+    return np.asarray(lidar[frame], np.float32)
 
 
 def _fmt(v: float | None, digits: int = 3) -> str:
