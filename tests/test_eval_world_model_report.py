@@ -33,16 +33,17 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     out = tmp_path / "report"
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
     report = json.loads((out / "report.json").read_text())
-    assert set(report["rows"]) == {"oracle", "student", "student_no_refresh"}
+    assert set(report["rows"]) == {"oracle", "autoencoder", "student", "student_no_refresh"}
     oracle, student = report["rows"]["oracle"]["table1"], report["rows"]["student"]["table1"]
     assert oracle["psnr_db"] > student["psnr_db"]  # an untrained model is far from the ground truth
     assert student["lidar_range_mae_m"] > oracle["lidar_range_mae_m"] == 0.0
+    assert report["rows"]["autoencoder"]["table1"]["psnr_db"] < oracle["psnr_db"]  # the VAE loses detail
     printed = capsys.readouterr().out
     assert "student_no_refresh" in printed
     assert "### Quality bars (student)" in printed and "| existence ≥ 0.8 x oracle |" in printed
     assert "| visual_fidelity ≥ geometry_only + 0.30 | " in printed and "not measured" in printed  # no baseline
     # Each finished row is kept: a rerun (e.g. adding a --baseline row) reuses them, same numbers.
-    assert sorted(p.stem for p in (out / "rows").iterdir()) == ["oracle", "student", "student_no_refresh"]
+    assert sorted(p.stem for p in (out / "rows").iterdir()) == ["autoencoder", "oracle", "student", "student_no_refresh"]
     stamp = (out / "rows" / "student.json").stat().st_mtime_ns
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
     assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp

@@ -76,7 +76,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
     from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
-    from world_model.eval.rows import teacher_row, world_model_row
+    from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
     from world_model.runtime import load_world_model
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -92,6 +92,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     wm = load_world_model(args.checkpoint)
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
+    rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
+    ids["autoencoder"] = f"autoencoder,vae={sha256_file(resolve_bundle(args.checkpoint) / 'vae.safetensors')[:16]}"
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
         rows["geometry_only"] = world_model_row(load_world_model(args.baseline), seed=args.seed)
         ids["geometry_only"] = student_id(args.baseline)
@@ -277,7 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--report",
         action="store_true",
         help="score the world model against the procedural ground truth on an evaluation set "
-        "(the paper's Tables 1-2: oracle, [geometry-only], student, refresh-off ablation, [teacher])",
+        "(the paper's Tables 1-2: oracle, autoencoder, [geometry-only], student, refresh-off ablation, [teacher])",
     )
     e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
     e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")

@@ -86,6 +86,27 @@ class StudentRow:
         return gens
 
 
+def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
+    """The autoencoder's ceiling: each ground-truth frame encoded and decoded by ``wm``'s VAE.
+
+    No latent model (teacher or student) can score better than its autoencoder lets it, so this
+    row tells which losses come from the VAE (objects a few pixels wide blurred away at 8x
+    downsampling) and which from generation."""
+
+    def row(clip: Clip) -> Generated:
+        _check_resolution(wm, clip)
+        cams, lids = [], []
+        for s in range(0, clip.num_frames, batch_frames):
+            part = slice(s, s + batch_frames)
+            latents = wm.vae.encode_frames(np.asarray(clip.cameras[part]), np.asarray(clip.lidar[part], np.float32))
+            c, lid = wm.vae.decode_frames(latents)
+            cams.append(c)
+            lids.append(lid)
+        return Generated(cameras=np.concatenate(cams), lidar=np.concatenate(lids))
+
+    return row
+
+
 def teacher_row(wm: WorldModel, teacher: MultiViewDiT, seed: int = 0, window: int | None = None) -> RowFn:
     """A row generating each clip with the bidirectional ``teacher`` (the teacher-vs-student ablation).
 
