@@ -93,7 +93,7 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_
     fwd = median_time(forward, repeats, warmup=3 if compile_ else 2)
     z = torch.randn(ENVS * v, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)  # the newest frame
     dec = median_time(lambda: vae.decode(z), repeats)
-    flops = dit_forward_flops(cfg, ENVS, chunk, ctx)
+    flops = dit_forward_flops(cfg, ENVS, chunk, ctx, cross_kv=False)  # tokens carry the cross K/V
     achieved = flops["total"] / fwd / 1e9
     return {
         "preset": cfg.name,

@@ -118,11 +118,30 @@ def test_analytic_flops_match_torch_flop_counter():
     model = MultiViewDiT(cfg).eval()
     cond = tiny_conditions(cfg, 2, batch=2)
     tokens = model.tokenize(cond)
-    x = torch.randn(2, *cfg.latent_shape(2))
-    with torch.no_grad(), FlopCounterMode(display=False) as counter:
-        model(x, torch.rand(2), tokens)
+    x, t = torch.randn(2, *cfg.latent_shape(2)), torch.rand(2)
     # On CPU attention is two matmuls per call, so torch counts it too: they must agree exactly.
-    assert counter.get_total_flops() == dit_forward_flops(cfg, batch=2, frames=2)["total"]
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model(x, t, cond)  # tokenizes inside (its small MLPs are not counted: subtract them)
+    with torch.no_grad(), FlopCounterMode(display=False) as tokenizer:
+        model.tokenizer(cond)
+    full = dit_forward_flops(cfg, batch=2, frames=2)["total"]
+    assert counter.get_total_flops() - tokenizer.get_total_flops() == full
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        model(x, t, tokens)  # tokens from tokenize() carry the cross-attention keys/values
+    assert counter.get_total_flops() == dit_forward_flops(cfg, batch=2, frames=2, cross_kv=False)["total"] < full
+
+
+def test_tokenized_controls_give_the_same_velocity_as_conditions():
+    cfg = get_preset("tiny")
+    model = MultiViewDiT(cfg).eval()
+    for p in model.parameters():  # adaLN-zero starts at zero output: make every path count
+        p.data.normal_(0, 0.05, generator=torch.Generator().manual_seed(p.numel()))
+    cond = tiny_conditions(cfg, 2, batch=2)
+    x, t = torch.randn(2, *cfg.latent_shape(2)), torch.rand(2)
+    tokens = model.tokenize(cond)
+    assert tokens.cross_kv is not None and len(tokens.cross_kv) == cfg.dit.depth
+    with torch.no_grad():
+        assert torch.allclose(model(x, t, cond), model(x, t, tokens), atol=1e-6)
 
 
 def test_cpu_attention_matches_sdpa_and_survives_fully_masked_rows():

@@ -49,21 +49,24 @@ class _Run:
     sin: torch.Tensor
     self_mask: torch.Tensor | None
     tokens: ControlTokens
-    control_keys: torch.Tensor  # (B*T, V + Nf, Dc): sensor tokens, then the frame's control tokens
     control_mask: torch.Tensor  # (B*T, 1, V*N, V + Nf)
     view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
 
 
-def _control_keys(tokens: ControlTokens, n: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per frame: keys (B*T, V + Nf, Dc) = the V sensor tokens, then that frame's controls, and
-    the mask (B*T, 1, V*N, V + Nf) letting a query of view v see sensor v and the valid controls."""
+def _control_keys(tokens: ControlTokens) -> torch.Tensor:
+    """Per frame: keys (B*T, V + Nf, Dc) = the V sensor tokens, then that frame's controls."""
     b, t, nf, dc = tokens.frame.shape
     v = tokens.sensor.shape[1]
-    keys = torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(b * t, v + nf, dc)
-    sensor_ok = torch.eye(v, dtype=torch.bool, device=keys.device).repeat_interleave(n, dim=0)  # (V*N, V)
+    return torch.cat([tokens.sensor[:, None].expand(b, t, v, dc), tokens.frame], dim=2).reshape(b * t, v + nf, dc)
+
+
+def _control_mask(tokens: ControlTokens, n: int) -> torch.Tensor:
+    """(B*T, 1, V*N, V + Nf): a query of view v at frame f sees sensor v and f's valid controls."""
+    b, t, nf, _ = tokens.frame.shape
+    v = tokens.sensor.shape[1]
+    sensor_ok = torch.eye(v, dtype=torch.bool, device=tokens.frame.device).repeat_interleave(n, dim=0)  # (V*N, V)
     frame_ok = tokens.frame_mask.reshape(b * t, 1, 1, nf).expand(b * t, 1, v * n, nf)
-    mask = torch.cat([sensor_ok[None, None].expand(b * t, 1, v * n, v), frame_ok], dim=-1)
-    return keys, mask
+    return torch.cat([sensor_ok[None, None].expand(b * t, 1, v * n, v), frame_ok], dim=-1)
 
 
 def _context_mask(self_mask: torch.Tensor | None, valid: torch.Tensor, t_len: int, n: int, v: int) -> torch.Tensor:
@@ -142,9 +145,16 @@ class DiTBlock(nn.Module):
         """(B*T, V*N, D) -> (B*V, T*N, D)."""
         return x.view(run.b, run.t, run.v, run.n, -1).transpose(1, 2).reshape(run.b * run.v, run.t * run.n, -1)
 
-    def forward(self, x: torch.Tensor, run: _Run, context: KV | None) -> tuple[torch.Tensor, KV]:
-        """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v)."""
+    def cross_kv(self, tokens: ControlTokens) -> tuple[KV, KV]:
+        """Keys/values of the text and the control cross-attention: they depend on the controls only."""
+        return self.text_attn.kv(tokens.text), self.control_attn.kv(_control_keys(tokens))
+
+    def forward(
+        self, x: torch.Tensor, run: _Run, context: KV | None, cross: tuple[KV, KV]
+    ) -> tuple[torch.Tensor, KV]:
+        """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v). ``cross``: :meth:`cross_kv`."""
         b, v, t, n = run.b, run.v, run.t, run.n
+        text_kv, control_kv = cross
         m = (run.mod + self.modulation)[:, None, :, None]  # (B, 1, T, 1, 6, D)
         shift1, scale1, gate1, shift2, scale2, gate2 = m.unbind(dim=-2)
 
@@ -152,14 +162,13 @@ class DiTBlock(nn.Module):
         a, kv = self.attn(h, run.cos, run.sin, run.self_mask, context)
         x = torch.addcmul(self._per_frame(x, run), self._per_frame(a, run), gate1).view_as(x)
 
-        tk = self.text_attn.kv(run.tokens.text)  # (B, H, L, hd)
         q = self.norm_text(x).reshape(b, v * t * n, -1)
-        x = x + self.text_attn.attend(q, tk, run.tokens.text_mask[:, None, None]).view_as(x)
+        x = x + self.text_attn.attend(q, text_kv, run.tokens.text_mask[:, None, None]).view_as(x)
 
         # Per frame, all views at once: queries (B*T, V*N); a token of view v, frame f sees sensor v
         # and the controls of frame f only.
         q = self._frame_major(self.norm_control(x), run)
-        out = self.control_attn.attend(q, self.control_attn.kv(run.control_keys), run.control_mask)
+        out = self.control_attn.attend(q, control_kv, run.control_mask)
         x = x + self._view_major(out, run)
 
         if self.cross_view is not None:
@@ -213,9 +222,12 @@ class MultiViewDiT(nn.Module):
             block.forward = torch.compile(block.forward, dynamic=False)
 
     def tokenize(self, cond: Conditions) -> ControlTokens:
-        """Control tokens for ``cond``; pass them to :meth:`forward` to reuse across denoising steps."""
+        """Control tokens for ``cond`` with every block's cross-attention keys/values; pass them to
+        :meth:`forward` to reuse across denoising steps (they depend on the controls only)."""
         with self._autocast(cond.ego.device.type):
-            return self.tokenizer(cond)
+            tokens = self.tokenizer(cond)
+            tokens.cross_kv = [block.cross_kv(tokens) for block in self.blocks]
+            return tokens
 
     def _check(self, x: torch.Tensor) -> None:
         cfg = self.cfg
@@ -290,7 +302,7 @@ class MultiViewDiT(nn.Module):
                 self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device, blocks)
             if context_valid is not None:
                 self_mask = _context_mask(self_mask, context_valid, t_len, n, v)
-            control_keys, control_mask = _control_keys(tokens, n)
+            cross = tokens.cross_kv or [block.cross_kv(tokens) for block in self.blocks]
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
             run = _Run(
                 b,
@@ -302,13 +314,12 @@ class MultiViewDiT(nn.Module):
                 sin,
                 self_mask,
                 tokens,
-                control_keys,
-                control_mask,
+                _control_mask(tokens, n),
                 view_mask.reshape(b * t_len, 1, v * n, v * n),
             )
             kvs: list[KV] = []
             for i, block in enumerate(self.blocks):
-                h, kv = block(h, run, None if kv_context is None else kv_context[i])
+                h, kv = block(h, run, None if kv_context is None else kv_context[i], cross[i])
                 if return_kv:
                     kvs.append(kv)
             shift, scale = self.out_mod(F.silu(temb))[:, None, :, None].chunk(2, dim=-1)

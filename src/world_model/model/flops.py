@@ -10,9 +10,12 @@ from __future__ import annotations
 from world_model.model.config import ModelConfig
 
 
-def dit_forward_flops(cfg: ModelConfig, batch: int, frames: int, context_frames: int = 0) -> dict[str, int]:
+def dit_forward_flops(
+    cfg: ModelConfig, batch: int, frames: int, context_frames: int = 0, cross_kv: bool = True
+) -> dict[str, int]:
     """{"linear", "attention", "total"} FLOPs of ``MultiViewDiT.forward`` on (batch, frames)
-    latents with ``context_frames`` frames of cached keys/values."""
+    latents with ``context_frames`` frames of cached keys/values. ``cross_kv=False``: the forward
+    is given ``MultiViewDiT.tokenize``'s tokens, which carry the cross-attention keys/values."""
     d, dc, p = cfg.dit.dim, cfg.control.dim, cfg.dit.patch
     v, n = cfg.sensors.num_views, cfg.tokens_per_frame
     cin = (cfg.vae.latent_channels + cfg.dit.in_channels_extra) * p * p
@@ -26,10 +29,9 @@ def dit_forward_flops(cfg: ModelConfig, batch: int, frames: int, context_frames:
 
     linear_block = (
         4 * tokens * d * d  # self-attention q, k, v, o
-        + 2 * tokens * d * d
-        + 2 * batch * text * dc * d  # text cross-attention q, o and k, v
-        + 2 * tokens * d * d
-        + 2 * batch * frames * control * dc * d  # control cross-attention
+        + 2 * tokens * d * d  # text cross-attention q, o
+        + 2 * tokens * d * d  # control cross-attention q, o
+        + cross_kv * 2 * batch * (text + frames * control) * dc * d  # their k, v
         + 2 * tokens * d * hidden  # MLP
     )
     attention_block = (

@@ -51,7 +51,12 @@ def mlp(din: int, dout: int) -> nn.Sequential:
 @dataclass
 class ControlTokens:
     """text (B, L+1, D), text_mask (B, L+1); sensor (B, V, D); frame (B, T, Nf, D) with
-    Nf = 1 ego + map tokens + max_objects + 1 null, frame_mask (B, T, Nf); view_adjacency (B, V, V)."""
+    Nf = 1 ego + map tokens + max_objects + 1 null, frame_mask (B, T, Nf); view_adjacency (B, V, V).
+
+    ``cross_kv``: per DiT block, the keys/values its text and control cross-attentions compute
+    from these tokens (``MultiViewDiT.tokenize`` fills it). They depend on the controls only, so
+    the denoising steps of one chunk share them instead of projecting them again at every step.
+    """
 
     text: torch.Tensor
     text_mask: torch.Tensor
@@ -59,6 +64,7 @@ class ControlTokens:
     frame: torch.Tensor
     frame_mask: torch.Tensor
     view_adjacency: torch.Tensor
+    cross_kv: list[tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]] | None = None
 
 
 class ControlTokenizer(nn.Module):
