@@ -149,9 +149,7 @@ class DiTBlock(nn.Module):
         """Keys/values of the text and the control cross-attention: they depend on the controls only."""
         return self.text_attn.kv(tokens.text), self.control_attn.kv(_control_keys(tokens))
 
-    def forward(
-        self, x: torch.Tensor, run: _Run, context: KV | None, cross: tuple[KV, KV]
-    ) -> tuple[torch.Tensor, KV]:
+    def forward(self, x: torch.Tensor, run: _Run, context: KV | None, cross: tuple[KV, KV]) -> tuple[torch.Tensor, KV]:
         """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v). ``cross``: :meth:`cross_kv`."""
         b, v, t, n = run.b, run.v, run.t, run.n
         text_kv, control_kv = cross
