@@ -161,10 +161,14 @@ class SensorVAE(nn.Module):
     ) -> tuple[np.ndarray, np.ndarray]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth)."""
         t, v1 = latents.shape[:2]
-        images = self.decode(latents.flatten(0, 1).float()).reshape(t, v1, 3, *self.cfg_hw)
-        cams = images_to_cameras(images[:, :-1])
+        latents = latents.float()
+        # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
+        # switch) moves a pixel by at most one level. Ranges need fp32: the LiDAR view is decoded apart.
+        with torch.autocast(latents.device.type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16):
+            images = self.decode(latents[:, :-1].flatten(0, 1))
+        cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         lid = images_to_lidar(
-            images[:, -1], lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
+            self.decode(latents[:, -1]), lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
         )
         return cams, lid
 
