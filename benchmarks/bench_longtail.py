@@ -2,12 +2,13 @@
 
 Given a run with a trained VAE, a base model and a ``--stage lora`` adapter, this renders the
 first frame of rare-case frames from their controls twice (same noise seed): with the base model
-and with the adapter applied. It writes a PNG (rows: ground truth, base, adapted; one column per
+and with the adapter applied. It writes a PNG (rows: ground truth, the ground truth through the VAE
+and back — the ceiling of any model generating through it —, base, adapted; one column per
 rare-object view crop) and JSON numbers: a pluggable ``Scorer(generated_crop, truth_crop) -> float``
 inside the object's projected box, median over crops. The default scorer is the L1 distance
 (0-255) between the crops' mean colours. With the evaluation judge (``world_model.eval``, the
 shipped CNN judge by default) it also reports the judge's existence score for the case ("is it a
-<case>?" yes-frequency over the rare crops: truth, base, adapted) and, on ``--ordinary-data``
+<case>?" yes-frequency over the rare crops: truth, autoencoder, base, adapted) and, on ``--ordinary-data``
 frames (clips without the case), the weather, time-of-day and existence yes-frequencies with and
 without the adapter, to show ordinary controllability is preserved.
 
@@ -148,10 +149,11 @@ def evaluate(
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
     base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs)
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
+    autoencoded = [autoencode(vae, clips[rv.clip], rv.frame)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
     adapted = [o.cameras[rv.view] for o, rv in zip(adapted_obs, views, strict=True)]
     rows = []
-    for rv, t, b, a in zip(views, truth, base, adapted, strict=True):
+    for rv, t, e, b, a in zip(views, truth, autoencoded, base, adapted, strict=True):
         tc = _crop(t, rv.box)
         rows.append(
             {
@@ -159,6 +161,7 @@ def evaluate(
                 "frame": rv.frame,
                 "view": rv.view,
                 "box": list(rv.box),
+                "autoencoder": scorer(_crop(e, rv.box), tc),
                 "base": scorer(_crop(b, rv.box), tc),
                 "adapted": scorer(_crop(a, rv.box), tc),
             }
@@ -166,17 +169,26 @@ def evaluate(
     return {
         "scorer": getattr(scorer, "__name__", str(scorer)),
         "views": len(rows),
+        "autoencoder_median": float(np.median([r["autoencoder"] for r in rows])),
         "base_median": float(np.median([r["base"] for r in rows])),
         "adapted_median": float(np.median([r["adapted"] for r in rows])),
         "per_view": rows,
-        "images": {"truth": truth, "base": base, "adapted": adapted},
+        "images": {"truth": truth, "autoencoder": autoencoded, "base": base, "adapted": adapted},
     }
+
+
+def autoencode(vae: SensorVAE, clip: Clip, frame: int) -> np.ndarray:
+    """Frame ``frame`` of ``clip`` through the VAE and back: cameras (V, H, W, 3), the best any
+    model generating through this VAE could render (the figure's ceiling row)."""
+    lidar = np.asarray(clip.lidar[frame : frame + 1], np.float32)
+    cams, _ = vae.decode_frames(vae.encode_frames(np.asarray(clip.cameras[frame : frame + 1]), lidar))
+    return cams[0]
 
 
 def judge_rare(judge, result: dict, views: Sequence[RareView], case: str) -> dict[str, float]:  # noqa: ANN001
     """Yes-frequency of "is it a <case>?" over the rare objects' box crops, per row of the figure."""
     out = {}
-    for name in ("truth", "base", "adapted"):
+    for name in result["images"]:
         crops = [_crop(img, rv.box) for rv, img in zip(views, result["images"][name], strict=True)]
         out[name] = float(np.mean(judge.is_category(crops, [case] * len(crops))))
     return out
@@ -243,9 +255,9 @@ def judge_ordinary(
 
 
 def figure(result: dict, views: Sequence[RareView], path: Path, margin: float = 0.5) -> None:
-    """PNG grid: rows truth / base / adapted, one column per rare view (box crop with context)."""
+    """PNG grid: rows truth / autoencoder / base / adapted, one column per rare view (box crop with context)."""
     cells = []
-    for name in ("truth", "base", "adapted"):
+    for name in result["images"]:
         row = []
         for rv, img in zip(views, result["images"][name], strict=True):
             x0, y0, x1, y1 = rv.box
@@ -257,7 +269,7 @@ def figure(result: dict, views: Sequence[RareView], path: Path, margin: float = 
             p0 = (round((x0 - ctx[0]) * sx), round((y0 - ctx[1]) * sy))
             p1 = (round((x1 - ctx[0]) * sx) - 1, round((y1 - ctx[1]) * sy) - 1)
             row.append(cv2.rectangle(np.ascontiguousarray(crop), p0, p1, (255, 255, 0), 1))
-        band = np.full((CROP_PX, 60, 3), 255, np.uint8)
+        band = np.full((CROP_PX, 80, 3), 255, np.uint8)
         cv2.putText(band, name, (2, CROP_PX // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1)
         cells.append(np.concatenate([band, *row], axis=1))
     grid = np.concatenate(cells, axis=0)

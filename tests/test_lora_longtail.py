@@ -40,6 +40,11 @@ def _clip(root, name, seed, rare):
     write_clip(root, name, frames, cams, lidar, bev)
 
 
+def views_shape(views, clips) -> tuple[int, ...]:
+    """One camera image of the clips' recording: (H, W, 3)."""
+    return tuple(clips[views[0].clip].cameras.shape[2:])
+
+
 def test_filter_keeps_only_clips_without_the_case(bench, tmp_path):
     _clip(tmp_path / "all", "plain", 0, False)
     _clip(tmp_path / "all", "rare", 1, True)
@@ -68,7 +73,9 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench,
     result = bench.evaluate(
         model, vae, clips, views, ["tree_truck"], scorer, steps=1, search_dirs=[tmp_path / "adapters"]
     )
-    assert len(calls) == 2 * len(views) and all(g == t for g, t in calls)  # crops of the same box
+    assert len(calls) == 3 * len(views) and all(g == t for g, t in calls)  # crops of the same box
+    assert list(result["images"]) == ["truth", "autoencoder", "base", "adapted"]
+    assert result["autoencoder_median"] >= 0 and result["images"]["autoencoder"][0].shape == views_shape(views, clips)
     assert result["scorer"] == "scorer" and np.isfinite([result["base_median"], result["adapted_median"]]).all()
     assert result["base_median"] != result["adapted_median"]  # the adapter changed the rendering
     assert base_fingerprint(model) == fingerprint and not any(".lora_" in k for k in model.state_dict())
@@ -90,7 +97,8 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench,
         def is_time_of_day(self, frames, times):
             return np.zeros(len(frames), bool)
 
-    assert bench.judge_rare(Judge(), result, views, "tree_truck") == {"truth": 1.0, "base": 1.0, "adapted": 1.0}
+    rows = ("truth", "autoencoder", "base", "adapted")
+    assert bench.judge_rare(Judge(), result, views, "tree_truck") == dict.fromkeys(rows, 1.0)
     _clip(tmp_path / "base", "plain", 0, False)
     plain = list(iter_clips(tmp_path / "base"))
     frames = bench.ordinary_frames(plain, 3, 0.1)
