@@ -10,6 +10,11 @@ crops; everything but the student and the VAE decoder); the peak RSS of a proces
 (a subprocess per backend). highway-v0 and highway-fast-v0 are measured in the same run. The
 policy is the lane-keeping reference policy; its time is not counted.
 
+The machine is shared and its speed drifts by 10-20 % over minutes, so the run is split into
+``--rounds`` interleaved rounds (highway-env's envs, then each backend, again and again): every
+ratio to highway-env is taken within one round, and the report gives the median over rounds of
+each figure and each ratio (the rounds themselves under ``per_round``).
+
     python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 """
 
@@ -36,13 +41,13 @@ from m4world_env.policies import ConstantSpeedLaneKeeping  # noqa: E402
 CONFIG = {"observation_keys": ["cameras", "lidar"]}
 
 
-def _time_single(env, steps: int, seed: int) -> tuple[list[float], list[float]]:
-    """Per-step wall times and the bridge's share of each, for one env."""
+def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[float], list[float]]:
+    """Per-step wall times and the bridge's share of each, for one env (after ``warmup`` untimed steps)."""
     base = env.unwrapped
     env.reset(seed=seed)
     policy = ConstantSpeedLaneKeeping()
     totals, traffic = [], []
-    for _ in range(steps):
+    for _ in range(warmup + steps):
         action = policy(base.bridge)
         t0 = time.perf_counter()
         frames = base.advance(action)
@@ -50,8 +55,11 @@ def _time_single(env, steps: int, seed: int) -> tuple[list[float], list[float]]:
         (observations,) = base.backend.step([frames])
         *_, terminated, truncated, _ = base.finish_step(frames, observations)
         t2 = time.perf_counter()
-        totals.append(t2 - t0)
-        traffic.append(t1 - t0)
+        if warmup:
+            warmup -= 1
+        else:
+            totals.append(t2 - t0)
+            traffic.append(t1 - t0)
         if terminated or truncated:
             env.reset(seed=seed)
             policy = ConstantSpeedLaneKeeping()
@@ -90,10 +98,13 @@ def bench_backend(
     seed: int,
     checkpoint: str | None = None,
     compile_model: bool = False,
+    warmup: int = 2,
 ) -> dict:
+    """One backend: ``steps`` timed single-env steps and ``steps / num_envs`` (at least 10) timed
+    vector steps, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles)."""
     kw = _make_kwargs(backend, checkpoint, compile_model)
     single = gym.make("M4World-v0", scenario=scenario, **kw)
-    totals, traffic = _time_single(single, steps, seed)
+    totals, traffic = _time_single(single, steps, seed, warmup)
     step_s = statistics.median(totals)
     result = {
         "single_median_step_ms": 1e3 * step_s,
@@ -112,11 +123,13 @@ def bench_backend(
     rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
     vec_times, model_times = [], []
-    for _ in range(max(steps // num_envs, 10)):
+    for i in range(warmup + max(steps // num_envs, 10)):
         actions = np.stack([p(e.bridge) for p, e in zip(policies, venv.unwrapped.envs, strict=True)])
         before = dict(rollouts.seconds) if rollouts is not None else {}
         t0 = time.perf_counter()
         venv.step(actions)
+        if i < warmup:
+            continue
         vec_times.append(time.perf_counter() - t0)
         if rollouts is not None:
             model_times.append(sum(rollouts.seconds[k] - before[k] for k in ("student", "decode")))
@@ -138,38 +151,63 @@ def bench_backend(
     return result
 
 
+def median_rounds(rounds: list[dict]) -> dict:
+    """Field-wise median of the rounds' numbers (ints, e.g. ``num_envs``, are equal in every round)."""
+    out = {}
+    for k, v in rounds[0].items():
+        values = [r[k] for r in rounds if k in r]
+        out[k] = statistics.median(values) if isinstance(v, float) else v
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--backend", nargs="+", default=["procedural"])
     ap.add_argument("--scenario", default="highway_sunny_day")
-    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (see the module docstring)")
     ap.add_argument("--num-envs", type=int, default=8)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--compile", action="store_true", help="world model: config model.compile (torch.compile)")
+    ap.add_argument("--warmup", type=int, default=None, help="untimed steps first (default 2; 12 with --compile)")
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
     args = ap.parse_args()
     if args.memory_probe:
         _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint)
         return
-    result: dict = {"scenario": args.scenario, "backends": {}}
+    if args.rounds < 1:
+        raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
+    steps = max(args.steps // args.rounds, 10)
+    warmup = args.warmup if args.warmup is not None else (12 if args.compile else 2)
+    rounds: list[dict] = []
+    for _ in range(args.rounds):
+        # highway-env and every backend measured back to back: a ratio compares numbers taken
+        # within minutes of each other, so a drift of the shared machine's speed cancels out.
+        hw = {e: bench_highway_env(e, max(steps // 6, 20), args.seed) for e in ("highway-v0", "highway-fast-v0")}
+        rnd = {"highway_env": hw, "backends": {}}
+        for backend in args.backend:
+            r = bench_backend(
+                backend, args.scenario, steps, args.num_envs, args.seed, args.checkpoint, args.compile, warmup
+            )
+            r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / hw["highway-fast-v0"]["steps_per_s"]
+            r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / hw["highway-v0"]["steps_per_s"]
+            rnd["backends"][backend] = r
+        rounds.append(rnd)
+    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "backends": {}}
     for backend in args.backend:
-        r = bench_backend(backend, args.scenario, args.steps, args.num_envs, args.seed, args.checkpoint, args.compile)
+        r = median_rounds([rnd["backends"][backend] for rnd in rounds])
         r["one_env_peak_rss_mb"] = peak_rss_one_env(backend, args.scenario, 50, args.seed, args.checkpoint)
         result["backends"][backend] = r
     result["highway_env"] = {
-        e: bench_highway_env(e, max(args.steps // 6, 20), args.seed) for e in ("highway-v0", "highway-fast-v0")
+        e: median_rounds([rnd["highway_env"][e] for rnd in rounds]) for e in ("highway-v0", "highway-fast-v0")
     }
-    fast = result["highway_env"]["highway-fast-v0"]["steps_per_s"]
-    slow = result["highway_env"]["highway-v0"]["steps_per_s"]
-    for r in result["backends"].values():
-        r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / fast
-        r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / slow
+    result["per_round"] = rounds
     result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+    print(json.dumps({k: v for k, v in result.items() if k != "per_round"}, indent=2))
 
 
 if __name__ == "__main__":

@@ -214,6 +214,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         "model": ["bench_model.py", "--dtypes", "bf16", "fp32", *(["--compile"] if shutil.which("c++") else [])],
         "student": ["bench_student.py"],
         "judge": ["bench_judge.py", "--evalset", args.evalset],
+        "first_frame": ["bench_first_frame.py", "--evalset", args.evalset, "--cfg", "1", "3", "7"],
     }
     for name in args.only or list(scripts):
         script, *extra = scripts[name]
@@ -322,8 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
     b.add_argument("--out", default="out/bench")
-    b.add_argument("--only", nargs="+", choices=("render", "traffic", "env", "model", "student", "judge"))
-    b.add_argument("--evalset", default="data/evalset", help="evaluation set for the judge benchmark")
+    benchmarks = ("render", "traffic", "env", "model", "student", "judge", "first_frame")
+    b.add_argument("--only", nargs="+", choices=benchmarks)
+    b.add_argument("--evalset", default="data/evalset", help="evaluation set (judge, first_frame)")
     b.set_defaults(func=_cmd_bench)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")

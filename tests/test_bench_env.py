@@ -1,0 +1,21 @@
+"""benchmarks/bench_env.py end to end (procedural backend, small): interleaved rounds, medians, ratios."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bench_env_reports_medians_of_interleaved_rounds(tmp_path):
+    out = tmp_path / "env.json"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_env.py"), "--backend", "procedural", "--steps", "20"]
+    subprocess.run([*cmd, "--rounds", "2", "--num-envs", "2", "--out", str(out)], check=True, cwd=ROOT)
+    result = json.loads(out.read_text())
+    assert result["rounds"] == 2 and len(result["per_round"]) == 2
+    r = result["backends"]["procedural"]
+    ratios = sorted(rnd["backends"]["procedural"]["single_vs_highway_fast_v0"] for rnd in result["per_round"])
+    assert r["single_vs_highway_fast_v0"] == sum(ratios) / 2  # the median of two rounds
+    assert r["num_envs"] == 2 and r["vector_aggregate_steps_per_s"] > 0 and r["one_env_peak_rss_mb"] > 0
+    assert set(result["highway_env"]) == {"highway-v0", "highway-fast-v0"}
