@@ -87,7 +87,17 @@ def peak_rss_one_env(backend: str, scenario: str, steps: int, seed: int, checkpo
 def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None) -> None:
     env = gym.make("M4World-v0", scenario=scenario, **_make_kwargs(backend, checkpoint))
     _time_single(env, steps, seed)
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    print(own_peak_rss_mb())
+
+
+def own_peak_rss_mb() -> float:
+    """This process's peak RSS in MB. Not ``getrusage``: Linux keeps ``ru_maxrss`` across execve,
+    so a probe started by a big parent would report the parent's peak; ``VmHWM`` belongs to the
+    process's own address space, which execve replaces."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # no procfs: the upper bound
 
 
 def bench_backend(

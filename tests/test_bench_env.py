@@ -19,3 +19,5 @@ def test_bench_env_reports_medians_of_interleaved_rounds(tmp_path):
     assert r["single_vs_highway_fast_v0"] == sum(ratios) / 2  # the median of two rounds
     assert r["num_envs"] == 2 and r["vector_aggregate_steps_per_s"] > 0 and r["one_env_peak_rss_mb"] > 0
     assert set(result["highway_env"]) == {"highway-v0", "highway-fast-v0"}
+    # the probe's own peak, not the (bigger) parent's: Linux keeps ru_maxrss across execve
+    assert r["one_env_peak_rss_mb"] < result["peak_rss_mb"]
