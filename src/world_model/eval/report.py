@@ -37,7 +37,7 @@ from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
-REPORT_VERSION = 2  # part of a cached row's key: bump when score_row computes something new
+REPORT_VERSION = 3  # part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding)
 
 
 @dataclass
