@@ -30,6 +30,7 @@ def test_bars_against_oracle_baseline_and_autoencoder_ceiling():
     assert weather[2] == "missed" and weather[3].endswith(": reachable")
     visual = _line(lines, "visual_fidelity ≥ geometry_only + 0.30")
     assert visual[1] == "0.600 - 0.200 = 0.400" and visual[2] == "met" and visual[3].endswith(": reachable")
+    assert _line(lines, "cross_view_consistency > geometry_only")[3] == ""  # blur does not cap consistency
     assert _line(lines, "LiDAR range MAE first second ≤ 2.0 m")[2] == "met"
     # Without the ceiling row the column stays empty; without a baseline the margins are unmeasured.
     del report["rows"]["autoencoder"], report["rows"]["geometry_only"]

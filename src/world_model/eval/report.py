@@ -390,11 +390,13 @@ def quality_bars(report: dict, model: str = "student") -> list[str]:
     def status(ok: bool | None) -> str:
         return "not measured" if ok is None else ("met" if ok else "missed")
 
-    def add(bar: str, judge: Callable[[dict], tuple[str, bool | None]] | None, measured: str = "", ok=None) -> None:
+    def add(
+        bar: str, judge: Callable[[dict], tuple[str, bool | None]] | None, measured: str = "", ok=None, capped=True
+    ) -> None:
         top = ""
         if judge is not None:
             measured, ok = judge(rows[model]["table2"])
-            if ceiling is not None:
+            if ceiling is not None and capped:
                 value, top_ok = judge(ceiling["table2"])
                 top = f"{value}: {'reachable' if top_ok else 'out of reach'}" if top_ok is not None else ""
         out.append(f"| {bar} | {measured} | {status(ok)} | {top} |")
@@ -425,7 +427,8 @@ def quality_bars(report: dict, model: str = "student") -> list[str]:
         add(f"{q} ≥ {bar} x oracle", ratio(q, bar))
     for q in ("visual_fidelity", "textual_fidelity"):
         add(f"{q} ≥ geometry_only + {FIDELITY_MARGIN:.2f}", margin(q))
-    add("cross_view_consistency > geometry_only", above("cross_view_consistency"))
+    # No ceiling here: blurrier crops look *more* alike across views, so the VAE does not cap it.
+    add("cross_view_consistency > geometry_only", above("cross_view_consistency"), capped=False)
     for c in rows[model].get("long_horizon", []):
         fr, pr = c.get("frechet_ratio_last_first"), c["ratio_last_first"]
         ok = abs(pr - 1) <= LONG_TOLERANCE and (fr is None or fr <= 1 + LONG_TOLERANCE)
