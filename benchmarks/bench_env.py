@@ -10,7 +10,7 @@ crops; everything but the student and the VAE decoder); the peak RSS of a proces
 (a subprocess per backend). highway-v0 and highway-fast-v0 are measured in the same run. The
 policy is the lane-keeping reference policy; its time is not counted.
 
-The machine is shared and its speed drifts by 10-20 % over minutes, so the run is split into
+The machine is shared and its speed drifts by 10-40 % over minutes, so the run is split into
 ``--rounds`` interleaved rounds (highway-env's envs, then each backend, again and again): every
 ratio to highway-env is taken within one round, and the report gives the median over rounds of
 each figure and each ratio (the rounds themselves under ``per_round``).
@@ -47,7 +47,7 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
     env.reset(seed=seed)
     policy = ConstantSpeedLaneKeeping()
     totals, traffic = [], []
-    for _ in range(warmup + steps):
+    for i in range(warmup + steps):
         action = policy(base.bridge)
         t0 = time.perf_counter()
         frames = base.advance(action)
@@ -55,9 +55,7 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
         (observations,) = base.backend.step([frames])
         *_, terminated, truncated, _ = base.finish_step(frames, observations)
         t2 = time.perf_counter()
-        if warmup:
-            warmup -= 1
-        else:
+        if i >= warmup:
             totals.append(t2 - t0)
             traffic.append(t1 - t0)
         if terminated or truncated:
@@ -163,11 +161,7 @@ def bench_backend(
 
 def median_rounds(rounds: list[dict]) -> dict:
     """Field-wise median of the rounds' numbers (ints, e.g. ``num_envs``, are equal in every round)."""
-    out = {}
-    for k, v in rounds[0].items():
-        values = [r[k] for r in rounds if k in r]
-        out[k] = statistics.median(values) if isinstance(v, float) else v
-    return out
+    return {k: statistics.median(r[k] for r in rounds) if isinstance(v, float) else v for k, v in rounds[0].items()}
 
 
 def main() -> None:

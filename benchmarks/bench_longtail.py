@@ -180,8 +180,7 @@ def evaluate(
 def autoencode(vae: SensorVAE, clip: Clip, frame: int) -> np.ndarray:
     """Frame ``frame`` of ``clip`` through the VAE and back: cameras (V, H, W, 3), the best any
     model generating through this VAE could render (the figure's ceiling row)."""
-    lidar = np.asarray(clip.lidar[frame : frame + 1], np.float32)
-    cams, _ = vae.decode_frames(vae.encode_frames(np.asarray(clip.cameras[frame : frame + 1]), lidar))
+    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1])
     return cams[0]
 
 

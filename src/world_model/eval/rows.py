@@ -98,8 +98,7 @@ def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
         cams, lids = [], []
         for s in range(0, clip.num_frames, batch_frames):
             part = slice(s, s + batch_frames)
-            latents = wm.vae.encode_frames(np.asarray(clip.cameras[part]), np.asarray(clip.lidar[part], np.float32))
-            c, lid = wm.vae.decode_frames(latents)
+            c, lid = wm.vae.reconstruct_frames(clip.cameras[part], clip.lidar[part])
             cams.append(c)
             lids.append(lid)
         return Generated(cameras=np.concatenate(cams), lidar=np.concatenate(lids))

@@ -163,7 +163,7 @@ class SensorVAE(nn.Module):
         t, v1 = latents.shape[:2]
         latents = latents.float()
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
-        # switch) moves a pixel by at most one level. Ranges need fp32: the LiDAR view is decoded apart.
+        # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with torch.autocast(latents.device.type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16):
             images = self.decode(latents[:, :-1].flatten(0, 1))
         cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
@@ -171,6 +171,11 @@ class SensorVAE(nn.Module):
             self.decode(latents[:, -1]), lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
         )
         return cams, lid
+
+    def reconstruct_frames(self, cameras: np.ndarray, lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) through the autoencoder
+        and back, same layouts: the best any model generating through this VAE can render."""
+        return self.decode_frames(self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32)))
 
     @property
     def cfg_hw(self) -> tuple[int, int]:
