@@ -161,6 +161,22 @@ def test_cpu_attention_matches_sdpa_and_survives_fully_masked_rows():
     assert torch.isfinite(out).all() and torch.allclose(out[0, :, 2], v[0].mean(dim=1), atol=1e-6)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_additive_mask_bias_equals_boolean_mask(dtype):
+    from world_model.model.attention import attention, mask_bias
+
+    g = torch.Generator().manual_seed(1)
+    q, k, v = (torch.randn(3, 2, 5, 8, generator=g).to(dtype) for _ in range(3))
+    mask = torch.rand(3, 1, 5, 5, generator=g) > 0.4
+    mask[0, 0, 2] = False  # fully masked row: still the mean of the values
+    bias = mask_bias(mask, dtype)
+    assert bias.dtype == dtype and bool((bias[mask] == 0).all()) and bool((bias[~mask] == torch.finfo(dtype).min).all())
+    out = attention(q, k, v, bias)
+    assert torch.isfinite(out).all()
+    assert torch.equal(out, attention(q, k, v, mask))
+    assert mask_bias(None, dtype) is None
+
+
 @pytest.mark.slow
 def test_compiled_blocks_match_eager():
     cfg = get_preset("tiny")

@@ -214,13 +214,12 @@ class RolloutBatch:
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
         t0 = time.perf_counter()
-        results: list[list[Observation] | None] = []
-        for i, chunk in enumerate(chunks):
-            if chunk is None:
-                results.append(None)
-                continue
-            lat = torch.cat(outs[i], dim=1)
-            results.append(self.wm.decode(lat if self.every_frame else lat[:, -1:])[0])
+        active = [i for i, chunk in enumerate(chunks) if chunk is not None]
+        results: list[list[Observation] | None] = [None] * self.n
+        if active:  # one decoder call for every active rollout's frames
+            lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
+            for i, obs in zip(active, self.wm.decode(lat if self.every_frame else lat[:, -1:]), strict=True):
+                results[i] = obs
         self.seconds["decode"] += time.perf_counter() - t0
         return results
 

@@ -27,7 +27,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from world_model.model.attention import KV, CrossAttention, SelfAttention, block_causal_mask, cross_view_mask
+from world_model.model.attention import (
+    KV,
+    CrossAttention,
+    SelfAttention,
+    block_causal_mask,
+    cross_view_mask,
+    mask_bias,
+)
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.rope import rope_tables, rotation_tables
@@ -47,8 +54,10 @@ class _Run:
     mod: torch.Tensor  # (B, T, 6, D)
     cos: torch.Tensor
     sin: torch.Tensor
-    self_mask: torch.Tensor | None
+    # Attention masks as additive biases (attention.mask_bias) in the blocks' compute dtype.
+    self_mask: torch.Tensor | None  # (S, Sc + S) or (B*V, 1, S, Sc + S)
     tokens: ControlTokens
+    text_mask: torch.Tensor  # (B, 1, 1, L + 1)
     control_mask: torch.Tensor  # (B*T, 1, V*N, V + Nf)
     view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
 
@@ -161,7 +170,7 @@ class DiTBlock(nn.Module):
         x = torch.addcmul(self._per_frame(x, run), self._per_frame(a, run), gate1).view_as(x)
 
         q = self.norm_text(x).reshape(b, v * t * n, -1)
-        x = x + self.text_attn.attend(q, text_kv, run.tokens.text_mask[:, None, None]).view_as(x)
+        x = x + self.text_attn.attend(q, text_kv, run.text_mask).view_as(x)
 
         # Per frame, all views at once: queries (B*T, V*N); a token of view v, frame f sees sensor v
         # and the controls of frame f only.
@@ -302,6 +311,7 @@ class MultiViewDiT(nn.Module):
                 self_mask = _context_mask(self_mask, context_valid, t_len, n, v)
             cross = tokens.cross_kv or [block.cross_kv(tokens) for block in self.blocks]
             view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
+            dt = h.dtype
             run = _Run(
                 b,
                 v,
@@ -310,10 +320,11 @@ class MultiViewDiT(nn.Module):
                 mod,
                 cos,
                 sin,
-                self_mask,
+                mask_bias(self_mask, dt),
                 tokens,
-                _control_mask(tokens, n),
-                view_mask.reshape(b * t_len, 1, v * n, v * n),
+                mask_bias(tokens.text_mask[:, None, None], dt),
+                mask_bias(_control_mask(tokens, n), dt),
+                mask_bias(view_mask.reshape(b * t_len, 1, v * n, v * n), dt),
             )
             kvs: list[KV] = []
             for i, block in enumerate(self.blocks):

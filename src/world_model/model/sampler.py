@@ -22,6 +22,9 @@ from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
 from world_model.sensors import LidarSpec
 
+# Frames per VAE decoder call: a vector env's newest frames go in one call; long clips in bounded pieces.
+DECODE_FRAMES_PER_CALL = 16
+
 
 class GuidedVelocity:
     """velocity_fn(x_t (B, T, V, C, h, w), t (B,) or (B, T)) -> guided velocity, same shape as x_t."""
@@ -83,22 +86,30 @@ def sample_latents(
 
 @torch.no_grad()
 def latents_to_observations(
-    vae: SensorVAE, latents: torch.Tensor, lidar_spec: LidarSpec | None = None, bev: np.ndarray | None = None
+    vae: SensorVAE,
+    latents: torch.Tensor,
+    lidar_spec: LidarSpec | None = None,
+    bev: np.ndarray | None = None,
+    frames_per_call: int = DECODE_FRAMES_PER_CALL,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres).
 
-    ``bev`` (B, T, h, w, c), when given, is attached to the observations unchanged.
+    Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
+    for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
+    attached to the observations unchanged.
     """
-    out = []
-    for b in range(latents.shape[0]):
-        cams, lidar = vae.decode_frames(latents[b], lidar_spec)
-        out.append(
-            [
-                Observation(cameras=cams[i], lidar=lidar[i], bev=None if bev is None else np.asarray(bev[b, i]))
-                for i in range(len(cams))
-            ]
-        )
-    return out
+    b, t = latents.shape[:2]
+    flat = latents.flatten(0, 1)
+    parts = [vae.decode_frames(flat[i : i + frames_per_call], lidar_spec) for i in range(0, b * t, frames_per_call)]
+    cams = np.concatenate([c for c, _ in parts]) if parts else np.zeros((0,), np.uint8)
+    lidar = np.concatenate([r for _, r in parts]) if parts else np.zeros((0,), np.float32)
+    return [
+        [
+            Observation(cams[i * t + j], lidar[i * t + j], None if bev is None else np.asarray(bev[i, j]))
+            for j in range(t)
+        ]
+        for i in range(b)
+    ]
 
 
 def generate(
