@@ -79,6 +79,26 @@ def test_kv_context_streaming_matches_full_causal_forward():
     assert torch.allclose(last, full[:, 2:], atol=1e-5)
 
 
+def test_context_only_frames_skip_outputs_but_not_keys_and_values():
+    cfg = get_preset("tiny")
+    model = _model(cfg)
+    cond = tiny_conditions(cfg, 3, batch=2)
+    x, t = torch.randn(2, *cfg.latent_shape(3)), torch.rand(2, 3)
+    _, ctx = model(x[:, :2], t[:, :2], cond.frames(0, 2), return_kv=True)
+    valid = torch.tensor([[True, True], [False, True]])
+    kw = {"frame_offset": 2, "kv_context": ctx, "context_valid": valid, "return_kv": True}
+    with torch.no_grad():
+        full, full_kv = model(x, t, cond, **kw)
+        for first in (1, 2, 3):  # a refreshed frame in front; all but one; a pure K/V pass
+            part, part_kv = model(x, t, cond, context_only_frames=first, **kw)
+            assert part.shape == (2, 3 - first, *full.shape[2:])
+            assert torch.allclose(part, full[:, first:], atol=1e-5)
+            for (k, v), (fk, fv) in zip(part_kv, full_kv, strict=True):
+                assert torch.equal(k, fk) and torch.equal(v, fv)
+    with pytest.raises(ValueError, match="context_only_frames"):
+        model(x, t, cond, context_only_frames=4)
+
+
 def test_cross_view_attention_only_mixes_overlapping_views():
     cfg = get_preset("tiny")  # 2 blocks, cross-view in block 2 only
     model = _model(cfg)

@@ -122,11 +122,16 @@ class SelfAttention(nn.Module):
         sin: torch.Tensor,
         mask: torch.Tensor | None = None,
         context: KV | None = None,
+        queries_from: int = 0,
     ) -> tuple[torch.Tensor, KV]:
         """x (N, S, D); cos/sin (S, head_dim) from ``rope.rotation_tables``; mask (S, Sc+S) or
         (N, 1, S, Sc+S) or None (full); context keys/values (N, H, Sc, head_dim). Returns output
-        (N, S, D) and this call's own (k, v) (N, H, S, head_dim), rotated, ready to be cached."""
-        q = apply_rope(_heads(self.q(x), self.heads, self.q_norm), cos, sin)
+        (N, S - queries_from, D) of the tokens from ``queries_from`` on (the others only give keys
+        and values) and this call's own (k, v) (N, H, S, head_dim), rotated, ready to be cached."""
+        xq = x[:, queries_from:] if queries_from else x
+        q = apply_rope(_heads(self.q(xq), self.heads, self.q_norm), cos[queries_from:], sin[queries_from:])
+        if mask is not None and queries_from:
+            mask = mask[..., queries_from:, :]
         k = apply_rope(_heads(self.k(x), self.heads, self.k_norm), cos, sin)
         v = _heads(self.v(x), self.heads)
         k_all, v_all = k, v

@@ -21,7 +21,7 @@ Hooks: ``forward(..., kv_context=, frame_offset=, return_kv=)`` for a causal str
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -60,6 +60,25 @@ class _Run:
     text_mask: torch.Tensor  # (B, 1, 1, L + 1)
     control_mask: torch.Tensor  # (B*T, 1, V*N, V + Nf)
     view_mask: torch.Tensor  # (B*T, 1, V*N, V*N)
+
+    def frame_rows(self, x: torch.Tensor, first: int) -> torch.Tensor:
+        """Rows (B*T, ...) of per-frame tensors -> the rows of frames ``first``.. (B*(T - first), ...)."""
+        return x.unflatten(0, (self.b, self.t))[:, first:].flatten(0, 1)
+
+    def frames_from(self, first: int) -> _Run:
+        """The state of frames ``first``.. only: the queries of a block whose earlier frames give
+        keys and values but no output (see ``MultiViewDiT.forward``'s ``context_only_frames``)."""
+        s = first * self.n
+        return replace(
+            self,
+            t=self.t - first,
+            mod=self.mod[:, first:],
+            cos=self.cos[s:],
+            sin=self.sin[s:],
+            self_mask=None,  # the self-attention runs with the full run's mask
+            control_mask=self.frame_rows(self.control_mask, first),
+            view_mask=self.frame_rows(self.view_mask, first),
+        )
 
 
 def _control_keys(tokens: ControlTokens) -> torch.Tensor:
@@ -158,15 +177,28 @@ class DiTBlock(nn.Module):
         """Keys/values of the text and the control cross-attention: they depend on the controls only."""
         return self.text_attn.kv(tokens.text), self.control_attn.kv(_control_keys(tokens))
 
-    def forward(self, x: torch.Tensor, run: _Run, context: KV | None, cross: tuple[KV, KV]) -> tuple[torch.Tensor, KV]:
-        """x (B*V, T*N, D) -> same, plus this block's self-attention (k, v). ``cross``: :meth:`cross_kv`."""
-        b, v, t, n = run.b, run.v, run.t, run.n
+    def forward(
+        self, x: torch.Tensor, run: _Run, context: KV | None, cross: tuple[KV, KV], out: _Run | None = None
+    ) -> tuple[torch.Tensor, KV]:
+        """x (B*V, T*N, D) -> (B*V, T'*N, D), plus this block's self-attention (k, v) of all T frames.
+        ``cross``: :meth:`cross_kv`. ``out``: ``run.frames_from(T - T')`` when only the last T'
+        frames' outputs are wanted (the last block of a forward with context-only frames)."""
+        out = out or run
+        first = run.t - out.t
         text_kv, control_kv = cross
         m = (run.mod + self.modulation)[:, None, :, None]  # (B, 1, T, 1, 6, D)
         shift1, scale1, gate1, shift2, scale2, gate2 = m.unbind(dim=-2)
 
         h = torch.addcmul(shift1, self._per_frame(self.norm1(x), run), 1 + scale1).view_as(x)
-        a, kv = self.attn(h, run.cos, run.sin, run.self_mask, context)
+        a, kv = self.attn(h, run.cos, run.sin, run.self_mask, context, queries_from=first * run.n)
+        if first:
+            x = self._per_frame(x, run)[:, :, first:].reshape(run.b * run.v, out.t * run.n, x.shape[-1])
+            gate1, shift2, scale2, gate2 = (g[:, :, first:] for g in (gate1, shift2, scale2, gate2))
+            control_kv = (run.frame_rows(control_kv[0], first), run.frame_rows(control_kv[1], first))
+            if out.t == 0:
+                return x, kv
+        run = out
+        b, v, t, n = run.b, run.v, run.t, run.n
         x = torch.addcmul(self._per_frame(x, run), self._per_frame(a, run), gate1).view_as(x)
 
         q = self.norm_text(x).reshape(b, v * t * n, -1)
@@ -254,6 +286,7 @@ class MultiViewDiT(nn.Module):
         return_kv: bool = False,
         blocks: torch.Tensor | None = None,
         context_valid: torch.Tensor | None = None,
+        context_only_frames: int = 0,
     ) -> torch.Tensor | tuple[torch.Tensor, list[KV]]:
         """Predict the velocity.
 
@@ -269,8 +302,13 @@ class MultiViewDiT(nn.Module):
                 ``clip.chunk_frames``); a streaming rollout's conditioning frames form block 0.
             context_valid: (B, Sc / N) bool, which ``kv_context`` frames each sample may attend to
                 (rollouts of one batch restarted at different times); default all.
+            context_only_frames: the first frames of ``x`` only give keys/values to the others
+                (the refreshed context frame of the causal student; all T for a pure K/V pass):
+                the last block skips their queries and everything after its self-attention, and
+                their velocity is not returned.
         Returns:
-            velocity (B, T, V, C, h, w) float32 [and the list of per-block (k, v)].
+            velocity (B, T - context_only_frames, V, C, h, w) float32 [and the list of per-block
+            (k, v) of all T frames].
         """
         self._check(x)
         cfg = self.cfg
@@ -281,6 +319,8 @@ class MultiViewDiT(nn.Module):
             t = t[:, None].expand(b, t_len)
         if t.shape != (b, t_len):
             raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
+        if not 0 <= context_only_frames <= t_len:
+            raise ValueError(f"context_only_frames must be in [0, {t_len}], got {context_only_frames}")
         if kv_context is not None and len(kv_context) != len(self.blocks):
             raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}")
         with self._autocast(x.device.type):
@@ -327,14 +367,18 @@ class MultiViewDiT(nn.Module):
                 mask_bias(view_mask.reshape(b * t_len, 1, v * n, v * n), dt),
             )
             kvs: list[KV] = []
+            last = len(self.blocks) - 1
+            out_run = run.frames_from(context_only_frames) if context_only_frames else None
             for i, block in enumerate(self.blocks):
-                h, kv = block(h, run, None if kv_context is None else kv_context[i], cross[i])
+                ctx = None if kv_context is None else kv_context[i]
+                h, kv = block(h, run, ctx, cross[i], out_run if i == last else None)
                 if return_kv:
                     kvs.append(kv)
-            shift, scale = self.out_mod(F.silu(temb))[:, None, :, None].chunk(2, dim=-1)
-            h = self.norm_out(h).view(b, v, t_len, n, -1) * (1 + scale) + shift
-            out = self.head(h).float()  # (B, V, T, N, C*p*p)
+            t_out = t_len - context_only_frames
+            shift, scale = self.out_mod(F.silu(temb[:, context_only_frames:]))[:, None, :, None].chunk(2, dim=-1)
+            h = self.norm_out(h).view(b, v, t_out, n, h.shape[-1]) * (1 + scale) + shift
+            out = self.head(h).float()  # (B, V, T', N, C*p*p)
         c = cfg.vae.latent_channels
-        out = out.reshape(b, v, t_len, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)
-        out = out.reshape(b, t_len, v, c, th * p, tw * p)
+        out = out.reshape(b, v, t_out, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)
+        out = out.reshape(b, t_out, v, c, th * p, tw * p)
         return (out, kvs) if return_kv else out

@@ -165,7 +165,14 @@ class StreamingEngine:
         """K/V of clean frames x (one attention block) at RoPE offset ``offset``."""
         t = torch.ones(x.shape[:2], device=x.device)
         _, kvs = self.model(
-            x, t, controls, frame_offset=offset, kv_context=context, return_kv=True, context_valid=valid
+            x,
+            t,
+            controls,
+            frame_offset=offset,
+            kv_context=context,
+            return_kv=True,
+            context_valid=valid,
+            context_only_frames=x.shape[1],  # a K/V pass: no velocity wanted
         )
         return kvs
 
@@ -245,7 +252,8 @@ class StreamingEngine:
                     frame_offset=self.position - 1,
                     kv_context=ctx,
                     context_valid=valid,
-                )[:, 1:]
+                    context_only_frames=1,
+                )
                 return predict_x0(x, v, t)
 
             return refreshed
