@@ -223,19 +223,17 @@ class TrafficBridge:
     def _scene_object(self, o) -> SceneObject:
         a = o.appearance
         h = a.size[2]
-        vel = o.velocity
+        heading, speed = float(o.heading), float(o.speed)
+        x, y = o.position.tolist()
+        vel = (speed * math.cos(heading), speed * math.sin(heading))  # highway-env's o.velocity, in math
         return SceneObject(
             track_id=o.track_id,
             category=a.category,
-            box=Box3D(
-                center=(float(o.position[0]), -float(o.position[1]), h / 2),
-                size=a.size,
-                yaw=-float(o.heading),
-            ),
+            box=Box3D(center=(x, -y, h / 2), size=a.size, yaw=-heading),
             color=a.color,
             color_name=a.color_name,
             description=a.description,
-            velocity=(float(vel[0]), -float(vel[1])),
+            velocity=(vel[0], -vel[1]),
             image_path=a.image_path,
             attributes={"source": "idm" if population.is_vehicle(o) and not o.scripted else "scripted"},
         )

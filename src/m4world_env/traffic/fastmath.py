@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 from highway_env.road.lane import AbstractLane, CircularLane, SineLane, StraightLane
+from highway_env.vehicle.kinematics import Vehicle
 
 
 def not_zero(x: float, eps: float = 1e-2) -> float:
@@ -136,8 +137,6 @@ class FastIDMMixin(FastControlMixin):
         self.action = {"steering": steering, "acceleration": clip(acc, -self.ACC_MAX, self.ACC_MAX)}
 
     def acceleration(self, ego_vehicle=None, front_vehicle=None, rear_vehicle=None) -> float:
-        from highway_env.vehicle.kinematics import Vehicle
-
         if not ego_vehicle or not isinstance(ego_vehicle, Vehicle):
             return 0
         target = getattr(ego_vehicle, "target_speed", 0)

@@ -260,22 +260,25 @@ class FastRoad(Road):
         if not vs:
             return
         ents = [*vs, *obs]
-        pos = np.array([e.position for e in ents], dtype=np.float64)
-        diag = np.array([e.diagonal for e in ents])
-        speed = np.array([v.speed for v in vs])
-        dist = np.linalg.norm(pos[: len(vs), None, :] - pos[None, :, :], axis=-1)
+        nv = len(vs)
+        # One pass over the entities (position, heading, speed, diagonal, half length and width).
+        state = np.array(
+            [(*e.position, e.heading, e.speed, e.diagonal, e.LENGTH / 2, e.WIDTH / 2) for e in ents], dtype=np.float64
+        )
+        pos, head, speed, diag = state[:, :2], state[:, 2], state[:, 3], state[:, 4]
+        d = pos[:nv, None, :] - pos[None, :, :]
+        dist = np.sqrt(np.add.reduce(d * d, axis=-1))  # = np.linalg.norm(d, axis=-1), bit for bit
         # highway-env's bounding-circle pre-check, seen from the vehicle that checks.
-        close = dist <= (diag[: len(vs), None] + diag[None, :]) / 2 + speed[:, None] * dt
-        close &= np.arange(len(ents))[None, :] > np.arange(len(vs))[:, None]
+        close = dist <= (diag[:nv, None] + diag[None, :]) / 2 + speed[:nv, None] * dt
+        close &= np.arange(len(ents))[None, :] > np.arange(nv)[:, None]
         ii, jj = np.nonzero(close)
         if not len(ii):
             return
         # Exact, conservative rectangle test of every close pair at once: pairs surely apart after
         # the step skip highway-env's per-pair polygon test, which keeps the last word otherwise.
-        head = np.array([e.heading for e in ents], dtype=np.float64)
-        half = np.array([(e.LENGTH / 2, e.WIDTH / 2) for e in ents], dtype=np.float64)
-        vel = np.array([e.velocity for e in ents], dtype=np.float64) * dt
-        for i, j in zip(*[ix[~swept_apart(pos, head, half, vel, ii, jj)] for ix in (ii, jj)], strict=True):
+        # Displacement = highway-env's velocity (speed * (cos, sin) of the heading) * dt.
+        disp = (speed * dt)[:, None] * np.stack([np.cos(head), np.sin(head)], axis=1)
+        for i, j in zip(*[ix[~swept_apart(pos, head, state[:, 5:7], disp, ii, jj)] for ix in (ii, jj)], strict=True):
             vs[i].handle_collisions(ents[j], dt)
 
 
@@ -293,23 +296,25 @@ def swept_apart(
     some axis separates the intervals by more than :data:`SEPARATION_MARGIN_M` (then highway-env
     reports neither ``intersecting`` nor ``will_intersect``, so skipping it changes nothing).
     """
-    axes = np.concatenate(
-        [np.stack([np.cos(head[k]), np.sin(head[k])], -1)[:, None] for k in (ii, jj)]
-        + [np.stack([-np.sin(head[k]), np.cos(head[k])], -1)[:, None] for k in (ii, jj)],
-        axis=1,
-    )  # (P, 4, 2) unit normals
+    cos, sin = np.cos(head), np.sin(head)
+    k2 = np.concatenate([ii, jj])
+    c2, s2 = cos[k2], sin[k2]
+    # (P, 4, 2) unit normals: each rectangle's two edge directions, a's then b's.
+    p = len(ii)
+    ax_x = np.concatenate([c2[:p, None], c2[p:, None], -s2[:p, None], -s2[p:, None]], axis=1)
+    ax_y = np.concatenate([s2[:p, None], s2[p:, None], c2[:p, None], c2[p:, None]], axis=1)
 
-    def interval(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        centre = np.einsum("pad,pd->pa", axes, pos[k])
-        c, s = np.cos(head[k])[:, None], np.sin(head[k])[:, None]
-        along = np.abs(axes[..., 0] * c + axes[..., 1] * s)
-        across = np.abs(-axes[..., 0] * s + axes[..., 1] * c)
+    def interval(k: np.ndarray, c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        centre = ax_x * pos[k, 0:1] + ax_y * pos[k, 1:2]
+        along = np.abs(ax_x * c[:, None] + ax_y * s[:, None])
+        across = np.abs(-ax_x * s[:, None] + ax_y * c[:, None])
         radius = half[k, 0:1] * along + half[k, 1:2] * across
         return centre - radius, centre + radius
 
-    min_a, max_a = interval(ii)
-    min_b, max_b = interval(jj)
-    shift = np.einsum("pad,pd->pa", axes, disp[ii] - disp[jj])
+    min_a, max_a = interval(ii, c2[:p], s2[:p])
+    min_b, max_b = interval(jj, c2[p:], s2[p:])
+    rel = disp[ii] - disp[jj]
+    shift = ax_x * rel[:, 0:1] + ax_y * rel[:, 1:2]
     min_a, max_a = min_a + np.minimum(shift, 0.0), max_a + np.maximum(shift, 0.0)
     gap = np.where(min_a < min_b, min_b - max_a, min_a - max_b)
     return (gap > SEPARATION_MARGIN_M).any(axis=1)

@@ -114,6 +114,27 @@ def _part_ranks(sm: SceneMesh, pn: np.ndarray, cam: np.ndarray) -> np.ndarray:
     return in_front.sum(-1)
 
 
+_RIGS: dict[int, tuple[CameraRig, tuple[np.ndarray, ...]]] = {}
+
+
+def _rig_arrays(rig: CameraRig) -> tuple[np.ndarray, ...]:
+    """Per-rig constants of :func:`plan_objects`: camera centres (V, 3), focal lengths and
+    principal points (V,) x 4, every camera's R^T as one (3, 3V) matrix and R^T t (V, 3)."""
+    hit = _RIGS.get(id(rig))
+    if hit is not None and hit[0] is rig:
+        return hit[1]
+    Rs = np.stack([c.R for c in rig.cameras])  # (V, 3, 3) camera -> LiDAR
+    ts = np.stack([c.t for c in rig.cameras])  # (V, 3)
+    K = np.stack([c.K for c in rig.cameras])
+    r_all = Rs.transpose(1, 0, 2).reshape(3, rig.num_views * 3)  # columns: every camera's R
+    t_cam = np.einsum("vj,vjk->vk", ts, Rs)  # (V, 3) = R^T t
+    arrays = (ts, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], r_all, t_cam)
+    if len(_RIGS) > 64:  # rigs are few; a long-lived process with many stays bounded
+        _RIGS.clear()
+    _RIGS[id(rig)] = (rig, arrays)
+    return arrays
+
+
 def plan_objects(
     frame: SceneFrame,
     sm: SceneMesh,
@@ -129,17 +150,11 @@ def plan_objects(
     nviews = rig.num_views
     h, w = rig.resolution
     cy, sy = poses.cos, poses.sin
-    Rs = np.stack([c.R for c in rig.cameras])  # (V, 3, 3) camera -> LiDAR
-    ts = np.stack([c.t for c in rig.cameras])  # (V, 3)
-    fx, fy = (np.array([c.K[0, 0] for c in rig.cameras]), np.array([c.K[1, 1] for c in rig.cameras]))
-    cx, cyy = (np.array([c.K[0, 2] for c in rig.cameras]), np.array([c.K[1, 2] for c in rig.cameras]))
+    ts, fx, fy, cx, cyy, r_all, t_cam = _rig_arrays(rig)
 
     def to_cameras(p: np.ndarray) -> np.ndarray:
         """LiDAR-frame points (M, 3) -> (M, V, 3) in every camera: R^T (p - t), one BLAS product."""
         return (p @ r_all).reshape(len(p), nviews, 3) - t_cam
-
-    r_all = Rs.transpose(1, 0, 2).reshape(3, nviews * 3)  # columns: every camera's R
-    t_cam = np.einsum("vj,vjk->vk", ts, Rs)  # (V, 3) = R^T t
 
     # Object-level culling and level of detail from the projected 3D boxes.
     cc = to_cameras(poses.corners.reshape(-1, 3)).reshape(-1, 8, nviews, 3).transpose(2, 0, 1, 3)
@@ -185,11 +200,12 @@ def plan_objects(
     inside, crossing = z_in.all(1), z_in.any(1) & ~z_in.all(1)
 
     def project(p: np.ndarray, views: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        z = np.maximum(p[..., 2], near)
-        u = fx[views, None] * p[..., 0] / z + cx[views, None]
-        v = fy[views, None] * p[..., 1] / z + cyy[views, None]
-        area = 0.5 * np.abs(np.sum(u * np.roll(v, -1, -1) - np.roll(u, -1, -1) * v, axis=-1))
-        ok = (u.min(-1) < w) & (u.max(-1) > 0) & (v.min(-1) < h) & (v.max(-1) > 0) & (area >= min_area)
+        inv_z = 1.0 / np.maximum(p[..., 2], near)
+        u = fx[views, None] * p[..., 0] * inv_z + cx[views, None]
+        v = fy[views, None] * p[..., 1] * inv_z + cyy[views, None]
+        # Shoelace area; the padding repeats a vertex, which adds nothing.
+        twice = np.sum(u[:, :-1] * v[:, 1:] - u[:, 1:] * v[:, :-1], axis=-1) + (u[:, -1] * v[:, 0] - u[:, 0] * v[:, -1])
+        ok = (u.min(-1) < w) & (u.max(-1) > 0) & (v.min(-1) < h) & (v.max(-1) > 0) & (np.abs(twice) >= 2 * min_area)
         return u[ok], v[ok], ok
 
     # Only faces crossing the near plane need clipping; the others are padded to the same layout.
