@@ -164,6 +164,19 @@ def test_tokenized_controls_give_the_same_velocity_as_conditions():
         assert torch.allclose(model(x, t, cond), model(x, t, tokens), atol=1e-6)
 
 
+def test_control_tokens_of_some_frames_equal_tokenizing_those_frames():
+    cfg = get_preset("tiny")
+    model = _model(cfg).eval()
+    cond = tiny_conditions(cfg, 3, batch=2)
+    with torch.no_grad():
+        sliced, direct = model.tokenize(cond).frames(1, 3), model.tokenize(cond.frames(1, 3))
+    for name in ("text", "text_mask", "sensor", "frame", "frame_mask", "view_adjacency"):
+        assert torch.allclose(getattr(sliced, name).float(), getattr(direct, name).float(), atol=1e-6), name
+    for (t1, c1), (t2, c2) in zip(sliced.cross_kv, direct.cross_kv, strict=True):
+        for a, b in zip((*t1, *c1), (*t2, *c2), strict=True):
+            assert a.shape == b.shape and torch.allclose(a, b, atol=1e-6)
+
+
 def test_cpu_attention_matches_sdpa_and_survives_fully_masked_rows():
     import torch.nn.functional as F
 

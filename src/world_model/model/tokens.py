@@ -18,7 +18,7 @@ when a frame has no objects, and it is the only control left when ``Conditions.d
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -65,6 +65,17 @@ class ControlTokens:
     frame_mask: torch.Tensor
     view_adjacency: torch.Tensor
     cross_kv: list[tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]] | None = None
+
+    def frames(self, start: int, stop: int) -> ControlTokens:
+        """The tokens of frames [start, stop): per-frame tokens and the control keys/values (one
+        row per batch sample and frame) sliced, the per-sequence ones shared."""
+        b, t = self.frame.shape[:2]
+
+        def rows(x: torch.Tensor) -> torch.Tensor:
+            return x.unflatten(0, (b, t))[:, start:stop].flatten(0, 1)
+
+        kv = None if self.cross_kv is None else [(text, (rows(k), rows(v))) for text, (k, v) in self.cross_kv]
+        return replace(self, frame=self.frame[:, start:stop], frame_mask=self.frame_mask[:, start:stop], cross_kv=kv)
 
 
 class ControlTokenizer(nn.Module):

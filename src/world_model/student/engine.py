@@ -31,6 +31,7 @@ from world_model.model.attention import KV
 from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import interpolate, predict_x0
+from world_model.model.tokens import ControlTokens
 from world_model.student.cache import KVCache
 from world_model.student.config import StudentConfig, check_student, rollout_blocks
 
@@ -128,6 +129,7 @@ class StreamingEngine:
         self.prefix = 0  # conditioning frames of the rollout (recompute ablation block layout)
         self.last: torch.Tensor | None = None  # (B, 1, V, C, h, w) last clean frame of each row
         self.last_controls: Conditions | None = None  # its controls (1 frame)
+        self._chunk_tokens: ControlTokens | None = None  # the current chunk's, for its commit
         self.history: torch.Tensor | None = None  # recompute ablation: (B, <=W, V, C, h, w)
         self.history_controls: Conditions | None = None
 
@@ -157,7 +159,7 @@ class StreamingEngine:
     def _clean_kv(
         self,
         x: torch.Tensor,
-        controls: Conditions,
+        controls: Conditions | ControlTokens,
         offset: int,
         context: list[KV] | None = None,
         valid: torch.Tensor | None = None,
@@ -242,6 +244,7 @@ class StreamingEngine:
         if self.scfg.kv_cache and self.scfg.context_refresh:
             ctx, valid = self.cache.context(exclude_newest=True)
             tokens = m.tokenize(cat_frames(self.last_controls, controls))
+            self._chunk_tokens = tokens.frames(1, 1 + c)  # the commit's: no second tokenization
 
             def refreshed(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
                 tt = torch.cat([torch.ones_like(t)[:, None], t[:, None].expand(-1, c)], dim=1)
@@ -260,6 +263,7 @@ class StreamingEngine:
         if self.scfg.kv_cache:
             ctx, valid = self.cache.context()
             tokens = m.tokenize(controls)
+            self._chunk_tokens = tokens
 
             def cached(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
                 v = m(x, t, tokens, frame_offset=self.position, kv_context=ctx, context_valid=valid)
@@ -307,14 +311,17 @@ class StreamingEngine:
             noise = gaussian(shape, self.gen)
         elif tuple(noise.shape) != shape:
             raise ValueError(f"noise must be {shape}, got {tuple(noise.shape)}")
+        self._chunk_tokens = None
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
             x0_fn = self.chunk_x0_fn(controls)
         x0 = few_step_sample(x0_fn, noise.to(dev), self.times, self.scfg.renoise, exit_step, grad, self.gen)
-        self.commit(x0.detach(), controls)
+        tokens, self._chunk_tokens = self._chunk_tokens, None
+        self.commit(x0.detach(), controls, tokens)
         return x0
 
-    def commit(self, latents: torch.Tensor, controls: Conditions) -> None:
+    def commit(self, latents: torch.Tensor, controls: Conditions, tokens: ControlTokens | None = None) -> None:
         """Append clean chunk latents (B, chunk, ...) to the context: re-run at t = 1 into the cache.
+        ``tokens``: the chunk's control tokens when already computed (by :meth:`step`).
 
         Also the teacher-forcing entry point: commit ground-truth latents instead of samples.
         """
@@ -322,7 +329,8 @@ class StreamingEngine:
         latents, controls = latents.detach().float(), controls.to(latents.device)
         if self.scfg.kv_cache:
             ctx, valid = self.cache.context()
-            self.cache.append(self._clean_kv(latents, controls, self.position, ctx, valid), c)
+            kv = self._clean_kv(latents, controls if tokens is None else tokens, self.position, ctx, valid)
+            self.cache.append(kv, c)
         else:
             w = self.cfg.clip.context_frames
             hist = torch.cat([self.history, latents], dim=1)
