@@ -13,7 +13,9 @@ policy is the lane-keeping reference policy; its time is not counted.
 The machine is shared and its speed drifts by 10-40 % over minutes, so the run is split into
 ``--rounds`` interleaved rounds (highway-env's envs, then each backend, again and again): every
 ratio to highway-env is taken within one round, and the report gives the median over rounds of
-each figure and each ratio (the rounds themselves under ``per_round``).
+each figure and each ratio (the rounds themselves under ``per_round``). Each backend's round runs
+in a fresh process (``--no-isolate``: in this one), so the single-threaded procedural backend never
+shares its process with the world model's torch threads or an earlier round's envs.
 
     python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 """
@@ -165,6 +167,16 @@ def bench_backend(
     return result
 
 
+def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, warmup: int) -> dict:
+    """:func:`bench_backend` in a fresh process: no backend shares the process with another (the
+    world model's torch threads and imports, earlier rounds' envs) while it is timed."""
+    cmd = [sys.executable, __file__, "--backend-probe", backend, "--scenario", args.scenario, "--steps", str(steps)]
+    cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--warmup", str(warmup), "--out", "-"]
+    cmd += (["--checkpoint", args.checkpoint] if args.checkpoint else []) + (["--compile"] if args.compile else [])
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
 def median_rounds(rounds: list[dict]) -> dict:
     """Field-wise median of the rounds' numbers (ints, e.g. ``num_envs``, are equal in every round)."""
     return {k: statistics.median(r[k] for r in rounds) if isinstance(v, float) else v for k, v in rounds[0].items()}
@@ -182,10 +194,30 @@ def main() -> None:
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--compile", action="store_true", help="world model: config model.compile (torch.compile)")
     ap.add_argument("--warmup", type=int, default=None, help="untimed steps first (default 2; 12 with --compile)")
+    ap.add_argument(
+        "--no-isolate",
+        dest="isolate",
+        action="store_false",
+        help="time the backends in this process (default: a fresh process per backend and round)",
+    )
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
+    ap.add_argument("--backend-probe", default=None, help=argparse.SUPPRESS)  # internal: one isolated round
     args = ap.parse_args()
     if args.memory_probe:
         _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint)
+        return
+    if args.backend_probe:
+        r = bench_backend(
+            args.backend_probe,
+            args.scenario,
+            args.steps,
+            args.num_envs,
+            args.seed,
+            args.checkpoint,
+            args.compile,
+            args.warmup,
+        )
+        print(json.dumps(r))
         return
     if args.rounds < 1:
         raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
@@ -198,9 +230,12 @@ def main() -> None:
         hw = {e: bench_highway_env(e, max(steps // 6, 20), args.seed) for e in ("highway-v0", "highway-fast-v0")}
         rnd = {"highway_env": hw, "backends": {}}
         for backend in args.backend:
-            r = bench_backend(
-                backend, args.scenario, steps, args.num_envs, args.seed, args.checkpoint, args.compile, warmup
-            )
+            if args.isolate:
+                r = bench_backend_isolated(backend, args, steps, warmup)
+            else:
+                r = bench_backend(
+                    backend, args.scenario, steps, args.num_envs, args.seed, args.checkpoint, args.compile, warmup
+                )
             r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / hw["highway-fast-v0"]["steps_per_s"]
             r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / hw["highway-v0"]["steps_per_s"]
             rnd["backends"][backend] = r

@@ -19,5 +19,15 @@ def test_bench_env_reports_medians_of_interleaved_rounds(tmp_path):
     assert r["single_vs_highway_fast_v0"] == sum(ratios) / 2  # the median of two rounds
     assert r["num_envs"] == 2 and r["vector_aggregate_steps_per_s"] > 0 and r["one_env_peak_rss_mb"] > 0
     assert set(result["highway_env"]) == {"highway-v0", "highway-fast-v0"}
+    # Timed in a fresh process per round (default): the parent never built an env of ours.
+    assert result["peak_rss_mb"] < 2 * r["one_env_peak_rss_mb"] + 200
+
+
+def test_bench_env_in_process_and_memory_probe_reads_its_own_peak(tmp_path):
+    out = tmp_path / "env.json"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_env.py"), "--backend", "procedural", "--steps", "20"]
+    subprocess.run([*cmd, "--rounds", "1", "--num-envs", "2", "--no-isolate", "--out", str(out)], check=True, cwd=ROOT)
+    result = json.loads(out.read_text())
+    r = result["backends"]["procedural"]
     # the probe's own peak, not the (bigger) parent's: Linux keeps ru_maxrss across execve
-    assert r["one_env_peak_rss_mb"] < result["peak_rss_mb"]
+    assert 0 < r["one_env_peak_rss_mb"] < result["peak_rss_mb"]
