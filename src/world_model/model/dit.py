@@ -14,7 +14,8 @@ into the batch: ``(B*V, T*N, D)``. Every block has
    the view axis could be split across devices ("sensor parallelism", §4.4);
 5. an MLP (``fc1``/``fc2``), adaLN-modulated and gated.
 
-Hooks: ``forward(..., kv_context=, frame_offset=, return_kv=)`` for a causal streaming engine;
+Hooks: ``forward(..., kv_context=, frame_offset=, return_kv=, context_only_frames=)`` for a causal
+streaming engine;
 ``DitConfig.in_channels_extra`` for reference conditioning (§6).
 """
 
