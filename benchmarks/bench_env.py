@@ -161,8 +161,8 @@ def bench_backend(
     )
     venv.close()
     del single, venv
-    # Each round builds new envs: collect the old ones now, or every later round's steps pay the
-    # cyclic garbage collector for them (one env's procedural step ran ~15% slower by round 4).
+    # Each round builds new envs (--no-isolate: in this process): collect the old ones now rather
+    # than during a later round's timed steps.
     gc.collect()
     return result
 

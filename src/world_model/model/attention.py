@@ -49,8 +49,8 @@ def cross_view_mask(adjacency: torch.Tensor, tokens_per_view: int) -> torch.Tens
 def mask_bias(mask: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | None:
     """Bool mask (True = attend) -> additive bias of ``dtype``: 0 where allowed, the dtype's lowest
     value where not (not -inf: a fully masked row then averages its values instead of turning into
-    NaN). Build it once per forward: inductor fuses an addition into the softmax about twice as well
-    as a boolean ``masked_fill`` on CPU (benchmarks/bench_model.py measures the whole forward)."""
+    NaN). Build it once per forward: on CPU inductor fuses an addition into the softmax better than
+    a boolean ``masked_fill`` (benchmarks/bench_model.py measures the whole forward)."""
     if mask is None:
         return None
     return torch.zeros(mask.shape, dtype=dtype, device=mask.device).masked_fill_(~mask, torch.finfo(dtype).min)

@@ -39,7 +39,7 @@ from world_model.model.attention import (
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.rope import rope_tables, rotation_tables
-from world_model.model.tokens import ControlTokenizer, ControlTokens
+from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
 
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
 
@@ -64,7 +64,7 @@ class _Run:
 
     def frame_rows(self, x: torch.Tensor, first: int) -> torch.Tensor:
         """Rows (B*T, ...) of per-frame tensors -> the rows of frames ``first``.. (B*(T - first), ...)."""
-        return x.unflatten(0, (self.b, self.t))[:, first:].flatten(0, 1)
+        return frame_rows(x, self.b, self.t, first, self.t)
 
     def frames_from(self, first: int) -> _Run:
         """The state of frames ``first``.. only: the queries of a block whose earlier frames give

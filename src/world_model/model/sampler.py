@@ -100,9 +100,10 @@ def latents_to_observations(
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
+    if b * t == 0:
+        return [[] for _ in range(b)]
     parts = [vae.decode_frames(flat[i : i + frames_per_call], lidar_spec) for i in range(0, b * t, frames_per_call)]
-    cams = np.concatenate([c for c, _ in parts]) if parts else np.zeros((0,), np.uint8)
-    lidar = np.concatenate([r for _, r in parts]) if parts else np.zeros((0,), np.float32)
+    cams, lidar = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
     return [
         [
             Observation(cams[i * t + j], lidar[i * t + j], None if bev is None else np.asarray(bev[i, j]))

@@ -48,6 +48,11 @@ def mlp(din: int, dout: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(din, dout), nn.SiLU(), nn.Linear(dout, dout))
 
 
+def frame_rows(x: torch.Tensor, batch: int, frames: int, start: int, stop: int) -> torch.Tensor:
+    """Rows (B*T, ...) laid out sample-major, one per frame -> those of frames [start, stop)."""
+    return x.unflatten(0, (batch, frames))[:, start:stop].flatten(0, 1)
+
+
 @dataclass
 class ControlTokens:
     """text (B, L+1, D), text_mask (B, L+1); sensor (B, V, D); frame (B, T, Nf, D) with
@@ -72,7 +77,7 @@ class ControlTokens:
         b, t = self.frame.shape[:2]
 
         def rows(x: torch.Tensor) -> torch.Tensor:
-            return x.unflatten(0, (b, t))[:, start:stop].flatten(0, 1)
+            return frame_rows(x, b, t, start, stop)
 
         kv = None if self.cross_kv is None else [(text, (rows(k), rows(v))) for text, (k, v) in self.cross_kv]
         return replace(self, frame=self.frame[:, start:stop], frame_mask=self.frame_mask[:, start:stop], cross_kv=kv)

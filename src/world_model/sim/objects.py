@@ -114,25 +114,32 @@ def _part_ranks(sm: SceneMesh, pn: np.ndarray, cam: np.ndarray) -> np.ndarray:
     return in_front.sum(-1)
 
 
-_RIGS: dict[int, tuple[CameraRig, tuple[np.ndarray, ...]]] = {}
+@dataclass(frozen=True)
+class RigArrays:
+    """Per-rig constants of :func:`plan_objects` (cache them with the rig)."""
+
+    centres: np.ndarray  # (V, 3) camera centres, LiDAR frame
+    fx: np.ndarray  # (V,) focal lengths and principal points
+    fy: np.ndarray
+    cx: np.ndarray
+    cy: np.ndarray
+    rotations: np.ndarray  # (3, 3V): every camera's R side by side, so p @ rotations = R^T p for all
+    centres_cam: np.ndarray  # (V, 3) R^T t
 
 
-def _rig_arrays(rig: CameraRig) -> tuple[np.ndarray, ...]:
-    """Per-rig constants of :func:`plan_objects`: camera centres (V, 3), focal lengths and
-    principal points (V,) x 4, every camera's R^T as one (3, 3V) matrix and R^T t (V, 3)."""
-    hit = _RIGS.get(id(rig))
-    if hit is not None and hit[0] is rig:
-        return hit[1]
-    Rs = np.stack([c.R for c in rig.cameras])  # (V, 3, 3) camera -> LiDAR
+def rig_arrays(rig: CameraRig) -> RigArrays:
+    rs = np.stack([c.R for c in rig.cameras])  # (V, 3, 3) camera -> LiDAR
     ts = np.stack([c.t for c in rig.cameras])  # (V, 3)
-    K = np.stack([c.K for c in rig.cameras])
-    r_all = Rs.transpose(1, 0, 2).reshape(3, rig.num_views * 3)  # columns: every camera's R
-    t_cam = np.einsum("vj,vjk->vk", ts, Rs)  # (V, 3) = R^T t
-    arrays = (ts, K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], r_all, t_cam)
-    if len(_RIGS) > 64:  # rigs are few; a long-lived process with many stays bounded
-        _RIGS.clear()
-    _RIGS[id(rig)] = (rig, arrays)
-    return arrays
+    k = np.stack([c.K for c in rig.cameras])
+    return RigArrays(
+        centres=ts,
+        fx=k[:, 0, 0],
+        fy=k[:, 1, 1],
+        cx=k[:, 0, 2],
+        cy=k[:, 1, 2],
+        rotations=rs.transpose(1, 0, 2).reshape(3, rig.num_views * 3),
+        centres_cam=np.einsum("vj,vjk->vk", ts, rs),
+    )
 
 
 def plan_objects(
@@ -140,6 +147,7 @@ def plan_objects(
     sm: SceneMesh,
     poses: ObjectPoses,
     rig: CameraRig,
+    cams: RigArrays,
     lighting: Lighting,
     near: float,
     min_area: float,
@@ -150,7 +158,8 @@ def plan_objects(
     nviews = rig.num_views
     h, w = rig.resolution
     cy, sy = poses.cos, poses.sin
-    ts, fx, fy, cx, cyy, r_all, t_cam = _rig_arrays(rig)
+    ts, fx, fy, cx, cyy = cams.centres, cams.fx, cams.fy, cams.cx, cams.cy
+    r_all, t_cam = cams.rotations, cams.centres_cam
 
     def to_cameras(p: np.ndarray) -> np.ndarray:
         """LiDAR-frame points (M, 3) -> (M, V, 3) in every camera: R^T (p - t), one BLAS product."""

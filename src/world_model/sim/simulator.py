@@ -81,6 +81,7 @@ class ProceduralSimulator:
         self._rays = _Cache(n)
         self._shading = _Cache(n)
         self._lidar_rays = _Cache(n)
+        self._rig_arrays = _Cache(n)
         self._meshes = _Cache(n)
         self._precip = _Cache(n)
         self._poses = _Cache(1)  # render() asks for the same frame's poses twice
@@ -115,6 +116,7 @@ class ProceduralSimulator:
             self._scene_mesh(frame),
             self._object_poses(frame, spec),
             rig,
+            self._rig_arrays.get(id(rig), (rig,), lambda: objects.rig_arrays(rig)),
             lighting_for(frame.prompt),
             cfg.near_plane_m,
             cfg.min_face_area_px,

@@ -129,7 +129,6 @@ class StreamingEngine:
         self.prefix = 0  # conditioning frames of the rollout (recompute ablation block layout)
         self.last: torch.Tensor | None = None  # (B, 1, V, C, h, w) last clean frame of each row
         self.last_controls: Conditions | None = None  # its controls (1 frame)
-        self._chunk_tokens: ControlTokens | None = None  # the current chunk's, for its commit
         self.history: torch.Tensor | None = None  # recompute ablation: (B, <=W, V, C, h, w)
         self.history_controls: Conditions | None = None
 
@@ -240,11 +239,15 @@ class StreamingEngine:
     # -- one chunk --
     def chunk_x0_fn(self, controls: Conditions) -> X0Fn:
         """x0-prediction of the next chunk given the current context: (x_t, t (B,)) -> x0."""
+        return self._chunk(controls)[0]
+
+    def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens | None]:
+        """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit (None: the
+        recompute ablation, which commits without a forward)."""
         m, c = self.model, self.cfg.clip.chunk_frames
         if self.scfg.kv_cache and self.scfg.context_refresh:
             ctx, valid = self.cache.context(exclude_newest=True)
             tokens = m.tokenize(cat_frames(self.last_controls, controls))
-            self._chunk_tokens = tokens.frames(1, 1 + c)  # the commit's: no second tokenization
 
             def refreshed(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
                 tt = torch.cat([torch.ones_like(t)[:, None], t[:, None].expand(-1, c)], dim=1)
@@ -259,17 +262,16 @@ class StreamingEngine:
                 )
                 return predict_x0(x, v, t)
 
-            return refreshed
+            return refreshed, tokens.frames(1, 1 + c)  # the commit's: no second tokenization
         if self.scfg.kv_cache:
             ctx, valid = self.cache.context()
             tokens = m.tokenize(controls)
-            self._chunk_tokens = tokens
 
             def cached(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
                 v = m(x, t, tokens, frame_offset=self.position, kv_context=ctx, context_valid=valid)
                 return predict_x0(x, v, t)
 
-            return cached
+            return cached, tokens
         hist, f = self.history, self.history.shape[1]
         tokens = m.tokenize(cat_frames(self.history_controls, controls))
         blocks = rollout_blocks(self.position - f, f + c, self.prefix, c)
@@ -281,7 +283,7 @@ class StreamingEngine:
             ]
             return predict_x0(x, v, t)
 
-        return recompute
+        return recompute, None
 
     def step(
         self,
@@ -311,11 +313,9 @@ class StreamingEngine:
             noise = gaussian(shape, self.gen)
         elif tuple(noise.shape) != shape:
             raise ValueError(f"noise must be {shape}, got {tuple(noise.shape)}")
-        self._chunk_tokens = None
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
-            x0_fn = self.chunk_x0_fn(controls)
+            x0_fn, tokens = self._chunk(controls)
         x0 = few_step_sample(x0_fn, noise.to(dev), self.times, self.scfg.renoise, exit_step, grad, self.gen)
-        tokens, self._chunk_tokens = self._chunk_tokens, None
         self.commit(x0.detach(), controls, tokens)
         return x0
 
