@@ -7,10 +7,11 @@ times one DiT forward and that decode the way the env runs them (``--dtypes auto
 when ``dit.autocast_bf16``; ``fp32``/``bf16`` force one); ``--compile`` adds rows with the blocks
 compiled (env ``config.model.compile``). It measures the machine's matmul peak in the same run (a
 4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of peak is against the
-peak of its own dtype.
+peak of its own dtype. ``--models``: the causal student the env runs (``dit.student_depth``
+blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
-    python benchmarks/bench_model.py [--presets tiny default] [--dtypes auto fp32 bf16] [--compile]
-        [--repeats 7] [--out results.json]
+    python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
+        [--dtypes auto fp32 bf16] [--compile] [--repeats 7] [--out results.json]
 """
 
 from __future__ import annotations
@@ -67,8 +68,11 @@ def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
 
 
 @torch.no_grad()
-def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_name: str, compile_: bool) -> dict:
+def bench_config(
+    cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_name: str, compile_: bool, which: str = "student"
+) -> dict:
     torch.manual_seed(0)
+    cfg = cfg.for_student() if which == "student" else cfg
     if dtype_name == "auto":
         dtype_name = "bf16" if cfg.dit.autocast_bf16 else "fp32"
     dtype = DTYPES[dtype_name]
@@ -97,6 +101,8 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_
     achieved = flops["total"] / fwd / 1e9
     return {
         "preset": cfg.name,
+        "model": which,
+        "depth": cfg.dit.depth,
         "dtype": dtype_name,
         "compiled": compile_,
         "dit_params_m": sum(p.numel() for p in model.parameters()) / 1e6,
@@ -116,6 +122,7 @@ def bench_config(cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
+    p.add_argument("--models", nargs="+", default=["student"], choices=["student", "teacher"])
     p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto = the preset's own")
     p.add_argument(
         "--compile", action="store_true", help="also rows with the DiT blocks torch.compile'd (needs a C++ compiler)"
@@ -125,8 +132,9 @@ def main() -> None:
     a = p.parse_args()
     peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
     rows = [
-        bench_config(get_preset(name), a.repeats, peaks, dtype, compiled)
+        bench_config(get_preset(name), a.repeats, peaks, dtype, compiled, which)
         for name in a.presets
+        for which in a.models
         for dtype in a.dtypes
         for compiled in ((False, True) if a.compile else (False,))
     ]
@@ -136,6 +144,8 @@ def main() -> None:
     )
     cols = [
         "preset",
+        "model",
+        "depth",
         "dtype",
         "compiled",
         "dit_params_m",

@@ -1,5 +1,7 @@
 """Causal student benchmark (untrained weights: timing and memory only), medians of one run.
 
+The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the preset's).
+
 1. ``student_vs_teacher``: one chunk (``clip.chunk_frames`` frames) for ``--envs`` rollouts: the
    4-step student's engine step (4 denoising forwards + 1 cache write, with context refresh over a
    full window of ``clip.context_frames`` cached frames) vs the bidirectional teacher sampling
@@ -81,13 +83,14 @@ def warm_engine(model: MultiViewDiT, scfg: StudentConfig, envs: int) -> tuple[St
 
 
 @torch.no_grad()
-def student_vs_teacher(model: MultiViewDiT, envs: int, repeats: int) -> dict:
-    cfg = model.cfg
-    _, step = warm_engine(model, StudentConfig(), envs)
-    student = timed(step, repeats)
-    s = statistics.median(student)
+def student_vs_teacher(student: MultiViewDiT, teacher: MultiViewDiT, envs: int, repeats: int) -> dict:
+    cfg = teacher.cfg
+    _, step = warm_engine(student, StudentConfig(), envs)
+    s = statistics.median(timed(step, repeats))
     out = {
         "envs": envs,
+        "student_depth": student.cfg.dit.depth,
+        "teacher_depth": cfg.dit.depth,
         "chunk_frames": cfg.clip.chunk_frames,
         "context_frames": cfg.clip.context_frames,
         "student_steps": StudentConfig().num_steps,
@@ -100,7 +103,7 @@ def student_vs_teacher(model: MultiViewDiT, envs: int, repeats: int) -> dict:
         ("alone", cfg.clip.chunk_frames),
     ):
         cond = synthetic_conditions(cfg, frames, envs)
-        t = statistics.median(timed(lambda cond=cond: sample_latents(model, cond, gen), max(1, repeats // 2), 0))
+        t = statistics.median(timed(lambda cond=cond: sample_latents(teacher, cond, gen), max(1, repeats // 2), 0))
         out[f"teacher_{name}_chunk_s"] = t
         out[f"teacher_{name}_over_student"] = t / s
     return out
@@ -172,15 +175,24 @@ def main() -> None:
     cfg = get_preset(a.preset)
     if a.window is not None:
         cfg = dataclasses.replace(cfg, clip=dataclasses.replace(cfg.clip, context_frames=a.window))
-    model = make_model(cfg)
+    student = make_model(cfg.for_student())
     result = {
         "preset": a.preset,
         "threads": torch.get_num_threads(),
-        "model_config": {"clip": dataclasses.asdict(cfg.clip), "sampler_steps": cfg.sampler.steps},
+        "model_config": {
+            "clip": dataclasses.asdict(cfg.clip),
+            "sampler_steps": cfg.sampler.steps,
+            "teacher_depth": cfg.dit.depth,
+            "student_depth": student.cfg.dit.depth,
+        },
     }
     for name in a.sections:
-        fn = SECTIONS[name]
-        result[name] = fn(model, a.rollout_envs, a.frames) if name == "rollout" else fn(model, a.envs, a.repeats)
+        if name == "student_vs_teacher":
+            result[name] = student_vs_teacher(student, make_model(cfg), a.envs, a.repeats)
+        elif name == "rollout":
+            result[name] = rollout(student, a.rollout_envs, a.frames)
+        else:
+            result[name] = cache_vs_recompute(student, a.envs, a.repeats)
     Path(a.out).write_text(json.dumps(result, indent=1))
     print(json.dumps({k: v for k, v in result.items() if k != "rollout"}, indent=1))
     if "rollout" in result:

@@ -11,10 +11,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_bench_model_reports_each_dtype_against_its_own_peak(tmp_path):
     out = tmp_path / "model.json"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_model.py"), "--presets", "tiny"]
-    subprocess.run([*cmd, "--dtypes", "fp32", "bf16", "--repeats", "1", "--out", str(out)], check=True, cwd=ROOT)
+    args = ["--dtypes", "fp32", "bf16", "--models", "student", "teacher", "--repeats", "1", "--out", str(out)]
+    subprocess.run([*cmd, *args], check=True, cwd=ROOT)
     result = json.loads(out.read_text())
-    rows = {r["dtype"]: r for r in result["presets"]}
-    assert set(rows) == {"fp32", "bf16"} and not any(r["compiled"] for r in rows.values())
+    assert {(r["model"], r["dtype"]) for r in result["presets"]} == {
+        (m, d) for m in ("student", "teacher") for d in ("fp32", "bf16")
+    }
+    rows = {r["dtype"]: r for r in result["presets"] if r["model"] == "student"}
+    assert not any(r["compiled"] for r in rows.values())
     for dtype, row in rows.items():
         assert row["forward_gflop"] > 0 and row["forward_s"] > 0
         assert row["fraction_of_peak"] == row["achieved_gflops"] / result["peak_gflops"][dtype]

@@ -3,7 +3,9 @@
 Layout::
 
     BUNDLE/
-      manifest.json            format, version, model config, and per component: file, sha256, bytes, stage
+      manifest.json            format, version, the student's model config, and per component: file,
+                               sha256, bytes, stage, and ``model_config`` where the component's
+                               differs (the reference model: wider input, teacher depth)
       vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
@@ -41,6 +43,7 @@ COMPONENT_STAGES = {
 }
 REQUIRED = ("vae", "student")
 BF16_COMPONENTS = ("student", "reference")  # DiTs; the VAE stays float32
+OWN_CONFIG_COMPONENTS = ("reference",)  # may differ from the student's config (input width, depth)
 
 
 class CheckpointError(ValueError):
@@ -61,7 +64,13 @@ class BundleFiles:
 
     @property
     def model_config(self) -> dict:
+        """The student's config (the bundle's config: sensors, VAE, controls are shared)."""
         return self.manifest["model_config"]
+
+    def component_config(self, component: str) -> dict | None:
+        """``component``'s own model config when it differs from the student's (None: same, or a
+        bundle written before components carried one)."""
+        return self.manifest["components"][component].get("model_config")
 
     def has(self, component: str) -> bool:
         return component in self.tensors
@@ -106,12 +115,8 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
             _save_bf16(file, dst)
         else:
             shutil.copyfile(file, dst)
-        components[component] = {
-            "file": dst.name,
-            "sha256": sha256_file(dst),
-            "bytes": dst.stat().st_size,
-            "stage": stage,
-        }
+        own = _export_config(file) if component in OWN_CONFIG_COMPONENTS else None
+        components[component] = _entry(dst, stage, config, own)
     adapters = run_dir / "lora"
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=shutil.ignore_patterns("checkpoints", "*.partial"))
@@ -120,6 +125,18 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return out_dir
+
+
+def _export_config(file: Path) -> dict | None:
+    meta = file.with_suffix(".json")
+    return json.loads(meta.read_text()).get("model_config") if meta.exists() else None
+
+
+def _entry(file: Path, stage: str, bundle_config: dict, own_config: dict | None) -> dict:
+    entry = {"file": file.name, "sha256": sha256_file(file), "bytes": file.stat().st_size, "stage": stage}
+    if own_config is not None and own_config != bundle_config:
+        entry["model_config"] = own_config
+    return entry
 
 
 def _save_bf16(src: Path, dst: Path) -> None:
@@ -135,8 +152,10 @@ def save_bundle(
     components: dict[str, dict[str, torch.Tensor]],
     student_config: dict | None = None,
     stages: dict[str, str] | None = None,
+    component_configs: dict[str, dict] | None = None,
 ) -> Path:
-    """Write state dicts (``vae``, ``student``, optional ``reference``) as a bundle, atomically."""
+    """Write state dicts (``vae``, ``student``, optional ``reference``) as a bundle, atomically.
+    ``model_config`` is the student's; ``component_configs`` the others' where they differ."""
     from safetensors.torch import save_file
 
     out_dir = Path(out_dir)
@@ -151,12 +170,8 @@ def save_bundle(
     for name, state in components.items():
         dst = tmp / f"{name}.safetensors"
         save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(dst))
-        entries[name] = {
-            "file": dst.name,
-            "sha256": sha256_file(dst),
-            "bytes": dst.stat().st_size,
-            "stage": (stages or {}).get(name, "unknown"),
-        }
+        own = (component_configs or {}).get(name)
+        entries[name] = _entry(dst, (stages or {}).get(name, "unknown"), model_config, own)
     _write_manifest(tmp, model_config, entries, student_config)
     if out_dir.exists():
         shutil.rmtree(out_dir)

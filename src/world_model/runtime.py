@@ -84,8 +84,14 @@ def load_world_model(
     files = load_bundle_files(path)
     try:
         cfg = ModelConfig.from_dict(files.model_config)
+        cfg = cfg.with_depth(cfg.dit.depth)  # the bundle's config is the student's own
+        own = files.component_config("reference") if files.has("reference") else None
+        ref_cfg = reference_model_config(cfg) if own is None else ModelConfig.from_dict(own)
+        if ref_cfg.shared_settings() != cfg.shared_settings():
+            raise ValueError("the reference model's sensors, VAE or controls differ from the student's")
         if dtype != "auto":
-            cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype == "bfloat16"))
+            bf16 = dtype == "bfloat16"
+            cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
         scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])
@@ -93,7 +99,7 @@ def load_world_model(
         dit.load_state_dict(files.tensors["student"])
         ref = None
         if files.has("reference"):
-            ref = MultiViewDiT(reference_model_config(cfg))
+            ref = MultiViewDiT(ref_cfg)
             ref.load_state_dict(files.tensors["reference"])
     except (KeyError, RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {files.path} does not match this version of the model: {e}") from e
@@ -116,13 +122,17 @@ def save_untrained_bundle(
     from world_model.model.config import get_preset
 
     cfg = get_preset(preset, geometry_only=geometry_only)
+    student_cfg, ref_cfg = cfg.for_student(), reference_model_config(cfg)
     torch.manual_seed(seed)
     parts = {
         "vae": SensorVAE(cfg).state_dict(),
-        "student": MultiViewDiT(cfg).state_dict(),
-        "reference": MultiViewDiT(reference_model_config(cfg)).state_dict(),
+        "student": MultiViewDiT(student_cfg).state_dict(),
+        "reference": MultiViewDiT(ref_cfg).state_dict(),
     }
-    return save_bundle(out_dir, cfg.to_dict(), parts, stages={k: "untrained" for k in parts})
+    stages = {k: "untrained" for k in parts}
+    return save_bundle(
+        out_dir, student_cfg.to_dict(), parts, stages=stages, component_configs={"reference": ref_cfg.to_dict()}
+    )
 
 
 class RolloutBatch:

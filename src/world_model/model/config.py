@@ -98,6 +98,11 @@ class DitConfig:
     # benchmarks/bench_model.py and bench_student.py. 4.7 M parameters at these values.
     dim: int = 128
     depth: int = 10
+    # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
+    # 4 denoising forwards per env step, so its depth sets the env's speed; it starts from evenly
+    # spaced teacher blocks (world_model.student.init). 6 of 10 keeps 8 batched envs >= 2x
+    # highway-v0 (benchmarks/bench_env.py); the teacher and reference model keep all 10.
+    student_depth: int | None = 6
     # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
     # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).
     heads: int = 2
@@ -145,7 +150,9 @@ class ClipConfig:
     """Temporal layout: chunks for the causal student, windows for training."""
 
     chunk_frames: int = 2  # frames generated per causal chunk (= one env step)
-    context_frames: int = 4  # past frames kept in the student's attention window
+    # Past frames in the student's rolling attention window. 8: the KV cache then saves >= 3x
+    # over recomputing the window (benchmarks/bench_student.py); the teacher does not use it.
+    context_frames: int = 8
     train_frames: tuple[int, ...] = (4, 6, 8)  # mixed clip lengths seen by the teacher
 
 
@@ -174,6 +181,28 @@ class ModelConfig:
             raise ValueError(f"BEV raster {bh}x{bw} must be divisible by control.map_patch {c.map_patch}")
         if d.cross_view_every < 1:
             raise ValueError("dit.cross_view_every must be >= 1")
+        if d.student_depth is not None and not 1 <= d.student_depth <= d.depth:
+            raise ValueError(f"dit.student_depth must be in [1, dit.depth={d.depth}] or None, got {d.student_depth}")
+
+    def for_student(self) -> ModelConfig:
+        """The causal student's config: ``dit.depth`` = ``dit.student_depth`` (idempotent)."""
+        return self.with_depth(self.dit.student_depth or self.dit.depth)
+
+    def with_depth(self, depth: int) -> ModelConfig:
+        """This config with a DiT of ``depth`` blocks and no separate student depth."""
+        return replace(self, dit=replace(self.dit, depth=depth, student_depth=None))
+
+    def teacher_settings(self) -> ModelConfig:
+        """What a bidirectional teacher's weights depend on: this config with the student-only
+        settings (``dit.student_depth``, ``clip.context_frames``) neutralized. A teacher trained
+        before a student setting changed stays usable: compare teachers under this view."""
+        return replace(self, dit=replace(self.dit, student_depth=None), clip=replace(self.clip, context_frames=0))
+
+    def shared_settings(self) -> ModelConfig:
+        """What every model of one family (teacher, student, reference model) shares: the teacher
+        settings without the DiT's depth and reference input channels."""
+        t = self.teacher_settings()
+        return replace(t, dit=replace(t.dit, depth=1, in_channels_extra=0))
 
     # -- derived shapes --
     @property
@@ -251,7 +280,7 @@ def _tiny() -> ModelConfig:
         vae=VaeConfig(latent_channels=4, channel_mults=(1, 2), base_channels=8, decoder_base_channels=8),
         text=TextConfig(encoder="hash", dim=32, max_tokens=8),
         control=ControlConfig(dim=32, fourier_freqs=4, map_patch=5, max_objects=4, crop_size=8),
-        dit=DitConfig(dim=32, depth=2, heads=2, patch=1, cross_view_every=2, autocast_bf16=False),
+        dit=DitConfig(dim=32, depth=2, student_depth=None, heads=2, patch=1, cross_view_every=2, autocast_bf16=False),
         sampler=SamplerConfig(steps=4),
         clip=ClipConfig(chunk_frames=1, context_frames=2, train_frames=(2, 3)),
     )
@@ -269,7 +298,7 @@ def _gpu() -> ModelConfig:
         vae=VaeConfig(latent_channels=16, channel_mults=(1, 2, 4), base_channels=64, decoder_base_channels=64),
         text=TextConfig(encoder="minilm", dim=384, max_tokens=128),
         control=ControlConfig(dim=1536, fourier_freqs=8, map_patch=8, max_objects=64, crop_size=64),
-        dit=DitConfig(dim=1536, depth=30, heads=12, patch=2, autocast_bf16=True),
+        dit=DitConfig(dim=1536, depth=30, student_depth=None, heads=12, patch=2, autocast_bf16=True),
         sampler=SamplerConfig(steps=50, camera_cfg_scale=5.0, lidar_apg_scale=5.0),
         clip=ClipConfig(chunk_frames=3, context_frames=21, train_frames=(13, 29, 45)),
     )

@@ -106,7 +106,7 @@ def reference_stage(
         )
     vae, digest = run_vae(run_dir, cfg, "reference")
     teacher = load_teacher(teacher_path)
-    if teacher.cfg != cfg:
+    if teacher.cfg.teacher_settings() != cfg.teacher_settings():
         raise ValueError(
             f"the teacher in {teacher_path.parent} has preset {teacher.cfg.name!r}'s config, not {cfg.name!r}'s"
         )

@@ -58,7 +58,9 @@ DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 # Stages whose steps cost far more than a teacher step get their own default per preset. Sized for
 # the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step runs the
 # TF model's 20-step guided ODE, one ``dmd``/``long`` step runs 1 + critic_updates self-rollouts.
-STAGE_STEPS = {"default": {"tf": 500, "ode": 80, "dmd": 50, "long": 20, "reference": 800}}
+# ``tf`` also re-trains the student's dropped teacher blocks away (dit.student_depth), hence its
+# larger count.
+STAGE_STEPS = {"default": {"tf": 1200, "ode": 80, "dmd": 50, "long": 20, "reference": 800}}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
 
@@ -93,6 +95,8 @@ def _load(path: Path) -> dict[str, torch.Tensor]:
 # The config sections a stage's weights depend on; None = the whole config. The VAE ignores the
 # DiT, so re-sizing the DiT of a preset keeps a trained VAE usable.
 STAGE_CONFIG_SECTIONS: dict[str, tuple[str, ...] | None] = {"vae": ("sensors", "vae")}
+# Full-depth bidirectional models: the student-only settings do not touch their weights.
+TEACHER_WEIGHT_STAGES = ("teacher", "reference")
 
 
 def _stage_config(stage_dir: Path, stage: str, preset: str, config: ModelConfig | None) -> ModelConfig:
@@ -101,6 +105,8 @@ def _stage_config(stage_dir: Path, stage: str, preset: str, config: ModelConfig 
     sections = STAGE_CONFIG_SECTIONS.get(stage)
 
     def relevant(c: ModelConfig) -> object:
+        if stage in TEACHER_WEIGHT_STAGES:
+            return c.teacher_settings()
         return c if sections is None else tuple(getattr(c, name) for name in sections)
 
     if saved.exists():

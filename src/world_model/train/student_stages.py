@@ -3,13 +3,15 @@
 =======  ===========================================  ===================================================
 stage    initialized from                              objective
 =======  ===========================================  ===================================================
-tf       RUN/teacher/model (bidirectional)             rectified flow on a target chunk after clean GT
-                                                       history, block-causal attention
+tf       RUN/teacher/model (bidirectional); with       rectified flow on a target chunk after clean GT
+         ``dit.student_depth`` < ``depth``, evenly     history, block-causal attention
+         spaced teacher blocks (student/init.py)
 ode      RUN/tf/model (student); tf = ODE teacher      x0-regression at the 4 student times along the TF
                                                        model's guided Euler ODE (``sampler.steps``) to its
                                                        endpoint
 dmd      RUN/ode/model; real score RUN/teacher/model   Self-Forcing rollouts with the streaming engine,
-         critic initialized from the teacher           asymmetric DMD; ``critic_updates`` critic steps per
+         critic initialized from the teacher (its      asymmetric DMD; ``critic_updates`` critic steps per
+         size, not the student's)
                                                        generator step; p = ``denoise_loss_prob`` adds the
                                                        TF denoising loss on real latents
 long     RUN/dmd/model (+ RUN/dmd/critic)              one self-rollout of ``long_frames`` frames continued
@@ -44,6 +46,7 @@ from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
+from world_model.student.init import student_from_teacher
 from world_model.student.losses import ode_regression_loss
 from world_model.student.training import (
     critic_flow_loss,
@@ -86,8 +89,11 @@ def _need(path: Path, stage: str) -> Path:
 
 
 def _load_same(path: Path, stage: str, cfg: ModelConfig) -> MultiViewDiT:
+    """The export at ``path`` (of ``stage``), checked against ``cfg``: exactly for a student;
+    under :meth:`ModelConfig.teacher_settings` for the teacher (and the critic, its copy)."""
     model = load_teacher(_need(path, stage))
-    if model.cfg != cfg:
+    same = model.cfg.teacher_settings() == cfg.teacher_settings() if stage == "teacher" else model.cfg == cfg
+    if not same:
         raise ValueError(f"{path} was trained with preset {model.cfg.name!r} / another config; use the same preset")
     return model
 
@@ -139,7 +145,9 @@ def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, sc
 
 
 def _tf_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
-    model = _load_same(run_dir / "teacher" / EXPORT, "teacher", cfg).train().requires_grad_(True)
+    teacher = _load_same(run_dir / "teacher" / EXPORT, "teacher", cfg)
+    model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
+    del teacher
     trainer = Trainer(stage_dir, model, tcfg, {"stage": "tf", "model_config": cfg.to_dict()}, progress)
     c, kmax = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg)
 
@@ -152,14 +160,14 @@ def _tf_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         return teacher_forcing_loss(model, x0, cond, t, _noise((b, *cfg.latent_shape(c)), tr), scfg.prefix_frames), b
 
     summary = trainer.run(step, "tf")
-    _export(stage_dir, trainer, trainer.ema.model_state(model), cfg, scfg, "tf")
+    _export(stage_dir, trainer, trainer.ema.model_state(model), model.cfg, scfg, "tf")
     return summary
 
 
 def _ode_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     tf_path = run_dir / "tf" / EXPORT
-    ode_teacher = _frozen(_load_same(tf_path, "tf", cfg))
-    student = _load_same(tf_path, "tf", cfg).train().requires_grad_(True)
+    ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()))
+    student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
     trainer = Trainer(stage_dir, student, tcfg, {"stage": "ode", "model_config": cfg.to_dict()}, progress)
     c, kmax, times = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg), scfg.times()
 
@@ -174,7 +182,7 @@ def _ode_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         return ode_regression_loss(predict_x0(xt, v, t), end), b
 
     summary = trainer.run(step, "ode")
-    _export(stage_dir, trainer, trainer.ema.model_state(student), cfg, scfg, "ode")
+    _export(stage_dir, trainer, trainer.ema.model_state(student), student.cfg, scfg, "ode")
     return summary
 
 
@@ -201,7 +209,7 @@ def _critic_update(tr: Trainer, pair: _Pair, video: torch.Tensor, cond: Conditio
 
 def _pair(run_dir: Path, init_stage: str, cfg: ModelConfig) -> tuple[_Pair, MultiViewDiT]:
     real = _frozen(_load_same(run_dir / "teacher" / EXPORT, "teacher", cfg))
-    generator = _load_same(run_dir / init_stage / EXPORT, init_stage, cfg)
+    generator = _load_same(run_dir / init_stage / EXPORT, init_stage, cfg.for_student())
     critic_path = run_dir / init_stage / CRITIC
     source = critic_path if critic_path.with_suffix(".safetensors").exists() else run_dir / "teacher" / EXPORT
     critic = _load_same(source, "teacher", cfg)
@@ -211,8 +219,8 @@ def _pair(run_dir: Path, init_stage: str, cfg: ModelConfig) -> tuple[_Pair, Mult
 def _export_pair(stage_dir, trainer, pair, cfg, scfg, stage) -> None:
     ema = trainer.ema.model_state(pair)
     gen = {k.removeprefix("generator."): v for k, v in ema.items() if k.startswith("generator.")}
-    _export(stage_dir, trainer, gen, cfg, scfg, stage)
-    meta = {"stage": stage, "step": trainer.step, "model_config": cfg.to_dict(), "role": "critic"}
+    _export(stage_dir, trainer, gen, pair.generator.cfg, scfg, stage)
+    meta = {"stage": stage, "step": trainer.step, "model_config": pair.critic.cfg.to_dict(), "role": "critic"}
     export_weights(stage_dir / CRITIC, pair.critic.state_dict(), meta)
 
 
