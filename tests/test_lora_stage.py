@@ -159,3 +159,30 @@ def test_killed_lora_run_resumes_from_last_checkpoint(data, tmp_path):
     )
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
     assert (run / "lora" / CASE / "adapter.safetensors").exists()
+
+
+def test_lora_adapts_a_shallower_student_and_refuses_another_family(data, tmp_path):
+    base, rare = data
+    run = make_run(tmp_path / "run")
+    student_cfg = replace(CFG.with_depth(1), clip=replace(CFG.clip, context_frames=CFG.clip.context_frames + 1))
+    meta = {"stage": "long", "model_config": student_cfg.to_dict()}
+    export_weights(run / "long" / EXPORT, perturbed(MultiViewDiT(student_cfg)).state_dict(), meta)
+    out = train_stage(
+        "lora", base, run, preset="tiny", steps=1, progress=False, case=CASE, case_data=rare, base=run / "long" / EXPORT
+    )
+    assert read_adapter(Path(out["adapter_dir"]))[0].meta["model_config"]["dit"]["depth"] == 1
+
+    other = replace(CFG, sensors=replace(CFG.sensors, width=CFG.sensors.width * 2))
+    export_weights(run / "other" / EXPORT, MultiViewDiT(other).state_dict(), {"model_config": other.to_dict()})
+    with pytest.raises(ValueError, match="has preset"):
+        train_stage(
+            "lora",
+            base,
+            run,
+            preset="tiny",
+            steps=1,
+            progress=False,
+            case=CASE,
+            case_data=rare,
+            base=run / "other" / EXPORT,
+        )

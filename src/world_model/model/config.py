@@ -95,13 +95,13 @@ class DitConfig:
     """Multi-view + LiDAR diffusion transformer (§3.2)."""
 
     # Sized for the env's CPU speed target (8 batched envs, 4 denoising steps per chunk): see
-    # benchmarks/bench_model.py and bench_student.py. 4.7 M parameters at these values.
+    # benchmarks/bench_model.py and bench_student.py. 4.1 M parameters at these values.
     dim: int = 128
     depth: int = 10
-    # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
-    # 4 denoising forwards per env step, so its depth sets the env's speed; it starts from evenly
-    # spaced teacher blocks (world_model.student.init). 6 of 10 keeps 8 batched envs >= 2x
-    # highway-v0 (benchmarks/bench_env.py); the teacher and reference model keep all 10.
+    # Depth of the causal student the env runs (None: the teacher's ``depth``; 2.7 M parameters
+    # at 6). The student does 4 denoising forwards per env step, so its depth sets the env's
+    # speed (benchmarks/bench_env.py); it starts from evenly spaced teacher blocks
+    # (world_model.student.init). The teacher and the reference model keep all ``depth`` blocks.
     student_depth: int | None = 6
     # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
     # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).

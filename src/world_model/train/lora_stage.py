@@ -20,7 +20,7 @@ a few-hundred-step run closely).
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -152,8 +152,7 @@ def lora_stage(
             "run --stage teacher first or pass --base"
         )
     model = load_teacher(base_path)
-    plain = replace(model.cfg, dit=replace(model.cfg.dit, in_channels_extra=0))
-    if plain != cfg:
+    if model.cfg.shared_settings() != cfg.shared_settings():  # teacher, student or reference model
         raise ValueError(f"the base model {base_path} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
     vae, digest = run_vae(run_dir, cfg, "lora")
     clips, rare, ordinary = select_clips(data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
