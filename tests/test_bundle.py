@@ -22,11 +22,23 @@ def _fake_run(root):
 
 
 def test_export_and_load_roundtrip(tmp_path):
-    bundle = export_bundle(_fake_run(tmp_path / "run"), tmp_path / "bundle")
+    run = _fake_run(tmp_path / "run")
+    own = {"name": "tiny", "dit": {"in_channels_extra": 5}}
+    (run / "reference" / "model.json").write_text(json.dumps({"stage": "reference", "model_config": own}))
+    adapter = run / "lora" / "tree_truck"
+    (adapter / "checkpoints").mkdir(parents=True)
+    for name in ("adapter.json", "adapter.safetensors", "model_config.json", "progress.json"):
+        (adapter / name).write_text("{}")
+    bundle = export_bundle(run, tmp_path / "bundle")
     files = load_bundle_files(bundle)
     assert files.manifest["components"]["student"]["stage"] == "dmd"
     assert torch.equal(files.tensors["student"]["w"], torch.arange(4.0))
     assert files.has("reference") and files.model_config == {"name": "tiny"}
+    assert files.component_config("reference") == own and files.component_config("vae") is None
+    assert sorted(p.name for p in (bundle / "adapters" / "tree_truck").iterdir()) == [
+        "adapter.json",
+        "adapter.safetensors",
+    ]
 
 
 def test_missing_and_corrupt_checkpoints_are_named(tmp_path):

@@ -119,12 +119,19 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
         components[component] = _entry(dst, stage, config, own)
     adapters = run_dir / "lora"
     if adapters.is_dir():
-        shutil.copytree(adapters, tmp / "adapters", ignore=shutil.ignore_patterns("checkpoints", "*.partial"))
+        shutil.copytree(adapters, tmp / "adapters", ignore=_adapter_files_only)
     _write_manifest(tmp, config, components, student_meta.get("student_config"))
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return out_dir
+
+
+def _adapter_files_only(folder: str, names: list[str]) -> set[str]:
+    """``copytree`` filter: adapter folders keep their two files, not the stage's checkpoints/logs."""
+    from world_model.lora import META, WEIGHTS
+
+    return {n for n in names if n not in (META, WEIGHTS) and not (Path(folder) / n / META).exists()}
 
 
 def _export_config(file: Path) -> dict | None:
