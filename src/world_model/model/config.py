@@ -98,11 +98,13 @@ class DitConfig:
     # benchmarks/bench_model.py and bench_student.py. 4.1 M parameters at these values.
     dim: int = 128
     depth: int = 10
-    # Depth of the causal student the env runs (None: the teacher's ``depth``; 2.7 M parameters
-    # at 6). The student does 4 denoising forwards per env step, so its depth sets the env's
-    # speed (benchmarks/bench_env.py); it starts from evenly spaced teacher blocks
-    # (world_model.student.init). The teacher and the reference model keep all ``depth`` blocks.
-    student_depth: int | None = 6
+    # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
+    # 4 denoising forwards per env step, so its depth sets the env's speed (benchmarks/bench_env.py);
+    # a shallower one starts from evenly spaced teacher blocks (world_model.student.init) while the
+    # teacher and the reference model keep all ``depth`` blocks. The shipped student has all 10: a
+    # 6-block one (2.7 M parameters) ran the env 1.5x faster but lost its camera images to a grey
+    # mean scene in long-video tuning (docs/MODEL_CARD.md, "Tried").
+    student_depth: int | None = None
     # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
     # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).
     heads: int = 2
@@ -150,9 +152,7 @@ class ClipConfig:
     """Temporal layout: chunks for the causal student, windows for training."""
 
     chunk_frames: int = 2  # frames generated per causal chunk (= one env step)
-    # Past frames in the student's rolling attention window. 8: the KV cache then saves >= 3x
-    # over recomputing the window (benchmarks/bench_student.py); the teacher does not use it.
-    context_frames: int = 8
+    context_frames: int = 4  # past frames in the student's rolling attention window (not the teacher's)
     train_frames: tuple[int, ...] = (4, 6, 8)  # mixed clip lengths seen by the teacher
 
 

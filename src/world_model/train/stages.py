@@ -58,9 +58,7 @@ DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 # Stages whose steps cost far more than a teacher step get their own default per preset. Sized for
 # the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step runs the
 # TF model's 20-step guided ODE, one ``dmd``/``long`` step runs 1 + critic_updates self-rollouts.
-# ``tf`` also re-trains the student's dropped teacher blocks away (dit.student_depth), hence its
-# larger count.
-STAGE_STEPS = {"default": {"tf": 1200, "ode": 80, "dmd": 50, "long": 20, "reference": 800}}
+STAGE_STEPS = {"default": {"tf": 500, "ode": 80, "dmd": 50, "long": 20, "reference": 800}}
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
 
