@@ -1,12 +1,17 @@
 """A student shallower than its teacher (``dit.student_depth``): initialization, stages, bundle."""
 
+import os
+import subprocess
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 from world_model.bundle import export_bundle
 from world_model.model import MultiViewDiT, get_preset
+from world_model.model.config import with_student_settings
 from world_model.model.reference import reference_model_config
 from world_model.runtime import load_world_model
 from world_model.student.init import nearest, student_from_teacher, teacher_blocks
@@ -14,6 +19,8 @@ from world_model.train import train_stage
 from world_model.train.student_stages import load_student
 
 from .model_fixtures import make_dataset, perturbed, tiny_conditions
+
+SRC = Path(__file__).resolve().parents[1] / "src"
 
 
 def _cfg(depth: int, student_depth: int | None):
@@ -68,6 +75,19 @@ def test_shallow_student_copies_teacher_blocks_and_nearest_cross_view():
         student_from_teacher(teacher, replace(_cfg(5, 3), name="other"))
 
 
+def test_with_student_settings_replaces_only_what_is_given():
+    cfg = _cfg(5, None)
+    assert with_student_settings(cfg) == cfg
+    new = with_student_settings(cfg, student_depth=3, context_frames=6)
+    assert (
+        new.dit.student_depth == 3 and new.clip.context_frames == 6 and new.teacher_settings() == cfg.teacher_settings()
+    )
+    with pytest.raises(ValueError, match="context_frames"):
+        with_student_settings(cfg, context_frames=0)
+    with pytest.raises(ValueError, match="student_depth"):
+        with_student_settings(cfg, student_depth=6)
+
+
 def test_student_settings_do_not_touch_the_teacher():
     a = _cfg(5, 3)
     b = replace(a, clip=replace(a.clip, context_frames=7), dit=replace(a.dit, student_depth=2))
@@ -83,9 +103,15 @@ def test_shallow_student_through_every_stage_and_the_bundle(tmp_path):
     cfg = replace(_cfg(2, 1), clip=replace(first.clip, context_frames=first.clip.context_frames + 1))
     data = make_dataset(tmp_path / "data", cfg, lengths=(4, 3))
     run = tmp_path / "run"
-    for stage in ("vae", "teacher", "tf", "ode", "dmd", "long", "reference"):
+    for stage in ("vae", "teacher", "ode", "dmd", "long", "reference"):
         config = first if stage in ("vae", "teacher") else cfg
         train_stage(stage, data, run, steps=1, batch_size=1, ckpt_every=1, progress=False, config=config)
+        if stage == "teacher":  # tf from the CLI: its flags set the student-only settings
+            cmd = [sys.executable, "-m", "world_model.train", "--stage", "tf", "--data", str(data), "--run", str(run)]
+            cmd += ["--preset", "tiny", "--steps", "1", "--batch-size", "1", "--no-progress", "--student-depth", "1"]
+            cmd += ["--context-frames", str(cfg.clip.context_frames)]
+            env = {**os.environ, "PYTHONPATH": str(SRC), "OMP_NUM_THREADS": "1"}
+            subprocess.run(cmd, env=env, check=True, capture_output=True, timeout=300)
     student, _ = load_student(run / "long" / "model")
     assert student.cfg == cfg.for_student() and student.cfg.dit.depth == 1
 

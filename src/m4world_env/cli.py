@@ -158,11 +158,15 @@ PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # `m4wor
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
-    from world_model.model.config import get_preset
+    from world_model.model.config import get_preset, with_student_settings
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
+    config = None
+    if args.geometry_only or args.student_depth is not None or args.context_frames is not None:
+        config = get_preset(args.preset, geometry_only=args.geometry_only)
+        config = with_student_settings(config, args.student_depth, args.context_frames)
     # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
     # rerunning the same command after an interruption loses nothing.
     for stage in PIPELINE if args.all else (args.stage,):
@@ -171,7 +175,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             args.data,
             args.run,
             preset=args.preset,
-            config=get_preset(args.preset, geometry_only=True) if args.geometry_only else None,
+            config=config,
             steps=None if args.all else args.steps,
             batch_size=args.batch_size,
             lr=args.lr,
@@ -303,6 +307,16 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the evaluation's baseline: object tokens without image/text descriptions (use its own --run; "
         "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
+    )
+    t.add_argument(
+        "--student-depth",
+        type=int,
+        default=None,
+        help="blocks of the causal student (default: the preset's dit.student_depth, else the teacher's); "
+        "starts from evenly spaced teacher blocks; give it to every student stage of the run",
+    )
+    t.add_argument(
+        "--context-frames", type=int, default=None, help="the student's rolling window (default: the preset's)"
     )
     t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
     t.add_argument("--batch-size", type=int, default=None)

@@ -307,6 +307,21 @@ def _gpu() -> ModelConfig:
 PRESETS = {"tiny": _tiny, "default": _default, "gpu": _gpu}
 
 
+def with_student_settings(
+    cfg: ModelConfig, student_depth: int | None = None, context_frames: int | None = None
+) -> ModelConfig:
+    """``cfg`` with the student-only settings replaced where given (None keeps the preset's):
+    ``dit.student_depth`` and ``clip.context_frames``. A teacher trained under ``cfg`` stays
+    usable (:meth:`ModelConfig.teacher_settings`)."""
+    if student_depth is not None:
+        cfg = replace(cfg, dit=replace(cfg.dit, student_depth=student_depth))
+    if context_frames is not None:
+        if context_frames < 1:
+            raise ValueError(f"context_frames must be >= 1, got {context_frames}")
+        cfg = replace(cfg, clip=replace(cfg.clip, context_frames=context_frames))
+    return cfg
+
+
 def get_preset(name: str, geometry_only: bool = False) -> ModelConfig:
     """A fresh config for preset ``name`` (one of :data:`PRESETS`); ``geometry_only`` turns off
     object descriptions (the evaluation's baseline, same recipe otherwise)."""

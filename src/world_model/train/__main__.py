@@ -14,7 +14,7 @@ import argparse
 import json
 import sys
 
-from world_model.model.config import PRESETS
+from world_model.model.config import PRESETS, get_preset, with_student_settings
 from world_model.student.config import StudentConfig
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
@@ -37,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
     p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
     p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (default 600)")
+    p.add_argument("--student-depth", type=int, default=None, help="student blocks (default: the preset's)")
+    p.add_argument("--context-frames", type=int, default=None, help="student window (default: the preset's)")
     a = p.parse_args(argv)
     try:
         out = train_stage(
@@ -44,6 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             a.data,
             a.run,
             preset=a.preset,
+            config=with_student_settings(get_preset(a.preset), a.student_depth, a.context_frames),
             steps=a.steps,
             batch_size=a.batch_size,
             lr=a.lr,
