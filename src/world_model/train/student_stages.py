@@ -11,8 +11,7 @@ ode      RUN/tf/model (student); tf = ODE teacher      x0-regression at the 4 st
                                                        endpoint
 dmd      RUN/ode/model; real score RUN/teacher/model   Self-Forcing rollouts with the streaming engine,
          critic initialized from the teacher (its      asymmetric DMD; ``critic_updates`` critic steps per
-         size, not the student's)
-                                                       generator step; p = ``denoise_loss_prob`` adds the
+         depth, not the student's)                     generator step; p = ``denoise_loss_prob`` adds the
                                                        TF denoising loss on real latents
 long     RUN/dmd/model (+ RUN/dmd/critic)              one self-rollout of ``long_frames`` frames continued
                                                        across steps; each step DMD-trains the newly
