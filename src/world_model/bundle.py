@@ -31,6 +31,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file
 
 from world_model.data.clips import write_json_atomic
+from world_model.lora import META, WEIGHTS
 
 BUNDLE_FORMAT = "m4world-bundle"
 BUNDLE_VERSION = 1
@@ -129,8 +130,6 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
 
 def _adapter_files_only(folder: str, names: list[str]) -> set[str]:
     """``copytree`` filter: adapter folders keep their two files, not the stage's checkpoints/logs."""
-    from world_model.lora import META, WEIGHTS
-
     return {n for n in names if n not in (META, WEIGHTS) and not (Path(folder) / n / META).exists()}
 
 

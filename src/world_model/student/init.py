@@ -49,20 +49,16 @@ def student_from_teacher(teacher: MultiViewDiT, cfg: ModelConfig | None = None) 
         raise ValueError("the student's config must equal the teacher's apart from the student settings")
     source = teacher.state_dict()
     picks = teacher_blocks(tcfg.dit.depth, cfg.dit.depth)
-    state: dict[str, torch.Tensor] = {k: v for k, v in source.items() if not k.startswith("blocks.")}
-    for i, j in enumerate(picks):
-        view_src = nearest(j, tcfg.cross_view_blocks) if i in cfg.cross_view_blocks else None
-        for key, value in source.items():
-            if not key.startswith(f"blocks.{j}."):
-                continue
-            name = key.removeprefix(f"blocks.{j}.")
-            if not name.startswith(CROSS_VIEW_PREFIXES):
-                state[f"blocks.{i}.{name}"] = value
-        if view_src is not None:
-            for key, value in source.items():
-                name = key.removeprefix(f"blocks.{view_src}.")
-                if key.startswith(f"blocks.{view_src}.") and name.startswith(CROSS_VIEW_PREFIXES):
-                    state[f"blocks.{i}.{name}"] = value
     student = MultiViewDiT(cfg)
-    student.load_state_dict(state)  # strict: every student parameter came from the teacher
+    state: dict[str, torch.Tensor] = {}
+    for key in student.state_dict():  # every student parameter is taken from one teacher parameter
+        if not key.startswith("blocks."):
+            state[key] = source[key]
+            continue
+        _, i, name = key.split(".", 2)
+        j = picks[int(i)]
+        if name.startswith(CROSS_VIEW_PREFIXES):
+            j = nearest(j, tcfg.cross_view_blocks)
+        state[key] = source[f"blocks.{j}.{name}"]
+    student.load_state_dict(state)
     return student.to(next(teacher.parameters()).dtype)
