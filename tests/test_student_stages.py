@@ -90,3 +90,33 @@ def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run,
     with pytest.raises(TrainingDivergedError, match="loss is (nan|inf).*last good checkpoint"):
         train_stage("dmd", data, mine, preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30, progress=False)
     assert load_latest(mine / "dmd" / "checkpoints").step == 1
+
+
+@pytest.mark.parametrize("prob, expected", [(0.0, 0), (1.0, 2)])
+def test_dmd_and_long_stages_add_the_supervised_denoising_term_at_its_probability(
+    run, tmp_path, monkeypatch, prob, expected
+):
+    import shutil
+
+    from world_model.student import StudentConfig
+    from world_model.train import student_stages
+
+    data, rundir = run
+    mine = tmp_path / "run"
+    for stage in ("vae", "teacher"):
+        shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
+    for stage in ("tf", "ode"):
+        train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    calls = []
+    real_loss = student_stages.teacher_forcing_loss
+
+    def counted(model, x0, *args):
+        calls.append(x0.shape[1])
+        return real_loss(model, x0, *args)
+
+    monkeypatch.setattr(student_stages, "teacher_forcing_loss", counted)
+    scfg = StudentConfig(denoise_loss_prob=prob, long_frames=4)
+    for stage in ("dmd", "long"):
+        calls.clear()
+        train_stage(stage, data, mine, preset="tiny", steps=2, batch_size=1, progress=False, student=scfg)
+        assert len(calls) == expected, (stage, calls)

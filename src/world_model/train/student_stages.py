@@ -16,7 +16,8 @@ dmd      RUN/ode/model; real score RUN/teacher/model   Self-Forcing rollouts wit
 long     RUN/dmd/model (+ RUN/dmd/critic)              one self-rollout of ``long_frames`` frames continued
                                                        across steps; each step DMD-trains the newly
                                                        generated clip with earlier frames as detached
-                                                       cached context (LongLive)
+                                                       cached context (LongLive); the same p adds the TF
+                                                       denoising loss on a real window
 =======  ===========================================  ===================================================
 
 Every stage uses the shared :class:`Trainer` (atomic checkpoints, resume, EMA export, NaN guard);
@@ -223,6 +224,16 @@ def _export_pair(stage_dir, trainer, pair, cfg, scfg, stage) -> None:
     export_weights(stage_dir / CRITIC, pair.critic.state_dict(), meta)
 
 
+def _denoising_loss(tr: Trainer, model: MultiViewDiT, x0: torch.Tensor, cond: Conditions, scfg: StudentConfig):
+    """The supervised denoising term on real latents that the dmd and long stages add with probability
+    ``scfg.denoise_loss_prob``: the last chunk of ``x0`` at one of the student's own times, under its
+    clean history. It keeps the few-step generator anchored to the data while DMD only sees its samples."""
+    b, c = x0.shape[0], model.cfg.clip.chunk_frames
+    times = scfg.times()
+    t = times[torch.randint(len(times), (b,), generator=tr.gen)]
+    return teacher_forcing_loss(model, x0, cond, t, _noise((b, *model.cfg.latent_shape(c)), tr), scfg.prefix_frames)
+
+
 def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     pair, real = _pair(run_dir, "ode", cfg)
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "dmd", "model_config": cfg.to_dict()}, progress)
@@ -242,10 +253,8 @@ def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         loss = dmd_generator_loss(
             real, pair.critic, video, cond, dmd_times(b, scfg, tr.gen), _noise(video.shape, tr), p
         )
-        if tr.rng.random() < scfg.denoise_loss_prob:  # supervised denoising on real latents (stability)
-            times = scfg.times()
-            t = times[torch.randint(len(times), (b,), generator=tr.gen)]
-            loss = loss + teacher_forcing_loss(pair.generator, x0, cond, t, _noise((b, *cfg.latent_shape(c)), tr), p)
+        if tr.rng.random() < scfg.denoise_loss_prob:
+            loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b
 
     summary = trainer.run(step, "dmd")
@@ -279,6 +288,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
+    chunks = _max_chunks(windows, cfg, scfg)
     engine = StreamingEngine(pair.generator, scfg, trainer.gen)
     state: dict = {"clips": None}
 
@@ -314,6 +324,9 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         clip = generate(controls, True, int(torch.randint(scfg.num_steps, (1,), generator=tr.gen)))
         b = clip.shape[0]
         loss = dmd_generator_loss(real, pair.critic, clip, scored, dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr))
+        if tr.rng.random() < scfg.denoise_loss_prob:
+            x0, cond = _sample(windows, tr.rng, b, p + chunks * c)
+            loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b * clip_frames
 
     summary = trainer.run(step, "long")
