@@ -2,6 +2,7 @@
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -75,17 +76,21 @@ def test_reflected_playback_keeps_frames_adjacent():
     assert reflected_index(7, 1) == 0
 
 
-def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run, tmp_path):
-    import shutil
-
-    from world_model.train import TrainingDivergedError, load_latest
-
+def _run_through_ode(run, tmp_path) -> tuple[Path, Path]:
+    """A private copy of the module's run (VAE, teacher) with 1-step tf and ode stages."""
     data, rundir = run
     mine = tmp_path / "run"
     for stage in ("vae", "teacher"):
         shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
     for stage in ("tf", "ode"):
         train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    return data, mine
+
+
+def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run, tmp_path):
+    from world_model.train import TrainingDivergedError, load_latest
+
+    data, mine = _run_through_ode(run, tmp_path)
     train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, ckpt_every=1, progress=False)
     with pytest.raises(TrainingDivergedError, match="loss is (nan|inf).*last good checkpoint"):
         train_stage("dmd", data, mine, preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30, progress=False)
@@ -96,17 +101,10 @@ def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run,
 def test_dmd_and_long_stages_add_the_supervised_denoising_term_at_its_probability(
     run, tmp_path, monkeypatch, prob, expected
 ):
-    import shutil
-
     from world_model.student import StudentConfig
     from world_model.train import student_stages
 
-    data, rundir = run
-    mine = tmp_path / "run"
-    for stage in ("vae", "teacher"):
-        shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
-    for stage in ("tf", "ode"):
-        train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    data, mine = _run_through_ode(run, tmp_path)
     calls = []
     real_loss = student_stages.teacher_forcing_loss
 
