@@ -19,7 +19,8 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
     python benchmarks/bench_student.py [--preset default] [--envs 8] [--frames 600] --out FILE.json
     python benchmarks/bench_student.py --sections cache_vs_recompute --window 12 --out FILE.json
 
-``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window).
+``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
+``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_model import synthetic_conditions  # noqa: E402
 
 from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
-from world_model.model.config import ModelConfig  # noqa: E402
+from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
 from world_model.student import StreamingEngine, StudentConfig  # noqa: E402
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
@@ -178,14 +179,13 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--window", type=int, default=None, help="override clip.context_frames")
+    p.add_argument("--student-depth", type=int, default=None, help="override dit.student_depth")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=list(SECTIONS))
     p.add_argument("--out", required=True)
     a = p.parse_args()
     if a.threads:
         torch.set_num_threads(a.threads)
-    cfg = get_preset(a.preset)
-    if a.window is not None:
-        cfg = dataclasses.replace(cfg, clip=dataclasses.replace(cfg.clip, context_frames=a.window))
+    cfg = with_student_settings(get_preset(a.preset), a.student_depth, a.window)
     student = make_model(cfg.for_student())
     result = {
         "preset": a.preset,
