@@ -163,10 +163,8 @@ def _cmd_train(args: argparse.Namespace) -> int:
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
-    config = None
-    if args.geometry_only or args.student_depth is not None or args.context_frames is not None:
-        config = get_preset(args.preset, geometry_only=args.geometry_only)
-        config = with_student_settings(config, args.student_depth, args.context_frames)
+    preset = get_preset(args.preset, geometry_only=args.geometry_only)
+    config = with_student_settings(preset, args.student_depth, args.context_frames)
     # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
     # rerunning the same command after an interruption loses nothing.
     for stage in PIPELINE if args.all else (args.stage,):

@@ -224,7 +224,9 @@ def _export_pair(stage_dir, trainer, pair, cfg, scfg, stage) -> None:
     export_weights(stage_dir / CRITIC, pair.critic.state_dict(), meta)
 
 
-def _denoising_loss(tr: Trainer, model: MultiViewDiT, x0: torch.Tensor, cond: Conditions, scfg: StudentConfig):
+def _denoising_loss(
+    tr: Trainer, model: MultiViewDiT, x0: torch.Tensor, cond: Conditions, scfg: StudentConfig
+) -> torch.Tensor:
     """The supervised denoising term on real latents that the dmd and long stages add with probability
     ``scfg.denoise_loss_prob``: the last chunk of ``x0`` at one of the student's own times, under its
     clean history. It keeps the few-step generator anchored to the data while DMD only sees its samples."""
@@ -288,7 +290,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
-    chunks = _max_chunks(windows, cfg, scfg)
+    real_frames = p + _max_chunks(windows, cfg, scfg) * c  # the real windows of the denoising term
     engine = StreamingEngine(pair.generator, scfg, trainer.gen)
     state: dict = {"clips": None}
 
@@ -325,7 +327,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         b = clip.shape[0]
         loss = dmd_generator_loss(real, pair.critic, clip, scored, dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr))
         if tr.rng.random() < scfg.denoise_loss_prob:
-            x0, cond = _sample(windows, tr.rng, b, p + chunks * c)
+            x0, cond = _sample(windows, tr.rng, b, real_frames)
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b * clip_frames
 
