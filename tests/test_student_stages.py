@@ -118,3 +118,29 @@ def test_dmd_and_long_stages_add_the_supervised_denoising_term_at_its_probabilit
         calls.clear()
         train_stage(stage, data, mine, preset="tiny", steps=2, batch_size=1, progress=False, student=scfg)
         assert len(calls) == expected, (stage, calls)
+
+
+@pytest.mark.parametrize("skip", [0, 2])
+def test_long_stage_advances_its_rollout_by_the_untrained_chunks_between_trained_clips(run, tmp_path, skip):
+    from world_model.student import StudentConfig
+
+    data, mine = _run_through_ode(run, tmp_path)
+    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    scfg = StudentConfig(long_skip_chunks=skip, long_frames=100)
+    out = train_stage("long", data, mine, preset="tiny", steps=3, batch_size=1, progress=False, student=scfg)
+    c = get_preset("tiny").clip.chunk_frames
+    # Step 1 trains the fresh rollout's first clip; steps 2 and 3 each skip, then train a clip.
+    assert out["rollout_frames"] == scfg.prefix_frames + (3 * scfg.long_clip_chunks + 2 * skip) * c
+
+
+def test_long_stage_restarts_a_rollout_that_cannot_hold_the_skipped_and_trained_chunks(run, tmp_path):
+    from world_model.student import StudentConfig
+
+    data, mine = _run_through_ode(run, tmp_path)
+    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    c = get_preset("tiny").clip.chunk_frames
+    scfg = StudentConfig(long_skip_chunks=1, long_clip_chunks=1, long_frames=1 + 2 * c)
+    out = train_stage("long", data, mine, preset="tiny", steps=2, batch_size=1, progress=False, student=scfg)
+    assert out["rollout_frames"] == scfg.prefix_frames + c  # step 2 would pass long_frames: a fresh rollout
+    with pytest.raises(ValueError, match="long_skip_chunks"):
+        StudentConfig(long_skip_chunks=-1)

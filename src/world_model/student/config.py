@@ -49,6 +49,11 @@ class StudentConfig:
     # -- long-video tuning (LongLive) --
     long_frames: int = 600  # length of one self-rollout before it restarts from data
     long_clip_chunks: int = 2  # chunks of each newly generated clip trained with DMD
+    # Chunks the rollout advances without training (no critic update, no gradient) after each
+    # trained clip: 0 trains every clip (LongLive). A tuning run of a few dozen steps otherwise only
+    # ever sees a rollout's first frames (20 steps x 2 chunks x 2 frames = 80 of 600), never the
+    # late frames where the drift it should correct happens.
+    long_skip_chunks: int = 0
 
     def __post_init__(self) -> None:
         steps = self.denoising_steps
@@ -64,6 +69,8 @@ class StudentConfig:
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
         if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:
             raise ValueError("prefix_frames, long_clip_chunks, long_frames must be >= 1 and sink_frames >= 0")
+        if self.long_skip_chunks < 0:
+            raise ValueError(f"long_skip_chunks must be >= 0, got {self.long_skip_chunks}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:
             raise ValueError(f"need 0 < dmd_min_t < dmd_max_t < 1, got {self.dmd_min_t}, {self.dmd_max_t}")
 
@@ -83,6 +90,13 @@ class StudentConfig:
     def from_dict(cls, d: dict[str, Any]) -> StudentConfig:
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names})
+
+
+def long_settings(long_frames: int | None = None, long_skip_chunks: int | None = None) -> StudentConfig | None:
+    """The student settings of the train CLIs' long-stage flags: None when none is given (the
+    stage's defaults), else the default config with the given ones."""
+    given = {k: v for k, v in (("long_frames", long_frames), ("long_skip_chunks", long_skip_chunks)) if v is not None}
+    return StudentConfig(**given) if given else None
 
 
 def rollout_blocks(start: int, frames: int, prefix_frames: int, chunk_frames: int) -> torch.Tensor:

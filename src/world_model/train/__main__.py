@@ -1,7 +1,8 @@
 """CLI: train one stage of the world model.
 
 ``python -m world_model.train --stage STAGE --data DIR --run RUN --preset tiny|default [--steps N]``
-with STAGE one of vae, teacher, tf, ode, dmd, long, reference, lora (``--long-frames N`` for long).
+with STAGE one of vae, teacher, tf, ode, dmd, long, reference, lora (for long: ``--long-frames N``,
+``--long-skip-chunks K``).
 
 ``--stage lora --case NAME [--case-data DIR] [--base PATH]`` trains one long-tail adapter into RUN/lora/NAME/.
 
@@ -15,7 +16,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS, get_preset, with_student_settings
-from world_model.student.config import StudentConfig
+from world_model.student.config import long_settings
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -37,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
     p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
     p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (default 600)")
+    p.add_argument(
+        "--long-skip-chunks", type=int, default=None, help="long stage: untrained chunks between trained clips (0)"
+    )
     p.add_argument("--student-depth", type=int, default=None, help="student blocks (default: the preset's)")
     p.add_argument("--context-frames", type=int, default=None, help="student window (default: the preset's)")
     a = p.parse_args(argv)
@@ -57,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
             case_data=a.case_data,
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
-            student=None if a.long_frames is None else StudentConfig(long_frames=a.long_frames),
+            student=long_settings(a.long_frames, a.long_skip_chunks),
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

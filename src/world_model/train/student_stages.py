@@ -17,7 +17,9 @@ long     RUN/dmd/model (+ RUN/dmd/critic)              one self-rollout of ``lon
                                                        across steps; each step DMD-trains the newly
                                                        generated clip with earlier frames as detached
                                                        cached context (LongLive); the same p adds the TF
-                                                       denoising loss on a real window
+                                                       denoising loss on a real window;
+                                                       ``long_skip_chunks`` untrained chunks between
+                                                       trained clips reach late frames in fewer steps
 =======  ===========================================  ===================================================
 
 Every stage uses the shared :class:`Trainer` (atomic checkpoints, resume, EMA export, NaN guard);
@@ -290,6 +292,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
+    skip_frames = scfg.long_skip_chunks * c
     real_frames = p + _max_chunks(windows, cfg, scfg) * c  # the real windows of the denoising term
     engine = StreamingEngine(pair.generator, scfg, trainer.gen)
     state: dict = {"clips": None}
@@ -311,9 +314,18 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
             dim=1,
         )
 
+    def advance(clips: list[int]) -> None:
+        """``long_skip_chunks`` untrained chunks between two trained clips (see StudentConfig)."""
+        with torch.no_grad():
+            for _ in range(scfg.long_skip_chunks):
+                engine.step(_long_conditions(windows, clips, engine.position, c, 0))
+
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        if state["clips"] is None or engine.position + clip_frames > scfg.long_frames:
+        fresh = state["clips"] is None or engine.position + skip_frames + clip_frames > scfg.long_frames
+        if fresh:
             start(tr)
+        else:  # a fresh rollout trains its first clip at once
+            advance(state["clips"])
         pos, clips = engine.position, state["clips"]
         controls = _long_conditions(windows, clips, pos, clip_frames, 0)  # the rollout's own frame
         scored = _long_conditions(windows, clips, pos, clip_frames, pos)  # the teacher sees the clip alone
