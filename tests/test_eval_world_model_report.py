@@ -31,7 +31,11 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
         == 0
     )
     out = tmp_path / "report"
-    assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
+    only = ["--clips-prefix", "merge_cut_in"]  # the clip's name: all of them
+    assert (
+        main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out), *only])
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert set(report["rows"]) == {"oracle", "autoencoder", "student", "student_no_refresh"}
     oracle, student = report["rows"]["oracle"]["table1"], report["rows"]["student"]["table1"]
@@ -49,6 +53,13 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
     assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp
     assert json.loads((out / "report.json").read_text())["rows"] == report["rows"]
+    capsys.readouterr()
+    none = ["--clips-prefix", "long_"]
+    assert (
+        main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out), *none])
+        == 2
+    )
+    assert "no clips named long_*" in capsys.readouterr().err
 
 
 def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):

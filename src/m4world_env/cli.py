@@ -80,9 +80,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.runtime import load_world_model
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    clips = list(iter_clips(args.evalset))[: args.max_clips or None]
+    clips = [c for c in iter_clips(args.evalset) if c.name.startswith(args.clips_prefix)][: args.max_clips or None]
     if not clips:
-        raise ValueError(f"no clips in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
+        which = f"no clips named {args.clips_prefix}*" if args.clips_prefix else "no clips"
+        raise ValueError(f"{which} in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
 
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
@@ -288,6 +289,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
     e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")
+    e.add_argument(
+        "--clips-prefix",
+        default="",
+        help="--report: use only the clips whose names start with this (e.g. long_: the three 60 s rollouts)",
+    )
     e.add_argument("--baseline", default=None, help="--report: bundle of the geometry-only baseline (a row)")
     e.add_argument("--teacher", default=None, help="--report: a teacher export, RUN/teacher/model (a row)")
     e.set_defaults(func=_cmd_eval)
