@@ -20,7 +20,8 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
     python benchmarks/bench_student.py --sections cache_vs_recompute --window 12 --out FILE.json
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
-``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's).
+``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
+``--compile`` times the student compiled with frozen weights (the teacher stays eager).
 """
 
 from __future__ import annotations
@@ -180,6 +181,12 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     p.add_argument("--window", type=int, default=None, help="override clip.context_frames")
     p.add_argument("--student-depth", type=int, default=None, help="override dit.student_depth")
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        help="torch.compile the student's blocks with frozen weights (MultiViewDiT.compile_blocks), as the env's "
+        "config={'model': {'compile': True}}; the warm-up chunks compile, the timed ones do not",
+    )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=list(SECTIONS))
     p.add_argument("--out", required=True)
     a = p.parse_args()
@@ -187,9 +194,12 @@ def main() -> None:
         torch.set_num_threads(a.threads)
     cfg = with_student_settings(get_preset(a.preset), a.student_depth, a.window)
     student = make_model(cfg.for_student())
+    if a.compile:
+        student.requires_grad_(False).compile_blocks()
     result = {
         "preset": a.preset,
         "threads": torch.get_num_threads(),
+        "compiled": a.compile,
         "model_config": {
             "clip": dataclasses.asdict(cfg.clip),
             "sampler_steps": cfg.sampler.steps,

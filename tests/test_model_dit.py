@@ -211,7 +211,16 @@ def test_additive_mask_bias_equals_boolean_mask(dtype):
 
 
 @pytest.mark.slow
-def test_compiled_blocks_match_eager():
+def test_compiled_blocks_match_eager_with_frozen_weights_and_lora_adapters_swapped_in_and_out(tmp_path):
+    from world_model.lora import (
+        LoraConfig,
+        add_adapter,
+        apply_adapters,
+        base_fingerprint,
+        remove_adapters,
+        save_adapter,
+    )
+
     cfg = get_preset("tiny")
     torch.manual_seed(0)
     model = MultiViewDiT(cfg).eval()
@@ -219,8 +228,23 @@ def test_compiled_blocks_match_eager():
         torch.nn.init.normal_(p, std=0.05)
     cond = tiny_conditions(cfg, 2, batch=2)
     x, t = torch.randn(2, *cfg.latent_shape(2)), torch.rand(2)
+    lora = LoraConfig(rank=2)
     with torch.no_grad():
         eager = model(x, t, cond)
-        model.compile_blocks()
-        compiled = model(x, t, cond)
-    assert torch.allclose(compiled, eager, atol=1e-4, rtol=1e-4)
+        base = base_fingerprint(model)
+        for p in add_adapter(model, "bump", lora):
+            torch.nn.init.normal_(p, std=0.1)
+        eager_adapted = model(x, t, cond)
+        save_adapter(model, "bump", tmp_path / "bump", lora, base)
+        remove_adapters(model)
+        model.requires_grad_(False)
+        model.compile_blocks()  # freeze=True: the weights become constants of the kernels
+        assert torch.allclose(model(x, t, cond), eager, atol=1e-4, rtol=1e-4)
+        # An adapter loaded after compiling is seen (its layers recompile), and removing it
+        # restores the base model's kernels.
+        apply_adapters(model, [tmp_path / "bump"])
+        adapted = model(x, t, cond)
+        assert not torch.allclose(eager_adapted, eager, atol=1e-3)
+        assert torch.allclose(adapted, eager_adapted, atol=1e-4, rtol=1e-4)
+        remove_adapters(model)
+        assert torch.allclose(model(x, t, cond), eager, atol=1e-4, rtol=1e-4)

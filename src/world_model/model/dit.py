@@ -249,17 +249,23 @@ class MultiViewDiT(nn.Module):
     def _autocast(self, device_type: str) -> torch.autocast:
         return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
 
-    def compile_blocks(self) -> None:
+    def compile_blocks(self, freeze: bool = True) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
         modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
-        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time."""
+        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time.
+
+        ``freeze`` (inductor's freezing; it only applies to graphs run without autograd): the weights
+        become constants of the compiled kernels, which lets oneDNN pre-pack them
+        (benchmarks/bench_student.py, ``--compile``, times it). A weight is read when its graph
+        compiles: applying or removing a LoRA adapter swaps modules and so recompiles, but a weight
+        changed in place afterwards is not seen; compile without ``freeze`` to fine-tune."""
         import torch._dynamo
 
         # One graph per (block kind, chunk/context shape): a rollout's first chunks see shorter
         # contexts, so allow more graphs than dynamo's default before it falls back to eager.
         torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
         for block in self.blocks:
-            block.forward = torch.compile(block.forward, dynamic=False)
+            block.forward = torch.compile(block.forward, dynamic=False, options={"freezing": freeze})
 
     def tokenize(self, cond: Conditions) -> ControlTokens:
         """Control tokens for ``cond`` with every block's cross-attention keys/values; pass them to
