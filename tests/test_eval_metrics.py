@@ -17,7 +17,6 @@ from world_model.eval.metrics import (
     long_horizon_ratio,
     per_second_curve,
     psnr,
-    spatial_detail,
     ssim,
 )
 from world_model.sensors import LidarSpec
@@ -120,16 +119,3 @@ def test_per_second_curve_and_long_horizon_ratio():
     assert long_horizon_ratio(np.ones(60)) == 1.0
     with pytest.raises(ValueError, match="at least window_s"):
         long_horizon_ratio(np.ones(5), 10)
-
-
-def test_spatial_detail_of_flat_striped_and_range_frames():
-    flat = np.full((3, 2, 8, 10, 3), 77, np.uint8)  # (T, V, H, W, 3)
-    np.testing.assert_array_equal(spatial_detail(flat), np.zeros(3))
-    stripes = flat.copy()
-    stripes[..., ::2, :] = 0  # alternate columns 0 / 77: every horizontal neighbour differs by 77
-    np.testing.assert_allclose(spatial_detail(stripes, batch=2), np.full(3, 77 / 2))  # rows: 0, cols: 77
-    ranges = np.zeros((2, 4, 16), np.float32)  # (T, beams, azimuth) metres
-    ranges[:, 1::2] = 10.0  # alternate beams
-    np.testing.assert_allclose(spatial_detail(ranges, -2, -1), np.full(2, 5.0))
-    with pytest.raises(ValueError, match="rows, cols"):
-        spatial_detail(np.zeros((3, 4)))

@@ -12,8 +12,7 @@ from world_model.data import read_clip
 from world_model.eval import Generated, evaluate_rows, format_markdown, load_default_judge, oracle_row, write_report
 from world_model.eval.corrupt import blur, color_shift
 from world_model.eval.crops import extract_crops
-from world_model.eval.questions import QUESTION_TYPES
-from world_model.eval.report import ReportConfig, long_horizon, quality_bars
+from world_model.eval.report import ReportConfig
 from world_model.scene import CATEGORIES
 from world_model.sim import ProceduralSimulator
 
@@ -78,8 +77,6 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
     for lo, lb in zip(o["long_horizon"], b["long_horizon"], strict=True):
         assert lo["seconds"] == 3 and lo["ratio_last_first"] == 1.0 and lo["frechet_judge_frame_first"] < 1e-6
         assert lo["lidar_mae_per_second"] == [0.0] * 3
-        assert lo["camera_detail_per_second"] == [1.0] * 3 and lo["lidar_detail_ratio_last_first"] == 1.0
-        assert lb["camera_detail_ratio_last_first"] == pytest.approx(1.0, abs=0.2)  # blurred alike throughout
         assert lb["frechet_judge_frame_first"] > 0 and lb["frechet_ratio_last_first"] > 0
         assert lb["lidar_mae_per_second"] == pytest.approx([2.0] * 3, abs=1e-3)
     assert s["table1"]["lidar_range_mae_m"] is None
@@ -92,32 +89,6 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
     md_path, json_path = write_report(report, tmp_path)
     assert json.loads(json_path.read_text())["rows"].keys() == rows.keys()
     assert md_path.read_text() == md
-
-
-def test_long_horizon_detail_catches_a_rollout_collapsing_onto_a_flat_scene(clips):
-    """PSNR barely moves when views fade into their mean colour; the detail ratio falls to 0."""
-    clip = clips[0]
-    cams, lidar = np.asarray(clip.cameras, np.float32), np.asarray(clip.lidar, np.float32)
-    fade = np.linspace(1.0, 0.0, clip.num_frames)  # full detail -> none
-    flat = cams.mean(axis=(2, 3), keepdims=True)  # each view's mean colour
-    collapsed = Generated(
-        (flat + fade[:, None, None, None, None] * (cams - flat)).round().astype(np.uint8),
-        (lidar.mean() + fade[:, None, None] * (lidar - lidar.mean())).astype(np.float32),
-    )
-    cfg = ReportConfig(long_window_s=1)
-    psnr_per_frame = np.full(clip.num_frames, 20.0)
-    out = long_horizon(clip, collapsed, psnr_per_frame, None, None, None, cfg)
-    assert out["ratio_last_first"] == 1.0  # what PSNR alone would report
-    assert out["camera_detail_ratio_last_first"] < 0.4 and out["lidar_detail_ratio_last_first"] < 0.4
-    assert np.all(np.diff(out["camera_detail_per_second"]) < 0)
-    kept = long_horizon(clip, oracle_row(clip), psnr_per_frame, None, None, None, cfg)
-    assert kept["camera_detail_ratio_last_first"] == kept["lidar_detail_ratio_last_first"] == 1.0
-
-    t = {"table1": {"lidar_range_mae_first_s_m": 1.0}, "table2": dict.fromkeys(QUESTION_TYPES, 0.5)}
-    for gen, status in ((out, "missed"), (kept, "met")):
-        lines = quality_bars({"rows": {"oracle": t, "student": {**t, "long_horizon": [gen]}}})
-        (line,) = [x for x in lines if "no collapse" in x]
-        assert line.split("|")[3].strip() == status
 
 
 def test_rows_with_wrong_shapes_are_rejected(clips, judge):

@@ -213,24 +213,6 @@ def per_second_curve(per_frame: np.ndarray, fps: float) -> np.ndarray:
     return v[: n * step].reshape(n, step).mean(axis=1)
 
 
-def spatial_detail(frames: np.ndarray, row_axis: int = -3, col_axis: int = -2, batch: int = 32) -> np.ndarray:
-    """Per frame, the mean absolute difference between neighbouring pixels along ``row_axis`` and
-    ``col_axis`` (the two averaged): (T, ...) -> (T,) float64, in the frames' units (intensity
-    levels for uint8 cameras (T, V, H, W, 3), metres for LiDAR range maps (T, beams, azimuth) with
-    ``row_axis=-2, col_axis=-1``). A view collapsing onto a flat mean scene drives it to 0. Frames
-    are processed ``batch`` at a time: a 600-frame rollout in float32 at once would take gigabytes."""
-    x = np.asarray(frames)
-    if x.ndim < 3:
-        raise ValueError(f"frames must be (T, ..., rows, cols[, channels]), got shape {x.shape}")
-    out = []
-    for i in range(0, len(x), batch):
-        f = x[i : i + batch].astype(np.float32)
-        rows = np.abs(np.diff(f, axis=row_axis)).reshape(len(f), -1).mean(axis=1)
-        cols = np.abs(np.diff(f, axis=col_axis)).reshape(len(f), -1).mean(axis=1)
-        out.append((rows.astype(np.float64) + cols) / 2)
-    return np.concatenate(out)
-
-
 def long_horizon_ratio(curve: np.ndarray, window_s: int = 10) -> float:
     """Mean of the last ``window_s`` seconds of a per-second curve over the mean of the first."""
     c = np.asarray(curve, dtype=np.float64)

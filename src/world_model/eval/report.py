@@ -31,16 +31,13 @@ from world_model.eval.metrics import (
     long_horizon_ratio,
     per_second_curve,
     psnr,
-    spatial_detail,
     ssim,
 )
 from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
-# Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: the
-# long-horizon detail ratios).
-REPORT_VERSION = 4
+REPORT_VERSION = 3  # part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding)
 
 
 @dataclass
@@ -261,7 +258,7 @@ def score_row(
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
-            long_curves.append(long_horizon(clip, gen, per_frame, lidar_mae, feats[-1] if features else None,
+            long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
     table1 = {
         "frechet_judge_frame": None,
@@ -295,7 +292,6 @@ def score_row(
 
 def long_horizon(
     clip: Clip,
-    gen: Generated,
     psnr_per_frame: np.ndarray,
     lidar_mae_per_frame: np.ndarray | None,
     gen_feats: np.ndarray | None,
@@ -303,24 +299,15 @@ def long_horizon(
     config: ReportConfig,
 ) -> dict:
     """Stability of a long rollout: per-second PSNR (and LiDAR MAE) curves, and the last
-    ``long_window_s`` seconds against the first — PSNR ratio (1 = no degradation, < 1 worse), the
-    frame Fréchet distance of each window to the ground truth's same window (ratio > 1 worse), and
-    the detail ratio (< 1 worse): :func:`detail_curve`, cameras and LiDAR. PSNR cannot see a
-    rollout collapsing onto a flat mean scene (a mean image scores a fair PSNR); the detail can."""
+    ``long_window_s`` seconds against the first — PSNR ratio (1 = no degradation, < 1 worse) and
+    the frame Fréchet distance of each window to the ground truth's same window (ratio > 1 worse)."""
     curve = per_second_curve(psnr_per_frame, clip.fps)
-    camera_detail = detail_curve(gen.cameras, np.asarray(clip.cameras), clip.fps, (-3, -2))
     out: dict = {
         "clip": clip.name,
         "seconds": len(curve),
         "psnr_per_second": curve.tolist(),
         "ratio_last_first": long_horizon_ratio(curve, config.long_window_s),
-        "camera_detail_per_second": camera_detail.tolist(),
-        "camera_detail_ratio_last_first": long_horizon_ratio(camera_detail, config.long_window_s),
     }
-    if gen.lidar is not None:
-        lidar_detail = detail_curve(gen.lidar, np.asarray(clip.lidar), clip.fps, (-2, -1))
-        out["lidar_detail_per_second"] = lidar_detail.tolist()
-        out["lidar_detail_ratio_last_first"] = long_horizon_ratio(lidar_detail, config.long_window_s)
     w = round(config.long_window_s * clip.fps)
     if gen_feats is not None and gt_feats is not None:
         first = frechet_features(gen_feats[:w], gt_feats[:w])
@@ -333,16 +320,6 @@ def long_horizon(
     if lidar_mae_per_frame is not None:
         out["lidar_mae_per_second"] = per_second_curve(lidar_mae_per_frame, clip.fps).tolist()
     return out
-
-
-def detail_curve(gen: np.ndarray, gt: np.ndarray, fps: float, axes: tuple[int, int]) -> np.ndarray:
-    """Per second, the generated frames' mean :func:`spatial_detail` over the ground truth's in the
-    same second (1 = as detailed as the recording; a blurry model sits below 1 from the start, and
-    what the long-horizon bar watches is whether it falls further). A second whose ground truth has
-    no detail at all counts as 1: there was nothing to lose."""
-    g = per_second_curve(spatial_detail(gen, *axes), fps)
-    t = per_second_curve(spatial_detail(gt, *axes), fps)
-    return np.divide(g, t, out=np.ones_like(g), where=t > 0)
 
 
 def _ranges(lidar: np.ndarray, frame: int) -> np.ndarray:
@@ -377,8 +354,7 @@ def format_markdown(report: dict) -> str:
         w = report.get("config", {}).get("long_window_s", "?")
         lines += ["", f"### Long horizon: last {w} s vs first {w} s of each long clip", ""]
         cols = ["seconds", "ratio_last_first", "frechet_judge_frame_first", "frechet_judge_frame_last",
-                "frechet_ratio_last_first", "camera_detail_ratio_last_first",
-                "lidar_detail_ratio_last_first"]  # fmt: skip
+                "frechet_ratio_last_first"]  # fmt: skip
         lines += ["| row | clip | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
         for row, c in long_rows:
             lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
@@ -458,10 +434,6 @@ def quality_bars(report: dict, model: str = "student") -> list[str]:
         ok = abs(pr - 1) <= LONG_TOLERANCE and (fr is None or fr <= 1 + LONG_TOLERANCE)
         bar = f"{c['clip']}: last vs first window within {LONG_TOLERANCE:.0%} (PSNR, Fréchet)"
         add(bar, None, f"{_fmt(pr)}, {_fmt(fr)}", ok)
-        cd, ld = c.get("camera_detail_ratio_last_first"), c.get("lidar_detail_ratio_last_first")
-        ok = None if cd is None else cd >= 1 - LONG_TOLERANCE and (ld is None or ld >= 1 - LONG_TOLERANCE)
-        bar = f"{c['clip']}: no collapse, detail last vs first window ≥ {1 - LONG_TOLERANCE:.2f} (cameras, LiDAR)"
-        add(bar, None, f"{_fmt(cd)}, {_fmt(ld)}", ok)
     mae = rows[model]["table1"].get("lidar_range_mae_first_s_m")
     ok = None if mae is None else mae <= LIDAR_FIRST_S_MAX_M
     add(f"LiDAR range MAE first second ≤ {LIDAR_FIRST_S_MAX_M} m", None, _fmt(mae), ok)
