@@ -1,4 +1,4 @@
-"""Causal student benchmark (untrained weights: timing and memory only), medians of one run.
+"""Causal student benchmark (random weights: timing and memory only), medians of one run.
 
 The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the preset's).
 
@@ -15,18 +15,21 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
    are timed in interleaved rounds.
 3. ``rollout``: a ``--frames`` long rollout (``--rollout-envs`` rows): per-chunk latency, process
    RSS along the way, cache bytes; memory growth from frame 100 to the end.
+4. ``compiled_vs_eager`` (only when named in ``--sections``; inductor needs a C++ compiler): one
+   cached chunk eager vs compiled vs compiled with frozen weights, interleaved rounds.
 
     python benchmarks/bench_student.py [--preset default] [--envs 8] [--frames 600] --out FILE.json
     python benchmarks/bench_student.py --sections cache_vs_recompute --window 12 --out FILE.json
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
 ``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
-``--compile`` times the student compiled with frozen weights (the teacher stays eager).
+``--compile`` times the student compiled (the teacher stays eager).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import statistics
@@ -69,6 +72,9 @@ def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float
 def make_model(cfg: ModelConfig) -> MultiViewDiT:
     torch.manual_seed(0)
     model = MultiViewDiT(cfg).eval()
+    with torch.no_grad():  # adaLN-zero starts at zero: a compiled graph with frozen weights could fold it away
+        for p in model.parameters():
+            p.normal_(0.0, 0.02)
     return model.to(torch.bfloat16) if cfg.dit.autocast_bf16 else model  # bf16 weights, as the env runs
 
 
@@ -112,6 +118,38 @@ def student_vs_teacher(student: MultiViewDiT, teacher: MultiViewDiT, envs: int, 
     return out
 
 
+def interleaved(steps: dict[str, Callable[[], object]], repeats: int) -> dict:
+    """Time each warmed step once per round, ``repeats`` rounds: ``<name>_chunk_s`` medians and
+    ``<name>_rounds_s``. A drift of the shared machine's speed hits every step alike."""
+    times: dict[str, list[float]] = {name: [] for name in steps}
+    for _ in range(repeats):
+        for name, step in steps.items():
+            times[name] += timed(step, 1, warmup=0)
+    out: dict = {}
+    for name, t in times.items():
+        out[f"{name}_chunk_s"] = statistics.median(t)
+        out[f"{name}_rounds_s"] = t
+    return out
+
+
+@torch.no_grad()
+def compiled_vs_eager(model: MultiViewDiT, envs: int, repeats: int) -> dict:
+    """One cached chunk (refresh on) of the eager student, of the student compiled
+    (``compile_blocks()``, what the env's ``compile`` option runs) and compiled with frozen
+    weights, in interleaved rounds; each copy compiles during its warm-up chunks."""
+    frozen, unfrozen = copy.deepcopy(model).requires_grad_(False), copy.deepcopy(model).requires_grad_(False)
+    frozen.compile_blocks(freeze=True)
+    unfrozen.compile_blocks(freeze=False)
+    steps = {
+        name: warm_engine(m, StudentConfig(), envs)[1]
+        for name, m in {"eager": model, "compiled_frozen": frozen, "compiled": unfrozen}.items()
+    }
+    out = {"envs": envs, "window": model.cfg.clip.context_frames} | interleaved(steps, repeats)
+    out["eager_over_compiled_frozen"] = out["eager_chunk_s"] / out["compiled_frozen_chunk_s"]
+    out["eager_over_compiled"] = out["eager_chunk_s"] / out["compiled_chunk_s"]
+    return out
+
+
 @torch.no_grad()
 def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
     """The three engines warmed first, then timed in interleaved rounds (one chunk each per
@@ -125,13 +163,7 @@ def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
             "recompute": StudentConfig(kv_cache=False),
         }.items()
     }
-    times: dict[str, list[float]] = {name: [] for name in steps}
-    for _ in range(repeats):
-        for name, step in steps.items():
-            times[name] += timed(step, 1, warmup=0)
-    for name, t in times.items():
-        out[f"{name}_chunk_s"] = statistics.median(t)
-        out[f"{name}_rounds_s"] = t
+    out |= interleaved(steps, repeats)
     out["recompute_over_cached_refresh"] = out["recompute_chunk_s"] / out["cached_refresh_chunk_s"]
     out["recompute_over_cached_no_refresh"] = out["recompute_chunk_s"] / out["cached_no_refresh_chunk_s"]
     return out
@@ -169,6 +201,7 @@ def rollout(model: MultiViewDiT, envs: int, frames: int) -> dict:
 
 
 SECTIONS = {"student_vs_teacher": student_vs_teacher, "cache_vs_recompute": cache_vs_recompute, "rollout": rollout}
+OPTIONAL_SECTIONS = {"compiled_vs_eager": compiled_vs_eager}  # needs a C++ compiler (inductor): only when asked
 
 
 def main() -> None:
@@ -184,12 +217,14 @@ def main() -> None:
     p.add_argument(
         "--compile",
         action="store_true",
-        help="torch.compile the student's blocks with frozen weights (MultiViewDiT.compile_blocks), as the env's "
+        help="torch.compile the student's blocks (MultiViewDiT.compile_blocks), as the env's "
         "config={'model': {'compile': True}}; the warm-up chunks compile, the timed ones do not",
     )
-    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=list(SECTIONS))
+    p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])
     p.add_argument("--out", required=True)
     a = p.parse_args()
+    if a.compile and "compiled_vs_eager" in a.sections:
+        p.error("compiled_vs_eager compiles its own copies: leave out --compile")
     if a.threads:
         torch.set_num_threads(a.threads)
     cfg = with_student_settings(get_preset(a.preset), a.student_depth, a.window)
@@ -212,6 +247,8 @@ def main() -> None:
             result[name] = student_vs_teacher(student, make_model(cfg), a.envs, a.repeats)
         elif name == "rollout":
             result[name] = rollout(student, a.rollout_envs, a.frames)
+        elif name == "compiled_vs_eager":
+            result[name] = compiled_vs_eager(student, a.envs, a.repeats)
         else:
             result[name] = cache_vs_recompute(student, a.envs, a.repeats)
     Path(a.out).write_text(json.dumps(result, indent=1))

@@ -238,7 +238,7 @@ def test_compiled_blocks_match_eager_with_frozen_weights_and_lora_adapters_swapp
         save_adapter(model, "bump", tmp_path / "bump", lora, base)
         remove_adapters(model)
         model.requires_grad_(False)
-        model.compile_blocks()  # freeze=True: the weights become constants of the kernels
+        model.compile_blocks(freeze=True)  # the weights become constants of the kernels
         assert torch.allclose(model(x, t, cond), eager, atol=1e-4, rtol=1e-4)
         # An adapter loaded after compiling is seen (its layers recompile), and removing it
         # restores the base model's kernels.

@@ -144,3 +144,15 @@ def test_long_stage_restarts_a_rollout_that_cannot_hold_the_skipped_and_trained_
     assert out["rollout_frames"] == scfg.prefix_frames + c  # step 2 would pass long_frames: a fresh rollout
     with pytest.raises(ValueError, match="long_skip_chunks"):
         StudentConfig(long_skip_chunks=-1)
+
+
+def test_both_train_clis_refuse_a_negative_long_skip_chunks_by_name(tmp_path, capsys):
+    from m4world_env.cli import main as m4world
+    from world_model.train.__main__ import main as train
+
+    args = ["--stage", "long", "--data", str(tmp_path / "data"), "--run", str(tmp_path / "run"), "--preset", "tiny"]
+    assert m4world(["train", *args, "--long-skip-chunks", "-1"]) == 2
+    assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
+    assert train([*args, "--long-skip-chunks", "-1"]) == 2
+    assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()  # refused before any stage starts

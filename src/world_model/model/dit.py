@@ -249,16 +249,17 @@ class MultiViewDiT(nn.Module):
     def _autocast(self, device_type: str) -> torch.autocast:
         return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
 
-    def compile_blocks(self, freeze: bool = True) -> None:
+    def compile_blocks(self, freeze: bool = False) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
         modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
         compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time.
 
         ``freeze`` (inductor's freezing; it only applies to graphs run without autograd): the weights
-        become constants of the compiled kernels, which lets oneDNN pre-pack them
-        (benchmarks/bench_student.py, ``--compile``, times it). A weight is read when its graph
+        become constants of the compiled kernels, which lets oneDNN pre-pack them. On this 2-core CPU
+        it measured no faster than compiling alone (``benchmarks/bench_student.py --sections
+        compiled_vs_eager``), so it is off by default. A frozen weight is read when its graph
         compiles: applying or removing a LoRA adapter swaps modules and so recompiles, but a weight
-        changed in place afterwards is not seen; compile without ``freeze`` to fine-tune."""
+        changed in place afterwards is not seen."""
         import torch._dynamo
 
         # One graph per (block kind, chunk/context shape): a rollout's first chunks see shorter
