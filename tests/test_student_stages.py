@@ -146,7 +146,7 @@ def test_long_stage_restarts_a_rollout_that_cannot_hold_the_skipped_and_trained_
         StudentConfig(long_skip_chunks=-1)
 
 
-def test_both_train_clis_refuse_a_negative_long_skip_chunks_by_name(tmp_path, capsys):
+def test_both_train_clis_refuse_bad_student_flags_by_name(tmp_path, capsys):
     from m4world_env.cli import main as m4world
     from world_model.train.__main__ import main as train
 
@@ -155,4 +155,19 @@ def test_both_train_clis_refuse_a_negative_long_skip_chunks_by_name(tmp_path, ca
     assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
     assert train([*args, "--long-skip-chunks", "-1"]) == 2
     assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
+    assert m4world(["train", *args, "--denoise-loss-prob", "1.5"]) == 2
+    assert "denoise_loss_prob must be in [0, 1]" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()  # refused before any stage starts
+
+
+def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypatch):
+    from m4world_env.cli import main as m4world
+    from world_model.student import StudentConfig
+    from world_model.train import stages
+
+    seen = []
+    monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append(kw["student"]) or {})
+    args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
+    assert m4world([*args, "--long-skip-chunks", "3", "--denoise-loss-prob", "0.5"]) == 0
+    assert m4world(args) == 0
+    assert seen == [StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5), None]  # None: the stage's defaults

@@ -160,7 +160,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
     from world_model.model.config import get_preset, with_student_settings
-    from world_model.student.config import long_settings
+    from world_model.student.config import student_overrides
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
@@ -184,7 +184,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             case=args.case,
             case_data=args.case_data,
             base=args.base,
-            student=long_settings(long_skip_chunks=args.long_skip_chunks),
+            student=student_overrides(long_skip_chunks=args.long_skip_chunks, denoise_loss_prob=args.denoise_loss_prob),
         )
         summary.pop("losses", None)
         print(json.dumps(summary, indent=1, default=float))
@@ -330,6 +330,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="long stage: chunks a self-rollout advances untrained between trained clips (default 0: every "
         "clip is trained); lets a short tuning run reach a rollout's late frames",
+    )
+    t.add_argument(
+        "--denoise-loss-prob",
+        type=float,
+        default=None,
+        help="dmd and long stages: probability of adding the supervised denoising term on real latents "
+        "to a step (default 0.1)",
     )
     t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
     t.add_argument("--batch-size", type=int, default=None)

@@ -71,6 +71,8 @@ class StudentConfig:
             raise ValueError("prefix_frames, long_clip_chunks, long_frames must be >= 1 and sink_frames >= 0")
         if self.long_skip_chunks < 0:
             raise ValueError(f"long_skip_chunks must be >= 0, got {self.long_skip_chunks}")
+        if not 0.0 <= self.denoise_loss_prob <= 1.0:
+            raise ValueError(f"denoise_loss_prob must be in [0, 1], got {self.denoise_loss_prob}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:
             raise ValueError(f"need 0 < dmd_min_t < dmd_max_t < 1, got {self.dmd_min_t}, {self.dmd_max_t}")
 
@@ -92,10 +94,11 @@ class StudentConfig:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names})
 
 
-def long_settings(long_frames: int | None = None, long_skip_chunks: int | None = None) -> StudentConfig | None:
-    """The student settings of the train CLIs' long-stage flags: None when none is given (the
-    stage's defaults), else the default config with the given ones."""
-    given = {k: v for k, v in (("long_frames", long_frames), ("long_skip_chunks", long_skip_chunks)) if v is not None}
+def student_overrides(**given: object) -> StudentConfig | None:
+    """The :class:`StudentConfig` of the train CLIs' student flags (field name -> value, None = not
+    given): None when no flag is given (every stage keeps its defaults), else the defaults with the
+    given fields replaced."""
+    given = {k: v for k, v in given.items() if v is not None}
     return StudentConfig(**given) if given else None
 
 

@@ -16,7 +16,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS, get_preset, with_student_settings
-from world_model.student.config import long_settings
+from world_model.student.config import student_overrides
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -41,6 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--long-skip-chunks", type=int, default=None, help="long stage: untrained chunks between trained clips (0)"
     )
+    p.add_argument(
+        "--denoise-loss-prob",
+        type=float,
+        default=None,
+        help="dmd/long: probability of adding the supervised denoising term per step (0.1)",
+    )
     p.add_argument("--student-depth", type=int, default=None, help="student blocks (default: the preset's)")
     p.add_argument("--context-frames", type=int, default=None, help="student window (default: the preset's)")
     a = p.parse_args(argv)
@@ -61,7 +67,11 @@ def main(argv: list[str] | None = None) -> int:
             case_data=a.case_data,
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
-            student=long_settings(a.long_frames, a.long_skip_chunks),
+            student=student_overrides(
+                long_frames=a.long_frames,
+                long_skip_chunks=a.long_skip_chunks,
+                denoise_loss_prob=a.denoise_loss_prob,
+            ),
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)
