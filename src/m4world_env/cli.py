@@ -160,7 +160,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
     from world_model.model.config import get_preset, with_student_settings
-    from world_model.student.config import student_overrides
+    from world_model.student_flags import student_config
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
@@ -184,7 +184,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             case=args.case,
             case_data=args.case_data,
             base=args.base,
-            student=student_overrides(long_skip_chunks=args.long_skip_chunks, denoise_loss_prob=args.denoise_loss_prob),
+            student=student_config(args),
         )
         summary.pop("losses", None)
         print(json.dumps(summary, indent=1, default=float))
@@ -246,6 +246,8 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from world_model.student_flags import add_student_flags
+
     p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -314,30 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the evaluation's baseline: object tokens without image/text descriptions (use its own --run; "
         "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
     )
-    t.add_argument(
-        "--student-depth",
-        type=int,
-        default=None,
-        help="blocks of the causal student (default: the preset's dit.student_depth, else the teacher's); "
-        "starts from evenly spaced teacher blocks; give it to every student stage of the run",
-    )
-    t.add_argument(
-        "--context-frames", type=int, default=None, help="the student's rolling window (default: the preset's)"
-    )
-    t.add_argument(
-        "--long-skip-chunks",
-        type=int,
-        default=None,
-        help="long stage: chunks a self-rollout advances untrained between trained clips (default 0: every "
-        "clip is trained); lets a short tuning run reach a rollout's late frames",
-    )
-    t.add_argument(
-        "--denoise-loss-prob",
-        type=float,
-        default=None,
-        help="dmd and long stages: probability of adding the supervised denoising term on real latents "
-        "to a step (default 0.1)",
-    )
+    add_student_flags(t)
     t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
     t.add_argument("--batch-size", type=int, default=None)
     t.add_argument("--lr", type=float, default=None)

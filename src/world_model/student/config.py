@@ -94,14 +94,6 @@ class StudentConfig:
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names})
 
 
-def student_overrides(**given: object) -> StudentConfig | None:
-    """The :class:`StudentConfig` of the train CLIs' student flags (field name -> value, None = not
-    given): None when no flag is given (every stage keeps its defaults), else the defaults with the
-    given fields replaced."""
-    given = {k: v for k, v in given.items() if v is not None}
-    return StudentConfig(**given) if given else None
-
-
 def rollout_blocks(start: int, frames: int, prefix_frames: int, chunk_frames: int) -> torch.Tensor:
     """(frames,) causal block index of rollout frames ``start .. start + frames - 1``.
 

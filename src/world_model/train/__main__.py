@@ -16,7 +16,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS, get_preset, with_student_settings
-from world_model.student.config import student_overrides
+from world_model.student_flags import add_student_flags, student_config
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -37,18 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
     p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
-    p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (default 600)")
-    p.add_argument(
-        "--long-skip-chunks", type=int, default=None, help="long stage: untrained chunks between trained clips (0)"
-    )
-    p.add_argument(
-        "--denoise-loss-prob",
-        type=float,
-        default=None,
-        help="dmd/long: probability of adding the supervised denoising term per step (0.1)",
-    )
-    p.add_argument("--student-depth", type=int, default=None, help="student blocks (default: the preset's)")
-    p.add_argument("--context-frames", type=int, default=None, help="student window (default: the preset's)")
+    add_student_flags(p, long_frames=True)
     a = p.parse_args(argv)
     try:
         out = train_stage(
@@ -67,11 +56,7 @@ def main(argv: list[str] | None = None) -> int:
             case_data=a.case_data,
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
-            student=student_overrides(
-                long_frames=a.long_frames,
-                long_skip_chunks=a.long_skip_chunks,
-                denoise_loss_prob=a.denoise_loss_prob,
-            ),
+            student=student_config(a),
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

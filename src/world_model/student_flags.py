@@ -1,0 +1,53 @@
+"""The student's command-line flags, shared by ``m4world train`` and ``python -m world_model.train``.
+
+Import-light (no torch) so that building the ``m4world`` parser stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from world_model.student.config import StudentConfig
+
+
+def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:
+    """Add the student flags (and ``--long-frames`` when asked) to ``p``; every default is None,
+    meaning "the preset's" or "the stage's"."""
+    p.add_argument(
+        "--student-depth",
+        type=int,
+        default=None,
+        help="blocks of the causal student (default: the preset's dit.student_depth, else the teacher's); "
+        "starts from evenly spaced teacher blocks; give it to every student stage of the run",
+    )
+    p.add_argument(
+        "--context-frames", type=int, default=None, help="the student's rolling window (default: the preset's)"
+    )
+    if long_frames:
+        p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")
+    p.add_argument(
+        "--long-skip-chunks",
+        type=int,
+        default=None,
+        help="long stage: chunks a self-rollout advances untrained between trained clips (default 0: every "
+        "clip is trained); lets a short tuning run reach a rollout's late frames",
+    )
+    p.add_argument(
+        "--denoise-loss-prob",
+        type=float,
+        default=None,
+        help="dmd and long stages: probability of adding the supervised denoising term on real latents "
+        "to a step (default 0.1)",
+    )
+
+
+def student_config(args: argparse.Namespace) -> StudentConfig | None:
+    """The :class:`StudentConfig` of the parsed flags: None when none is given (every stage keeps its
+    defaults), else the defaults with the given fields replaced."""
+    from world_model.student.config import StudentConfig
+
+    given = {name: getattr(args, name, None) for name in ("long_frames", "long_skip_chunks", "denoise_loss_prob")}
+    given = {k: v for k, v in given.items() if v is not None}
+    return StudentConfig(**given) if given else None
