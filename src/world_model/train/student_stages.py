@@ -323,8 +323,8 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         fresh = state["clips"] is None or engine.position + skip_frames + clip_frames > scfg.long_frames
         if fresh:
-            start(tr)
-        else:  # a fresh rollout trains its first clip at once
+            start(tr)  # and trains the new rollout's first clip at once
+        else:
             advance(state["clips"])
         pos, clips = engine.position, state["clips"]
         controls = _long_conditions(windows, clips, pos, clip_frames, 0)  # the rollout's own frame
