@@ -249,7 +249,7 @@ def main() -> None:
         e: median_rounds([rnd["highway_env"][e] for rnd in rounds]) for e in ("highway-v0", "highway-fast-v0")
     }
     result["per_round"] = rounds
-    result["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    result["peak_rss_mb"] = own_peak_rss_mb()  # not ru_maxrss: it carries the launching process's peak
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "per_round"}, indent=2))
