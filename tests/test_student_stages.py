@@ -168,6 +168,38 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     seen = []
     monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append(kw["student"]) or {})
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
-    assert m4world([*args, "--long-skip-chunks", "3", "--denoise-loss-prob", "0.5"]) == 0
+    assert m4world([*args, "--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]) == 0
     assert m4world(args) == 0
-    assert seen == [StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5), None]  # None: the stage's defaults
+    want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5)
+    assert seen == [want, None]  # None: the stage's defaults
+
+
+def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_loss():
+    from dataclasses import replace
+
+    from world_model.model import MultiViewDiT
+    from world_model.model.flow import interpolate, predict_x0
+    from world_model.student import StudentConfig
+    from world_model.student.losses import dmd_loss
+    from world_model.student.training import dmd_generator_loss, real_score_guidance
+
+    cfg = get_preset("tiny")
+    cfg = replace(cfg, sampler=replace(cfg.sampler, camera_cfg_scale=3.0, lidar_apg_scale=3.0))
+    torch.manual_seed(0)
+    real, critic = MultiViewDiT(cfg).eval(), MultiViewDiT(cfg).eval()
+    for p in [*real.parameters(), *critic.parameters()]:  # adaLN-zero would make every score zero
+        torch.nn.init.normal_(p, std=0.05)
+    assert real_score_guidance(real, StudentConfig()) == cfg.sampler  # None: the teacher's scales
+    unguided = real_score_guidance(real, StudentConfig(dmd_guidance_scale=1.0))
+    assert (unguided.camera_cfg_scale, unguided.lidar_apg_scale) == (1.0, 1.0)
+
+    cond = tiny_conditions(cfg, 2, batch=2)
+    video, noise, t = torch.randn(2, *cfg.latent_shape(2)), torch.randn(2, *cfg.latent_shape(2)), torch.rand(2)
+    with torch.no_grad():  # scale 1: the real score is the plain conditional teacher
+        xt = interpolate(video, noise, t)
+        expected = dmd_loss(video, predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t))
+        got = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided)
+        guided = dmd_generator_loss(real, critic, video, cond, t, noise)
+    assert torch.allclose(got, expected, atol=1e-6) and not torch.allclose(guided, expected, atol=1e-6)
+    with pytest.raises(ValueError, match="dmd_guidance_scale must be > 0"):
+        StudentConfig(dmd_guidance_scale=0.0)

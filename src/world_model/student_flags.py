@@ -41,6 +41,13 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="dmd and long stages: probability of adding the supervised denoising term on real latents "
         "to a step (default 0.1)",
     )
+    p.add_argument(
+        "--dmd-guidance-scale",
+        type=float,
+        default=None,
+        help="dmd and long stages: guidance scale of the DMD real score, camera CFG and LiDAR APG alike "
+        "(default: the teacher's sampler scales; 1 = unguided)",
+    )
 
 
 def student_config(args: argparse.Namespace) -> StudentConfig | None:
@@ -48,6 +55,7 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     defaults), else the defaults with the given fields replaced."""
     from world_model.student.config import StudentConfig
 
-    given = {name: getattr(args, name, None) for name in ("long_frames", "long_skip_chunks", "denoise_loss_prob")}
+    names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale")
+    given = {name: getattr(args, name, None) for name in names}
     given = {k: v for k, v in given.items() if v is not None}
     return StudentConfig(**given) if given else None

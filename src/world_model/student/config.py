@@ -45,6 +45,9 @@ class StudentConfig:
     denoise_loss_prob: float = 0.1  # probability of adding the supervised denoising loss
     dmd_min_t: float = 0.02  # DMD noise times are drawn in [dmd_min_t, dmd_max_t]: the guided
     dmd_max_t: float = 0.98  # score is undefined at t = 1 and uninformative at t = 0
+    # Guidance scale of the DMD real score (camera CFG and LiDAR APG alike); None keeps the teacher's
+    # sampler scales. DMD's reverse KL seeks modes, and guidance sharpens the modes it seeks.
+    dmd_guidance_scale: float | None = None
 
     # -- long-video tuning (LongLive) --
     long_frames: int = 600  # length of one self-rollout before it restarts from data
@@ -73,6 +76,8 @@ class StudentConfig:
             raise ValueError(f"long_skip_chunks must be >= 0, got {self.long_skip_chunks}")
         if not 0.0 <= self.denoise_loss_prob <= 1.0:
             raise ValueError(f"denoise_loss_prob must be in [0, 1], got {self.denoise_loss_prob}")
+        if self.dmd_guidance_scale is not None and not self.dmd_guidance_scale > 0.0:
+            raise ValueError(f"dmd_guidance_scale must be > 0 (1 = no guidance), got {self.dmd_guidance_scale}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:
             raise ValueError(f"need 0 < dmd_min_t < dmd_max_t < 1, got {self.dmd_min_t}, {self.dmd_max_t}")
 

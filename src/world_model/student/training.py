@@ -9,6 +9,8 @@ with that block mask (history at t = 1), which the engine's cache reproduces chu
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from world_model.model.attention import KV
@@ -121,6 +123,14 @@ def dmd_times(batch: int, scfg: StudentConfig, generator: torch.Generator | None
     return scfg.dmd_min_t + (scfg.dmd_max_t - scfg.dmd_min_t) * torch.rand(batch, generator=generator)
 
 
+def real_score_guidance(real: MultiViewDiT, scfg: StudentConfig) -> SamplerConfig:
+    """The guidance of the DMD real score: the teacher's sampler, with both scales (camera CFG,
+    LiDAR APG) replaced by ``scfg.dmd_guidance_scale`` when that is set."""
+    s = scfg.dmd_guidance_scale
+    base = real.cfg.sampler
+    return base if s is None else dataclasses.replace(base, camera_cfg_scale=s, lidar_apg_scale=s)
+
+
 def dmd_generator_loss(
     real: MultiViewDiT,
     critic: MultiViewDiT,
@@ -129,13 +139,15 @@ def dmd_generator_loss(
     t: torch.Tensor,
     noise: torch.Tensor,
     skip: int = 0,
+    guidance: SamplerConfig | None = None,
 ) -> torch.Tensor:
     """DMD loss of a generated clip (B, T, ...): real score = the frozen bidirectional teacher with
-    guidance, fake score = the critic, both as x0-predictions at x_t = interpolate(video, noise, t).
-    Frames before ``skip`` (clean conditioning frames, not generated) are scored but not trained."""
+    guidance (``guidance``'s scales, default the teacher's sampler), fake score = the critic, both as
+    x0-predictions at x_t = interpolate(video, noise, t). Frames before ``skip`` (clean conditioning
+    frames, not generated) are scored but not trained."""
     with torch.no_grad():
         xt = interpolate(video.detach(), noise, t)
-        x0_real = predict_x0(xt, GuidedVelocity(real, cond)(xt, t), t)
+        x0_real = predict_x0(xt, GuidedVelocity(real, cond, guidance)(xt, t), t)
         x0_fake = predict_x0(xt, critic(xt, t, cond), t)
     return dmd_loss(video[:, skip:], x0_fake[:, skip:], x0_real[:, skip:])
 

@@ -55,6 +55,7 @@ from world_model.student.training import (
     dmd_generator_loss,
     dmd_times,
     ode_targets,
+    real_score_guidance,
     self_forcing_rollout,
     teacher_forcing_loss,
     teacher_forcing_velocity,
@@ -254,9 +255,8 @@ def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         exit_step = int(torch.randint(scfg.num_steps, (1,), generator=tr.gen))
         video = self_forcing_rollout(engine, x0[:, :p], cond, chunks, exit_step, grad=True)
         b = video.shape[0]
-        loss = dmd_generator_loss(
-            real, pair.critic, video, cond, dmd_times(b, scfg, tr.gen), _noise(video.shape, tr), p
-        )
+        t, noise = dmd_times(b, scfg, tr.gen), _noise(video.shape, tr)
+        loss = dmd_generator_loss(real, pair.critic, video, cond, t, noise, p, real_score_guidance(real, scfg))
         if tr.rng.random() < scfg.denoise_loss_prob:
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b
@@ -337,7 +337,8 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
             _critic_update(tr, pair, fake, scored, cfg)
         clip = generate(controls, True, int(torch.randint(scfg.num_steps, (1,), generator=tr.gen)))
         b = clip.shape[0]
-        loss = dmd_generator_loss(real, pair.critic, clip, scored, dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr))
+        t, noise = dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr)
+        loss = dmd_generator_loss(real, pair.critic, clip, scored, t, noise, guidance=real_score_guidance(real, scfg))
         if tr.rng.random() < scfg.denoise_loss_prob:
             x0, cond = _sample(windows, tr.rng, b, real_frames)
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
