@@ -56,6 +56,5 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     from world_model.student.config import StudentConfig
 
     names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale")
-    given = {name: getattr(args, name, None) for name in names}
-    given = {k: v for k, v in given.items() if v is not None}
+    given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None

@@ -241,6 +241,7 @@ def _denoising_loss(
 
 def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     pair, real = _pair(run_dir, "ode", cfg)
+    guidance = real_score_guidance(real, scfg)
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "dmd", "model_config": cfg.to_dict()}, progress)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     chunks = _max_chunks(windows, cfg, scfg)
@@ -256,7 +257,7 @@ def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         video = self_forcing_rollout(engine, x0[:, :p], cond, chunks, exit_step, grad=True)
         b = video.shape[0]
         t, noise = dmd_times(b, scfg, tr.gen), _noise(video.shape, tr)
-        loss = dmd_generator_loss(real, pair.critic, video, cond, t, noise, p, real_score_guidance(real, scfg))
+        loss = dmd_generator_loss(real, pair.critic, video, cond, t, noise, p, guidance)
         if tr.rng.random() < scfg.denoise_loss_prob:
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b
@@ -289,6 +290,7 @@ def _long_conditions(windows: LatentWindows, clips: list[int], start: int, frame
 
 def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     pair, real = _pair(run_dir, "dmd", cfg)
+    guidance = real_score_guidance(real, scfg)
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
@@ -338,7 +340,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         clip = generate(controls, True, int(torch.randint(scfg.num_steps, (1,), generator=tr.gen)))
         b = clip.shape[0]
         t, noise = dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr)
-        loss = dmd_generator_loss(real, pair.critic, clip, scored, t, noise, guidance=real_score_guidance(real, scfg))
+        loss = dmd_generator_loss(real, pair.critic, clip, scored, t, noise, guidance=guidance)
         if tr.rng.random() < scfg.denoise_loss_prob:
             x0, cond = _sample(windows, tr.rng, b, real_frames)
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
