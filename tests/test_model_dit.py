@@ -194,6 +194,46 @@ def test_cpu_attention_matches_sdpa_and_survives_fully_masked_rows():
     assert torch.isfinite(out).all() and torch.allclose(out[0, :, 2], v[0].mean(dim=1), atol=1e-6)
 
 
+def test_attention_layers_with_folded_norm_weights_equal_the_textbook_formulas():
+    """QK-norm weights and the softmax scale are folded into the rotary tables / cross keys: the
+    layers must still compute rms_norm(x W) * w -> RoPE -> softmax(q k^T / sqrt(d)) v."""
+    import torch.nn.functional as F
+
+    from world_model.model.attention import CrossAttention, SelfAttention
+    from world_model.model.rope import apply_rope, rope_tables, rotation_tables
+
+    torch.manual_seed(0)
+    dim, heads, eps, hd = 32, 2, 1e-6, 16
+    attn, cross = SelfAttention(dim, heads, eps), CrossAttention(dim, 24, heads, eps)
+    for norm in (attn.q_norm, attn.k_norm, cross.q_norm, cross.k_norm):
+        torch.nn.init.uniform_(norm.weight, 0.5, 2.0)  # not the identity they start as
+    x, ctx = torch.randn(3, 2 * 6, dim), torch.randn(3, 5, 24)
+    cos, sin = rotation_tables(*rope_tables(hd, 2, 2, 3), torch.float32)
+
+    def heads_of(y, norm):
+        y = F.rms_norm(y.unflatten(-1, (heads, hd)), (hd,), norm.weight, eps)
+        return y.transpose(1, 2)
+
+    def textbook(q, k, v, layer, mask=None):
+        return layer.o(F.scaled_dot_product_attention(q, k, v, attn_mask=mask).transpose(1, 2).flatten(-2))
+
+    q = apply_rope(heads_of(attn.q(x), attn.q_norm), cos, sin)
+    k = apply_rope(heads_of(attn.k(x), attn.k_norm), cos, sin)
+    v = attn.v(x).unflatten(-1, (heads, hd)).transpose(1, 2)
+    out, (k_out, _) = attn(x, cos, sin)
+    assert torch.allclose(out, textbook(q, k, v, attn), atol=1e-5)
+    assert torch.allclose(k_out, k, atol=1e-5)  # the cached keys are the plain rotated ones
+    out_late, _ = attn(x, cos, sin, queries_from=6)  # only the last frame's queries
+    assert torch.allclose(out_late, textbook(q[:, :, 6:], k, v, attn), atol=1e-5)
+
+    q = heads_of(cross.q(x), cross.q_norm)
+    k = heads_of(cross.k(ctx), cross.k_norm)
+    v = cross.v(ctx).unflatten(-1, (heads, hd)).transpose(1, 2)
+    mask = torch.rand(3, 1, 12, 5) > 0.3
+    mask[..., 0] = True
+    assert torch.allclose(cross(x, ctx, mask), textbook(q, k, v, cross, mask), atol=1e-5)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
 def test_additive_mask_bias_equals_boolean_mask(dtype):
     from world_model.model.attention import attention, mask_bias

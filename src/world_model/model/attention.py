@@ -56,9 +56,12 @@ def mask_bias(mask: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | N
     return torch.zeros(mask.shape, dtype=dtype, device=mask.device).masked_fill_(~mask, torch.finfo(dtype).min)
 
 
-def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+def attention(
+    q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Tensor | None = None, scale: float | None = None
+) -> torch.Tensor:
     """Softmax attention: q (..., S, d), k/v (..., Sk, d), ``mask`` broadcastable to (..., S, Sk):
-    bool (True = attend) or an additive bias from :func:`mask_bias`.
+    bool (True = attend) or an additive bias from :func:`mask_bias`. ``scale`` multiplies the
+    scores (default ``d ** -0.5``; 1 when the queries or keys already carry it).
 
     On CPU two batched matmuls and a softmax: at the DiT's short sequences (tens to a few hundred
     tokens) that is about twice as fast as ``scaled_dot_product_attention``'s CPU flash kernel
@@ -66,9 +69,12 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Ten
     a fully masked row averages its values instead of turning into NaN. Elsewhere SDPA's fused
     kernels win.
     """
+    scale = q.shape[-1] ** -0.5 if scale is None else scale
     if q.device.type != "cpu":
-        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-    scores = torch.matmul(q * q.shape[-1] ** -0.5, k.transpose(-1, -2))  # scale the smaller operand
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, scale=scale)
+    if scale != 1.0:
+        q = q * scale  # scale the smaller operand
+    scores = torch.matmul(q, k.transpose(-1, -2))
     if mask is not None:
         if mask.dtype == torch.bool:
             scores = scores.masked_fill(~mask, torch.finfo(scores.dtype).min)
@@ -78,23 +84,46 @@ def attention(q: torch.Tensor, k: torch.Tensor, v: torch.Tensor, mask: torch.Ten
 
 
 class RMSNorm(nn.Module):
-    """RMSNorm over the last dim, computed in float32: the bf16 CPU kernel is many times slower."""
+    """RMSNorm over the last dim: ``x / rms(x) * weight``, with the mean square taken in float32.
+
+    The attention layers do not call it whole: they multiply by :meth:`inverse_rms` and fold
+    ``weight`` into the next factor of the dot product (the rotary tables, or the keys of a
+    cross-attention), which saves several passes over the queries and keys per layer; in bf16 on
+    CPU the whole norm cost more than the attention matmuls (benchmarks/bench_student.py)."""
 
     def __init__(self, dim: int, eps: float) -> None:
         super().__init__()
         self.eps = eps
         self.weight = nn.Parameter(torch.ones(dim))
 
+    def inverse_rms(self, x: torch.Tensor) -> torch.Tensor:
+        """(..., D) -> (..., 1) ``1 / sqrt(mean(x^2) + eps)`` in x's dtype (reduced in float32)."""
+        norm = torch.linalg.vector_norm(x, dim=-1, keepdim=True, dtype=torch.float32)
+        return torch.rsqrt(norm.square() / x.shape[-1] + self.eps).to(x.dtype)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return F.rms_norm(x.float(), (x.shape[-1],), self.weight.float(), self.eps).to(x.dtype)
+        return x * self.inverse_rms(x) * self.weight.to(x.dtype)
 
 
-def _heads(x: torch.Tensor, heads: int, norm: nn.Module | None = None) -> torch.Tensor:
-    """(..., S, D) -> (..., H, S, D/H), normalizing each head first (on the contiguous layout)."""
-    x = x.unflatten(-1, (heads, -1))
-    if norm is not None:
-        x = norm(x)
-    return x.transpose(-3, -2)
+def _normed_rotated(
+    x: torch.Tensor, heads: int, norm: RMSNorm, cos: torch.Tensor, sin: torch.Tensor, gain: float
+) -> torch.Tensor:
+    """(N, S, D) -> (N, H, S, hd): each head RMS-normalized by ``norm``, times ``gain``, rotated.
+
+    The norm's weight (and ``gain``) is folded into the rotary tables: RoPE turns the pair
+    (i, i + hd/2) by one angle, so rotating ``w * x`` is ``(cos * w) x + (sin * swap(w)) swap(x)``,
+    and the per-token ``1/rms`` commutes with the rotation."""
+    x = x.unflatten(-1, (heads, -1))  # (N, S, H, hd)
+    w = norm.weight.float() * gain
+    half = w.shape[0] // 2
+    cos_w = (cos.float() * w).to(x.dtype)
+    sin_w = (sin.float() * torch.cat([w[half:], w[:half]])).to(x.dtype)
+    return apply_rope((x * norm.inverse_rms(x)).transpose(-3, -2), cos_w, sin_w)
+
+
+def _heads(x: torch.Tensor, heads: int) -> torch.Tensor:
+    """(..., S, D) -> (..., H, S, D/H)."""
+    return x.unflatten(-1, (heads, -1)).transpose(-3, -2)
 
 
 def _merge(x: torch.Tensor) -> torch.Tensor:
@@ -129,16 +158,18 @@ class SelfAttention(nn.Module):
         (N, S - queries_from, D) of the tokens from ``queries_from`` on (the others only give keys
         and values) and this call's own (k, v) (N, H, S, head_dim), rotated, ready to be cached."""
         xq = x[:, queries_from:] if queries_from else x
-        q = apply_rope(_heads(self.q(xq), self.heads, self.q_norm), cos[queries_from:], sin[queries_from:])
+        # The softmax scale rides on the queries' rotary tables.
+        scale = cos.shape[-1] ** -0.5
+        q = _normed_rotated(self.q(xq), self.heads, self.q_norm, cos[queries_from:], sin[queries_from:], scale)
         if mask is not None and queries_from:
             mask = mask[..., queries_from:, :]
-        k = apply_rope(_heads(self.k(x), self.heads, self.k_norm), cos, sin)
+        k = _normed_rotated(self.k(x), self.heads, self.k_norm, cos, sin, 1.0)
         v = _heads(self.v(x), self.heads)
         k_all, v_all = k, v
         if context is not None:
             k_all = torch.cat([context[0].to(k.dtype), k], dim=2)
             v_all = torch.cat([context[1].to(v.dtype), v], dim=2)
-        out = attention(q, k_all, v_all, mask)
+        out = attention(q, k_all, v_all, mask, scale=1.0)
         return self.o(_merge(out)), (k, v)
 
 
@@ -156,14 +187,20 @@ class CrossAttention(nn.Module):
         self.k_norm = RMSNorm(dim // heads, eps)
 
     def kv(self, ctx: torch.Tensor) -> KV:
-        """ctx (..., Sc, ctx_dim) -> keys, values (..., H, Sc, head_dim)."""
-        return _heads(self.k(ctx), self.heads, self.k_norm), _heads(self.v(ctx), self.heads)
+        """ctx (..., Sc, ctx_dim) -> keys, values (..., H, Sc, head_dim). The keys also carry the
+        query norm's weight and the softmax scale (``sum_d q_d w_d k_d`` is the same with ``w`` on
+        either side), so :meth:`attend`, run more often than this, only divides by the rms."""
+        k = self.k(ctx).unflatten(-1, (self.heads, -1))
+        gain = self.k_norm.weight.float() * self.q_norm.weight.float() * k.shape[-1] ** -0.5
+        k = k * self.k_norm.inverse_rms(k) * gain.to(k.dtype)
+        return k.transpose(-3, -2), _heads(self.v(ctx), self.heads)
 
     def attend(self, x: torch.Tensor, kv: KV, mask: torch.Tensor | None) -> torch.Tensor:
-        """x (N, S, D), kv (N, H, Sc, hd), mask broadcastable to (N, H, S, Sc) -> (N, S, D)."""
-        q = _heads(self.q(x), self.heads, self.q_norm)
+        """x (N, S, D), kv from :meth:`kv` (N, H, Sc, hd), mask broadcastable to (N, H, S, Sc) -> (N, S, D)."""
+        q = self.q(x).unflatten(-1, (self.heads, -1))
+        q = (q * self.q_norm.inverse_rms(q)).transpose(-3, -2)
         k, v = kv
-        out = attention(q, k.to(q.dtype), v.to(q.dtype), mask)
+        out = attention(q, k.to(q.dtype), v.to(q.dtype), mask, scale=1.0)
         return self.o(_merge(out))
 
     def forward(self, x: torch.Tensor, ctx: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
