@@ -168,9 +168,11 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     seen = []
     monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append(kw["student"]) or {})
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
-    assert m4world([*args, "--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]) == 0
+    flags = ["--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]
+    flags += ["--dmd-norm", "view"]
+    assert m4world([*args, *flags]) == 0
     assert m4world(args) == 0
-    want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5)
+    want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5, dmd_norm="view")
     assert seen == [want, None]  # None: the stage's defaults
 
 
@@ -200,6 +202,12 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
         expected = dmd_loss(video, predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t))
         got = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided)
         guided = dmd_generator_loss(real, critic, video, cond, t, noise)
+        per_view = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided, per_view=True)
+        x0_fake, x0_real = predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t)
     assert torch.allclose(got, expected, atol=1e-6) and not torch.allclose(guided, expected, atol=1e-6)
+    assert torch.allclose(per_view, dmd_loss(video, x0_fake, x0_real, group_dim=2), atol=1e-6)
+    assert not torch.allclose(per_view, expected, atol=1e-6)
     with pytest.raises(ValueError, match="dmd_guidance_scale must be > 0"):
         StudentConfig(dmd_guidance_scale=0.0)
+    with pytest.raises(ValueError, match="dmd_norm"):
+        StudentConfig(dmd_norm="batch")

@@ -48,6 +48,13 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="dmd and long stages: guidance scale of the DMD real score, camera CFG and LiDAR APG alike "
         "(default: the teacher's sampler scales; 1 = unguided)",
     )
+    p.add_argument(
+        "--dmd-norm",
+        choices=("sample", "view"),
+        default=None,
+        help="dmd and long stages: normalize the DMD gradient per sample (default, the paper) or per "
+        "sample and view (the LiDAR view's gradient not scaled by the cameras' errors)",
+    )
 
 
 def student_config(args: argparse.Namespace) -> StudentConfig | None:
@@ -55,6 +62,6 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     defaults), else the defaults with the given fields replaced."""
     from world_model.student.config import StudentConfig
 
-    names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale")
+    names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale", "dmd_norm")
     given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None

@@ -48,6 +48,9 @@ class StudentConfig:
     # Guidance scale of the DMD real score (camera CFG and LiDAR APG alike); None keeps the teacher's
     # sampler scales. DMD's reverse KL seeks modes, and guidance sharpens the modes it seeks.
     dmd_guidance_scale: float | None = None
+    # DMD gradient normalization: "sample" (the paper: one mean |x - D_real| per sample) or "view"
+    # (one per sample and view, so the LiDAR view's gradient is not scaled by the cameras' errors).
+    dmd_norm: str = "sample"
 
     # -- long-video tuning (LongLive) --
     long_frames: int = 600  # length of one self-rollout before it restarts from data
@@ -78,6 +81,8 @@ class StudentConfig:
             raise ValueError(f"denoise_loss_prob must be in [0, 1], got {self.denoise_loss_prob}")
         if self.dmd_guidance_scale is not None and not self.dmd_guidance_scale > 0.0:
             raise ValueError(f"dmd_guidance_scale must be > 0 (1 = no guidance), got {self.dmd_guidance_scale}")
+        if self.dmd_norm not in ("sample", "view"):
+            raise ValueError(f"dmd_norm must be 'sample' or 'view', got {self.dmd_norm!r}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:
             raise ValueError(f"need 0 < dmd_min_t < dmd_max_t < 1, got {self.dmd_min_t}, {self.dmd_max_t}")
 

@@ -24,20 +24,29 @@ from world_model.model.flow import VelocityFn, denoise_step, flow_matching_loss,
 NORM_EPS = 1e-6  # keeps the per-sample DMD normalization finite when the teacher is exact
 
 
-def _sample_dims(x: torch.Tensor) -> tuple[int, ...]:
-    return tuple(range(1, x.ndim))
+def _norm_dims(x: torch.Tensor, group_dim: int | None) -> tuple[int, ...]:
+    """Dims the DMD normalizer averages over: all but the batch (and ``group_dim``)."""
+    return tuple(d for d in range(1, x.ndim) if d != group_dim)
 
 
-def dmd_gradient(x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor) -> torch.Tensor:
-    """Normalized DMD gradient (B, ...) from the critic's and teacher's x0-predictions at x_t."""
+def dmd_gradient(
+    x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor, group_dim: int | None = None
+) -> torch.Tensor:
+    """Normalized DMD gradient (B, ...) from the critic's and teacher's x0-predictions at x_t.
+
+    ``group_dim``: normalize each index of that dim on its own (e.g. the view axis of a
+    (B, T, V, ...) clip, so the one LiDAR view's gradient is not scaled by six cameras' errors);
+    default one normalizer per sample (the paper)."""
     diff = (x0_fake - x0_real).double()
-    norm = (x - x0_real).double().abs().mean(dim=_sample_dims(x), keepdim=True).clamp_min(NORM_EPS)
+    norm = (x - x0_real).double().abs().mean(dim=_norm_dims(x, group_dim), keepdim=True).clamp_min(NORM_EPS)
     return torch.nan_to_num(diff / norm).to(x.dtype)
 
 
-def dmd_loss(x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor) -> torch.Tensor:
+def dmd_loss(
+    x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor, group_dim: int | None = None
+) -> torch.Tensor:
     """``0.5 * mean((x - sg[x - g])^2)``: gradient g (see module docstring) flows into x only."""
-    g = dmd_gradient(x.detach(), x0_fake.detach(), x0_real.detach())
+    g = dmd_gradient(x.detach(), x0_fake.detach(), x0_real.detach(), group_dim)
     target = x.detach().double() - g.double()
     return 0.5 * (x.double() - target).pow(2).mean().float()
 

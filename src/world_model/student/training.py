@@ -140,6 +140,7 @@ def dmd_generator_loss(
     noise: torch.Tensor,
     skip: int = 0,
     guidance: SamplerConfig | None = None,
+    per_view: bool = False,
 ) -> torch.Tensor:
     """DMD loss of a generated clip (B, T, ...): real score = the frozen bidirectional teacher with
     guidance (``guidance``'s scales, default the teacher's sampler), fake score = the critic, both as
@@ -149,7 +150,7 @@ def dmd_generator_loss(
         xt = interpolate(video.detach(), noise, t)
         x0_real = predict_x0(xt, GuidedVelocity(real, cond, guidance)(xt, t), t)
         x0_fake = predict_x0(xt, critic(xt, t, cond), t)
-    return dmd_loss(video[:, skip:], x0_fake[:, skip:], x0_real[:, skip:])
+    return dmd_loss(video[:, skip:], x0_fake[:, skip:], x0_real[:, skip:], 2 if per_view else None)
 
 
 def critic_flow_loss(
