@@ -202,7 +202,7 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
         expected = dmd_loss(video, predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t))
         got = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided)
         guided = dmd_generator_loss(real, critic, video, cond, t, noise)
-        per_view = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided, per_view=True)
+        per_view = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided, dmd_norm="view")
         x0_fake, x0_real = predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t)
     assert torch.allclose(got, expected, atol=1e-6) and not torch.allclose(guided, expected, atol=1e-6)
     assert torch.allclose(per_view, dmd_loss(video, x0_fake, x0_real, group_dim=2), atol=1e-6)

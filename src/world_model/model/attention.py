@@ -84,12 +84,12 @@ def attention(
 
 
 class RMSNorm(nn.Module):
-    """RMSNorm over the last dim: ``x / rms(x) * weight``, with the mean square taken in float32.
+    """The QK-norm's parameters: ``x / rms(x) * weight`` over the last dim, mean square in float32.
 
-    The attention layers do not call it whole: they multiply by :meth:`inverse_rms` and fold
-    ``weight`` into the next factor of the dot product (the rotary tables, or the keys of a
-    cross-attention), which saves several passes over the queries and keys per layer; in bf16 on
-    CPU the whole norm cost more than the attention matmuls (benchmarks/bench_student.py)."""
+    It has no ``forward``: the attention layers multiply by :meth:`inverse_rms` and fold ``weight``
+    into the next factor of the dot product (the rotary tables, or the keys of a cross-attention),
+    which saves several passes over the queries and keys per layer; in bf16 on CPU the whole norm
+    cost more than the attention matmuls (benchmarks/bench_student.py)."""
 
     def __init__(self, dim: int, eps: float) -> None:
         super().__init__()
@@ -100,9 +100,6 @@ class RMSNorm(nn.Module):
         """(..., D) -> (..., 1) ``1 / sqrt(mean(x^2) + eps)`` in x's dtype (reduced in float32)."""
         norm = torch.linalg.vector_norm(x, dim=-1, keepdim=True, dtype=torch.float32)
         return torch.rsqrt(norm.square() / x.shape[-1] + self.eps).to(x.dtype)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.inverse_rms(x) * self.weight.to(x.dtype)
 
 
 def _normed_rotated(

@@ -257,9 +257,7 @@ def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         video = self_forcing_rollout(engine, x0[:, :p], cond, chunks, exit_step, grad=True)
         b = video.shape[0]
         t, noise = dmd_times(b, scfg, tr.gen), _noise(video.shape, tr)
-        loss = dmd_generator_loss(
-            real, pair.critic, video, cond, t, noise, p, guidance, per_view=scfg.dmd_norm == "view"
-        )
+        loss = dmd_generator_loss(real, pair.critic, video, cond, t, noise, p, guidance, dmd_norm=scfg.dmd_norm)
         if tr.rng.random() < scfg.denoise_loss_prob:
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, b
@@ -342,9 +340,7 @@ def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
         clip = generate(controls, True, int(torch.randint(scfg.num_steps, (1,), generator=tr.gen)))
         b = clip.shape[0]
         t, noise = dmd_times(b, scfg, tr.gen), _noise(clip.shape, tr)
-        loss = dmd_generator_loss(
-            real, pair.critic, clip, scored, t, noise, guidance=guidance, per_view=scfg.dmd_norm == "view"
-        )
+        loss = dmd_generator_loss(real, pair.critic, clip, scored, t, noise, guidance=guidance, dmd_norm=scfg.dmd_norm)
         if tr.rng.random() < scfg.denoise_loss_prob:
             x0, cond = _sample(windows, tr.rng, b, real_frames)
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
