@@ -48,15 +48,16 @@ class ModelBackendConfig:
     context_refresh: bool = True
     guidance_scale: float = 1.0
     device: str = "cpu"
-    # DiT weights and activations: "auto" = as the checkpoint was trained (bf16 for the default
-    # preset), or force "float32" / "bfloat16". The VAE always runs in float32.
+    # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
+    # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
+    # CPUs, bf16 GPUs), else float32; or force "float32" / "bfloat16". LiDAR decodes in float32.
     dtype: str = "auto"
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
 
 
-DTYPES = ("auto", "float32", "bfloat16")
+DTYPES = ("auto", "float32", "bfloat16")  # world_model.model.precision.DTYPES (no torch import here)
 
 
 @dataclass

@@ -25,6 +25,7 @@ from world_model.model.conditions import ConditionArrays, Conditions, build_cond
 from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.precision import DTYPES, resolve_bf16
 from world_model.model.reference import ReferenceGenerator, reference_model_config
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
@@ -78,9 +79,11 @@ def load_world_model(
 ) -> WorldModel:
     """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
     bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation). ``dtype`` of the
-    DiTs: "auto" (the checkpoint's ``dit.autocast_bf16``), "float32" or "bfloat16"."""
-    if dtype not in ("auto", "float32", "bfloat16"):
-        raise ValueError(f"dtype must be auto, float32 or bfloat16, got {dtype!r}")
+    DiTs: "auto" (bf16 when the checkpoint was trained with ``dit.autocast_bf16`` and ``device``
+    computes bf16 natively, else float32: :func:`world_model.model.precision.resolve_bf16`),
+    "float32" or "bfloat16"."""
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     files = load_bundle_files(path)
     try:
         cfg = ModelConfig.from_dict(files.model_config)
@@ -89,9 +92,8 @@ def load_world_model(
         ref_cfg = reference_model_config(cfg) if own is None else ModelConfig.from_dict(own)
         if ref_cfg.shared_settings() != cfg.shared_settings():
             raise ValueError("the reference model's sensors, VAE or controls differ from the student's")
-        if dtype != "auto":
-            bf16 = dtype == "bfloat16"
-            cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
+        bf16 = resolve_bf16(dtype, cfg.dit.autocast_bf16, device)
+        cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
         scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])

@@ -1,0 +1,69 @@
+"""The DiTs' precision: "auto" runs bf16 only where the device multiplies it natively."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from world_model.model import MultiViewDiT, get_preset, precision
+from world_model.model.precision import bf16_is_fast, resolve_bf16
+from world_model.model.reference import reference_model_config
+from world_model.model.vae import SensorVAE
+from world_model.runtime import load_world_model, save_bundle
+
+
+def test_forced_dtypes_ignore_the_hardware(monkeypatch):
+    for native in (False, True):
+        monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda native=native: native)
+        for trained in (False, True):
+            assert resolve_bf16("bfloat16", trained, "cpu") is True
+            assert resolve_bf16("float32", trained, "cpu") is False
+
+
+def test_auto_needs_a_bf16_checkpoint_and_native_bf16(monkeypatch):
+    for native in (False, True):
+        monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda native=native: native)
+        assert bf16_is_fast("cpu") is native
+        assert resolve_bf16("auto", True, "cpu") is native
+        assert resolve_bf16("auto", False, "cpu") is False
+    assert bf16_is_fast("meta") is False
+
+
+def test_unknown_dtype_is_refused_by_name():
+    with pytest.raises(ValueError, match="float16"):
+        resolve_bf16("float16", True, "cpu")
+
+
+@pytest.fixture(scope="module")
+def bf16_trained_bundle(tmp_path_factory):
+    """A tiny untrained bundle whose config says it was trained with bf16 autocast."""
+    cfg = get_preset("tiny")
+    cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=True))
+    student_cfg, ref_cfg = cfg.for_student(), reference_model_config(cfg)
+    torch.manual_seed(0)
+    parts = {
+        "vae": SensorVAE(cfg).state_dict(),
+        "student": MultiViewDiT(student_cfg).state_dict(),
+        "reference": MultiViewDiT(ref_cfg).state_dict(),
+    }
+    out = tmp_path_factory.mktemp("bundle") / "bf16"
+    return save_bundle(
+        out,
+        student_cfg.to_dict(),
+        parts,
+        stages={k: "untrained" for k in parts},
+        component_configs={"reference": ref_cfg.to_dict()},
+    )
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_auto_loads_bf16_weights_only_on_native_bf16(monkeypatch, bf16_trained_bundle, native):
+    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
+    wm = load_world_model(bf16_trained_bundle, dtype="auto")
+    want = torch.bfloat16 if native else torch.float32
+    for dit in (wm.student, wm.reference):
+        assert next(dit.parameters()).dtype == want
+        assert dit.cfg.dit.autocast_bf16 is native
+    assert wm.cfg.dit.autocast_bf16 is native  # the camera decoder follows the DiTs
