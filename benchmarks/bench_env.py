@@ -68,12 +68,20 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
 
 
 def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False) -> dict:
-    kw = {"backend": backend, "config": CONFIG}
-    if backend == "world_model":
+    """gym.make keywords for a backend spec: ``procedural``, ``world_model`` or ``world_model:DTYPE``
+    (the model's ``dtype`` option, e.g. ``world_model:bfloat16`` beside ``world_model``'s auto)."""
+    name, _, dtype = backend.partition(":")
+    kw = {"backend": name, "config": CONFIG}
+    if name == "world_model":
+        model = {"compile": True} if compile_model else {}
+        if dtype:
+            model["dtype"] = dtype
         if checkpoint:
             kw["checkpoint"] = checkpoint
-        if compile_model:
-            kw["config"] = {**CONFIG, "model": {"compile": True}}
+        if model:
+            kw["config"] = {**CONFIG, "model": model}
+    elif dtype:
+        raise SystemExit(f"only the world_model backend takes a dtype, got {backend!r}")
     return kw
 
 
@@ -133,6 +141,8 @@ def bench_backend(
     )
     venv.reset(seed=seed)
     rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
+    if rollouts is not None:  # what dtype "auto" chose on this machine
+        result["dit_dtype"] = str(next(rollouts.wm.student.parameters()).dtype).removeprefix("torch.")
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
     vec_times, model_times = [], []
     for i in range(warmup + max(steps // num_envs, 10)):
@@ -185,7 +195,12 @@ def median_rounds(rounds: list[dict]) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--backend", nargs="+", default=["procedural"])
+    ap.add_argument(
+        "--backend",
+        nargs="+",
+        default=["procedural"],
+        help="procedural, world_model, or world_model:DTYPE (float32, bfloat16; default auto)",
+    )
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds (see the module docstring)")
