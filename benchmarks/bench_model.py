@@ -4,11 +4,11 @@ One causal chunk of the gym env = ``clip.chunk_frames`` new frames for 8 batched
 attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cache-write forward
 of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does. This script
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
-when ``dit.autocast_bf16``; ``fp32``/``bf16`` force one); ``--compile`` adds rows with the blocks
-compiled (env ``config.model.compile``). It measures the machine's matmul peak in the same run (a
-4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of peak is against the
-peak of its own dtype. ``--models``: the causal student the env runs (``dit.student_depth``
-blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
+when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
+``--compile`` adds rows with the blocks compiled (env ``config.model.compile``). It measures the
+machine's matmul peak in the same run (a 4096^2 matmul, fp32 and bf16) and reports medians; each
+row's fraction of peak is against the peak of its own dtype. ``--models``: the causal student the
+env runs (``dit.student_depth`` blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
     python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
         [--dtypes auto fp32 bf16] [--compile] [--repeats 7] [--out results.json]
@@ -28,6 +28,7 @@ import torch
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
+from world_model.model.precision import resolve_bf16
 
 ENVS = 8  # batched envs of one vector-env step
 DENOISE_FORWARDS = 4  # the 4-step causal student
@@ -73,8 +74,8 @@ def bench_config(
 ) -> dict:
     torch.manual_seed(0)
     cfg = cfg.for_student() if which == "student" else cfg
-    if dtype_name == "auto":
-        dtype_name = "bf16" if cfg.dit.autocast_bf16 else "fp32"
+    if dtype_name == "auto":  # as the env's dtype "auto": bf16 only where this CPU multiplies it natively
+        dtype_name = "bf16" if resolve_bf16("auto", cfg.dit.autocast_bf16, "cpu") else "fp32"
     dtype = DTYPES[dtype_name]
     cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype_name == "bf16"))  # as runtime.load_world_model
     model = MultiViewDiT(cfg).eval().to(dtype)
@@ -123,7 +124,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
     p.add_argument("--models", nargs="+", default=["student"], choices=["student", "teacher"])
-    p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto = the preset's own")
+    p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto: as the env runs it")
     p.add_argument(
         "--compile", action="store_true", help="also rows with the DiT blocks torch.compile'd (needs a C++ compiler)"
     )

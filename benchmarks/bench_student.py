@@ -45,6 +45,7 @@ from bench_model import synthetic_conditions  # noqa: E402
 
 from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
 from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
+from world_model.model.precision import DTYPES, resolve_bf16  # noqa: E402
 from world_model.student import StreamingEngine, StudentConfig  # noqa: E402
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
@@ -220,6 +221,13 @@ def main() -> None:
         help="torch.compile the student's blocks (MultiViewDiT.compile_blocks), as the env's "
         "config={'model': {'compile': True}}; the warm-up chunks compile, the timed ones do not",
     )
+    p.add_argument(
+        "--dtype",
+        default="auto",
+        choices=DTYPES,
+        help="the DiTs' precision, as the env's config={'model': {'dtype': ...}} (auto: bf16 only "
+        "where this CPU multiplies it natively)",
+    )
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])
     p.add_argument("--out", required=True)
     a = p.parse_args()
@@ -228,6 +236,8 @@ def main() -> None:
     if a.threads:
         torch.set_num_threads(a.threads)
     cfg = with_student_settings(get_preset(a.preset), a.student_depth, a.window)
+    bf16 = resolve_bf16(a.dtype, cfg.dit.autocast_bf16, "cpu")
+    cfg = dataclasses.replace(cfg, dit=dataclasses.replace(cfg.dit, autocast_bf16=bf16))
     student = make_model(cfg.for_student())
     if a.compile:
         student.requires_grad_(False).compile_blocks()
@@ -235,6 +245,7 @@ def main() -> None:
         "preset": a.preset,
         "threads": torch.get_num_threads(),
         "compiled": a.compile,
+        "dit_dtype": "bfloat16" if bf16 else "float32",
         "model_config": {
             "clip": dataclasses.asdict(cfg.clip),
             "sampler_steps": cfg.sampler.steps,
