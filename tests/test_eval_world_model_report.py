@@ -53,6 +53,16 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
     assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp
     assert json.loads((out / "report.json").read_text())["rows"] == report["rows"]
+    # The DiTs' precision is part of a row's key: forcing bf16 regenerates the model rows only.
+    oracle_stamp = (out / "rows" / "oracle.json").stat().st_mtime_ns
+    old_key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    bf16 = ["--dtype", "bfloat16"]
+    assert (
+        main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out), *bf16])
+        == 0
+    )
+    assert json.loads((out / "rows" / "student.json").read_text())["key"] != old_key
+    assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
     capsys.readouterr()
     none = ["--clips-prefix", "long_"]
     assert (

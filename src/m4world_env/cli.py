@@ -88,15 +88,17 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
-    def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
-        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)}"
+    wm = load_world_model(args.checkpoint, dtype=args.dtype)
 
-    wm = load_world_model(args.checkpoint)
+    def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
+        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)},dtype={wm.dtype}"
+
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
-    ids["autoencoder"] = f"autoencoder,vae={sha256_file(resolve_bundle(args.checkpoint) / 'vae.safetensors')[:16]}"
+    vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
+    ids["autoencoder"] = f"autoencoder,vae={vae},dtype={wm.dtype}"  # cameras decode in the DiTs' dtype
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
-        rows["geometry_only"] = world_model_row(load_world_model(args.baseline), seed=args.seed)
+        rows["geometry_only"] = world_model_row(load_world_model(args.baseline, dtype=args.dtype), seed=args.seed)
         ids["geometry_only"] = student_id(args.baseline)
     rows["student"] = world_model_row(wm, seed=args.seed)
     ids["student"] = student_id(args.checkpoint)
@@ -108,7 +110,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         rows["teacher"] = teacher_row(wm, load_teacher(args.teacher), seed=args.seed)
         weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
         teacher = sha256_file(weights)[:16] if weights.exists() else args.teacher
-        ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed}"
+        ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed},dtype={wm.dtype}"
     cache = Path(args.out) / "rows" if args.out else None
     report = evaluate_rows(rows, clips, cache_dir=cache, row_ids=ids)
     print(format_markdown(report))
@@ -298,6 +300,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument("--baseline", default=None, help="--report: bundle of the geometry-only baseline (a row)")
     e.add_argument("--teacher", default=None, help="--report: a teacher export, RUN/teacher/model (a row)")
+    e.add_argument(
+        "--dtype",
+        default="auto",
+        choices=("auto", "float32", "bfloat16"),
+        help="--report: the DiTs' precision, as the env's config model.dtype (auto: bf16 only where the CPU "
+        "multiplies it natively); part of each cached row's key",
+    )
     e.set_defaults(func=_cmd_eval)
 
     t = sub.add_parser("train", help="train world-model stages (resumable: rerun the same command)")

@@ -58,6 +58,11 @@ class WorldModel:
         self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
 
+    @property
+    def dtype(self) -> str:
+        """The DiTs' precision (and the camera decoder's): "bfloat16" or "float32"."""
+        return "bfloat16" if self.cfg.dit.autocast_bf16 else "float32"
+
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
