@@ -7,6 +7,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from tests.model_fixtures import perturbed, tiny_conditions
 from world_model.model import MultiViewDiT, get_preset, precision
 from world_model.model.precision import bf16_is_fast, resolve_bf16
 from world_model.model.reference import reference_model_config
@@ -67,3 +68,32 @@ def test_auto_loads_bf16_weights_only_on_native_bf16(monkeypatch, bf16_trained_b
         assert next(dit.parameters()).dtype == want
         assert dit.cfg.dit.autocast_bf16 is native
     assert wm.cfg.dit.autocast_bf16 is native  # the camera decoder follows the DiTs
+
+
+def _forward(model: MultiViewDiT) -> torch.Tensor:
+    cfg = model.cfg
+    x = torch.randn(2, *cfg.latent_shape(2), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        return model(x, torch.full((2,), 0.5), tiny_conditions(cfg, 2, batch=2))
+
+
+def test_dit_precision_sets_the_autocast_of_dits_built_inside():
+    cfg = get_preset("tiny")
+    bf16_cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=True))
+    torch.manual_seed(0)
+    fp32_model = perturbed(MultiViewDiT(cfg))  # zero-initialized heads would hide any rounding
+    with precision.dit_precision(False):
+        forced_fp32 = MultiViewDiT(bf16_cfg).eval()
+        with precision.dit_precision(None):  # None: the config decides
+            assert MultiViewDiT(bf16_cfg).autocast_bf16 is True
+        assert MultiViewDiT(bf16_cfg).autocast_bf16 is False  # restored on exit
+    with precision.dit_precision(True):
+        forced_bf16 = MultiViewDiT(cfg).eval()
+    as_configured = MultiViewDiT(bf16_cfg).eval()  # outside: the config's bf16
+    for m in (forced_fp32, forced_bf16, as_configured):
+        m.load_state_dict(fp32_model.state_dict())
+    assert (forced_fp32.autocast_bf16, forced_bf16.autocast_bf16, as_configured.autocast_bf16) == (False, True, True)
+    reference = _forward(fp32_model)
+    assert torch.equal(_forward(forced_fp32), reference)  # the same computation as an fp32 config
+    assert not torch.equal(_forward(forced_bf16), reference)  # bf16 autocast rounds
+    assert torch.equal(_forward(forced_bf16), _forward(as_configured))

@@ -24,4 +24,5 @@ def test_demo_runs_on_the_shipped_checkpoint(tmp_path, capsys):
     assert out.stat().st_size > 0
     printed = capsys.readouterr().out
     assert "backend world_model" in printed and "episode score" in printed
+    assert "DiT dtype float32" in printed or "DiT dtype bfloat16" in printed  # what dtype "auto" chose
     assert json.loads((DEFAULT_BUNDLE / "manifest.json").read_text())["format"] == "m4world-bundle"

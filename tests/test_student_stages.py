@@ -166,14 +166,14 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     from world_model.train import stages
 
     seen = []
-    monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append(kw["student"]) or {})
+    monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append((kw["student"], kw["dtype"])) or {})
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
     flags = ["--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]
-    flags += ["--dmd-norm", "view"]
+    flags += ["--dmd-norm", "view", "--dtype", "float32"]
     assert m4world([*args, *flags]) == 0
     assert m4world(args) == 0
     want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5, dmd_norm="view")
-    assert seen == [want, None]  # None: the stage's defaults
+    assert seen == [(want, "float32"), (None, "auto")]  # None: the stage's defaults
 
 
 def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_loss():

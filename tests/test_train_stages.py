@@ -196,3 +196,22 @@ def test_latent_cache_is_keyed_by_vae_and_clip(dataset, tmp_path):
     other = replace(clip, meta={**clip.meta, "seed": -1})  # same name, another recording
     cached_latents(other, vae, tmp_path, "vae-b")
     assert len(calls) == 3
+
+
+def test_train_dtype_reaches_the_stage_models_not_the_checkpoint(dataset, tmp_path):
+    with pytest.raises(ValueError, match="float16"):
+        train_stage("teacher", dataset, tmp_path / "none", preset="tiny", steps=1, dtype="float16")
+    assert not (tmp_path / "none").exists()  # refused before anything is written
+    vae_run = tmp_path / "vae_run"
+    train_stage("vae", dataset, vae_run, preset="tiny", steps=2, progress=False)
+    losses = {}
+    for dtype in ("float32", "bfloat16"):  # the tiny preset's config says float32
+        run = tmp_path / dtype
+        (run / "vae").mkdir(parents=True)
+        for f in (vae_run / "vae").glob("model.*"):
+            (run / "vae" / f.name).write_bytes(f.read_bytes())
+        out = train_stage("teacher", dataset, run, preset="tiny", steps=2, progress=False, dtype=dtype)
+        losses[dtype] = out["losses"]
+        meta = json.loads((run / "teacher" / "model.json").read_text())
+        assert meta["model_config"]["dit"]["autocast_bf16"] is False  # the preset's: dtype is a run-time choice
+    assert losses["float32"] != losses["bfloat16"]  # bf16 autocast reached the teacher's forwards

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import time
 from pathlib import Path
 
 
@@ -33,6 +34,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         # H.264 wants even sizes: pad one black row/column rather than let ffmpeg rescale.
         return np.pad(img, ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0)))
 
+    started = time.perf_counter()
     with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
         writer.append_data(frame())
         while True:
@@ -41,9 +43,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             steps += 1
             if terminated or truncated or (args.steps and steps >= args.steps):
                 break
+    elapsed = time.perf_counter() - started
+    wm = getattr(env.unwrapped.backend, "wm", None)  # the world-model backend's loaded bundle
     env.close()
     metrics = info["episode_metrics"]
-    print(f"wrote {out} ({steps} steps, scenario {args.scenario}, backend {args.backend}, seed {args.seed})")
+    precision = f", DiT dtype {wm.dtype}" if wm is not None else ""
+    print(
+        f"wrote {out} ({steps} steps in {elapsed:.1f} s with rendering and encoding, scenario {args.scenario}, "
+        f"backend {args.backend}{precision}, seed {args.seed})"
+    )
     print(
         "episode score: "
         + ", ".join(f"{k}={metrics[k]:.3f}" for k in ("pdms", "progress", "collision", "off_road", "comfort", "return"))
@@ -105,9 +113,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     if args.teacher:
+        from world_model.model.precision import dit_precision
         from world_model.train.stages import load_teacher
 
-        rows["teacher"] = teacher_row(wm, load_teacher(args.teacher), seed=args.seed)
+        with dit_precision(wm.cfg.dit.autocast_bf16):  # the teacher in the student's precision
+            teacher_model = load_teacher(args.teacher)
+        rows["teacher"] = teacher_row(wm, teacher_model, seed=args.seed)
         weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
         teacher = sha256_file(weights)[:16] if weights.exists() else args.teacher
         ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed},dtype={wm.dtype}"
@@ -187,6 +198,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             case_data=args.case_data,
             base=args.base,
             student=student_config(args),
+            dtype=args.dtype,
         )
         summary.pop("losses", None)
         print(json.dumps(summary, indent=1, default=float))

@@ -1,4 +1,5 @@
-"""The student's command-line flags, shared by ``m4world train`` and ``python -m world_model.train``.
+"""The train CLIs' shared flags (the student's, and the DiTs' precision), used by ``m4world train``
+and ``python -m world_model.train``.
 
 Import-light (no torch) so that building the ``m4world`` parser stays fast.
 """
@@ -24,6 +25,13 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
     )
     p.add_argument(
         "--context-frames", type=int, default=None, help="the student's rolling window (default: the preset's)"
+    )
+    p.add_argument(
+        "--dtype",
+        choices=("auto", "float32", "bfloat16"),
+        default="auto",
+        help="the DiTs' autocast while training (default auto: bf16 when the preset asks for it and this CPU "
+        "multiplies bf16 natively, else float32; checkpoints do not record it)",
     )
     if long_frames:
         p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")

@@ -38,6 +38,7 @@ from world_model.model.attention import (
 )
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
+from world_model.model.precision import built_autocast_bf16
 from world_model.model.rope import rope_tables, rotation_tables
 from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
 
@@ -227,6 +228,8 @@ class MultiViewDiT(nn.Module):
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
         self.cfg = cfg
+        # bf16 autocast: the config's, unless built inside precision.dit_precision (training's dtype).
+        self.autocast_bf16 = built_autocast_bf16(cfg.dit.autocast_bf16)
         d, p, c = cfg.dit.dim, cfg.dit.patch, cfg.vae.latent_channels
         self.tokenizer = ControlTokenizer(cfg)
         self.patch_in = nn.Linear((c + cfg.dit.in_channels_extra) * p * p, d)
@@ -247,7 +250,7 @@ class MultiViewDiT(nn.Module):
             nn.init.zeros_(lin.bias)
 
     def _autocast(self, device_type: str) -> torch.autocast:
-        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16)
+        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.autocast_bf16)
 
     def compile_blocks(self, freeze: bool = False) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,

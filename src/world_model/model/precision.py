@@ -5,10 +5,15 @@ faster where the hardware multiplies it natively: CUDA GPUs that support it, and
 AVX512-BF16 or AMX tiles. Elsewhere (AVX2 laptops, AVX512 CPUs without the BF16 extension)
 PyTorch emulates bf16 matrix products and they run several times *slower* than float32
 (``benchmarks/bench_model.py`` measures both peaks). ``dtype="auto"`` therefore picks bf16 only
-where it is fast.
+where it is fast. Training stages resolve the same choice (``train_stage(dtype="auto")``) through
+:func:`dit_precision`.
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 
 import torch
 
@@ -39,3 +44,27 @@ def resolve_bf16(dtype: str, trained_bf16: bool, device: torch.device | str) -> 
     if dtype == "auto":
         return trained_bf16 and bf16_is_fast(device)
     return dtype == "bfloat16"
+
+
+# A DiT built inside :func:`dit_precision` takes its autocast from there instead of its config.
+# Scoped to model construction (a context variable, restored on exit): a run-time choice that never
+# changes a checkpoint's config, so runs resumed on another machine and their exports stay the same.
+_built_bf16: ContextVar[bool | None] = ContextVar("dit_autocast_bf16", default=None)
+
+
+@contextmanager
+def dit_precision(bf16: bool | None) -> Iterator[None]:
+    """DiTs constructed inside run bf16 autocast iff ``bf16`` (None: as their ``dit.autocast_bf16``
+    says). Training wraps each stage in it (``train_stage(dtype=...)``): its models hold float32
+    weights, so either choice is valid for them."""
+    token = _built_bf16.set(bf16)
+    try:
+        yield
+    finally:
+        _built_bf16.reset(token)
+
+
+def built_autocast_bf16(configured: bool) -> bool:
+    """The bf16 autocast of a DiT constructed now whose config says ``configured``."""
+    override = _built_bf16.get()
+    return configured if override is None else override

@@ -57,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
             student=student_config(a),
+            dtype=a.dtype,
         )
     except (FileNotFoundError, ValueError, TrainingDivergedError) as e:
         print(f"error: {e}", file=sys.stderr)

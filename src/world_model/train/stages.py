@@ -26,6 +26,7 @@ from world_model.model.config import ModelConfig, get_preset
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.precision import DTYPES, dit_precision, resolve_bf16
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
 from world_model.student.config import StudentConfig
@@ -256,6 +257,7 @@ def train_stage(
     case_clips: list[str] | None = None,
     base: str | Path | None = None,
     student: StudentConfig | None = None,
+    dtype: str = "auto",
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
@@ -264,9 +266,14 @@ def train_stage(
     ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
     dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
     (default ``run_dir/teacher/model``).
+    ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and this
+    CPU multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
+    or "bfloat16". A run-time choice: checkpoints and their configs do not record it.
     """
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
     if stage == "lora":
         from world_model.train.lora_stage import LORA_STEPS, lora_stage_dir
 
@@ -277,6 +284,7 @@ def train_stage(
     data_dir = Path(data_dir)
     cfg = _stage_config(stage_dir, stage, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
+    precision = dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, "cpu"))
     if stage in ("vae", "teacher"):
         run = _vae_stage if stage == "vae" else _teacher_stage
     elif stage == "reference":
@@ -290,6 +298,9 @@ def train_stage(
     else:
         from world_model.train.student_stages import run_student_stage  # it imports this module
 
-        out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student)
+        with precision:
+            out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student)
         return {"stage": stage, "stage_dir": str(stage_dir), **out}
-    return {"stage": stage, "stage_dir": str(stage_dir), **run(data_dir, stage_dir, cfg, tcfg, progress)}
+    with precision:
+        out = run(data_dir, stage_dir, cfg, tcfg, progress)
+    return {"stage": stage, "stage_dir": str(stage_dir), **out}
