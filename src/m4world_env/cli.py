@@ -232,6 +232,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         # compiled rows only where inductor can build its kernels (a C++ compiler)
         "model": ["bench_model.py", "--dtypes", "bf16", "fp32", *(["--compile"] if shutil.which("c++") else [])],
         "student": ["bench_student.py"],
+        "precision": ["precision_parity.py"],  # what dtype auto's fp32/bf16 choice changes in an episode
         "judge": ["bench_judge.py", "--evalset", args.evalset],
         "first_frame": ["bench_first_frame.py", "--evalset", args.evalset, "--cfg", "1", "3", "7"],
     }
@@ -357,7 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
     b.add_argument("--out", default="out/bench")
-    benchmarks = ("render", "traffic", "env", "model", "student", "judge", "first_frame")
+    benchmarks = ("render", "traffic", "env", "model", "student", "precision", "judge", "first_frame")
     b.add_argument("--only", nargs="+", choices=benchmarks)
     b.add_argument("--evalset", default="data/evalset", help="evaluation set (judge, first_frame)")
     b.set_defaults(func=_cmd_bench)
