@@ -59,6 +59,10 @@ def test_vae_shapes_and_latent_normalization():
     out_cams, out_lidar = vae.decode_frames(lat)
     assert out_cams.shape == cams.shape and out_cams.dtype == np.uint8
     assert out_lidar.shape == lidar.shape and out_lidar.dtype == np.float32
+    # decode runs the decoder on a channels-last copy (faster on CPU): the values of the plain layout
+    z = lat.flatten(0, 1)
+    plain = vae.decoder(z * vae.latent_std[:, None, None] + vae.latent_mean[:, None, None])
+    assert torch.allclose(vae.decode(z), plain, atol=1e-5)
 
 
 def test_bf16_switch_decodes_cameras_in_bf16_and_lidar_in_fp32():

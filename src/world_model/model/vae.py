@@ -130,7 +130,9 @@ class SensorVAE(nn.Module):
     def decode(self, latents: torch.Tensor) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1]."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
-        return self.decoder(z)
+        # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
+        # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
+        return self.decoder(z.contiguous(memory_format=torch.channels_last))
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
