@@ -68,6 +68,9 @@ def test_auto_loads_bf16_weights_only_on_native_bf16(monkeypatch, bf16_trained_b
         assert next(dit.parameters()).dtype == want
         assert dit.cfg.dit.autocast_bf16 is native
     assert wm.cfg.dit.autocast_bf16 is native  # the camera decoder follows the DiTs
+    with precision.dit_precision(not native):  # a training context around the load changes nothing
+        inside = load_world_model(bf16_trained_bundle, dtype="auto")
+    assert inside.student.autocast_bf16 is native and next(inside.student.parameters()).dtype == want
 
 
 def _forward(model: MultiViewDiT) -> torch.Tensor:

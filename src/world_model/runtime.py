@@ -25,7 +25,7 @@ from world_model.model.conditions import ConditionArrays, Conditions, build_cond
 from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.precision import DTYPES, resolve_bf16
+from world_model.model.precision import DTYPES, dit_precision, resolve_bf16
 from world_model.model.reference import ReferenceGenerator, reference_model_config
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
@@ -102,11 +102,11 @@ def load_world_model(
         scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])
-        dit = MultiViewDiT(cfg)
+        with dit_precision(bf16):  # the weights' dtype below, whatever precision context encloses the load
+            dit = MultiViewDiT(cfg)
+            ref = MultiViewDiT(ref_cfg) if files.has("reference") else None
         dit.load_state_dict(files.tensors["student"])
-        ref = None
-        if files.has("reference"):
-            ref = MultiViewDiT(ref_cfg)
+        if ref is not None:
             ref.load_state_dict(files.tensors["reference"])
     except (KeyError, RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {files.path} does not match this version of the model: {e}") from e
