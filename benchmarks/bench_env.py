@@ -142,7 +142,7 @@ def bench_backend(
     venv.reset(seed=seed)
     rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
     if rollouts is not None:  # what dtype "auto" chose on this machine
-        result["dit_dtype"] = str(next(rollouts.wm.student.parameters()).dtype).removeprefix("torch.")
+        result["dit_dtype"] = rollouts.wm.dtype
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
     vec_times, model_times = [], []
     for i in range(warmup + max(steps // num_envs, 10)):

@@ -28,7 +28,7 @@ import torch
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
-from world_model.model.precision import resolve_bf16
+from world_model.precision import resolve_bf16
 
 ENVS = 8  # batched envs of one vector-env step
 DENOISE_FORWARDS = 4  # the 4-step causal student

@@ -45,7 +45,7 @@ from bench_model import synthetic_conditions  # noqa: E402
 
 from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
 from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
-from world_model.model.precision import DTYPES, resolve_bf16  # noqa: E402
+from world_model.precision import DTYPES, resolve_bf16  # noqa: E402
 from world_model.student import StreamingEngine, StudentConfig  # noqa: E402
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)

@@ -22,7 +22,7 @@ import numpy as np
 import m4world_env  # noqa: F401  (registers M4World-v0)
 from m4world_env.evaluate import make_policy
 
-DTYPES = ("float32", "bfloat16")
+COMPARED = ("float32", "bfloat16")  # the two precisions "auto" chooses between
 
 
 def episode(dtype: str, scenario: str, seed: int, steps: int, checkpoint: str | None) -> list[dict]:
@@ -49,7 +49,7 @@ def main() -> None:
     p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     p.add_argument("--out", type=Path, required=True)
     a = p.parse_args()
-    runs = {d: episode(d, a.scenario, a.seed, a.steps, a.checkpoint) for d in DTYPES}
+    runs = {d: episode(d, a.scenario, a.seed, a.steps, a.checkpoint) for d in COMPARED}
     rows = []
     for step, (x, y) in enumerate(zip(*runs.values(), strict=False)):
         rows.append(

@@ -8,6 +8,8 @@ import sys
 import time
 from pathlib import Path
 
+from world_model.precision import DTYPES
+
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import cv2
@@ -113,7 +115,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     if args.teacher:
-        from world_model.model.precision import dit_precision
+        from world_model.precision import dit_precision
         from world_model.train.stages import load_teacher
 
         with dit_precision(wm.cfg.dit.autocast_bf16):  # the teacher in the student's precision
@@ -316,7 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument(
         "--dtype",
         default="auto",
-        choices=("auto", "float32", "bfloat16"),
+        choices=DTYPES,
         help="--report: the DiTs' precision, as the env's config model.dtype (auto: bf16 only where the CPU "
         "multiplies it natively); part of each cached row's key",
     )

@@ -10,6 +10,8 @@ import difflib
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
+from world_model.precision import DTYPES
+
 ACTION_TYPES = ("continuous", "discrete_meta")
 OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
 BACKENDS = ("procedural", "world_model")
@@ -55,9 +57,6 @@ class ModelBackendConfig:
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
-
-
-DTYPES = ("auto", "float32", "bfloat16")  # world_model.model.precision.DTYPES (no torch import here)
 
 
 @dataclass

@@ -25,12 +25,12 @@ from world_model.model.conditions import ConditionArrays, Conditions, build_cond
 from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.precision import DTYPES, dit_precision, resolve_bf16
 from world_model.model.reference import ReferenceGenerator, reference_model_config
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
+from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.scene import SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim import ProceduralSimulator
@@ -85,10 +85,9 @@ def load_world_model(
     """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
     bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation). ``dtype`` of the
     DiTs: "auto" (bf16 when the checkpoint was trained with ``dit.autocast_bf16`` and ``device``
-    computes bf16 natively, else float32: :func:`world_model.model.precision.resolve_bf16`),
+    computes bf16 natively, else float32: :func:`world_model.precision.resolve_bf16`),
     "float32" or "bfloat16"."""
-    if dtype not in DTYPES:
-        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    check_dtype(dtype)
     files = load_bundle_files(path)
     try:
         cfg = ModelConfig.from_dict(files.model_config)

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from world_model.precision import DTYPES
+
 if TYPE_CHECKING:
     from world_model.student.config import StudentConfig
 
@@ -28,7 +30,7 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
     )
     p.add_argument(
         "--dtype",
-        choices=("auto", "float32", "bfloat16"),
+        choices=DTYPES,
         default="auto",
         help="the DiTs' autocast while training (default auto: bf16 when the preset asks for it and this CPU "
         "multiplies bf16 natively, else float32; checkpoints do not record it)",

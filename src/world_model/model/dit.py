@@ -38,9 +38,9 @@ from world_model.model.attention import (
 )
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
-from world_model.model.precision import built_autocast_bf16
 from world_model.model.rope import rope_tables, rotation_tables
 from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
+from world_model.precision import built_autocast_bf16
 
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
 

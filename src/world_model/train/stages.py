@@ -26,9 +26,9 @@ from world_model.model.config import ModelConfig, get_preset
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.precision import DTYPES, dit_precision, resolve_bf16
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
+from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.student.config import StudentConfig
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import (
@@ -272,8 +272,7 @@ def train_stage(
     """
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
-    if dtype not in DTYPES:
-        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    check_dtype(dtype)
     if stage == "lora":
         from world_model.train.lora_stage import LORA_STEPS, lora_stage_dir
 

@@ -14,20 +14,34 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
+# Import-light (torch only inside the hardware probes): the env config and the CLI parsers use
+# DTYPES and check_dtype without loading torch.
 DTYPES = ("auto", "float32", "bfloat16")
+
+
+def check_dtype(dtype: str) -> None:
+    """Refuse a dtype option that is not one of :data:`DTYPES`, naming it."""
+    if dtype not in DTYPES:
+        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
 
 
 def cpu_has_native_bf16() -> bool:
     """Whether this CPU multiplies bf16 natively (AVX512-BF16 or AMX), as PyTorch detects it."""
+    import torch
+
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
 
 def bf16_is_fast(device: torch.device | str) -> bool:
     """Whether bf16 matrix products on ``device`` run at native speed (faster than float32)."""
+    import torch
+
     kind = torch.device(device).type
     if kind == "cpu":
         return cpu_has_native_bf16()
@@ -39,8 +53,7 @@ def bf16_is_fast(device: torch.device | str) -> bool:
 def resolve_bf16(dtype: str, trained_bf16: bool, device: torch.device | str) -> bool:
     """Run the DiTs in bf16? ``dtype``: "auto" (bf16 when the checkpoint was trained with bf16
     autocast *and* the device computes bf16 natively), "float32" or "bfloat16" (forced)."""
-    if dtype not in DTYPES:
-        raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
+    check_dtype(dtype)
     if dtype == "auto":
         return trained_bf16 and bf16_is_fast(device)
     return dtype == "bfloat16"
