@@ -40,6 +40,7 @@ from bench_traffic import bench_highway_env  # noqa: E402
 
 import m4world_env  # noqa: E402, F401
 from m4world_env.policies import ConstantSpeedLaneKeeping  # noqa: E402
+from world_model.precision import DTYPES  # noqa: E402
 
 CONFIG = {"observation_keys": ["cameras", "lidar"]}
 
@@ -68,20 +69,30 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
 
 
 def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False) -> dict:
-    """gym.make keywords for a backend spec: ``procedural``, ``world_model`` or ``world_model:DTYPE``
-    (the model's ``dtype`` option, e.g. ``world_model:bfloat16`` beside ``world_model``'s auto)."""
-    name, _, dtype = backend.partition(":")
+    """gym.make keywords for a backend spec: ``procedural``, or ``world_model`` with optional
+    ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
+    ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
+    world-model backend) and/or ``default-heap`` (``retain_heap`` off: glibc's allocator as is)."""
+    name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
-    if name == "world_model":
-        model = {"compile": True} if compile_model else {}
-        if dtype:
-            model["dtype"] = dtype
-        if checkpoint:
-            kw["checkpoint"] = checkpoint
-        if model:
-            kw["config"] = {**CONFIG, "model": model}
-    elif dtype:
-        raise SystemExit(f"only the world_model backend takes a dtype, got {backend!r}")
+    if name != "world_model":
+        if qualifiers:
+            raise SystemExit(f"only the world_model backend takes qualifiers, got {backend!r}")
+        return kw
+    model = {"compile": True} if compile_model else {}
+    for q in qualifiers:
+        if q in DTYPES:
+            model["dtype"] = q
+        elif q == "compile":
+            model["compile"] = True
+        elif q == "default-heap":
+            model["retain_heap"] = False
+        else:
+            raise SystemExit(f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile or default-heap")
+    if checkpoint:
+        kw["checkpoint"] = checkpoint
+    if model:
+        kw["config"] = {**CONFIG, "model": model}
     return kw
 
 
@@ -199,7 +210,9 @@ def main() -> None:
         "--backend",
         nargs="+",
         default=["procedural"],
-        help="procedural, world_model, or world_model:DTYPE (float32, bfloat16; default auto)",
+        help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
+        "compile (config.model.compile) and/or default-heap (config.model.retain_heap off), "
+        "e.g. world_model:compile or world_model:float32:default-heap",
     )
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")
@@ -208,7 +221,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--compile", action="store_true", help="world model: config model.compile (torch.compile)")
-    ap.add_argument("--warmup", type=int, default=None, help="untimed steps first (default 2; 12 with --compile)")
+    ap.add_argument(
+        "--warmup", type=int, default=None, help="untimed steps first (default 2; 12 for a compiled backend)"
+    )
     ap.add_argument(
         "--no-isolate",
         dest="isolate",
@@ -237,7 +252,12 @@ def main() -> None:
     if args.rounds < 1:
         raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
     steps = max(args.steps // args.rounds, 10)
-    warmup = args.warmup if args.warmup is not None else (12 if args.compile else 2)
+
+    def warmup_of(backend: str) -> int:
+        if args.warmup is not None:
+            return args.warmup
+        return 12 if args.compile or "compile" in backend.split(":")[1:] else 2
+
     rounds: list[dict] = []
     for _ in range(args.rounds):
         # highway-env and every backend measured back to back: a ratio compares numbers taken
@@ -246,10 +266,17 @@ def main() -> None:
         rnd = {"highway_env": hw, "backends": {}}
         for backend in args.backend:
             if args.isolate:
-                r = bench_backend_isolated(backend, args, steps, warmup)
+                r = bench_backend_isolated(backend, args, steps, warmup_of(backend))
             else:
                 r = bench_backend(
-                    backend, args.scenario, steps, args.num_envs, args.seed, args.checkpoint, args.compile, warmup
+                    backend,
+                    args.scenario,
+                    steps,
+                    args.num_envs,
+                    args.seed,
+                    args.checkpoint,
+                    args.compile,
+                    warmup_of(backend),
                 )
             r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / hw["highway-fast-v0"]["steps_per_s"]
             r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / hw["highway-v0"]["steps_per_s"]

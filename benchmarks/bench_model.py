@@ -5,26 +5,36 @@ attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cac
 of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does. This script
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
 when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
-``--compile`` adds rows with the blocks compiled (env ``config.model.compile``). It measures the
+``--compile`` adds rows with the blocks compiled (env ``config.model.compile``), without and with
+inductor freezing (``frozen``: ``compile_blocks(freeze=True)``; the env compiles without). ``--heaps``: the
+process's allocator as the env sets it on CPU (``retain``: world_model.heap.retain_freed_memory)
+and/or glibc's ``default``; with both, each runs in its own fresh process, alternating over
+``--rounds`` rounds, and the rows give the medians (each row also reports the minor page faults
+of one forward). It measures the
 machine's matmul peak in the same run (a 4096^2 matmul, fp32 and bf16) and reports medians; each
 row's fraction of peak is against the peak of its own dtype. ``--models``: the causal student the
 env runs (``dit.student_depth`` blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
     python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
-        [--dtypes auto fp32 bf16] [--compile] [--repeats 7] [--out results.json]
+        [--dtypes auto fp32 bf16] [--compile] [--heaps retain default] [--rounds 3] [--repeats 7]
+        [--out results.json]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import resource
 import statistics
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import replace
 
 import torch
 
+from world_model.heap import retain_freed_memory
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
@@ -70,7 +80,13 @@ def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
 
 @torch.no_grad()
 def bench_config(
-    cfg: ModelConfig, repeats: int, peaks: dict[str, float], dtype_name: str, compile_: bool, which: str = "student"
+    cfg: ModelConfig,
+    repeats: int,
+    peaks: dict[str, float],
+    dtype_name: str,
+    compile_: bool,
+    which: str = "student",
+    freeze: bool = False,
 ) -> dict:
     torch.manual_seed(0)
     cfg = cfg.for_student() if which == "student" else cfg
@@ -78,9 +94,9 @@ def bench_config(
         dtype_name = "bf16" if resolve_bf16("auto", cfg.dit.autocast_bf16, "cpu") else "fp32"
     dtype = DTYPES[dtype_name]
     cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype_name == "bf16"))  # as runtime.load_world_model
-    model = MultiViewDiT(cfg).eval().to(dtype)
+    model = MultiViewDiT(cfg).eval().requires_grad_(False).to(dtype)  # as runtime.load_world_model
     if compile_:
-        model.compile_blocks()
+        model.compile_blocks(freeze=freeze)
     vae = SensorVAE(cfg).eval().to(dtype)
     chunk, ctx = cfg.clip.chunk_frames, cfg.clip.context_frames
     n, v = cfg.tokens_per_frame, cfg.sensors.num_views
@@ -96,6 +112,11 @@ def bench_config(
         return model(x, t, tokens, causal=True, frame_offset=ctx, kv_context=kv)
 
     fwd = median_time(forward, repeats, warmup=3 if compile_ else 2)
+    faults = []
+    for _ in range(3):
+        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        forward()
+        faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
     z = torch.randn(ENVS * v, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)  # the newest frame
     dec = median_time(lambda: vae.decode(z), repeats)
     flops = dit_forward_flops(cfg, ENVS, chunk, ctx, cross_kv=False)  # tokens carry the cross K/V
@@ -106,12 +127,14 @@ def bench_config(
         "depth": cfg.dit.depth,
         "dtype": dtype_name,
         "compiled": compile_,
+        "frozen": compile_ and freeze,
         "dit_params_m": sum(p.numel() for p in model.parameters()) / 1e6,
         "vae_params_m": sum(p.numel() for p in vae.parameters()) / 1e6,
         "tokens_per_forward": ENVS * v * chunk * n,
         "forward_gflop": flops["total"] / 1e9,
         "forward_linear_gflop": flops["linear"] / 1e9,
         "forward_s": fwd,
+        "page_faults_per_forward": statistics.median(faults),
         "achieved_gflops": achieved,
         "fraction_of_peak": achieved / peaks[dtype_name],
         "vae_decode_s": dec,
@@ -128,41 +151,112 @@ def main() -> None:
     p.add_argument(
         "--compile", action="store_true", help="also rows with the DiT blocks torch.compile'd (needs a C++ compiler)"
     )
+    p.add_argument(
+        "--heaps",
+        nargs="+",
+        default=["retain"],
+        choices=HEAPS,
+        help="allocator: as the env sets it (retain), glibc's default",
+    )
+    p.add_argument("--rounds", type=int, default=3, help="with several --heaps: alternating fresh-process rounds")
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--out", default=None, help="write the results as JSON here")
     a = p.parse_args()
+    result = compare_heaps(a) if len(a.heaps) > 1 else run_rows(a, a.heaps[0])
+    print_rows(result)
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(result, f, indent=1)
+
+
+HEAPS = ("retain", "default")
+NUMBERS = (
+    "forward_s",
+    "achieved_gflops",
+    "fraction_of_peak",
+    "page_faults_per_forward",
+    "vae_decode_s",
+    "vae_decode_ms_per_frame",
+    "env_step_estimate_s",
+)
+
+
+def run_rows(a: argparse.Namespace, heap: str) -> dict:
+    """Every requested row in this process, with the allocator set up as ``heap``."""
+    if heap == "retain":
+        retain_freed_memory()
     peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
     rows = [
-        bench_config(get_preset(name), a.repeats, peaks, dtype, compiled, which)
+        {**bench_config(get_preset(name), a.repeats, peaks, dtype, compiled, which, frozen), "heap": heap}
         for name in a.presets
         for which in a.models
         for dtype in a.dtypes
-        for compiled in ((False, True) if a.compile else (False,))
+        for compiled, frozen in (((False, False), (True, False), (True, True)) if a.compile else ((False, False),))
     ]
+    return {"envs": ENVS, "threads": torch.get_num_threads(), "peak_gflops": peaks, "presets": rows}
+
+
+def compare_heaps(a: argparse.Namespace) -> dict:
+    """Each heap setting in fresh processes (the allocator setting is process-wide and lasting),
+    alternating over ``a.rounds`` rounds; rows hold the per-round medians, ``speedup_vs_default``
+    the median over rounds of the ratio of forward times within a round."""
+    rounds = []
+    for _ in range(a.rounds):
+        one = {}
+        for heap in a.heaps:
+            cmd = [sys.executable, __file__, "--presets", *a.presets, "--models", *a.models, "--dtypes", *a.dtypes]
+            cmd += ["--heaps", heap, "--repeats", str(a.repeats), "--out", "/dev/stdout"]
+            cmd += ["--compile"] if a.compile else []
+            out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+            one[heap] = json.loads(out[out.index("{") :])
+        rounds.append(one)
+    rows = []
+    for heap in a.heaps:
+        for i, row in enumerate(rounds[0][heap]["presets"]):
+            merged = dict(row)
+            for key in NUMBERS:
+                merged[key] = statistics.median(r[heap]["presets"][i][key] for r in rounds)
+            if "default" in a.heaps:
+                merged["speedup_vs_default"] = statistics.median(
+                    r["default"]["presets"][i]["forward_s"] / r[heap]["presets"][i]["forward_s"] for r in rounds
+                )
+            rows.append(merged)
+    peaks = {k: statistics.median(r[h]["peak_gflops"][k] for r in rounds for h in a.heaps) for k in DTYPES}
+    return {
+        "envs": ENVS,
+        "threads": rounds[0][a.heaps[0]]["threads"],
+        "peak_gflops": peaks,
+        "presets": rows,
+        "per_round": rounds,
+    }
+
+
+def print_rows(result: dict) -> None:
+    peaks = result["peak_gflops"]
     print(
-        f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s "
-        f"({torch.get_num_threads()} threads)"
+        f"matmul peak: fp32 {peaks['fp32']:.0f} GFLOP/s, bf16 {peaks['bf16']:.0f} GFLOP/s ({result['threads']} threads)"
     )
+    rows = result["presets"]
     cols = [
         "preset",
         "model",
         "depth",
         "dtype",
         "compiled",
+        "frozen",
+        "heap",
         "dit_params_m",
         "forward_gflop",
         "forward_s",
         "achieved_gflops",
         "fraction_of_peak",
+        "page_faults_per_forward",
         "vae_decode_ms_per_frame",
         "env_step_estimate_s",
-    ]
+    ] + (["speedup_vs_default"] if "speedup_vs_default" in rows[0] else [])
     print(" | ".join(cols))
     for r in rows:
         print(" | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols))
-    if a.out:
-        with open(a.out, "w") as f:
-            json.dump({"envs": ENVS, "peak_gflops": peaks, "presets": rows}, f, indent=1)
 
 
 if __name__ == "__main__":

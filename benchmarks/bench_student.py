@@ -23,7 +23,8 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
 ``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
-``--compile`` times the student compiled (the teacher stays eager).
+``--compile`` times the student compiled (the teacher stays eager). The process keeps freed memory in its heap as the
+env's backend does on CPU (world_model.heap; ``--default-heap``: glibc's allocator as is).
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_model import synthetic_conditions  # noqa: E402
 
+from world_model.heap import retain_freed_memory  # noqa: E402
 from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
 from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
 from world_model.precision import DTYPES, resolve_bf16  # noqa: E402
@@ -228,9 +230,12 @@ def main() -> None:
         help="the DiTs' precision, as the env's config={'model': {'dtype': ...}} (auto: bf16 only "
         "where this CPU multiplies it natively)",
     )
+    p.add_argument("--default-heap", action="store_true", help="leave glibc's allocator as it is")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])
     p.add_argument("--out", required=True)
     a = p.parse_args()
+    if not a.default_heap:
+        retain_freed_memory()
     if a.compile and "compiled_vs_eager" in a.sections:
         p.error("compiled_vs_eager compiles its own copies: leave out --compile")
     if a.threads:
@@ -245,6 +250,7 @@ def main() -> None:
         "preset": a.preset,
         "threads": torch.get_num_threads(),
         "compiled": a.compile,
+        "heap": "default" if a.default_heap else "retain",
         "dit_dtype": "bfloat16" if bf16 else "float32",
         "model_config": {
             "clip": dataclasses.asdict(cfg.clip),

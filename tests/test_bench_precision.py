@@ -32,6 +32,14 @@ def test_bench_env_backend_spec_names_the_world_models_dtype():
         kwargs("procedural:float32", None)
 
 
+def test_bench_env_backend_spec_qualifiers_combine():
+    kwargs = _load("bench_env")._make_kwargs
+    model = kwargs("world_model:float32:compile:default-heap", None)["config"]["model"]
+    assert model == {"dtype": "float32", "compile": True, "retain_heap": False}
+    with pytest.raises(SystemExit, match="unknown qualifier 'fast'"):
+        kwargs("world_model:fast", None)
+
+
 def test_precision_parity_runs_one_episode_per_dtype(tiny_bundle, tmp_path):
     out = tmp_path / "parity.json"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "precision_parity.py"), "--checkpoint", str(tiny_bundle)]

@@ -141,3 +141,15 @@ def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
         obs, *_ = env.step(env.action_space.sample())
         assert np.isfinite(obs["lidar"]).all()
         env.close()
+
+
+@pytest.mark.parametrize("retain", [True, False])
+def test_world_model_backend_retains_the_heap_unless_told_not_to(tiny_bundle, monkeypatch, retain):
+    import world_model.heap
+
+    calls = []
+    monkeypatch.setattr(world_model.heap, "retain_freed_memory", lambda *a: calls.append(a) or True)
+    M4WorldEnv(
+        "merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": {"retain_heap": retain}}
+    )
+    assert len(calls) == int(retain)

@@ -211,3 +211,21 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
         StudentConfig(dmd_guidance_scale=0.0)
     with pytest.raises(ValueError, match="dmd_norm"):
         StudentConfig(dmd_norm="batch")
+
+
+def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypatch):
+    from m4world_env.cli import main as m4world
+    from world_model import student_flags
+    from world_model.train import __main__ as train_cli
+    from world_model.train import stages
+
+    calls = []
+    monkeypatch.setattr(student_flags, "retain_freed_memory", lambda: calls.append(1))
+    monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: {})
+    monkeypatch.setattr(train_cli, "train_stage", lambda *a, **kw: {})
+    args = ["--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
+    for main in (lambda a: m4world(["train", *a]), train_cli.main):
+        calls.clear()
+        assert main(args) == 0 and calls == [1]
+        calls.clear()
+        assert main([*args, "--default-heap"]) == 0 and calls == []

@@ -100,10 +100,13 @@ class WorldModelBackend:
     """
 
     def __init__(self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig) -> None:
+        from world_model.heap import retain_freed_memory
         from world_model.runtime import RolloutBatch, load_world_model
 
         mc = config.model
         torch.set_num_threads(max(1, torch.get_num_threads()))
+        if mc.retain_heap and torch.device(mc.device).type == "cpu":
+            retain_freed_memory()
         self.wm = load_world_model(checkpoint, device=mc.device, dtype=mc.dtype)
         n = mc.denoising_steps
         if n < 1:

@@ -87,6 +87,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.data import iter_clips
     from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
     from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
+    from world_model.heap import retain_freed_memory
     from world_model.runtime import load_world_model
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -98,6 +99,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
+    retain_freed_memory()  # as the env's backend does on CPU (world_model.heap)
     wm = load_world_model(args.checkpoint, dtype=args.dtype)
 
     def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
@@ -175,11 +177,12 @@ def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
     from world_model.model.config import get_preset, with_student_settings
-    from world_model.student_flags import student_config
+    from world_model.student_flags import apply_heap_flag, student_config
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
+    apply_heap_flag(args)
     preset = get_preset(args.preset, geometry_only=args.geometry_only)
     config = with_student_settings(preset, args.student_depth, args.context_frames)
     # Each stage resumes from its own last checkpoint, and a finished stage returns at once:

@@ -57,6 +57,10 @@ class ModelBackendConfig:
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
+    # On a CPU, keep freed memory in the process heap (world_model.heap.retain_freed_memory: glibc
+    # mallopt, process-wide): eager steps stop page-faulting their activations, ~1.3x faster
+    # forwards. False leaves the allocator as the host process set it.
+    retain_heap: bool = True
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""The train CLIs' shared flags (the student's, and the DiTs' precision), used by ``m4world train``
+"""The train CLIs' shared flags (the student's, the DiTs' precision, the allocator), used by ``m4world train``
 and ``python -m world_model.train``.
 
 Import-light (no torch) so that building the ``m4world`` parser stays fast.
@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from world_model.heap import retain_freed_memory
 from world_model.precision import DTYPES
 
 if TYPE_CHECKING:
@@ -34,6 +35,12 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         default="auto",
         help="the DiTs' autocast while training (default auto: bf16 when the preset asks for it and this CPU "
         "multiplies bf16 natively, else float32; checkpoints do not record it)",
+    )
+    p.add_argument(
+        "--default-heap",
+        action="store_true",
+        help="leave glibc's allocator as it is (default: keep freed memory in the heap, world_model.heap, "
+        "which spares eager CPU training most of its page faults)",
     )
     if long_frames:
         p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")
@@ -75,3 +82,9 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale", "dmd_norm")
     given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None
+
+
+def apply_heap_flag(args: argparse.Namespace) -> None:
+    """The process-wide allocator setting of ``--default-heap`` (training on CPU; see world_model.heap)."""
+    if not args.default_heap:
+        retain_freed_memory()

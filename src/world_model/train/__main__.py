@@ -16,7 +16,7 @@ import json
 import sys
 
 from world_model.model.config import PRESETS, get_preset, with_student_settings
-from world_model.student_flags import add_student_flags, student_config
+from world_model.student_flags import add_student_flags, apply_heap_flag, student_config
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -39,6 +39,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
     add_student_flags(p, long_frames=True)
     a = p.parse_args(argv)
+    apply_heap_flag(a)
     try:
         out = train_stage(
             a.stage,
