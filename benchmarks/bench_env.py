@@ -256,7 +256,8 @@ def main() -> None:
     def warmup_of(backend: str) -> int:
         if args.warmup is not None:
             return args.warmup
-        return 12 if args.compile or "compile" in backend.split(":")[1:] else 2
+        compiled = _make_kwargs(backend, None)["config"].get("model", {}).get("compile", False)
+        return 12 if args.compile or compiled else 2
 
     rounds: list[dict] = []
     for _ in range(args.rounds):

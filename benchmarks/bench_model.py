@@ -6,14 +6,14 @@ of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env d
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
 when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
 ``--compile`` adds rows with the blocks compiled (env ``config.model.compile``), without and with
-inductor freezing (``frozen``: ``compile_blocks(freeze=True)``; the env compiles without). ``--heaps``: the
-process's allocator as the env sets it on CPU (``retain``: world_model.heap.retain_freed_memory)
-and/or glibc's ``default``; with both, each runs in its own fresh process, alternating over
-``--rounds`` rounds, and the rows give the medians (each row also reports the minor page faults
-of one forward). It measures the
-machine's matmul peak in the same run (a 4096^2 matmul, fp32 and bf16) and reports medians; each
-row's fraction of peak is against the peak of its own dtype. ``--models``: the causal student the
-env runs (``dit.student_depth`` blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
+inductor freezing (``frozen``: ``compile_blocks(freeze=True)``; the env compiles without).
+``--heaps``: the process's allocator as the env sets it on CPU (``retain``:
+world_model.heap.retain_freed_memory) and/or glibc's ``default``; with both, each runs in its own
+fresh process, alternating over ``--rounds`` rounds, and the rows give the medians (each row also
+reports the minor page faults of one forward). It measures the machine's matmul peak in the same
+run (a 4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of peak is against
+the peak of its own dtype. ``--models``: the causal student the env runs (``dit.student_depth``
+blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
     python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
         [--dtypes auto fp32 bf16] [--compile] [--heaps retain default] [--rounds 3] [--repeats 7]
@@ -45,6 +45,17 @@ DENOISE_FORWARDS = 4  # the 4-step causal student
 CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+HEAPS = ("retain", "default")  # world_model.heap.retain_freed_memory, or glibc's allocator as is
+# Per-row numbers --heaps takes the median of over its rounds.
+NUMBERS = (
+    "forward_s",
+    "achieved_gflops",
+    "fraction_of_peak",
+    "page_faults_per_forward",
+    "vae_decode_s",
+    "vae_decode_ms_per_frame",
+    "env_step_estimate_s",
+)
 
 
 def median_time(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -169,18 +180,6 @@ def main() -> None:
             json.dump(result, f, indent=1)
 
 
-HEAPS = ("retain", "default")
-NUMBERS = (
-    "forward_s",
-    "achieved_gflops",
-    "fraction_of_peak",
-    "page_faults_per_forward",
-    "vae_decode_s",
-    "vae_decode_ms_per_frame",
-    "env_step_estimate_s",
-)
-
-
 def run_rows(a: argparse.Namespace, heap: str) -> dict:
     """Every requested row in this process, with the allocator set up as ``heap``."""
     if heap == "retain":
@@ -216,10 +215,9 @@ def compare_heaps(a: argparse.Namespace) -> dict:
             merged = dict(row)
             for key in NUMBERS:
                 merged[key] = statistics.median(r[heap]["presets"][i][key] for r in rounds)
-            if "default" in a.heaps:
-                merged["speedup_vs_default"] = statistics.median(
-                    r["default"]["presets"][i]["forward_s"] / r[heap]["presets"][i]["forward_s"] for r in rounds
-                )
+            merged["speedup_vs_default"] = statistics.median(  # --heaps has both choices here
+                r["default"]["presets"][i]["forward_s"] / r[heap]["presets"][i]["forward_s"] for r in rounds
+            )
             rows.append(merged)
     peaks = {k: statistics.median(r[h]["peak_gflops"][k] for r in rounds for h in a.heaps) for k in DTYPES}
     return {

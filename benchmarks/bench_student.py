@@ -23,8 +23,9 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
 ``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
-``--compile`` times the student compiled (the teacher stays eager). The process keeps freed memory in its heap as the
-env's backend does on CPU (world_model.heap; ``--default-heap``: glibc's allocator as is).
+``--compile`` times the student compiled (the teacher stays eager). The process keeps freed memory
+in its heap as the env's backend does on CPU (world_model.heap; ``--default-heap``: glibc's
+allocator as is).
 """
 
 from __future__ import annotations
