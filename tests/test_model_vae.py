@@ -8,7 +8,7 @@ import torch
 from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
-from world_model.model.vae import cameras_to_images, images_to_cameras, images_to_lidar, lidar_to_images
+from world_model.model.vae import cameras_to_images, images_to_cameras, images_to_lidar, lidar_to_images, weighted_l1
 
 
 def test_lidar_normalization_round_trip_and_no_return():
@@ -89,3 +89,20 @@ def test_generate_returns_observations():
     assert obs[0][0].cameras.shape == (cfg.sensors.num_cameras, cfg.sensors.height, cfg.sensors.width, 3)
     assert obs[0][0].lidar.shape == (cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth)
     assert np.array_equal(obs[1][1].cameras, again[1][1].cameras)  # deterministic given the generator
+
+
+def test_weighted_l1_is_plain_l1_under_unit_weights_and_follows_the_weights():
+    gen = torch.Generator().manual_seed(0)
+    rec, target = torch.randn(3, 3, 8, 10, generator=gen), torch.randn(3, 3, 8, 10, generator=gen)
+    ones = torch.ones(3, 1, 8, 10)
+    plain = torch.nn.functional.l1_loss(rec, target, reduction="none").mean(dim=(1, 2, 3))
+    torch.testing.assert_close(weighted_l1(rec, target, ones), plain)
+    # All the weight on one pixel: the loss is that pixel's mean error over channels.
+    w = torch.zeros(3, 1, 8, 10)
+    w[:, :, 2, 5] = 4.0
+    torch.testing.assert_close(weighted_l1(rec, target, w), (rec - target).abs()[:, :, 2, 5].mean(dim=1))
+    # Up-weighting a region moves the loss towards that region's error.
+    box = ones.clone()
+    box[:, :, :4] = 10.0
+    top, bottom = (rec - target).abs()[:, :, :4].mean(dim=(1, 2, 3)), (rec - target).abs()[:, :, 4:].mean(dim=(1, 2, 3))
+    torch.testing.assert_close(weighted_l1(rec, target, box), (10 * top + bottom) / 11)

@@ -42,6 +42,13 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="leave glibc's allocator as it is (default: keep freed memory in the heap, world_model.heap, "
         "which spares eager CPU training most of its page faults)",
     )
+    p.add_argument(
+        "--vae-object-weight",
+        type=float,
+        default=None,
+        help="vae stage: extra L1 weight on camera pixels inside objects' boxes (default: the preset's "
+        "vae.object_loss_weight; 0 = plain L1)",
+    )
     if long_frames:
         p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")
     p.add_argument(

@@ -57,11 +57,19 @@ class VaeConfig:
     decoder_base_channels: int = 12  # decoding 8 envs x 7 views x 2 frames per env step must stay cheap
     kl_weight: float = 1e-6  # small: the latent only needs to be smooth, not a prior match
     lidar_loss_weight: float = 1.0
+    # Extra L1 weight on camera pixels inside objects' projected boxes (training only). Plain L1 is
+    # dominated by sky and road: without it the VAE blurs 10-pixel objects away (MODEL_CARD, "VAE").
+    object_loss_weight: float = 9.0
     lidar_no_return_fraction: float = 0.97  # decoded ranges >= this * max_range read as "no return"
 
     @property
     def downsample(self) -> int:
         return 2 ** len(self.channel_mults)
+
+    def model_settings(self) -> VaeConfig:
+        """This config without the training-only ``object_loss_weight``: what decides whether two
+        VAEs are interchangeable (same architecture and latent layout)."""
+        return replace(self, object_loss_weight=0.0)
 
 
 @dataclass(frozen=True)
@@ -194,9 +202,15 @@ class ModelConfig:
 
     def teacher_settings(self) -> ModelConfig:
         """What a bidirectional teacher's weights depend on: this config with the student-only
-        settings (``dit.student_depth``, ``clip.context_frames``) neutralized. A teacher trained
-        before a student setting changed stays usable: compare teachers under this view."""
-        return replace(self, dit=replace(self.dit, student_depth=None), clip=replace(self.clip, context_frames=0))
+        settings (``dit.student_depth``, ``clip.context_frames``) and the VAE's training-only loss
+        weight neutralized. A teacher trained before a student setting changed stays usable:
+        compare teachers under this view."""
+        return replace(
+            self,
+            vae=self.vae.model_settings(),
+            dit=replace(self.dit, student_depth=None),
+            clip=replace(self.clip, context_frames=0),
+        )
 
     def shared_settings(self) -> ModelConfig:
         """What every model of one family (teacher, student, reference model) shares: the teacher
@@ -320,6 +334,16 @@ def with_student_settings(
             raise ValueError(f"context_frames must be >= 1, got {context_frames}")
         cfg = replace(cfg, clip=replace(cfg.clip, context_frames=context_frames))
     return cfg
+
+
+def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:
+    """``cfg`` with ``vae.object_loss_weight`` replaced where given (a training-only setting: the
+    ``vae`` stage's loss; later stages accept a VAE trained under any value)."""
+    if weight is None:
+        return cfg
+    if not weight >= 0.0:
+        raise ValueError(f"the VAE's object loss weight must be >= 0, got {weight}")
+    return replace(cfg, vae=replace(cfg.vae, object_loss_weight=float(weight)))
 
 
 def get_preset(name: str, geometry_only: bool = False) -> ModelConfig:

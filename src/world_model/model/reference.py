@@ -259,7 +259,7 @@ class ReferenceGenerator:
 
     def __init__(self, model: MultiViewDiT, vae: SensorVAE, cfg: ReferenceConfig | None = None) -> None:
         mc, vc = model.cfg, vae.cfg
-        if mc.vae != vc.vae or mc.sensors != vc.sensors:
+        if mc.vae.model_settings() != vc.vae.model_settings() or mc.sensors != vc.sensors:
             raise ValueError(f"model (preset {mc.name!r}) and VAE (preset {vc.name!r}) disagree on sensors/latents")
         extra = mc.dit.in_channels_extra
         if extra not in (0, reference_channels(mc)):

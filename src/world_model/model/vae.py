@@ -184,6 +184,13 @@ class SensorVAE(nn.Module):
         return self.cfg.sensors.height, self.cfg.sensors.width
 
 
+def weighted_l1(reconstruction: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Per-image weighted mean absolute error (N,) of (N, 3, H, W) images under (N, 1, H, W) pixel
+    weights; normalized by the weights' sum, so all-ones weights give the plain per-image L1."""
+    err = ((reconstruction - target).abs() * weights).sum(dim=(1, 2, 3))
+    return err / (weights.sum(dim=(1, 2, 3)) * reconstruction.shape[1])
+
+
 def kl_loss(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
     """KL(q || N(0, I)), averaged over elements."""
     return 0.5 * (mean.pow(2) + logvar.exp() - 1.0 - logvar).mean()

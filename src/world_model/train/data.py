@@ -6,6 +6,7 @@ import hashlib
 import os
 from dataclasses import replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -16,8 +17,12 @@ from world_model.data.clips import clip_fingerprint
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder
+from world_model.model.reference import ReferenceConfig, camera_box_pixels
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
+from world_model.scene import SceneFrame
+
+NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
 
 
 def load_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
@@ -38,6 +43,30 @@ def load_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
     return clips
 
 
+class FrameBatch(NamedTuple):
+    """A VAE training batch: images (B, 3, H, W) in [-1, 1], is_lidar (B,) bool and per-pixel
+    loss weights (B, 1, H, W): 1, plus ``VaeConfig.object_loss_weight`` inside objects' boxes."""
+
+    images: torch.Tensor
+    is_lidar: torch.Tensor
+    weights: torch.Tensor
+
+
+def object_pixel_weights(frame: SceneFrame, view: int, height: int, width: int, extra: float) -> np.ndarray:
+    """(H, W) float32 loss weights of camera ``view``: 1 everywhere, ``1 + extra`` inside the
+    projected 3-D box of every object in view (where small objects live, which plain L1 ignores)."""
+    out = np.ones((height, width), np.float32)
+    if extra == 0.0 or not frame.objects:
+        return out
+    corners = frame.object_corners_lidar()
+    for o in range(len(frame.objects)):
+        box = camera_box_pixels(frame, corners[o], view, NEAR_PLANE_M)
+        if box is not None:
+            x0, y0, x1, y1 = box
+            out[y0:y1, x0:x1] = 1.0 + extra
+    return out
+
+
 class FrameSampler:
     """Random (clip, frame, view) images for the VAE; view == num_cameras is the LiDAR map."""
 
@@ -50,13 +79,24 @@ class FrameSampler:
             return lidar_to_images(np.asarray(c.lidar[frame], dtype=np.float32), self.cfg)
         return cameras_to_images(np.asarray(c.cameras[frame, view]))
 
-    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """images (B, 3, H, W) in [-1, 1] and is_lidar (B,) bool."""
+    def weights(self, clip: int, frame: int, view: int) -> torch.Tensor:
+        """(1, H, W) loss weights of one image; the LiDAR map has no camera boxes: all ones."""
+        s = self.cfg.sensors
+        extra = 0.0 if view == s.lidar_view else self.cfg.vae.object_loss_weight
+        fr = self.clips[clip].frames[frame]
+        return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra))[None]
+
+    def sample(self, rng: np.random.Generator, batch: int) -> FrameBatch:
+        """``batch`` random images of random clips, frames and views (cameras or the LiDAR map)."""
         ci = rng.integers(len(self.clips), size=batch)
         fi = [int(rng.integers(self.clips[c].num_frames)) for c in ci]
         vi = rng.integers(self.cfg.sensors.num_views, size=batch)
-        images = torch.stack([self.image(int(c), f, int(v)) for c, f, v in zip(ci, fi, vi, strict=True)])
-        return images, torch.as_tensor(vi == self.cfg.sensors.lidar_view)
+        picks = list(zip(ci.tolist(), fi, vi.tolist(), strict=True))
+        return FrameBatch(
+            torch.stack([self.image(*p) for p in picks]),
+            torch.as_tensor(vi == self.cfg.sensors.lidar_view),
+            torch.stack([self.weights(*p) for p in picks]),
+        )
 
     def eval_frames(self, count: int) -> list[tuple[int, int]]:
         """Up to ``count`` (clip, frame) pairs spread over the dataset (deterministic)."""

@@ -47,7 +47,7 @@ def run_vae(run_dir: Path, cfg: ModelConfig, stage: str):  # noqa: ANN201 - Sens
     if not path.with_suffix(".safetensors").exists():
         raise FileNotFoundError(f"--stage {stage} needs a trained VAE at {path}.safetensors; run --stage vae first")
     vae = load_vae(path)
-    if vae.cfg.vae != cfg.vae or vae.cfg.sensors != cfg.sensors:
+    if vae.cfg.vae.model_settings() != cfg.vae.model_settings() or vae.cfg.sensors != cfg.sensors:
         raise ValueError(f"the VAE in {path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
     return vae, file_digest(path.with_suffix(".safetensors"))
 

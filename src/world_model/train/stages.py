@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from world_model.data.clips import write_json_atomic
 from world_model.model.config import ModelConfig, get_preset
@@ -27,7 +26,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
-from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss
+from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.student.config import StudentConfig
 from world_model.train.checkpoint import export_weights
@@ -177,10 +176,10 @@ def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainCon
     trainer = Trainer(stage_dir, vae, tcfg, {"stage": "vae", "model_config": cfg.to_dict()}, progress)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        images, is_lidar = sampler.sample(tr.rng, tcfg.batch_size)
+        images, is_lidar, weights = sampler.sample(tr.rng, tcfg.batch_size)
         mean, logvar = vae.posterior(images)
         z = mean + (0.5 * logvar).exp() * torch.randn(mean.shape, generator=tr.gen)
-        err = F.l1_loss(vae.decode_raw(z), images, reduction="none").mean(dim=(1, 2, 3))
+        err = weighted_l1(vae.decode_raw(z), images, weights)
         weight = torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)
         return (err * weight).mean() + cfg.vae.kl_weight * kl_loss(mean, logvar), len(images)
 
@@ -188,7 +187,7 @@ def _vae_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: TrainCon
     final = SensorVAE(cfg)
     final.load_state_dict(trainer.ema.model_state(vae))
     stats_rng = np.random.default_rng(tcfg.seed)
-    final.set_latent_stats(sampler.sample(stats_rng, STATS_FRAMES)[0])
+    final.set_latent_stats(sampler.sample(stats_rng, STATS_FRAMES).images)
     final.eval()
     metrics = vae_metrics(final, sampler)
     export_weights(
@@ -211,7 +210,7 @@ def _teacher_stage(data_dir: Path, stage_dir: Path, cfg: ModelConfig, tcfg: Trai
             "run --stage vae with the same --run first"
         )
     vae = load_vae(vae_path)
-    if vae.cfg.vae != cfg.vae or vae.cfg.sensors != cfg.sensors:
+    if vae.cfg.vae.model_settings() != cfg.vae.model_settings() or vae.cfg.sensors != cfg.sensors:
         raise ValueError(f"the VAE in {vae_path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
     clips = load_clips(data_dir, cfg)
     digest = file_digest(vae_path.with_suffix(".safetensors"))
