@@ -7,7 +7,8 @@ reports, on frames it never trained on:
 - ``ordinary_psnr_db``: camera PSNR over ``--frames`` frames spread over ``--ordinary-data``;
 - ``existence``: the judge's "is it a <category>?" yes-frequency on every object box of at least
   ``--min-box-px`` pixels in those frames, autoencoded, beside ``existence_truth`` on the same
-  crops of the ground truth (the Oracle);
+  crops of the ground truth (the Oracle). Unlike the report's crops (``eval.crops``: shorter side
+  and visibility thresholds) occluded boxes count too, which lowers both scores alike;
 - ``case_yes``: the same question for the long-tail category ``--case`` on the rare-object views
   of ``--case-data`` (``bench_longtail.rare_views``), with ``case_yes_truth``.
 
@@ -50,7 +51,8 @@ def load_any_vae(path: str | Path) -> SensorVAE:
 
 @torch.no_grad()
 def autoencode_cameras(vae: SensorVAE, cameras: np.ndarray) -> np.ndarray:
-    """uint8 (V, H, W, 3) -> the same views through the VAE, uint8."""
+    """uint8 (V, H, W, 3) -> the same views through the VAE, uint8. Always float32, unlike
+    ``SensorVAE.reconstruct_frames`` (bf16 where the run's preset autocasts): every VAE compared alike."""
     return images_to_cameras(vae.decode(vae.encode(cameras_to_images(np.array(cameras)))))
 
 

@@ -176,17 +176,15 @@ PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # `m4wor
 def _cmd_train(args: argparse.Namespace) -> int:
     import json
 
-    from world_model.model.config import get_preset, with_student_settings, with_vae_object_weight
-    from world_model.student_flags import apply_heap_flag, student_config
+    from world_model.model.config import get_preset
+    from world_model.student_flags import apply_heap_flag, stage_config, student_config
     from world_model.train.stages import STAGES, train_stage
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
     apply_heap_flag(args)
     preset = get_preset(args.preset, geometry_only=args.geometry_only)
-    config = with_vae_object_weight(
-        with_student_settings(preset, args.student_depth, args.context_frames), args.vae_object_weight
-    )
+    config = stage_config(args, preset)
     # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
     # rerunning the same command after an interruption loses nothing.
     for stage in PIPELINE if args.all else (args.stage,):

@@ -13,6 +13,7 @@ from world_model.heap import retain_freed_memory
 from world_model.precision import DTYPES
 
 if TYPE_CHECKING:
+    from world_model.model.config import ModelConfig
     from world_model.student.config import StudentConfig
 
 
@@ -89,6 +90,14 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale", "dmd_norm")
     given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None
+
+
+def stage_config(args: argparse.Namespace, preset: ModelConfig) -> ModelConfig:
+    """``preset`` with the config flags applied: student depth, context window, VAE object weight."""
+    from world_model.model.config import with_student_settings, with_vae_object_weight
+
+    cfg = with_student_settings(preset, args.student_depth, args.context_frames)
+    return with_vae_object_weight(cfg, args.vae_object_weight)
 
 
 def apply_heap_flag(args: argparse.Namespace) -> None:

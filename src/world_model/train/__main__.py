@@ -15,8 +15,8 @@ import argparse
 import json
 import sys
 
-from world_model.model.config import PRESETS, get_preset, with_student_settings, with_vae_object_weight
-from world_model.student_flags import add_student_flags, apply_heap_flag, student_config
+from world_model.model.config import PRESETS, get_preset
+from world_model.student_flags import add_student_flags, apply_heap_flag, stage_config, student_config
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -46,9 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             a.data,
             a.run,
             preset=a.preset,
-            config=with_vae_object_weight(
-                with_student_settings(get_preset(a.preset), a.student_depth, a.context_frames), a.vae_object_weight
-            ),
+            config=stage_config(a, get_preset(a.preset)),
             steps=a.steps,
             batch_size=a.batch_size,
             lr=a.lr,
