@@ -47,7 +47,7 @@ from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator, camera_box_pixels
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
-from world_model.train import load_teacher, load_vae
+from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
 CROP_PX = 96  # figure cell size
@@ -334,10 +334,10 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--case", default="tree_truck")
     f.add_argument("--out", required=True)
     p = sub.add_parser("eval", help="render the rare object before/after adaptation: PNG + JSON numbers")
-    p.add_argument("--run", required=True, help="run directory with vae/, the base model and lora/CASE/")
+    p.add_argument("--run", required=True, help="run directory with lora/CASE/ (and vae/ unless --base is a bundle)")
     p.add_argument("--data", required=True, help="dataset with the rare-case clips (ground truth)")
     p.add_argument("--case", default="tree_truck", help="adapter name = rare object category")
-    p.add_argument("--base", default=None, help="base model export (default RUN/teacher/model)")
+    p.add_argument("--base", default=None, help="base model export or checkpoint bundle (default RUN/teacher/model)")
     p.add_argument("--max-views", type=int, default=8)
     p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the preset's)")
     p.add_argument("--seed", type=int, default=0)
@@ -355,8 +355,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{len(kept)} clips without {a.case!r} linked into {a.out}")
         return 0
     run = Path(a.run)
-    vae = load_vae(run / "vae" / "model")
-    model = load_teacher(Path(a.base) if a.base else run / "teacher" / "model")
+    base = load_lora_base(a.base, run)
+    vae, model = base.vae, base.model
     clips = list(iter_clips(a.data))
     views = rare_views(clips, a.case, a.max_views, ReferenceConfig().near_plane_m)
     result = evaluate(model, vae, clips, views, [a.case], steps=a.steps, seed=a.seed, search_dirs=[run / "lora"])

@@ -186,3 +186,26 @@ def test_lora_adapts_a_shallower_student_and_refuses_another_family(data, tmp_pa
             case_data=rare,
             base=run / "other" / EXPORT,
         )
+
+
+def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
+    """``--base BUNDLE``: the bundle's student in the bundle's VAE latents; the adapter then loads
+    onto the model the env serves from that bundle."""
+    from world_model.runtime import load_world_model, save_untrained_bundle
+
+    base, rare = data
+    bundle = save_untrained_bundle(tmp_path / "bundle", preset="tiny", seed=3)
+    run = tmp_path / "run"  # empty: no vae/ or teacher/
+    out = train_stage("lora", base, run, preset="tiny", steps=2, progress=False, case=CASE, case_data=rare, base=bundle)
+    assert out["step"] == 2 and not (run / "vae").exists()
+    info, _ = read_adapter(Path(out["adapter_dir"]))
+    wm = load_world_model(bundle)
+    assert info.base_sha256 == base_fingerprint(wm.student)
+    assert info.meta["base_path"] == str(bundle / "student.safetensors")
+    cached = sorted(p.name for p in (run / "teacher" / "latents").glob("*.safetensors"))
+    assert "rare0.safetensors" in cached and "ordinary0.safetensors" in cached
+    assert apply_adapters(wm.student, [CASE], search_dirs=[run / "lora"]) == [CASE]
+    # Another bundle's student is another base: its adapter is refused there.
+    other = load_world_model(save_untrained_bundle(tmp_path / "other", preset="tiny", seed=4))
+    with pytest.raises(ValueError, match="base"):
+        apply_adapters(other.student, [CASE], search_dirs=[run / "lora"])

@@ -17,6 +17,13 @@ if TYPE_CHECKING:
     from world_model.student.config import StudentConfig
 
 
+LORA_BASE_HELP = (
+    "lora: the model to adapt (default RUN/teacher/model): an exported DiT (e.g. RUN/long/model), or a "
+    "checkpoint bundle, whose student is adapted in the bundle's own VAE latents (e.g. the shipped "
+    "src/world_model/checkpoints/default: no training run needed)"
+)
+
+
 def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:
     """Add the student flags (and ``--long-frames`` when asked) to ``p``; every default is None,
     meaning "the preset's" or "the stage's"."""

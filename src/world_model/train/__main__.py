@@ -16,7 +16,13 @@ import json
 import sys
 
 from world_model.model.config import PRESETS, get_preset
-from world_model.student_flags import add_student_flags, apply_heap_flag, stage_config, student_config
+from world_model.student_flags import (
+    LORA_BASE_HELP,
+    add_student_flags,
+    apply_heap_flag,
+    stage_config,
+    student_config,
+)
 from world_model.train.stages import STAGES, train_stage
 from world_model.train.trainer import TrainingDivergedError
 
@@ -36,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
     p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
-    p.add_argument("--base", default=None, help="lora: model to adapt (default RUN/teacher/model)")
+    p.add_argument("--base", default=None, help=LORA_BASE_HELP)
     add_student_flags(p, long_frames=True)
     a = p.parse_args(argv)
     apply_heap_flag(a)

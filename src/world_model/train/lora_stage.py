@@ -12,14 +12,16 @@ ordinary pool otherwise; a rare window starts on a frame where the rare object i
 its object token is in the conditions.
 
 The base (default ``RUN_DIR/teacher/model``; ``base`` may point at any exported DiT, e.g. the
-causal student) is loaded, fingerprinted (:func:`world_model.lora.base_fingerprint`) and frozen;
-only the adapter trains. The adapter's EMA weights are exported (the EMA warm-up makes them track
-a few-hundred-step run closely).
+causal student, or at a checkpoint bundle such as the shipped default, whose student is adapted
+with the bundle's own VAE: no training run needed) is loaded, fingerprinted
+(:func:`world_model.lora.base_fingerprint`) and frozen; only the adapter trains. The adapter's
+EMA weights are exported (the EMA warm-up makes them track a few-hundred-step run closely).
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -30,9 +32,11 @@ from world_model.data import Clip
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, save_adapter
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
+from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
+from world_model.model.vae import SensorVAE
 from world_model.train.data import LatentWindows, cached_latents, latent_cache_dir, load_clips
 from world_model.train.reference_stage import run_vae
 from world_model.train.stages import EXPORT, load_teacher
@@ -45,6 +49,48 @@ LORA_STEPS = 300  # "a few hundred iterations" (§5), whatever the preset
 class LoraStageConfig:
     rare_fraction: float = 0.5  # share of training examples drawn from the rare-case clips
     lora: LoraConfig = field(default_factory=LoraConfig)
+
+
+@dataclass
+class LoraBase:
+    """The frozen model an adapter is trained on and the VAE whose latents it works in."""
+
+    model: MultiViewDiT
+    vae: SensorVAE
+    vae_digest: str  # keys the run's latent cache
+    file: Path  # the base weights' file, recorded in the adapter's metadata
+
+
+def is_bundle(path: str | Path | None) -> bool:
+    return path is not None and (Path(path) / "manifest.json").is_file()
+
+
+def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | None = None) -> LoraBase:
+    """``base``: None (``run_dir/teacher/model`` with ``run_dir/vae``), an exported DiT (with
+    ``run_dir/vae``), or a checkpoint bundle (its student, upcast exactly to float32, and its VAE).
+    ``cfg``: the run's config the base must share sensors, VAE and controls with (None: the base's).
+    Raises ``FileNotFoundError``/``ValueError`` saying what to train or pass instead."""
+    if is_bundle(base):
+        from world_model.runtime import load_world_model
+
+        wm = load_world_model(base, dtype="float32")
+        model, vae = wm.student, wm.vae
+        components = json.loads((Path(base) / "manifest.json").read_text())["components"]  # verified by the load
+        digest = "bundle-" + components["vae"]["sha256"][:16]
+        file = Path(base) / components["student"]["file"]
+    else:
+        base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT
+        if not base_path.with_suffix(".safetensors").exists():
+            raise FileNotFoundError(
+                f"--stage lora adapts {base_path}.safetensors, which does not exist; "
+                "run --stage teacher first, or pass --base (an exported DiT or a checkpoint bundle)"
+            )
+        model = load_teacher(base_path)
+        vae, digest = run_vae(run_dir, cfg or model.cfg, "lora")
+        file = base_path.with_suffix(".safetensors")
+    if cfg is not None and model.cfg.shared_settings() != cfg.shared_settings():  # teacher, student or reference model
+        raise ValueError(f"the base model {file} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
+    return LoraBase(model, vae, digest, file)
 
 
 def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
@@ -145,16 +191,8 @@ def lora_stage(
     """Train (or resume) adapter ``case`` on top of the frozen ``base`` (module docstring)."""
     scfg = scfg or LoraStageConfig()
     run_dir = stage_dir.parent.parent
-    base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT
-    if not base_path.with_suffix(".safetensors").exists():
-        raise FileNotFoundError(
-            f"--stage lora adapts {base_path}.safetensors, which does not exist; "
-            "run --stage teacher first or pass --base"
-        )
-    model = load_teacher(base_path)
-    if model.cfg.shared_settings() != cfg.shared_settings():  # teacher, student or reference model
-        raise ValueError(f"the base model {base_path} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
-    vae, digest = run_vae(run_dir, cfg, "lora")
+    lb = load_lora_base(base, run_dir, cfg)
+    model, vae, digest = lb.model, lb.vae, lb.vae_digest
     clips, rare, ordinary = select_clips(data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
     latents = [cached_latents(c, vae, latent_cache_dir(run_dir), digest) for c in clips]
     windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
@@ -193,8 +231,8 @@ def lora_stage(
         scfg.lora,
         fingerprint,
         {
-            "base_path": str(base_path.with_suffix(".safetensors")),
-            "base_file_sha256": hashlib.sha256(base_path.with_suffix(".safetensors").read_bytes()).hexdigest(),
+            "base_path": str(lb.file),
+            "base_file_sha256": hashlib.sha256(lb.file.read_bytes()).hexdigest(),
             "model_config": model.cfg.to_dict(),
             "train": {
                 "step": trainer.step,
