@@ -1,7 +1,7 @@
 """The report's quality-bars table: each bar's status, and the autoencoder row as the ceiling."""
 
 from world_model.eval.questions import QUESTION_TYPES
-from world_model.eval.report import quality_bars
+from world_model.eval.report import existence_by_category, quality_bars
 
 
 def _row(**scores: float) -> dict:
@@ -38,3 +38,15 @@ def test_bars_against_oracle_baseline_and_autoencoder_ceiling():
     assert _line(lines, "existence ≥ 0.8 x oracle")[3] == ""
     assert _line(lines, "visual_fidelity ≥ geometry_only + 0.30")[2] == "not measured"
     assert quality_bars({"rows": {"student": _row()}}) == []  # no Oracle: no bars
+
+
+def test_existence_by_category_table_lists_every_judged_category_per_row():
+    rows = {
+        "oracle": {"per_category": {"existence": {"car": 1.0, "tree_truck": 0.9}}},
+        "student": {"per_category": {"existence": {"car": 0.25}}},  # never judged a truck
+        "student_adapted": {"per_category": {"existence": {"car": 0.25, "tree_truck": 0.5}}},
+    }
+    lines = existence_by_category({"rows": rows})
+    assert "| row | car | tree_truck |" in lines
+    assert "| student | 0.250 | n/a |" in lines and "| student_adapted | 0.250 | 0.500 |" in lines
+    assert existence_by_category({"rows": {"student": {"per_category": {}}}}) == []

@@ -91,3 +91,54 @@ def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
         assert gen.cameras.shape[0] == clip.num_frames
         assert np.abs(gen.cameras.astype(int) - alone.cameras).max() <= 1  # same noise, same frames
         assert np.allclose(gen.lidar, alone.lidar, atol=0.05)
+
+
+def test_report_row_with_lora_adapters(tmp_path, capsys):
+    """``--adapters``: an extra student_adapted row (the bundle's student with the adapters), keyed
+    by the adapters' content; the plain student row stays the plain student."""
+    import torch
+
+    from tests.model_fixtures import perturbed
+    from world_model.bundle import save_bundle
+    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, save_adapter
+    from world_model.model import MultiViewDiT, SensorVAE, get_preset
+    from world_model.runtime import load_world_model
+
+    clips = tmp_path / "eval"
+    rec = ["record", "--scenario", "merge_cut_in", "--episodes", "1", "--duration", "0.6", "--seed", "1000"]
+    assert main([*rec, "--out", str(clips), "--height", "16", "--width", "32"]) == 0
+    # An untrained student's zero-initialized output layer would hide any adapter: perturb it.
+    cfg = get_preset("tiny").for_student()
+    parts = {"vae": SensorVAE(cfg).state_dict(), "student": perturbed(MultiViewDiT(cfg)).state_dict()}
+    tiny_bundle = save_bundle(tmp_path / "bundle", cfg.to_dict(), parts)
+    student = load_world_model(tiny_bundle).student
+    fingerprint = base_fingerprint(student)
+    add_adapter(student, "van", LoraConfig())
+    with torch.no_grad():
+        for n, p in student.named_parameters():
+            if "lora_B" in n:
+                p.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(len(n)))
+    save_adapter(student, "van", tmp_path / "van", LoraConfig(), fingerprint)
+    out = tmp_path / "report"
+    args = ["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]
+    assert main([*args, "--adapters", str(tmp_path / "van")]) == 0
+    rows = json.loads((out / "report.json").read_text())["rows"]
+    assert set(rows) == {"oracle", "autoencoder", "student", "student_no_refresh", "student_adapted"}
+    assert rows["student_adapted"]["table1"]["psnr_db"] != rows["student"]["table1"]["psnr_db"]
+
+    def key(row: str) -> str:
+        return json.loads((out / "rows" / f"{row}.json").read_text())["key"]
+
+    adapted_key = key("student_adapted")
+    assert adapted_key != key("student")
+    assert "| student_adapted |" in capsys.readouterr().out
+    # Another adapter's content is another row key: the row is regenerated, the plain rows are kept.
+    with torch.no_grad():
+        for n, p in student.named_parameters():
+            if "lora_B" in n:
+                p.mul_(-1.0)
+    save_adapter(student, "van", tmp_path / "van", LoraConfig(), fingerprint)
+    assert main([*args, "--adapters", str(tmp_path / "van")]) == 0
+    assert key("student_adapted") != adapted_key
+    assert main([*args, "--adapters", "no_such_adapter"]) == 2
+    assert "adapter 'no_such_adapter' not found" in capsys.readouterr().err

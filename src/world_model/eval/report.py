@@ -349,6 +349,7 @@ def format_markdown(report: dict) -> str:
     lines += ["| row | " + " | ".join(QUESTION_TYPES) + " |", "|---" * (len(QUESTION_TYPES) + 1) + "|"]
     for row, r in report["rows"].items():
         lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
+    lines += existence_by_category(report)
     long_rows = [(row, c) for row, r in report["rows"].items() for c in r.get("long_horizon", [])]
     if long_rows:
         w = report.get("config", {}).get("long_window_s", "?")
@@ -360,6 +361,21 @@ def format_markdown(report: dict) -> str:
             lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
     lines += quality_bars(report)
     return "\n".join(lines) + "\n"
+
+
+def existence_by_category(report: dict) -> list[str]:
+    """Markdown lines: the existence yes-frequency of each object category per row (how a rare
+    object, e.g. a LoRA case, fares apart from the common ones). Empty when no object was judged."""
+    rows = report["rows"]
+    cats = sorted({c for r in rows.values() for c in r.get("per_category", {}).get("existence", {})})
+    if not cats:
+        return []
+    lines = ["", "### Existence per object category (judge yes-frequencies)", ""]
+    lines += ["| row | " + " | ".join(cats) + " |", "|---" * (len(cats) + 1) + "|"]
+    for row, r in rows.items():
+        ex = r.get("per_category", {}).get("existence", {})
+        lines.append(f"| {row} | " + " | ".join(_fmt(ex.get(c)) for c in cats) + " |")
+    return lines
 
 
 QUALITY_RATIOS = {"existence": 0.8, "weather": 0.85, "time_of_day": 0.85}  # x Oracle (issue 7)
