@@ -209,3 +209,13 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     other = load_world_model(save_untrained_bundle(tmp_path / "other", preset="tiny", seed=4))
     with pytest.raises(ValueError, match="base"):
         apply_adapters(other.student, [CASE], search_dirs=[run / "lora"])
+
+
+def test_a_bundle_loaded_in_float32_is_still_the_presets_family(tmp_path):
+    """Loading rewrites ``dit.autocast_bf16`` per machine: the family check must not see it."""
+    from world_model.runtime import save_untrained_bundle
+    from world_model.train.lora_stage import load_lora_base
+
+    cfg = replace(CFG, dit=replace(CFG.dit, autocast_bf16=True))
+    bundle = save_untrained_bundle(tmp_path / "b", preset="tiny")
+    assert load_lora_base(bundle, tmp_path / "run", cfg).model.cfg.dit.autocast_bf16 is False

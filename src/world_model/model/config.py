@@ -214,9 +214,10 @@ class ModelConfig:
 
     def shared_settings(self) -> ModelConfig:
         """What every model of one family (teacher, student, reference model) shares: the teacher
-        settings without the DiT's depth and reference input channels."""
+        settings without the DiT's depth, reference input channels and bf16 autocast (a run-time
+        precision that loading rewrites per machine, not a property of the weights)."""
         t = self.teacher_settings()
-        return replace(t, dit=replace(t.dit, depth=1, in_channels_extra=0))
+        return replace(t, dit=replace(t.dit, depth=1, in_channels_extra=0, autocast_bf16=False))
 
     # -- derived shapes --
     @property
