@@ -20,7 +20,6 @@ EMA weights are exported (the EMA warm-up makes them track a few-hundred-step ru
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from world_model.bundle import sha256_file
 from world_model.data import Clip
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, save_adapter
 from world_model.model.conditions import Conditions
@@ -58,7 +58,8 @@ class LoraBase:
     model: MultiViewDiT
     vae: SensorVAE
     vae_digest: str  # keys the run's latent cache
-    file: Path  # the base weights' file, recorded in the adapter's metadata
+    file: Path  # the base weights' file, recorded in the adapter's metadata with its sha256
+    file_sha256: str
 
 
 def is_bundle(path: str | Path | None) -> bool:
@@ -77,7 +78,7 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
         model, vae = wm.student, wm.vae
         components = json.loads((Path(base) / "manifest.json").read_text())["components"]  # verified by the load
         digest = "bundle-" + components["vae"]["sha256"][:16]
-        file = Path(base) / components["student"]["file"]
+        file, file_sha256 = Path(base) / components["student"]["file"], components["student"]["sha256"]
     else:
         base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT
         if not base_path.with_suffix(".safetensors").exists():
@@ -88,9 +89,10 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
         model = load_teacher(base_path)
         vae, digest = run_vae(run_dir, cfg or model.cfg, "lora")
         file = base_path.with_suffix(".safetensors")
+        file_sha256 = sha256_file(file)
     if cfg is not None and model.cfg.shared_settings() != cfg.shared_settings():  # teacher, student or reference model
         raise ValueError(f"the base model {file} has preset {model.cfg.name!r}'s config, not {cfg.name!r}'s")
-    return LoraBase(model, vae, digest, file)
+    return LoraBase(model, vae, digest, file, file_sha256)
 
 
 def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
@@ -232,7 +234,7 @@ def lora_stage(
         fingerprint,
         {
             "base_path": str(lb.file),
-            "base_file_sha256": hashlib.sha256(lb.file.read_bytes()).hexdigest(),
+            "base_file_sha256": lb.file_sha256,
             "model_config": model.cfg.to_dict(),
             "train": {
                 "step": trainer.step,
