@@ -17,6 +17,7 @@ from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_cond
 from world_model.data import write_clip
 from world_model.lora import apply_adapters, base_fingerprint, read_adapter, remove_adapters
 from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
+from world_model.model.reference import ReferenceConfig, object_region
 from world_model.train import load_latest, load_teacher, train_stage
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
@@ -93,10 +94,50 @@ def test_balanced_sampler_draws_half_rare_half_ordinary(data):
         n += len(spans)
         rare_count += int(is_rare.sum())
     assert abs(rare_count / n - 0.5) < 4 * np.sqrt(0.25 / n), rare_count / n
-    x0, cond, is_rare = sampler.sample(rng, 3)
-    assert x0.shape[0] == 3 and cond.num_frames == x0.shape[1]
+    x0, cond, is_rare, weights = sampler.sample(rng, 3)
+    assert x0.shape[0] == 3 and cond.num_frames == x0.shape[1] and weights is None
     with pytest.raises(ValueError, match="no rare-case clips"):
         BalancedSampler(windows, [], o, CASE, 0.5)
+
+
+def test_box_weights_cover_exactly_the_rare_objects_boxes(data):
+    """--lora-box-weight: 1 + w on the latent cells of the rare category's projected boxes (every
+    view, LiDAR included, each frame it is in), 1 elsewhere and everywhere in ordinary windows."""
+    base, rare = data
+    clips, r, o = select_clips(base, rare, CFG, CASE, None)
+    lat = [torch.zeros(c.num_frames, *CFG.latent_shape(1)[1:]) for c in clips]
+    sampler = BalancedSampler(LatentWindows(clips, lat, CFG, make_text_encoder(CFG.text), None), r, o, CASE, 0.5)
+    rare_clip = next(i for i in r if clips[i].name == "rare1")  # car1 is the truck from frame 1 on
+    w = sampler.box_weights(rare_clip, 0, 3, 9.0)
+    assert w.shape == (3, CFG.sensors.num_views, 1, *CFG.latent_hw)
+    assert torch.all(w[0] == 1.0)  # not a truck yet
+    exact = ReferenceConfig(margin_px=0)
+    for f in (1, 2):
+        fr = clips[rare_clip].frames[f]
+        region = torch.from_numpy(object_region(fr, "car1", CFG, exact))
+        assert region.any() and torch.equal(w[f, :, 0], torch.where(region, 10.0, 1.0))
+    assert torch.all(sampler.box_weights(o[0], 0, 2, 9.0) == 1.0)
+    x0, _, is_rare, weights = sampler.sample(np.random.default_rng(1), 8, box_weight=9.0)
+    assert weights.shape == (*x0.shape[:3], 1, *x0.shape[4:])
+    assert torch.all(weights[torch.from_numpy(~is_rare)] == 1.0) and weights.max() == 10.0
+
+
+def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_path, capsys):
+    from m4world_env.cli import main as m4world
+    from world_model.train.__main__ import main
+
+    base, rare = data
+    run = make_run(tmp_path / "run")
+    argv = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
+    argv += ["--preset", "tiny", "--no-progress", "--steps", "1"]
+    assert main([*argv, "--lora-box-weight", "-1"]) == 2
+    assert m4world(["train", *argv, "--lora-box-weight", "nan"]) == 2
+    assert capsys.readouterr().err.count("box weight must be >= 0") == 2 and not (run / "lora").exists()
+    assert main([*argv, "--lora-box-weight", "4"]) == 0
+    info, _ = read_adapter(run / "lora" / CASE)
+    assert info.meta["train"]["box_weight"] == 4.0
+    with pytest.raises(ValueError, match="box_weight=4.0"):  # resuming with another objective
+        train_stage("lora", base, run, preset="tiny", steps=2, progress=False, case=CASE, case_data=rare)
 
 
 def test_lora_stage_trains_only_the_adapter_and_exports_it(data, tmp_path):

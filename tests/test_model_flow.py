@@ -111,3 +111,29 @@ def test_apg_norm_threshold_and_momentum():
     first = apg(dc, du)
     second = apg(dc, du)  # running = diff - 0.5 * diff = 0.5 diff
     assert torch.allclose(second - dc, 0.5 * (first - dc), atol=1e-6)
+
+
+def test_weighted_flow_loss_is_the_weighted_mean_of_squared_errors():
+    gen = torch.Generator().manual_seed(0)
+    x0, noise = torch.randn(3, 4, 5, generator=gen), torch.randn(3, 4, 5, generator=gen)
+    t = torch.rand(3, generator=gen)
+    bias = torch.randn(3, 4, 5, generator=gen)
+
+    def net(xt, tt):
+        return x0 - noise + bias  # error = bias
+
+    plain = flow_matching_loss(net, x0, t, noise)
+    assert torch.allclose(flow_matching_loss(net, x0, t, noise, torch.ones(3, 1, 5)), plain)
+    w = torch.rand(3, 4, 1, generator=gen) + 0.5  # broadcast over the last dim
+    want = (bias.pow(2) * w).sum() / w.expand_as(bias).sum()
+    assert torch.allclose(flow_matching_loss(net, x0, t, noise, w), want)
+    # Zero weight: the errors there do not count at all.
+    w0 = torch.ones(3, 4, 5)
+    w0[:, :2] = 0.0
+
+    def worse(xt, tt):
+        out = net(xt, tt).clone()
+        out[:, :2] += 100.0
+        return out
+
+    assert torch.allclose(flow_matching_loss(worse, x0, t, noise, w0), flow_matching_loss(net, x0, t, noise, w0))

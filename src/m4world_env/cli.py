@@ -211,6 +211,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             case=args.case,
             case_data=args.case_data,
             base=args.base,
+            lora_box_weight=args.lora_box_weight,
             student=student_config(args),
             dtype=args.dtype,
         )
@@ -275,7 +276,7 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from world_model.student_flags import LORA_BASE_HELP, add_student_flags
+    from world_model.student_flags import LORA_BASE_HELP, add_lora_flags, add_student_flags
 
     p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
     sub = p.add_subparsers(dest="command", required=True)
@@ -368,6 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--base", default=None, help=LORA_BASE_HELP)
     t.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
     t.add_argument("--case-data", default=None, help="lora: dataset of the rare-case clips")
+    add_lora_flags(t)
     t.set_defaults(func=_cmd_train)
 
     x = sub.add_parser("export", help="collect a training run's stage exports into a checkpoint bundle")

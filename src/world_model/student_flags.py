@@ -24,6 +24,17 @@ LORA_BASE_HELP = (
 )
 
 
+def add_lora_flags(p: argparse.ArgumentParser) -> None:
+    """The LoRA stage's objective flags (``--stage lora``)."""
+    p.add_argument(
+        "--lora-box-weight",
+        type=float,
+        default=0.0,
+        help="lora: extra flow-loss weight on the latent cells inside the rare object's projected boxes "
+        "(default 0 = the plain mean; e.g. 9 weighs them 10x); a run resumes only with the same value",
+    )
+
+
 def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:
     """Add the student flags (and ``--long-frames`` when asked) to ``p``; every default is None,
     meaning "the preset's" or "the stage's"."""

@@ -63,10 +63,23 @@ def predict_x0(x_t: torch.Tensor, v: torch.Tensor, t: torch.Tensor) -> torch.Ten
     return x_t + (1.0 - _bcast(t, x_t)) * v
 
 
-def flow_matching_loss(velocity_fn: VelocityFn, x0: torch.Tensor, t: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
-    """Mean squared error between v_theta(x_t, t) and x0 - noise."""
+def flow_matching_loss(
+    velocity_fn: VelocityFn,
+    x0: torch.Tensor,
+    t: torch.Tensor,
+    noise: torch.Tensor,
+    weights: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Mean squared error between v_theta(x_t, t) and x0 - noise.
+
+    ``weights`` (broadcastable to ``x0``, non-negative): the weighted mean sum(w e) / sum(w) instead,
+    e.g. more weight inside a rare object's box (the LoRA stage); all ones = the plain mean."""
     v = velocity_fn(interpolate(x0, noise, t), t)
-    return (v.float() - velocity_target(x0, noise).float()).pow(2).mean()
+    err = (v.float() - velocity_target(x0, noise).float()).pow(2)
+    if weights is None:
+        return err.mean()
+    w = weights.float().expand_as(err)
+    return (err * w).sum() / w.sum().clamp_min(torch.finfo(err.dtype).tiny)
 
 
 def time_grid(steps: int, shift: float = 1.0) -> torch.Tensor:

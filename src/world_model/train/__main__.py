@@ -4,7 +4,8 @@
 with STAGE one of vae, teacher, tf, ode, dmd, long, reference, lora (for long: ``--long-frames N``,
 ``--long-skip-chunks K``).
 
-``--stage lora --case NAME [--case-data DIR] [--base PATH]`` trains one long-tail adapter into RUN/lora/NAME/.
+``--stage lora --case NAME [--case-data DIR] [--base PATH] [--lora-box-weight W]`` trains one long-tail
+adapter into RUN/lora/NAME/.
 
 Rerunning the same command resumes from the stage's last checkpoint.
 """
@@ -18,6 +19,7 @@ import sys
 from world_model.model.config import PRESETS, get_preset
 from world_model.student_flags import (
     LORA_BASE_HELP,
+    add_lora_flags,
     add_student_flags,
     apply_heap_flag,
     stage_config,
@@ -43,6 +45,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
     p.add_argument("--base", default=None, help=LORA_BASE_HELP)
+    add_lora_flags(p)
     add_student_flags(p, long_frames=True)
     a = p.parse_args(argv)
     apply_heap_flag(a)
@@ -63,6 +66,7 @@ def main(argv: list[str] | None = None) -> int:
             case_data=a.case_data,
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
+            lora_box_weight=a.lora_box_weight,
             student=student_config(a),
             dtype=a.dtype,
         )

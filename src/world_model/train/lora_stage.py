@@ -11,6 +11,13 @@ training example from the rare pool with probability ``rare_fraction`` (paper: 5
 ordinary pool otherwise; a rare window starts on a frame where the rare object is present, so
 its object token is in the conditions.
 
+Loss: the flow-matching loss of the base's pretraining, optionally weighted (``box_weight`` > 0)
+by ``1 + box_weight`` on the latent cells the rare object's projected 3-D box covers, in every
+view (LiDAR too) and frame where it is present (:func:`world_model.model.reference.object_region`,
+no margin). The paper binds the rare object "within the specified 3D box" (§5); at a small
+preset the box covers a few of a view's latent cells, so the plain mean spends almost all of the
+rare clips' signal on the background the base already draws.
+
 The base (default ``RUN_DIR/teacher/model``; ``base`` may point at any exported DiT, e.g. the
 causal student, or at a checkpoint bundle such as the shipped default, whose student is adapted
 with the bundle's own VAE: no training run needed) is loaded, fingerprinted
@@ -35,6 +42,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.reference import ReferenceConfig, object_region
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.train.data import LatentWindows, cached_latents, latent_cache_dir, load_clips
@@ -48,7 +56,12 @@ LORA_STEPS = 300  # "a few hundred iterations" (§5), whatever the preset
 @dataclass(frozen=True)
 class LoraStageConfig:
     rare_fraction: float = 0.5  # share of training examples drawn from the rare-case clips
+    box_weight: float = 0.0  # extra loss weight inside the rare object's boxes (module docstring); 0 = plain
     lora: LoraConfig = field(default_factory=LoraConfig)
+
+    def __post_init__(self) -> None:
+        if not self.box_weight >= 0.0:  # also refuses NaN
+            raise ValueError(f"the LoRA box weight must be >= 0, got {self.box_weight}")
 
 
 @dataclass
@@ -124,6 +137,7 @@ class BalancedSampler:
         if not 0.0 <= rare_fraction <= 1.0:
             raise ValueError(f"rare_fraction must be in [0, 1], got {rare_fraction}")
         self.windows, self.rare, self.ordinary, self.fraction = windows, rare, ordinary, rare_fraction
+        self.category = category
         # Rare windows start where the rare object is present; fall back to every frame otherwise.
         self.rare_starts = {}
         for ci in rare:
@@ -147,13 +161,32 @@ class BalancedSampler:
             out.append(fits[int(rng.integers(len(fits)))])
         return out, is_rare
 
-    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, Conditions, np.ndarray]:
-        """x0 (B, T, V, C, h, w), conditions and is_rare (B,); T from ``clip.train_frames``."""
+    def sample(
+        self, rng: np.random.Generator, batch: int, box_weight: float = 0.0
+    ) -> tuple[torch.Tensor, Conditions, np.ndarray, torch.Tensor | None]:
+        """x0 (B, T, V, C, h, w), conditions, is_rare (B,) and the loss weights (B, T, V, 1, h, w) of
+        :meth:`box_weights` (None when ``box_weight`` is 0); T from ``clip.train_frames``."""
         t = int(rng.choice(self.windows.cfg.clip.train_frames))
         spans, is_rare = self.draw(rng, batch, t)
         t = min([t, *(self.windows.clips[ci].num_frames - s for ci, s in spans)])
         items = [self.windows.window(ci, s, t) for ci, s in spans]
-        return torch.stack([x for x, _ in items]).float(), Conditions.collate([a for _, a in items]), is_rare
+        x0 = torch.stack([x for x, _ in items]).float()
+        weights = None
+        if box_weight > 0.0:
+            weights = torch.stack([self.box_weights(ci, s, t, box_weight) for ci, s in spans])
+        return x0, Conditions.collate([a for _, a in items]), is_rare, weights
+
+    def box_weights(self, clip: int, start: int, frames: int, box_weight: float) -> torch.Tensor:
+        """(T, V, 1, h, w) loss weights of one window: ``1 + box_weight`` on the latent cells of the
+        rare category's objects (exact projected boxes), 1 elsewhere."""
+        cfg = self.windows.cfg
+        out = np.ones((frames, cfg.sensors.num_views, 1, *cfg.latent_hw), np.float32)
+        exact = ReferenceConfig(margin_px=0)
+        for f, fr in enumerate(self.windows.clips[clip].frames[start : start + frames]):
+            for o in fr.objects:
+                if o.category == self.category:
+                    out[f, :, 0][object_region(fr, o.track_id, cfg, exact)] = 1.0 + box_weight
+        return torch.from_numpy(out)
 
 
 def select_clips(
@@ -204,13 +237,19 @@ def lora_stage(
     torch.manual_seed(tcfg.seed)
     add_adapter(model, case, scfg.lora)
     model.train()
-    meta = {"stage": "lora", "case": case, "base_sha256": fingerprint, "model_config": model.cfg.to_dict()}
-    trainer = Trainer(stage_dir, model, tcfg, meta, progress)
+    meta = {
+        "stage": "lora",
+        "case": case,
+        "base_sha256": fingerprint,
+        "box_weight": scfg.box_weight,
+        "model_config": model.cfg.to_dict(),
+    }
+    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys={"box_weight": 0.0})
     extra_channels = model.cfg.dit.in_channels_extra
     drawn = {"rare": 0, "ordinary": 0}
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        x0, cond, is_rare = sampler.sample(tr.rng, tcfg.batch_size)
+        x0, cond, is_rare, weights = sampler.sample(tr.rng, tcfg.batch_size, scfg.box_weight)
         drawn["rare"] += int(is_rare.sum())
         drawn["ordinary"] += int((~is_rare).sum())
         b = x0.shape[0]
@@ -219,7 +258,7 @@ def lora_stage(
         noise = torch.randn(x0.shape, generator=tr.gen)
         # A reference model as base is adapted in its controls-only mode (all-zero reference).
         pad = torch.zeros(*x0.shape[:3], extra_channels, *x0.shape[4:])
-        loss = flow_matching_loss(lambda xt, tt: model(torch.cat([xt, pad], dim=3), tt, cond), x0, t, noise)
+        loss = flow_matching_loss(lambda xt, tt: model(torch.cat([xt, pad], dim=3), tt, cond), x0, t, noise, weights)
         return loss, b * x0.shape[1]
 
     summary = trainer.run(step, f"lora:{case}")
@@ -241,6 +280,7 @@ def lora_stage(
                 "rare_clips": [clips[i].name for i in rare],
                 "ordinary_clips": len(ordinary),
                 "rare_fraction": scfg.rare_fraction,
+                "box_weight": scfg.box_weight,
             },
         },
     )

@@ -255,6 +255,7 @@ def train_stage(
     case_data: str | Path | None = None,
     case_clips: list[str] | None = None,
     base: str | Path | None = None,
+    lora_box_weight: float = 0.0,
     student: StudentConfig | None = None,
     dtype: str = "auto",
 ) -> dict:
@@ -264,7 +265,8 @@ def train_stage(
     ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
     ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
     dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
-    (default ``run_dir/teacher/model``).
+    (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
+    object's boxes (``LoraStageConfig.box_weight``).
     ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and this
     CPU multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
     or "bfloat16". A run-time choice: checkpoints and their configs do not record it.
@@ -273,8 +275,9 @@ def train_stage(
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
     check_dtype(dtype)
     if stage == "lora":
-        from world_model.train.lora_stage import LORA_STEPS, lora_stage_dir
+        from world_model.train.lora_stage import LORA_STEPS, LoraStageConfig, lora_stage_dir
 
+        scfg = LoraStageConfig(box_weight=lora_box_weight)  # refuses a bad weight before anything is written
         stage_dir = lora_stage_dir(run_dir, case)
         steps = LORA_STEPS if steps is None else steps
     else:
@@ -292,7 +295,7 @@ def train_stage(
 
         from world_model.train.lora_stage import lora_stage
 
-        run = partial(lora_stage, case=case, case_data=case_data, case_clips=case_clips, base=base)
+        run = partial(lora_stage, case=case, case_data=case_data, case_clips=case_clips, base=base, scfg=scfg)
     else:
         from world_model.train.student_stages import run_student_stage  # it imports this module
 

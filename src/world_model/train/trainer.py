@@ -53,7 +53,19 @@ StepFn = Callable[["Trainer"], tuple[torch.Tensor, int]]
 
 
 class Trainer:
-    def __init__(self, stage_dir: Path, model: nn.Module, tcfg: TrainConfig, meta: dict, progress: bool = True):
+    def __init__(
+        self,
+        stage_dir: Path,
+        model: nn.Module,
+        tcfg: TrainConfig,
+        meta: dict,
+        progress: bool = True,
+        resume_keys: dict[str, object] | None = None,
+    ):
+        """``resume_keys``: entries of ``meta`` a resumed run must share with its checkpoint (a
+        setting that changes the objective mid-run), else :meth:`resume` raises ``ValueError``; each
+        maps to the value meant by a checkpoint written before the entry existed."""
+        self.resume_keys = dict(resume_keys or {})
         self.dir = Path(stage_dir)
         self.ckpt_dir = self.dir / "checkpoints"
         self.model = model
@@ -73,6 +85,12 @@ class Trainer:
         ck = load_latest(self.ckpt_dir)
         if ck is None:
             return False
+        for key, before in self.resume_keys.items():
+            if ck.meta.get(key, before) != self.meta.get(key):
+                raise ValueError(
+                    f"{self.dir} was trained with {key}={ck.meta.get(key, before)!r} up to step {ck.step}, not "
+                    f"{self.meta.get(key)!r}: resume it with the same setting, or train into a new --run"
+                )
         self.model.load_state_dict(ck.tensors["model"])
         self.ema.load_state_dict(ck.tensors["ema"], ck.meta["ema_updates"])
         self.opt.load_state_dict(ck.train_state["optimizer"])
