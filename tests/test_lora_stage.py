@@ -94,7 +94,7 @@ def test_balanced_sampler_draws_half_rare_half_ordinary(data):
         n += len(spans)
         rare_count += int(is_rare.sum())
     assert abs(rare_count / n - 0.5) < 4 * np.sqrt(0.25 / n), rare_count / n
-    x0, cond, is_rare, weights = sampler.sample(rng, 3)
+    x0, cond, is_rare, weights, _ = sampler.sample(rng, 3)
     assert x0.shape[0] == 3 and cond.num_frames == x0.shape[1] and weights is None
     with pytest.raises(ValueError, match="no rare-case clips"):
         BalancedSampler(windows, [], o, CASE, 0.5)
@@ -117,9 +117,55 @@ def test_box_weights_cover_exactly_the_rare_objects_boxes(data):
         region = torch.from_numpy(object_region(fr, "car1", CFG, exact))
         assert region.any() and torch.equal(w[f, :, 0], torch.where(region, 10.0, 1.0))
     assert torch.all(sampler.box_weights(o[0], 0, 2, 9.0) == 1.0)
-    x0, _, is_rare, weights = sampler.sample(np.random.default_rng(1), 8, box_weight=9.0)
+    x0, _, is_rare, weights, _ = sampler.sample(np.random.default_rng(1), 8, box_weight=9.0)
     assert weights.shape == (*x0.shape[:3], 1, *x0.shape[4:])
     assert torch.all(weights[torch.from_numpy(~is_rare)] == 1.0) and weights.max() == 10.0
+
+
+def test_a_reference_model_base_learns_to_complete_the_rare_object(data, tmp_path):
+    """Reference-model base: rare windows observe all but the rare objects' regions (object
+    completion of the case), ordinary ones get the reference stage's task mix; the adapter trains."""
+    from world_model.model.reference import category_region, expand_teacher
+
+    base, rare = data
+    clips, r, o = select_clips(base, rare, CFG, CASE, None)
+    lat = [torch.zeros(c.num_frames, *CFG.latent_shape(1)[1:]) for c in clips]
+    sampler = BalancedSampler(LatentWindows(clips, lat, CFG, make_text_encoder(CFG.text), None), r, o, CASE, 0.5)
+    rcfg = ReferenceConfig()
+    rng = np.random.default_rng(0)
+    seen_rare = seen_ordinary = 0
+    for _ in range(10):
+        batch = sampler.sample(rng, 4)
+        masks = sampler.reference_masks(rng, batch, rcfg)
+        assert masks.shape == (*batch.x0.shape[:3], 1, *batch.x0.shape[4:])
+        for (ci, s), is_rare, m in zip(batch.spans, batch.is_rare, masks, strict=True):
+            if is_rare:
+                region = category_region(clips[ci].frames[s : s + m.shape[0]], CASE, CFG, rcfg)
+                assert region.any() and torch.equal(m[:, :, 0], torch.from_numpy(~region).float())
+                seen_rare += 1
+            else:
+                assert set(m.unique().tolist()) <= {0.0, 1.0}
+                seen_ordinary += 1
+    assert seen_rare and seen_ordinary
+
+    run = make_run(tmp_path / "run")
+    reference = expand_teacher(load_teacher(run / "teacher" / EXPORT))
+    meta = {"stage": "reference", "model_config": reference.cfg.to_dict()}
+    export_weights(run / "reference" / EXPORT, perturbed(reference).state_dict(), meta)
+    out = train_stage(
+        "lora",
+        base,
+        run,
+        preset="tiny",
+        steps=2,
+        progress=False,
+        case=CASE,
+        case_data=rare,
+        base=run / "reference" / EXPORT,
+    )
+    info, tensors = read_adapter(Path(out["adapter_dir"]))
+    assert info.meta["model_config"]["dit"]["in_channels_extra"] == CFG.vae.latent_channels + 1
+    assert any(not torch.all(v == 0) for k, v in tensors.items() if "lora_B" in k)
 
 
 def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_path, capsys):

@@ -193,6 +193,16 @@ def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: Refe
     return out
 
 
+def category_region(frames: Sequence[SceneFrame], category: str, cfg: ModelConfig, rcfg: ReferenceConfig) -> np.ndarray:
+    """(T, V, h, w) bool: per frame, the union of :func:`object_region` over the objects of ``category``."""
+    out = np.zeros((len(frames), cfg.sensors.num_views, *cfg.latent_hw), bool)
+    for f, fr in enumerate(frames):
+        for o in fr.objects:
+            if o.category == category:
+                out[f] |= object_region(fr, o.track_id, cfg, rcfg)
+    return out
+
+
 def task_mask(
     task: str,
     cfg: ModelConfig,

@@ -11,6 +11,11 @@ training example from the rare pool with probability ``rare_fraction`` (paper: 5
 ordinary pool otherwise; a rare window starts on a frame where the rare object is present, so
 its object token is in the conditions.
 
+A reference model as base (``--base RUN/reference/model``, §6) is adapted in the tasks it serves:
+a rare window asks it to complete the rare objects (everything observed except their boxes, as
+the reference stage's object completion with the rare category as the object), an ordinary window
+gets a task drawn from the reference stage's mix (:func:`world_model.model.reference.task_mask`).
+
 Loss: the flow-matching loss of the base's pretraining, optionally weighted (``box_weight`` > 0)
 by ``1 + box_weight`` on the latent cells the rare object's projected 3-D box covers, in every
 view (LiDAR too) and frame where it is present (:func:`world_model.model.reference.object_region`,
@@ -30,6 +35,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -42,7 +48,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.reference import ReferenceConfig, object_region
+from world_model.model.reference import TASKS, ReferenceConfig, category_region, reference_input, task_mask
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.train.data import LatentWindows, cached_latents, latent_cache_dir, load_clips
@@ -121,6 +127,14 @@ def has_category(clip: Clip, category: str) -> bool:
     return any(o.category == category for fr in clip.frames for o in fr.objects)
 
 
+class LoraBatch(NamedTuple):
+    x0: torch.Tensor  # (B, T, V, C, h, w)
+    cond: Conditions
+    is_rare: np.ndarray  # (B,) bool
+    weights: torch.Tensor | None  # (B, T, V, 1, h, w) loss weights (BalancedSampler.box_weights) or None
+    spans: list[tuple[int, int]]  # (clip, start) of each window
+
+
 class BalancedSampler:
     """Windows drawn ``rare_fraction`` of the time from the rare clips, else from the ordinary ones.
 
@@ -161,11 +175,9 @@ class BalancedSampler:
             out.append(fits[int(rng.integers(len(fits)))])
         return out, is_rare
 
-    def sample(
-        self, rng: np.random.Generator, batch: int, box_weight: float = 0.0
-    ) -> tuple[torch.Tensor, Conditions, np.ndarray, torch.Tensor | None]:
-        """x0 (B, T, V, C, h, w), conditions, is_rare (B,) and the loss weights (B, T, V, 1, h, w) of
-        :meth:`box_weights` (None when ``box_weight`` is 0); T from ``clip.train_frames``."""
+    def sample(self, rng: np.random.Generator, batch: int, box_weight: float = 0.0) -> LoraBatch:
+        """A batch of windows; T from ``clip.train_frames``, weights from :meth:`box_weights`
+        (None when ``box_weight`` is 0)."""
         t = int(rng.choice(self.windows.cfg.clip.train_frames))
         spans, is_rare = self.draw(rng, batch, t)
         t = min([t, *(self.windows.clips[ci].num_frames - s for ci, s in spans)])
@@ -174,19 +186,31 @@ class BalancedSampler:
         weights = None
         if box_weight > 0.0:
             weights = torch.stack([self.box_weights(ci, s, t, box_weight) for ci, s in spans])
-        return x0, Conditions.collate([a for _, a in items]), is_rare, weights
+        return LoraBatch(x0, Conditions.collate([a for _, a in items]), is_rare, weights, spans)
+
+    def rare_region(self, clip: int, start: int, frames: int, rcfg: ReferenceConfig) -> np.ndarray:
+        """(T, V, h, w) bool: the latent cells of the rare category's objects in one window."""
+        frames_ = self.windows.clips[clip].frames[start : start + frames]
+        return category_region(frames_, self.category, self.windows.cfg, rcfg)
 
     def box_weights(self, clip: int, start: int, frames: int, box_weight: float) -> torch.Tensor:
         """(T, V, 1, h, w) loss weights of one window: ``1 + box_weight`` on the latent cells of the
         rare category's objects (exact projected boxes), 1 elsewhere."""
-        cfg = self.windows.cfg
-        out = np.ones((frames, cfg.sensors.num_views, 1, *cfg.latent_hw), np.float32)
-        exact = ReferenceConfig(margin_px=0)
-        for f, fr in enumerate(self.windows.clips[clip].frames[start : start + frames]):
-            for o in fr.objects:
-                if o.category == self.category:
-                    out[f, :, 0][object_region(fr, o.track_id, cfg, exact)] = 1.0 + box_weight
-        return torch.from_numpy(out)
+        region = self.rare_region(clip, start, frames, ReferenceConfig(margin_px=0))
+        return torch.from_numpy(np.where(region, 1.0 + box_weight, 1.0).astype(np.float32))[:, :, None]
+
+    def reference_masks(self, rng: np.random.Generator, batch: LoraBatch, rcfg: ReferenceConfig) -> torch.Tensor:
+        """(B, T, V, 1, h, w) observed-region masks for a reference-model base (module docstring):
+        rare windows observe everything but the rare objects, ordinary ones draw from the task mix."""
+        t = batch.x0.shape[1]
+        masks = []
+        for (ci, s), rare in zip(batch.spans, batch.is_rare, strict=True):
+            if rare:
+                masks.append((~self.rare_region(ci, s, t, rcfg))[:, :, None].astype(np.float32))
+            else:
+                task = TASKS[int(rng.choice(len(TASKS), p=rcfg.task_probs))]
+                masks.append(task_mask(task, self.windows.cfg, self.windows.clips[ci].frames[s : s + t], rng, rcfg))
+        return torch.from_numpy(np.stack(masks))
 
 
 def select_clips(
@@ -246,19 +270,25 @@ def lora_stage(
     }
     trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys={"box_weight": 0.0})
     extra_channels = model.cfg.dit.in_channels_extra
+    rcfg = ReferenceConfig()
     drawn = {"rare": 0, "ordinary": 0}
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        x0, cond, is_rare, weights = sampler.sample(tr.rng, tcfg.batch_size, scfg.box_weight)
+        batch = sampler.sample(tr.rng, tcfg.batch_size, scfg.box_weight)
+        x0, is_rare = batch.x0, batch.is_rare
         drawn["rare"] += int(is_rare.sum())
         drawn["ordinary"] += int((~is_rare).sum())
         b = x0.shape[0]
-        cond = cond.with_drop(torch.rand(b, generator=tr.gen) < cfg.flow.cond_drop_prob)
+        cond = batch.cond.with_drop(torch.rand(b, generator=tr.gen) < cfg.flow.cond_drop_prob)
         t = sample_timesteps((b,), cfg.flow, tr.gen)
         noise = torch.randn(x0.shape, generator=tr.gen)
-        # A reference model as base is adapted in its controls-only mode (all-zero reference).
-        pad = torch.zeros(*x0.shape[:3], extra_channels, *x0.shape[4:])
-        loss = flow_matching_loss(lambda xt, tt: model(torch.cat([xt, pad], dim=3), tt, cond), x0, t, noise, weights)
+        if extra_channels:  # a reference model: completion of the rare objects / the task mix
+            extra = reference_input(x0, sampler.reference_masks(tr.rng, batch, rcfg))
+            loss = flow_matching_loss(
+                lambda xt, tt: model(torch.cat([xt, extra], dim=3), tt, cond), x0, t, noise, batch.weights
+            )
+        else:
+            loss = flow_matching_loss(lambda xt, tt: model(xt, tt, cond), x0, t, noise, batch.weights)
         return loss, b * x0.shape[1]
 
     summary = trainer.run(step, f"lora:{case}")
