@@ -2,7 +2,10 @@
 
 Given a run with a trained VAE, a base model and a ``--stage lora`` adapter, this renders the
 first frame of rare-case frames from their controls twice (same noise seed): with the base model
-and with the adapter applied. It writes a PNG (rows: ground truth, the ground truth through the VAE
+and with the adapter applied. ``--task completion`` (a reference model as ``--base``, §6 task c)
+instead masks the rare object out of its frame, every sensor, and regenerates it under its
+controls, the rest of the frame observed: the object's own rendering, apart from the scene's.
+It writes a PNG (rows: ground truth, the ground truth through the VAE
 and back — the ceiling of any model generating through it —, base, adapted; one column per
 rare-object view crop) and JSON numbers: a pluggable ``Scorer(generated_crop, truth_crop) -> float``
 inside the object's projected box, median over crops. The default scorer is the L1 distance
@@ -50,6 +53,7 @@ from world_model.model.vae import SensorVAE
 from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
+TASKS = ("first_frame", "completion")  # how the rare views are rendered (``_render``)
 CROP_PX = 96  # figure cell size
 TEXT_PX = 14  # label band height
 
@@ -69,6 +73,7 @@ class RareView:
     frame: int
     view: int
     box: tuple[int, int, int, int]  # (x0, y0, x1, y1) end-exclusive pixels
+    track: str = ""  # the object's track id (what ``--task completion`` regenerates)
 
 
 def rare_views(clips: Sequence[Clip], category: str, max_views: int, near: float) -> list[RareView]:
@@ -87,7 +92,7 @@ def rare_views(clips: Sequence[Clip], category: str, max_views: int, near: float
                 for v in range(fr.rig.num_views):
                     box = camera_box_pixels(fr, corners[o], v, near)
                     if box is not None and (best is None or _area(box) > _area(best[1])):
-                        best = (v, box)
+                        best = (v, box, obj.track_id)
             if best is not None:
                 found.append(RareView(ci, f, *best))
         idx = np.linspace(0, len(found) - 1, num=min(per_clip, len(found))).round().astype(int) if found else []
@@ -116,14 +121,33 @@ def _crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return img[y0:y1, x0:x1]
 
 
-def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs):  # noqa: ANN001, ANN202
-    """First frames of ``views``' frames from their controls without, then with, the adapters (same noise)."""
-    cond = _conditions(clips, views, vae)
+def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str) -> list:  # noqa: ANN001
+    """One observation per view's frame: ``first_frame`` from its controls, or ``completion``: the
+    frame with the view's object masked out of every sensor and regenerated (a reference model)."""
+    if task == "first_frame":
+        return gen.first_frame(_conditions(clips, views, gen.vae), steps=steps, seed=seed)[1]
+    out = []
+    for rv in views:
+        c, f = clips[rv.clip], rv.frame
+        cond = _conditions(clips, [rv], gen.vae)
+        _, obs, _ = gen.complete_object(
+            cond, [c.frames[f]], c.cameras[f : f + 1], c.lidar[f : f + 1], rv.track, steps=steps, seed=seed
+        )
+        out.append(obs[0][0])
+    return out
+
+
+def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame"):  # noqa: ANN001, ANN202
+    """``views``' frames (:func:`_render`) without, then with, the adapters (same noise)."""
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; choose one of {TASKS}")
     gen = ReferenceGenerator(model, vae)
-    _, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
+    if task == "completion" and not gen.conditioned:
+        raise ValueError("--task completion needs a reference model as --base (RUN/reference/model)")
+    base_obs = _render(gen, clips, views, steps, seed, task)
     apply_adapters(model, adapters, search_dirs)
     try:
-        _, adapted_obs = gen.first_frame(cond, steps=steps, seed=seed)
+        adapted_obs = _render(gen, clips, views, steps, seed, task)
     finally:
         remove_adapters(model)
     return base_obs, adapted_obs
@@ -139,15 +163,17 @@ def evaluate(
     steps: int | None = None,
     seed: int = 0,
     search_dirs: Sequence[str | Path] = (),
+    task: str = "first_frame",
 ) -> dict:
-    """Render every rare view with and without ``adapters`` (same seed) and score the object's box.
+    """Render every rare view with and without ``adapters`` (same seed; ``task`` as in
+    :func:`_render`) and score the object's box.
 
     Returns per-view scores, their medians and the rendered cameras (``"images"``: truth, base,
     adapted lists of (H, W, 3) uint8 views) for the figure.
     """
     if not views:
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
-    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs)
+    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task)
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
     autoencoded = [autoencode(vae, clips[rv.clip], rv.frame)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
@@ -208,7 +234,7 @@ def ordinary_frames(clips: Sequence[Clip], count: int, near: float) -> list[Rare
                 if box is not None and (best is None or _area(box) > _area(best[2])):
                     best = (v, o, box)
         if best is not None:
-            out.append(RareView(int(ci), f, best[0], best[2]))
+            out.append(RareView(int(ci), f, best[0], best[2], fr.objects[best[1]].track_id))
     return out
 
 
@@ -222,10 +248,12 @@ def judge_ordinary(
     steps: int | None,
     seed: int,
     search_dirs: Sequence[str | Path] = (),
+    task: str = "first_frame",
 ) -> dict[str, dict[str, float]]:
     """Weather, time-of-day and existence (largest object) yes-frequencies on ordinary frames,
-    for the truth and for the model without / with the adapters (same noise)."""
-    base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, steps, seed, search_dirs)
+    for the truth and for the model without / with the adapters (same noise). ``completion``
+    regenerates each frame's largest object only: its existence is the telling score there."""
+    base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, steps, seed, search_dirs, task)
     meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
     weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
     cats = []
@@ -338,6 +366,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", required=True, help="dataset with the rare-case clips (ground truth)")
     p.add_argument("--case", default="tree_truck", help="adapter name = rare object category")
     p.add_argument("--base", default=None, help="base model export or checkpoint bundle (default RUN/teacher/model)")
+    p.add_argument(
+        "--task",
+        choices=TASKS,
+        default="first_frame",
+        help="first_frame: the views' frames from their controls; completion: the object masked out of its "
+        "frame and regenerated (a reference model as --base); ordinary frames get both",
+    )
     p.add_argument("--max-views", type=int, default=8)
     p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the preset's)")
     p.add_argument("--seed", type=int, default=0)
@@ -359,11 +394,12 @@ def main(argv: list[str] | None = None) -> int:
     vae, model = base.vae, base.model
     clips = list(iter_clips(a.data))
     views = rare_views(clips, a.case, a.max_views, ReferenceConfig().near_plane_m)
-    result = evaluate(model, vae, clips, views, [a.case], steps=a.steps, seed=a.seed, search_dirs=[run / "lora"])
+    dirs = [run / "lora"]
+    result = evaluate(model, vae, clips, views, [a.case], steps=a.steps, seed=a.seed, search_dirs=dirs, task=a.task)
     out = Path(a.out)
     figure(result, views, out / "longtail.png")
     numbers = {k: v for k, v in result.items() if k != "images"}
-    numbers.update(case=a.case, run=str(run), data=a.data, steps=a.steps, seed=a.seed)
+    numbers.update(case=a.case, run=str(run), data=a.data, steps=a.steps, seed=a.seed, task=a.task)
     if not a.no_judge:
         from world_model.eval import load_default_judge
 
@@ -372,9 +408,10 @@ def main(argv: list[str] | None = None) -> int:
         if a.ordinary_data:
             ordinary = list(iter_clips(a.ordinary_data))
             frames = ordinary_frames(ordinary, a.ordinary_frames, ReferenceConfig().near_plane_m)
-            numbers["ordinary_judge"] = judge_ordinary(
-                judge, model, vae, ordinary, frames, [a.case], a.steps, a.seed, [run / "lora"]
-            )
+            args = (judge, model, vae, ordinary, frames, [a.case], a.steps, a.seed, dirs)
+            numbers["ordinary_judge"] = judge_ordinary(*args)
+            if a.task != "first_frame":  # weather and time of day come from the controls there
+                numbers["ordinary_judge_" + a.task] = judge_ordinary(*args, a.task)
     (out / "longtail.json").write_text(json.dumps(numbers, indent=1))
     print(
         f"{a.case}: {numbers['views']} rare-object views, {numbers['scorer']} median "
@@ -383,8 +420,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     if "judge_existence" in numbers:
         print(f"judge 'is it a {a.case}?' yes-frequency: {numbers['judge_existence']}")
-    if "ordinary_judge" in numbers:
-        print(f"ordinary frames (weather, time of day, existence): {numbers['ordinary_judge']}")
+    for key in ("ordinary_judge", f"ordinary_judge_{a.task}"):
+        if key in numbers:
+            print(f"ordinary frames (weather, time of day, existence), {key}: {numbers[key]}")
     return 0
 
 

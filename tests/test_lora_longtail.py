@@ -111,3 +111,50 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench,
     weather_calls = [a for a in asked if a[0] == "weather"]
     assert weather_calls and all(shape[1:] == (CFG.sensors.num_cameras,) + (16, 32, 3) for _, shape, _ in weather_calls)
     assert not any(".lora_" in k for k in model.state_dict())  # the adapter was removed again
+
+
+def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monkeypatch):
+    """--task completion: a reference model regenerates the view's object (its track) with the
+    rest of the frame observed, so the scene away from the box stays the autoencoded truth,
+    unlike a first frame from controls; a plain teacher is refused."""
+    from world_model.model.reference import expand_teacher
+
+    _clip(tmp_path / "rare", "rare", 1, True)
+    clips = list(iter_clips(tmp_path / "rare"))
+    views = bench.rare_views(clips, "tree_truck", 2, 0.1)
+    assert all(v.track == "car1" for v in views)
+    torch.manual_seed(0)
+    vae, teacher = perturbed(SensorVAE(CFG), scale=0.05), perturbed(MultiViewDiT(CFG))
+    reference = perturbed(expand_teacher(teacher))
+    fingerprint = base_fingerprint(reference)
+    for p in add_adapter(reference, "tree_truck", LoraConfig(rank=2)):
+        torch.nn.init.normal_(p, std=0.3)
+    save_adapter(reference, "tree_truck", tmp_path / "adapters" / "tree_truck", LoraConfig(rank=2), fingerprint)
+    remove_adapters(reference)
+    kw = {"steps": 1, "search_dirs": [tmp_path / "adapters"]}
+    calls = []
+    original = bench.ReferenceGenerator.complete_object
+
+    def recording(self, cond, frames, cameras, lidar, track_id, **k):
+        calls.append((frames[0].frame_index, track_id, cameras.shape[0], cond.num_frames))
+        return original(self, cond, frames, cameras, lidar, track_id, **k)
+
+    monkeypatch.setattr(bench.ReferenceGenerator, "complete_object", recording)
+    done = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="completion", **kw)
+    first = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="first_frame", **kw)
+
+    def away_from_box(name, result):
+        errs = []
+        for rv, img, ae in zip(views, result["images"][name], result["images"]["autoencoder"], strict=True):
+            keep = np.ones(img.shape[:2], bool)
+            x0, y0, x1, y1 = rv.box
+            keep[max(0, y0 - 8) : y1 + 8, max(0, x0 - 8) : x1 + 8] = False
+            errs.append(np.abs(img.astype(int) - ae)[keep].mean())
+        return float(np.mean(errs))
+
+    want = [(clips[v.clip].frames[v.frame].frame_index, v.track, 1, 1) for v in views]
+    assert calls == want * 2  # each view's own frame and object, without then with the adapter
+    assert away_from_box("base", done) < away_from_box("base", first)
+    assert done["base_median"] != done["adapted_median"]  # the adapter changed the completed object
+    with pytest.raises(ValueError, match="reference model"):
+        bench.evaluate(teacher, vae, clips, views, ["tree_truck"], task="completion", **kw)
