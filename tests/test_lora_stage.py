@@ -56,6 +56,12 @@ def data(tmp_path_factory):
     return base, rare
 
 
+def train_lora(data, run: Path, steps: int, **kw) -> dict:
+    """``--stage lora`` of the tiny preset on the fixture's datasets (rare clips from ``rare``)."""
+    base, rare = data
+    return train_stage("lora", base, run, preset="tiny", steps=steps, progress=False, case=CASE, case_data=rare, **kw)
+
+
 def make_run(run: Path) -> Path:
     torch.manual_seed(0)
     meta = {"model_config": CFG.to_dict()}
@@ -152,17 +158,7 @@ def test_a_reference_model_base_learns_to_complete_the_rare_object(data, tmp_pat
     reference = expand_teacher(load_teacher(run / "teacher" / EXPORT))
     meta = {"stage": "reference", "model_config": reference.cfg.to_dict()}
     export_weights(run / "reference" / EXPORT, perturbed(reference).state_dict(), meta)
-    out = train_stage(
-        "lora",
-        base,
-        run,
-        preset="tiny",
-        steps=2,
-        progress=False,
-        case=CASE,
-        case_data=rare,
-        base=run / "reference" / EXPORT,
-    )
+    out = train_lora(data, run, 2, base=run / "reference" / EXPORT)
     info, tensors = read_adapter(Path(out["adapter_dir"]))
     assert info.meta["model_config"]["dit"]["in_channels_extra"] == CFG.vae.latent_channels + 1
     assert any(not torch.all(v == 0) for k, v in tensors.items() if "lora_B" in k)
@@ -262,17 +258,7 @@ def test_lora_adapts_a_shallower_student_and_refuses_another_family(data, tmp_pa
     other = replace(CFG, sensors=replace(CFG.sensors, width=CFG.sensors.width * 2))
     export_weights(run / "other" / EXPORT, MultiViewDiT(other).state_dict(), {"model_config": other.to_dict()})
     with pytest.raises(ValueError, match="has preset"):
-        train_stage(
-            "lora",
-            base,
-            run,
-            preset="tiny",
-            steps=1,
-            progress=False,
-            case=CASE,
-            case_data=rare,
-            base=run / "other" / EXPORT,
-        )
+        train_lora(data, run, 1, base=run / "other" / EXPORT)
 
 
 def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
