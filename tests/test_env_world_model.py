@@ -129,6 +129,54 @@ def test_scenario_adapters_are_applied_to_the_student(tiny_bundle, tmp_path):
         M4WorldEnv(bad, backend="world_model", checkpoint=str(bundle), config=KEYS)
 
 
+def test_a_reference_model_adapter_goes_to_the_reference_model(tiny_bundle, tmp_path):
+    """A scenario's adapter trained on the bundle's reference model changes reset()'s first frame
+    and leaves the student alone; one trained on neither model is refused, naming both."""
+    from m4world_env.scenario import load_scenario
+    from world_model.bundle import load_bundle_files, save_bundle
+    from world_model.lora import (
+        AdapterMismatchError,
+        LoraConfig,
+        add_adapter,
+        base_fingerprint,
+        loaded_adapters,
+        remove_adapters,
+        save_adapter,
+    )
+    from world_model.runtime import load_world_model
+
+    files = load_bundle_files(tiny_bundle)
+    gen = torch.Generator().manual_seed(0)
+    tensors = dict(files.tensors)
+    for part in ("student", "reference"):  # adaLN-Zero: an untrained DiT's output ignores its blocks
+        tensors[part] = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors[part].items()}
+    configs = {"reference": files.component_config("reference")}
+    bundle = save_bundle(tmp_path / "bundle", files.model_config, tensors, component_configs=configs)
+    wm = load_world_model(bundle)
+    lora = LoraConfig(rank=2)
+
+    def save(model, name, fingerprint):
+        add_adapter(model, name, lora)
+        with torch.no_grad():
+            for pname, param in model.named_parameters():
+                if "lora_B" in pname:
+                    param.normal_()
+        save_adapter(model, name, tmp_path / "adapters" / name, lora, fingerprint)
+        remove_adapters(model)
+        return str(tmp_path / "adapters" / name)
+
+    ref_case = save(wm.reference, "ref_case", base_fingerprint(wm.reference))
+    foreign = save(wm.student, "foreign", "0" * 64)  # trained on some other base
+    scenario = load_scenario("merge_cut_in").model_copy(update={"adapters": [ref_case]})
+    env = M4WorldEnv(scenario, backend="world_model", checkpoint=str(bundle), config=KEYS)
+    assert loaded_adapters(env.backend.wm.reference) == ["ref_case"] and loaded_adapters(env.backend.wm.student) == []
+    plain = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(bundle), config=KEYS)
+    assert not np.array_equal(env.reset(seed=0)[0]["cameras"], plain.reset(seed=0)[0]["cameras"])
+    bad = load_scenario("merge_cut_in").model_copy(update={"adapters": [foreign]})
+    with pytest.raises(AdapterMismatchError, match="student.*reference model"):
+        M4WorldEnv(bad, backend="world_model", checkpoint=str(bundle), config=KEYS)
+
+
 def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
     for dtype, want in (("bfloat16", torch.bfloat16), ("float32", torch.float32)):
         env = M4WorldEnv(
