@@ -161,6 +161,7 @@ def test_a_reference_model_base_learns_to_complete_the_rare_object(data, tmp_pat
     out = train_lora(data, run, 2, base=run / "reference" / EXPORT)
     info, tensors = read_adapter(Path(out["adapter_dir"]))
     assert info.meta["model_config"]["dit"]["in_channels_extra"] == CFG.vae.latent_channels + 1
+    assert info.meta["train"]["reference_tasks"] is True
     assert any(not torch.all(v == 0) for k, v in tensors.items() if "lora_B" in k)
 
 

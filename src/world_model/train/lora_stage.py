@@ -311,6 +311,8 @@ def lora_stage(
                 "ordinary_clips": len(ordinary),
                 "rare_fraction": scfg.rare_fraction,
                 "box_weight": scfg.box_weight,
+                # a reference-model base: rare windows completed, ordinary ones the task mix
+                "reference_tasks": bool(extra_channels),
             },
         },
     )
