@@ -121,38 +121,8 @@ class WorldModelBackend:
         self._images: dict[str, np.ndarray] = {}
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
-        """Load a scenario's LoRA adapters (§5), each into the model it was trained on: the student
-        (the chunks of every step) or the reference model (``reset()``'s first frames; adapters of
-        ``--stage lora --base RUN/reference/model``). Names are looked up in the bundle's
-        ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and the package; paths are used as given.
-        Returns the names loaded in the student, then those in the reference model."""
-        from world_model.lora import (
-            AdapterMismatchError,
-            apply_adapters,
-            base_fingerprint,
-            loaded_adapters,
-            read_adapter,
-            resolve_adapter,
-        )
-
-        search = [self.wm.path / "adapters"] if self.wm.path is not None else []
-        models = {"student": self.wm.student}
-        if self.wm.reference is not None:
-            models["reference model"] = self.wm.reference
-        prints = {label: base_fingerprint(model) for label, model in models.items()}
-        for item in names:
-            path = resolve_adapter(item, search)
-            info, _ = read_adapter(path)
-            label = next((lb for lb, fp in prints.items() if fp == info.base_sha256), None)
-            if label is None:
-                ours = ", ".join(f"the {lb}'s {fp[:16]}…" for lb, fp in prints.items())
-                raise AdapterMismatchError(
-                    f"adapter {info.name!r} ({path}) was trained on base weights {info.base_sha256[:16]}…, "
-                    f"none of this checkpoint's models ({ours}); retrain it with --base pointing at one of them"
-                )
-            if info.name not in loaded_adapters(models[label]):
-                apply_adapters(models[label], [path])
-        return [name for model in models.values() for name in loaded_adapters(model)]
+        """Load a scenario's LoRA adapters (§5): :meth:`world_model.runtime.WorldModel.apply_adapters`."""
+        return self.wm.apply_adapters(names)
 
     def _crops(self, frame: SceneFrame) -> dict[str, np.ndarray]:
         """Reference crops (image descriptions) of objects whose scenario names an image file."""

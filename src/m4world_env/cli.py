@@ -116,12 +116,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
     ids["student"] = student_id(args.checkpoint)
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
-    if args.adapters:  # the same student with LoRA adapters (§5), on a copy so the rows above stay plain
-        from world_model.lora import WEIGHTS, apply_adapters, resolve_adapter
+    if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
+        from world_model.lora import WEIGHTS, resolve_adapter
 
         adapted = load_world_model(args.checkpoint, dtype=args.dtype)
         search = [adapted.path / "adapters"] if adapted.path is not None else []
-        apply_adapters(adapted.student, args.adapters, search_dirs=search)
+        adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
         digests = [sha256_file(resolve_adapter(a, search) / WEIGHTS)[:16] for a in args.adapters]
         rows["student_adapted"] = world_model_row(adapted, seed=args.seed)
         ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
@@ -333,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         default=None,
         help="--report: LoRA adapters (names in the bundle's adapters/ or $M4WORLD_ADAPTERS, or paths) applied "
-        "to the student for an extra row, student_adapted (per-category existence: report.json's per_category)",
+        "as the env does (each to the student or the reference model it was trained on) for an extra row, "
+        "student_adapted (per-category existence: report.json's per_category)",
     )
     e.add_argument(
         "--dtype",

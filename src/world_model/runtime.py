@@ -63,6 +63,41 @@ class WorldModel:
         """The DiTs' precision (and the camera decoder's): "bfloat16" or "float32"."""
         return "bfloat16" if self.cfg.dit.autocast_bf16 else "float32"
 
+    def apply_adapters(self, names: Sequence[str | Path]) -> list[str]:
+        """Load LoRA adapters (§5), each into the model it was trained on: the student (every
+        chunk) or the reference model (first frames; adapters of ``--stage lora --base
+        RUN/reference/model``), matched by base fingerprint; an adapter already loaded there is
+        skipped. Names are looked up in the bundle's ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and
+        the package; paths are used as given. Returns the names loaded in the student, then those
+        in the reference model. Raises ``AdapterMismatchError`` for an adapter that fits neither."""
+        from world_model.lora import (
+            AdapterMismatchError,
+            apply_adapters,
+            base_fingerprint,
+            loaded_adapters,
+            read_adapter,
+            resolve_adapter,
+        )
+
+        search = [self.path / "adapters"] if self.path is not None else []
+        models = {"student": self.student}
+        if self.reference is not None:
+            models["reference model"] = self.reference
+        prints = {label: base_fingerprint(model) for label, model in models.items()}
+        for item in names:
+            path = resolve_adapter(item, search)
+            info, _ = read_adapter(path)
+            label = next((lb for lb, fp in prints.items() if fp == info.base_sha256), None)
+            if label is None:
+                ours = ", ".join(f"the {lb}'s {fp[:16]}…" for lb, fp in prints.items())
+                raise AdapterMismatchError(
+                    f"adapter {info.name!r} ({path}) was trained on base weights {info.base_sha256[:16]}…, "
+                    f"none of this checkpoint's models ({ours}); retrain it with --base pointing at one of them"
+                )
+            if info.name not in loaded_adapters(models[label]):
+                apply_adapters(models[label], [path])
+        return [name for model in models.values() for name in loaded_adapters(model)]
+
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
