@@ -128,6 +128,8 @@ def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str) -> li
         return gen.first_frame(_conditions(clips, views, gen.vae), steps=steps, seed=seed)[1]
     out = []
     for rv in views:
+        if not rv.track:
+            raise ValueError(f"view {rv} names no object to complete (RareView.track is empty)")
         c, f = clips[rv.clip], rv.frame
         cond = _conditions(clips, [rv], gen.vae)
         _, obs, _ = gen.complete_object(

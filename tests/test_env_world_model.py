@@ -175,6 +175,17 @@ def test_a_reference_model_adapter_goes_to_the_reference_model(tiny_bundle, tmp_
     bad = load_scenario("merge_cut_in").model_copy(update={"adapters": [foreign]})
     with pytest.raises(AdapterMismatchError, match="student.*reference model"):
         M4WorldEnv(bad, backend="world_model", checkpoint=str(bundle), config=KEYS)
+    # A refused list loads nothing; loading the same adapter twice is a no-op, another under its name is refused.
+    wm = load_world_model(bundle)
+    with pytest.raises(AdapterMismatchError):
+        wm.apply_adapters([ref_case, foreign])
+    assert loaded_adapters(wm.reference) == []
+    assert wm.apply_adapters([ref_case]) == wm.apply_adapters([ref_case]) == ["ref_case"]
+    import shutil
+
+    twin = shutil.copytree(ref_case, tmp_path / "twin" / "ref_case")
+    with pytest.raises(ValueError, match="already has an adapter named 'ref_case'"):
+        wm.apply_adapters([twin])
 
 
 def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):

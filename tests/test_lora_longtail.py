@@ -158,3 +158,6 @@ def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monke
     assert done["base_median"] != done["adapted_median"]  # the adapter changed the completed object
     with pytest.raises(ValueError, match="reference model"):
         bench.evaluate(teacher, vae, clips, views, ["tree_truck"], task="completion", **kw)
+    nameless = [replace(v, track="") for v in views]
+    with pytest.raises(ValueError, match="names no object"):
+        bench.evaluate(reference, vae, clips, nameless, ["tree_truck"], task="completion", **kw)

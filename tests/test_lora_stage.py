@@ -175,20 +175,62 @@ def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_pat
     argv += ["--preset", "tiny", "--no-progress", "--steps", "1"]
     assert main([*argv, "--lora-box-weight", "-1"]) == 2
     assert m4world(["train", *argv, "--lora-box-weight", "nan"]) == 2
-    assert capsys.readouterr().err.count("box weight must be >= 0") == 2 and not (run / "lora").exists()
+    assert main([*argv, "--lora-box-weight", "inf"]) == 2
+    assert capsys.readouterr().err.count("box weight must be a finite number >= 0") == 3
+    assert not (run / "lora").exists()
+    teacher_argv = ["--stage", "teacher", *argv[2:]]
+    assert m4world(["train", *teacher_argv, "--lora-box-weight", "9"]) == 2
+    assert "setting of --stage lora" in capsys.readouterr().err
     assert main([*argv, "--lora-box-weight", "4"]) == 0
     info, _ = read_adapter(run / "lora" / CASE)
     assert info.meta["train"]["box_weight"] == 4.0
     with pytest.raises(ValueError, match="box_weight=4.0"):  # resuming with another objective
-        train_stage("lora", base, run, preset="tiny", steps=2, progress=False, case=CASE, case_data=rare)
+        train_lora(data, run, 2)
+    other = run / "other_teacher" / EXPORT
+    export_weights(
+        other, perturbed(load_teacher(run / "teacher" / EXPORT)).state_dict(), {"model_config": CFG.to_dict()}
+    )
+    with pytest.raises(ValueError, match="base_sha256"):  # resuming on another base model
+        train_lora(data, run, 2, base=other, lora_box_weight=4.0)
+
+
+def test_the_stage_feeds_box_weights_and_completion_masks_to_the_loss(data, tmp_path, monkeypatch):
+    """Wiring: the weights reach the flow loss, and a reference base gets completion masks (not
+    the all-zero reference of a controls-only objective)."""
+    from world_model.model.reference import expand_teacher
+    from world_model.train import lora_stage
+
+    seen = {"weights": [], "masks": []}
+    loss_fn, ref_fn = lora_stage.flow_matching_loss, lora_stage.reference_input
+
+    def loss(fn, x0, t, noise, weights=None):
+        seen["weights"].append(weights)
+        return loss_fn(fn, x0, t, noise, weights)
+
+    def reference(latents, mask):
+        seen["masks"].append(mask)
+        return ref_fn(latents, mask)
+
+    monkeypatch.setattr(lora_stage, "flow_matching_loss", loss)
+    monkeypatch.setattr(lora_stage, "reference_input", reference)
+    run = make_run(tmp_path / "run")
+    reference_model = expand_teacher(load_teacher(run / "teacher" / EXPORT))
+    export_weights(
+        run / "reference" / EXPORT,
+        perturbed(reference_model).state_dict(),
+        {"model_config": reference_model.cfg.to_dict()},
+    )
+    train_lora(data, run, 6, base=run / "reference" / EXPORT, lora_box_weight=9.0)
+    assert len(seen["weights"]) == 6 and all(w is not None and w.min() == 1.0 for w in seen["weights"])
+    assert max(float(w.max()) for w in seen["weights"]) == 10.0
+    masks = torch.cat([m.flatten() for m in seen["masks"]])
+    assert len(seen["masks"]) == 6 and masks.min() == 0.0 and masks.max() == 1.0
 
 
 def test_lora_stage_trains_only_the_adapter_and_exports_it(data, tmp_path):
     base, rare = data
     run = make_run(tmp_path / "run")
-    out = train_stage(
-        "lora", base, run, preset="tiny", steps=3, ckpt_every=1, progress=False, case=CASE, case_data=rare
-    )
+    out = train_lora(data, run, 3, ckpt_every=1)
     assert out["step"] == 3 and out["drawn"]["rare"] + out["drawn"]["ordinary"] == 3 * 4
     teacher = load_teacher(run / "teacher" / EXPORT)
     info, tensors = read_adapter(run / "lora" / CASE)
@@ -238,9 +280,7 @@ def test_killed_lora_run_resumes_from_last_checkpoint(data, tmp_path):
     proc.wait()
     ck = load_latest(latest.parent)
     assert ck is not None and ck.step >= 4
-    out = train_stage(
-        "lora", base, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False, case=CASE, case_data=rare
-    )
+    out = train_lora(data, run, ck.step + 2, ckpt_every=2)
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
     assert (run / "lora" / CASE / "adapter.safetensors").exists()
 
@@ -251,9 +291,7 @@ def test_lora_adapts_a_shallower_student_and_refuses_another_family(data, tmp_pa
     student_cfg = replace(CFG.with_depth(1), clip=replace(CFG.clip, context_frames=CFG.clip.context_frames + 1))
     meta = {"stage": "long", "model_config": student_cfg.to_dict()}
     export_weights(run / "long" / EXPORT, perturbed(MultiViewDiT(student_cfg)).state_dict(), meta)
-    out = train_stage(
-        "lora", base, run, preset="tiny", steps=1, progress=False, case=CASE, case_data=rare, base=run / "long" / EXPORT
-    )
+    out = train_lora(data, run, 1, base=run / "long" / EXPORT)
     assert read_adapter(Path(out["adapter_dir"]))[0].meta["model_config"]["dit"]["depth"] == 1
 
     other = replace(CFG, sensors=replace(CFG.sensors, width=CFG.sensors.width * 2))
@@ -270,7 +308,7 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     base, rare = data
     bundle = save_untrained_bundle(tmp_path / "bundle", preset="tiny", seed=3)
     run = tmp_path / "run"  # empty: no vae/ or teacher/
-    out = train_stage("lora", base, run, preset="tiny", steps=2, progress=False, case=CASE, case_data=rare, base=bundle)
+    out = train_lora(data, run, 2, base=bundle)
     assert out["step"] == 2 and not (run / "vae").exists()
     info, _ = read_adapter(Path(out["adapter_dir"]))
     wm = load_world_model(bundle)

@@ -272,7 +272,9 @@ class Scenario(_Strict):
     ego: EgoSpec = Field(default_factory=EgoSpec)
     traffic: TrafficSpec = Field(default_factory=TrafficSpec)
     objects: list[ObjectSpec] = Field(default_factory=list)
-    adapters: list[str] = Field(default_factory=list, description="LoRA adapter names")
+    adapters: list[str] = Field(
+        default_factory=list, description="LoRA adapter names or paths; each goes into the model it was trained on"
+    )
 
     model_config = ConfigDict(extra="forbid", populate_by_name=True)
 

@@ -57,6 +57,7 @@ class WorldModel:
         self.rig: CameraRig = self.cfg.sensors.rig()
         self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
+        self._adapter_dirs: dict[tuple[str, str], Path] = {}  # (model, adapter name) -> its directory
 
     @property
     def dtype(self) -> str:
@@ -66,10 +67,12 @@ class WorldModel:
     def apply_adapters(self, names: Sequence[str | Path]) -> list[str]:
         """Load LoRA adapters (§5), each into the model it was trained on: the student (every
         chunk) or the reference model (first frames; adapters of ``--stage lora --base
-        RUN/reference/model``), matched by base fingerprint; an adapter already loaded there is
-        skipped. Names are looked up in the bundle's ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and
-        the package; paths are used as given. Returns the names loaded in the student, then those
-        in the reference model. Raises ``AdapterMismatchError`` for an adapter that fits neither."""
+        RUN/reference/model``), matched by base fingerprint. All are matched before any is loaded,
+        so a refused list leaves the models as they were; an adapter already loaded from the same
+        directory is skipped, another one under a loaded name is refused. Names are looked up in
+        the bundle's ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and the package; paths are used as
+        given. Returns the names loaded in the student, then those in the reference model.
+        Raises ``AdapterMismatchError`` for an adapter that fits neither model."""
         from world_model.lora import (
             AdapterMismatchError,
             apply_adapters,
@@ -84,8 +87,9 @@ class WorldModel:
         if self.reference is not None:
             models["reference model"] = self.reference
         prints = {label: base_fingerprint(model) for label, model in models.items()}
+        plan: list[tuple[str, str, Path]] = []  # (model label, adapter name, directory)
         for item in names:
-            path = resolve_adapter(item, search)
+            path = resolve_adapter(item, search).resolve()
             info, _ = read_adapter(path)
             label = next((lb for lb, fp in prints.items() if fp == info.base_sha256), None)
             if label is None:
@@ -94,8 +98,14 @@ class WorldModel:
                     f"adapter {info.name!r} ({path}) was trained on base weights {info.base_sha256[:16]}…, "
                     f"none of this checkpoint's models ({ours}); retrain it with --base pointing at one of them"
                 )
-            if info.name not in loaded_adapters(models[label]):
+            loaded = self._adapter_dirs.get((label, info.name))
+            if loaded is not None and loaded != path:
+                raise ValueError(f"the {label} already has an adapter named {info.name!r}, from {loaded}, not {path}")
+            plan.append((label, info.name, path))
+        for label, name, path in plan:
+            if (label, name) not in self._adapter_dirs:
                 apply_adapters(models[label], [path])
+                self._adapter_dirs[(label, name)] = path
         return [name for model in models.values() for name in loaded_adapters(model)]
 
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:

@@ -15,13 +15,16 @@ A reference model as base (``--base RUN/reference/model``, §6) is adapted in th
 a rare window asks it to complete the rare objects (everything observed except their boxes, as
 the reference stage's object completion with the rare category as the object), an ordinary window
 gets a task drawn from the reference stage's mix (:func:`world_model.model.reference.task_mask`).
+Windows keep the lengths of ``clip.train_frames``: the reference stage's single-frame batches
+(``first_frame_only_prob``) are not repeated here.
 
 Loss: the flow-matching loss of the base's pretraining, optionally weighted (``box_weight`` > 0)
 by ``1 + box_weight`` on the latent cells the rare object's projected 3-D box covers, in every
 view (LiDAR too) and frame where it is present (:func:`world_model.model.reference.object_region`,
 no margin). The paper binds the rare object "within the specified 3D box" (§5); at a small
 preset the box covers a few of a view's latent cells, so the plain mean spends almost all of the
-rare clips' signal on the background the base already draws.
+rare clips' signal on the background the base already draws. The weighted mean is taken over the
+whole batch, so rare windows weigh more than ``rare_fraction`` of the loss when the weight is on.
 
 The base (default ``RUN_DIR/teacher/model``; ``base`` may point at any exported DiT, e.g. the
 causal student, or at a checkpoint bundle such as the shipped default, whose student is adapted
@@ -33,6 +36,7 @@ EMA weights are exported (the EMA warm-up makes them track a few-hundred-step ru
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -66,8 +70,8 @@ class LoraStageConfig:
     lora: LoraConfig = field(default_factory=LoraConfig)
 
     def __post_init__(self) -> None:
-        if not self.box_weight >= 0.0:  # also refuses NaN
-            raise ValueError(f"the LoRA box weight must be >= 0, got {self.box_weight}")
+        if not (math.isfinite(self.box_weight) and self.box_weight >= 0.0):
+            raise ValueError(f"the LoRA box weight must be a finite number >= 0, got {self.box_weight}")
 
 
 @dataclass
@@ -268,7 +272,9 @@ def lora_stage(
         "box_weight": scfg.box_weight,
         "model_config": model.cfg.to_dict(),
     }
-    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys={"box_weight": 0.0})
+    # The frozen base is part of the checkpoint: resuming on another base would silently train
+    # against the old one's weights (or fail on a shape), so it is a resume key like the loss.
+    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys={"box_weight": 0.0, "base_sha256": None})
     extra_channels = model.cfg.dit.in_channels_extra
     rcfg = ReferenceConfig()
     drawn = {"rare": 0, "ordinary": 0}

@@ -273,6 +273,8 @@ def train_stage(
     """
     if stage not in STAGES:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
+    if stage != "lora" and lora_box_weight:
+        raise ValueError(f"--lora-box-weight is a setting of --stage lora, not of {stage!r}")
     check_dtype(dtype)
     if stage == "lora":
         from world_model.train.lora_stage import LORA_STEPS, LoraStageConfig, lora_stage_dir
