@@ -104,7 +104,8 @@ def _area(box: tuple[int, int, int, int]) -> int:
     return (box[2] - box[0]) * (box[3] - box[1])
 
 
-def _conditions(clips: Sequence[Clip], views: Sequence[RareView], vae: SensorVAE) -> Conditions:
+def _condition_arrays(clips: Sequence[Clip], views: Sequence[RareView], vae: SensorVAE) -> list:
+    """The controls of each view's frame (one text and image encoder for all)."""
     cfg = vae.cfg
     text, image = make_text_encoder(cfg.text), VaeCropEncoder(vae)
     arrays = []
@@ -113,7 +114,34 @@ def _conditions(clips: Sequence[Clip], views: Sequence[RareView], vae: SensorVAE
         fr = c.frames[rv.frame]
         bev = np.asarray(c.bev[rv.frame : rv.frame + 1])
         arrays.append(build_condition_arrays([fr], bev, cfg, text, image, c.crops, first_ego=fr.ego))
-    return Conditions.collate(arrays)
+    return arrays
+
+
+def _conditions(clips: Sequence[Clip], views: Sequence[RareView], vae: SensorVAE) -> Conditions:
+    return Conditions.collate(_condition_arrays(clips, views, vae))
+
+
+def blank_object(frame, cameras: np.ndarray, track: str, margin: int, near: float) -> np.ndarray:  # noqa: ANN001
+    """A copy of one frame's cameras (V, H, W, 3) with object ``track``'s projected box, grown by
+    ``margin`` pixels, filled with each view's mean colour outside it: the observed latents next to
+    the completed box then carry nothing of the object the VAE encoder could have smeared into them."""
+    out = np.array(cameras, copy=True)
+    corners = frame.object_corners_lidar()[[o.track_id for o in frame.objects].index(track)]
+    for v in range(out.shape[0]):
+        box = camera_box_pixels(frame, corners, v, near)
+        if box is None:
+            continue
+        h, w = out.shape[1:3]
+        x0, y0, x1, y1 = (
+            max(0, box[0] - margin),
+            max(0, box[1] - margin),
+            min(w, box[2] + margin),
+            min(h, box[3] + margin),
+        )
+        keep = np.ones((h, w), bool)
+        keep[y0:y1, x0:x1] = False
+        out[v, y0:y1, x0:x1] = out[v][keep].mean(axis=0).round().astype(out.dtype) if keep.any() else 0
+    return out
 
 
 def _crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
@@ -121,35 +149,38 @@ def _crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
     return img[y0:y1, x0:x1]
 
 
-def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str) -> list:  # noqa: ANN001
+def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str, blank_px: int = -1) -> list:  # noqa: ANN001
     """One observation per view's frame: ``first_frame`` from its controls, or ``completion``: the
-    frame with the view's object masked out of every sensor and regenerated (a reference model)."""
+    frame with the view's object masked out of every sensor and regenerated (a reference model);
+    ``blank_px`` >= 0 first blanks the object in the cameras (:func:`blank_object`, that margin)."""
     if task == "first_frame":
         return gen.first_frame(_conditions(clips, views, gen.vae), steps=steps, seed=seed)[1]
     out = []
-    for rv in views:
+    for rv, arrays in zip(views, _condition_arrays(clips, views, gen.vae), strict=True):
         if not rv.track:
             raise ValueError(f"view {rv} names no object to complete (RareView.track is empty)")
         c, f = clips[rv.clip], rv.frame
-        cond = _conditions(clips, [rv], gen.vae)
+        cams = np.asarray(c.cameras[f : f + 1])
+        if blank_px >= 0:
+            cams = blank_object(c.frames[f], cams[0], rv.track, blank_px, gen.cfg.near_plane_m)[None]
         _, obs, _ = gen.complete_object(
-            cond, [c.frames[f]], c.cameras[f : f + 1], c.lidar[f : f + 1], rv.track, steps=steps, seed=seed
+            Conditions.collate([arrays]), [c.frames[f]], cams, c.lidar[f : f + 1], rv.track, steps=steps, seed=seed
         )
         out.append(obs[0][0])
     return out
 
 
-def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame"):  # noqa: ANN001, ANN202
+def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame", blank_px=-1):  # noqa: ANN001, ANN202
     """``views``' frames (:func:`_render`) without, then with, the adapters (same noise)."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {TASKS}")
     gen = ReferenceGenerator(model, vae)
     if task == "completion" and not gen.conditioned:
         raise ValueError("--task completion needs a reference model as --base (RUN/reference/model)")
-    base_obs = _render(gen, clips, views, steps, seed, task)
+    base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)
     try:
-        adapted_obs = _render(gen, clips, views, steps, seed, task)
+        adapted_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     finally:
         remove_adapters(model)
     return base_obs, adapted_obs
@@ -166,16 +197,17 @@ def evaluate(
     seed: int = 0,
     search_dirs: Sequence[str | Path] = (),
     task: str = "first_frame",
+    blank_px: int = -1,
 ) -> dict:
-    """Render every rare view with and without ``adapters`` (same seed; ``task`` as in
-    :func:`_render`) and score the object's box.
+    """Render every rare view with and without ``adapters`` (same seed; ``task`` and ``blank_px``
+    as in :func:`_render`) and score the object's box.
 
     Returns per-view scores, their medians and the rendered cameras (``"images"``: truth, base,
     adapted lists of (H, W, 3) uint8 views) for the figure.
     """
     if not views:
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
-    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task)
+    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px)
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
     autoencoded = [autoencode(vae, clips[rv.clip], rv.frame)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
@@ -375,6 +407,14 @@ def main(argv: list[str] | None = None) -> int:
         help="first_frame: the views' frames from their controls; completion: the object masked out of its "
         "frame and regenerated (a reference model as --base); ordinary frames get both",
     )
+    p.add_argument(
+        "--blank-px",
+        type=int,
+        default=-1,
+        help="completion: blank the object in the cameras (its box grown by this many pixels, filled with the "
+        "view's mean colour) before encoding the observed frame, so no latent next to the box carries it "
+        "(default -1: no blanking)",
+    )
     p.add_argument("--max-views", type=int, default=8)
     p.add_argument("--steps", type=int, default=None, help="sampling steps (default: the preset's)")
     p.add_argument("--seed", type=int, default=0)
@@ -391,17 +431,30 @@ def main(argv: list[str] | None = None) -> int:
         kept = filter_dataset(a.data, a.out, a.case)
         print(f"{len(kept)} clips without {a.case!r} linked into {a.out}")
         return 0
+    if a.blank_px >= 0 and a.task != "completion":
+        parser.error("--blank-px applies to --task completion only")
     run = Path(a.run)
     base = load_lora_base(a.base, run)
     vae, model = base.vae, base.model
     clips = list(iter_clips(a.data))
     views = rare_views(clips, a.case, a.max_views, ReferenceConfig().near_plane_m)
     dirs = [run / "lora"]
-    result = evaluate(model, vae, clips, views, [a.case], steps=a.steps, seed=a.seed, search_dirs=dirs, task=a.task)
+    result = evaluate(
+        model,
+        vae,
+        clips,
+        views,
+        [a.case],
+        steps=a.steps,
+        seed=a.seed,
+        search_dirs=dirs,
+        task=a.task,
+        blank_px=a.blank_px,
+    )
     out = Path(a.out)
     figure(result, views, out / "longtail.png")
     numbers = {k: v for k, v in result.items() if k != "images"}
-    numbers.update(case=a.case, run=str(run), data=a.data, steps=a.steps, seed=a.seed, task=a.task)
+    numbers.update(case=a.case, run=str(run), data=a.data, steps=a.steps, seed=a.seed, task=a.task, blank_px=a.blank_px)
     if not a.no_judge:
         from world_model.eval import load_default_judge
 

@@ -161,3 +161,21 @@ def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monke
     nameless = [replace(v, track="") for v in views]
     with pytest.raises(ValueError, match="names no object"):
         bench.evaluate(reference, vae, clips, nameless, ["tree_truck"], task="completion", **kw)
+
+
+def test_blank_object_fills_the_grown_box_with_the_views_mean_colour(bench, tmp_path):
+    _clip(tmp_path / "rare", "rare", 1, True)
+    clip = next(iter(iter_clips(tmp_path / "rare")))
+    view = bench.rare_views([clip], "tree_truck", 1, 0.1)[0]
+    cams = np.asarray(clip.cameras[view.frame])
+    out = bench.blank_object(clip.frames[view.frame], cams, view.track, 2, 0.1)
+    x0, y0, x1, y1 = view.box
+    h, w = cams.shape[1:3]
+    grown = (slice(max(0, y0 - 2), min(h, y1 + 2)), slice(max(0, x0 - 2), min(w, x1 + 2)))
+    keep = np.ones((h, w), bool)
+    keep[grown] = False
+    region = out[view.view][grown]
+    assert np.all(region == region[0, 0])  # one colour
+    assert np.allclose(region[0, 0], cams[view.view][keep].mean(axis=0), atol=0.5)
+    assert np.array_equal(out[view.view][keep], cams[view.view][keep])  # the rest untouched
+    assert not np.shares_memory(out, cams)
