@@ -15,7 +15,7 @@ import torch
 
 from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_conditions
 from world_model.data import write_clip
-from world_model.lora import apply_adapters, base_fingerprint, read_adapter, remove_adapters
+from world_model.lora import apply_adapters, base_fingerprint, loaded_adapters, read_adapter, remove_adapters
 from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
 from world_model.model.reference import ReferenceConfig, object_region
 from world_model.train import load_latest, load_teacher, train_stage
@@ -321,6 +321,13 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     other = load_world_model(save_untrained_bundle(tmp_path / "other", preset="tiny", seed=4))
     with pytest.raises(ValueError, match="base"):
         apply_adapters(other.student, [CASE], search_dirs=[run / "lora"])
+    # BUNDLE/reference.safetensors: the bundle's reference model, trained in its completion tasks.
+    out = train_lora(data, tmp_path / "ref_run", 1, base=bundle / "reference.safetensors")
+    info, _ = read_adapter(Path(out["adapter_dir"]))
+    assert info.base_sha256 == base_fingerprint(wm.reference) and info.meta["train"]["reference_tasks"] is True
+    assert info.meta["base_path"] == str(bundle / "reference.safetensors")
+    wm.apply_adapters([out["adapter_dir"]])
+    assert loaded_adapters(wm.reference) == [CASE]
 
 
 def test_a_bundle_loaded_in_float32_is_still_the_presets_family(tmp_path):

@@ -18,9 +18,10 @@ if TYPE_CHECKING:
 
 
 LORA_BASE_HELP = (
-    "lora: the model to adapt (default RUN/teacher/model): an exported DiT (e.g. RUN/long/model), or a "
-    "checkpoint bundle, whose student is adapted in the bundle's own VAE latents (e.g. the shipped "
-    "src/world_model/checkpoints/default: no training run needed)"
+    "lora: the model to adapt (default RUN/teacher/model): an exported DiT (e.g. RUN/long/model or "
+    "RUN/reference/model), or a checkpoint bundle, whose student is adapted in the bundle's own VAE latents "
+    "(e.g. the shipped src/world_model/checkpoints/default: no training run needed; "
+    "BUNDLE/reference.safetensors for its reference model)"
 )
 
 

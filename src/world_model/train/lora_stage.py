@@ -27,8 +27,9 @@ rare clips' signal on the background the base already draws. The weighted mean i
 whole batch, so rare windows weigh more than ``rare_fraction`` of the loss when the weight is on.
 
 The base (default ``RUN_DIR/teacher/model``; ``base`` may point at any exported DiT, e.g. the
-causal student, or at a checkpoint bundle such as the shipped default, whose student is adapted
-with the bundle's own VAE: no training run needed) is loaded, fingerprinted
+causal student, or at a checkpoint bundle such as the shipped default, whose student, or with
+``BUNDLE/reference.safetensors`` its reference model, is adapted with the bundle's own VAE: no
+training run needed) is loaded, fingerprinted
 (:func:`world_model.lora.base_fingerprint`) and frozen; only the adapter trains. The adapter's
 EMA weights are exported (the EMA warm-up makes them track a few-hundred-step run closely).
 """
@@ -89,19 +90,40 @@ def is_bundle(path: str | Path | None) -> bool:
     return path is not None and (Path(path) / "manifest.json").is_file()
 
 
+BUNDLE_MODELS = ("student", "reference")  # the DiTs of a bundle an adapter can be trained on
+
+
+def bundle_model(base: str | Path | None) -> tuple[Path, str] | None:
+    """(bundle, component) when ``base`` names a bundle's DiT: the bundle itself (its student) or
+    its ``reference.safetensors`` / ``student.safetensors``; None otherwise."""
+    if base is None:
+        return None
+    path = Path(base)
+    if is_bundle(path):
+        return path, "student"
+    if path.suffix == ".safetensors" and path.stem in BUNDLE_MODELS and is_bundle(path.parent):
+        return path.parent, path.stem
+    return None
+
+
 def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | None = None) -> LoraBase:
     """``base``: None (``run_dir/teacher/model`` with ``run_dir/vae``), an exported DiT (with
-    ``run_dir/vae``), or a checkpoint bundle (its student, upcast exactly to float32, and its VAE).
-    ``cfg``: the run's config the base must share sensors, VAE and controls with (None: the base's).
-    Raises ``FileNotFoundError``/``ValueError`` saying what to train or pass instead."""
-    if is_bundle(base):
+    ``run_dir/vae``), or a checkpoint bundle's DiT (:func:`bundle_model`: its student by default,
+    ``BUNDLE/reference.safetensors`` for its reference model), upcast exactly to float32, with the
+    bundle's VAE. ``cfg``: the run's config the base must share sensors, VAE and controls with
+    (None: the base's). Raises ``FileNotFoundError``/``ValueError`` saying what to train or pass instead."""
+    in_bundle = bundle_model(base)
+    if in_bundle is not None:
         from world_model.runtime import load_world_model
 
-        wm = load_world_model(base, dtype="float32")
-        model, vae = wm.student, wm.vae
-        components = json.loads((Path(base) / "manifest.json").read_text())["components"]  # verified by the load
+        bundle, component = in_bundle
+        wm = load_world_model(bundle, dtype="float32")
+        model, vae = getattr(wm, component), wm.vae
+        if model is None:
+            raise FileNotFoundError(f"the bundle {bundle} has no {component} model")
+        components = json.loads((bundle / "manifest.json").read_text())["components"]  # verified by the load
         digest = "bundle-" + components["vae"]["sha256"][:16]
-        file, file_sha256 = Path(base) / components["student"]["file"], components["student"]["sha256"]
+        file, file_sha256 = bundle / components[component]["file"], components[component]["sha256"]
     else:
         base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT
         if not base_path.with_suffix(".safetensors").exists():
