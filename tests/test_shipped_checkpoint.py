@@ -26,3 +26,16 @@ def test_demo_runs_on_the_shipped_checkpoint(tmp_path, capsys):
     assert "backend world_model" in printed and "episode score" in printed
     assert "DiT dtype float32" in printed or "DiT dtype bfloat16" in printed  # what dtype "auto" chose
     assert json.loads((DEFAULT_BUNDLE / "manifest.json").read_text())["format"] == "m4world-bundle"
+
+
+def test_every_shipped_adapter_fits_a_model_of_the_shipped_bundle():
+    """adapters/: tree_truck (the student's) and tree_truck_completion (the reference model's, for
+    object completion) load by name, each into the model it was trained on."""
+    from world_model.lora import loaded_adapters
+    from world_model.runtime import load_world_model
+
+    wm = load_world_model(None, dtype="float32")
+    names = sorted(p.name for p in (DEFAULT_BUNDLE / "adapters").iterdir() if p.is_dir())
+    assert names == ["tree_truck", "tree_truck_completion"]
+    assert wm.apply_adapters(names) == ["tree_truck", "tree_truck_completion"]  # student's, then reference's
+    assert loaded_adapters(wm.reference) == ["tree_truck_completion"]
