@@ -290,14 +290,8 @@ def judge_ordinary(
     base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, steps, seed, search_dirs, task)
     meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
     weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
-    cats = []
-    for rv, m in zip(frames, meta, strict=True):
-        corners = m.object_corners_lidar()
-        sizes = [
-            _area(b) if (b := camera_box_pixels(m, corners[o], rv.view, ReferenceConfig().near_plane_m)) else -1
-            for o in range(len(m.objects))
-        ]
-        cats.append(m.objects[int(np.argmax(sizes))].category)
+    # Each frame's judged object is the one ordinary_frames picked (its track).
+    cats = [next(o.category for o in m.objects if o.track_id == rv.track) for rv, m in zip(frames, meta, strict=True)]
     rows = {
         "truth": [np.asarray(clips[rv.clip].cameras[rv.frame]) for rv in frames],
         "base": [o.cameras for o in base_obs],

@@ -117,12 +117,11 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
-        from world_model.lora import WEIGHTS, resolve_adapter
+        from world_model.lora import WEIGHTS
 
         adapted = load_world_model(args.checkpoint, dtype=args.dtype)
-        search = [adapted.path / "adapters"] if adapted.path is not None else []
         adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
-        digests = [sha256_file(resolve_adapter(a, search) / WEIGHTS)[:16] for a in args.adapters]
+        digests = [sha256_file(d / WEIGHTS)[:16] for d in adapted.adapter_dirs]
         rows["student_adapted"] = world_model_row(adapted, seed=args.seed)
         ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
     if args.teacher:

@@ -64,6 +64,11 @@ class WorldModel:
         """The DiTs' precision (and the camera decoder's): "bfloat16" or "float32"."""
         return "bfloat16" if self.cfg.dit.autocast_bf16 else "float32"
 
+    @property
+    def adapter_dirs(self) -> list[Path]:
+        """The directories of the adapters :meth:`apply_adapters` loaded, in loading order."""
+        return list(self._adapter_dirs.values())
+
     def apply_adapters(self, names: Sequence[str | Path]) -> list[str]:
         """Load LoRA adapters (§5), each into the model it was trained on: the student (every
         chunk) or the reference model (first frames; adapters of ``--stage lora --base
