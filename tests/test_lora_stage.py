@@ -338,3 +338,51 @@ def test_a_bundle_loaded_in_float32_is_still_the_presets_family(tmp_path):
     cfg = replace(CFG, dit=replace(CFG.dit, autocast_bf16=True))
     bundle = save_untrained_bundle(tmp_path / "b", preset="tiny")
     assert load_lora_base(bundle, tmp_path / "run", cfg).model.cfg.dit.autocast_bf16 is False
+
+
+def test_lora_rank_is_validated_recorded_and_fixed_for_a_run(data, tmp_path, capsys):
+    """--lora-rank: the adapter's shapes and recorded config follow it (update scale kept at the
+    default's alpha / rank); a bad rank or another stage is refused before anything is written, and
+    a run resumes only at the rank it started with."""
+    from m4world_env.cli import main as m4world
+    from world_model.lora import LoraConfig
+    from world_model.train.__main__ import main
+
+    base, rare = data
+    run = make_run(tmp_path / "run")
+    argv = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
+    argv += ["--preset", "tiny", "--no-progress", "--steps", "1"]
+    assert main([*argv, "--lora-rank", "0"]) == 2
+    assert m4world(["train", *argv, "--lora-rank", "-3"]) == 2
+    assert capsys.readouterr().err.count("LoRA rank must be an integer >= 1") == 2
+    assert not (run / "lora").exists()
+    assert m4world(["train", "--stage", "teacher", *argv[2:], "--lora-rank", "4"]) == 2
+    assert "--lora-rank is a setting of --stage lora" in capsys.readouterr().err
+    assert main([*argv, "--lora-rank", "4"]) == 0
+    info, tensors = read_adapter(run / "lora" / CASE)
+    default = LoraConfig()
+    assert info.lora.rank == 4 and info.lora.alpha / 4 == default.alpha / default.rank
+    down = [v for k, v in tensors.items() if "lora_A" in k]
+    assert down and all(v.shape[0] == 4 for v in down)
+    with pytest.raises(ValueError, match="lora_rank=4"):  # resumed at the default rank
+        train_lora(data, run, 2)
+
+
+def test_a_reference_base_run_from_before_the_completion_objective_is_not_resumed(data, tmp_path):
+    """A checkpoint whose meta predates ``reference_tasks`` was trained controls-only: resuming it
+    under the completion objective would mix two objectives in one adapter."""
+    from world_model.model.reference import expand_teacher
+
+    run = make_run(tmp_path / "run")
+    reference = expand_teacher(load_teacher(run / "teacher" / EXPORT))
+    export_weights(
+        run / "reference" / EXPORT, perturbed(reference).state_dict(), {"model_config": reference.cfg.to_dict()}
+    )
+    train_lora(data, run, 1, base=run / "reference" / EXPORT)
+    ckpts = run / "lora" / CASE / "checkpoints"
+    meta_file = ckpts / json.loads((ckpts / "latest.json").read_text())["dir"] / "meta.json"
+    meta = json.loads(meta_file.read_text())
+    assert meta.pop("reference_tasks") is True
+    meta_file.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match="reference_tasks=False"):
+        train_lora(data, run, 2, base=run / "reference" / EXPORT)

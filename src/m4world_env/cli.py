@@ -211,6 +211,7 @@ def _cmd_train(args: argparse.Namespace) -> int:
             case_data=args.case_data,
             base=args.base,
             lora_box_weight=args.lora_box_weight,
+            lora_rank=args.lora_rank,
             student=student_config(args),
             dtype=args.dtype,
         )

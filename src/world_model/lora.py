@@ -31,7 +31,7 @@ import os
 import re
 import warnings
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import torch
@@ -59,6 +59,14 @@ class LoraConfig:
     dropout: float = 0.0
     target_modules: tuple[str, ...] = ("q", "k", "v", "o", "fc1", "fc2")
     scope: str = r"blocks\.\d+"  # module-path prefix: only the DiT blocks are adapted
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.rank, int) and self.rank >= 1):
+            raise ValueError(f"the LoRA rank must be an integer >= 1, got {self.rank!r}")
+
+    def with_rank(self, rank: int) -> LoraConfig:
+        """The same adapter at another rank, its update scale (alpha / rank) kept."""
+        return replace(self, rank=rank, alpha=self.alpha / self.rank * rank)
 
     def peft_config(self):  # noqa: ANN201 - peft.LoraConfig
         import peft

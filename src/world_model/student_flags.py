@@ -34,6 +34,13 @@ def add_lora_flags(p: argparse.ArgumentParser) -> None:
         help="lora: extra flow-loss weight on the latent cells inside the rare object's projected boxes "
         "(default 0 = the plain mean; e.g. 9 weighs them 10x); a run resumes only with the same value",
     )
+    p.add_argument(
+        "--lora-rank",
+        type=int,
+        default=None,
+        help="lora: rank of the adapter's low-rank updates (default: world_model.lora.LoraConfig's, 8); its scale "
+        "stays 1 (alpha = rank); a run resumes only with the same value",
+    )
 
 
 def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:

@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
             case_clips=a.case_clips.split(",") if a.case_clips else None,
             base=a.base,
             lora_box_weight=a.lora_box_weight,
+            lora_rank=a.lora_rank,
             student=student_config(a),
             dtype=a.dtype,
         )

@@ -283,6 +283,7 @@ def lora_stage(
     windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
     sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
 
+    extra_channels = model.cfg.dit.in_channels_extra
     fingerprint = base_fingerprint(model)
     torch.manual_seed(tcfg.seed)
     add_adapter(model, case, scfg.lora)
@@ -292,12 +293,16 @@ def lora_stage(
         "case": case,
         "base_sha256": fingerprint,
         "box_weight": scfg.box_weight,
+        "lora_rank": scfg.lora.rank,
+        "reference_tasks": bool(extra_channels),
         "model_config": model.cfg.to_dict(),
     }
     # The frozen base is part of the checkpoint: resuming on another base would silently train
-    # against the old one's weights (or fail on a shape), so it is a resume key like the loss.
-    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys={"box_weight": 0.0, "base_sha256": None})
-    extra_channels = model.cfg.dit.in_channels_extra
+    # against the old one's weights (or fail on a shape), so it is a resume key like the loss, the
+    # rank (the adapter's shapes) and the objective (checkpoints from before reference-model bases
+    # learned the completion task read as controls-only).
+    resume_keys = {"box_weight": 0.0, "base_sha256": None, "lora_rank": LoraConfig.rank, "reference_tasks": False}
+    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys=resume_keys)
     rcfg = ReferenceConfig()
     drawn = {"rare": 0, "ordinary": 0}
 

@@ -256,6 +256,7 @@ def train_stage(
     case_clips: list[str] | None = None,
     base: str | Path | None = None,
     lora_box_weight: float = 0.0,
+    lora_rank: int | None = None,
     student: StudentConfig | None = None,
     dtype: str = "auto",
 ) -> dict:
@@ -266,7 +267,7 @@ def train_stage(
     ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
     dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
     (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
-    object's boxes (``LoraStageConfig.box_weight``).
+    object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
     ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and this
     CPU multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
     or "bfloat16". A run-time choice: checkpoints and their configs do not record it.
@@ -275,11 +276,15 @@ def train_stage(
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
     if stage != "lora" and lora_box_weight:
         raise ValueError(f"--lora-box-weight is a setting of --stage lora, not of {stage!r}")
+    if stage != "lora" and lora_rank is not None:
+        raise ValueError(f"--lora-rank is a setting of --stage lora, not of {stage!r}")
     check_dtype(dtype)
     if stage == "lora":
+        from world_model.lora import LoraConfig
         from world_model.train.lora_stage import LORA_STEPS, LoraStageConfig, lora_stage_dir
 
-        scfg = LoraStageConfig(box_weight=lora_box_weight)  # refuses a bad weight before anything is written
+        lora = LoraConfig() if lora_rank is None else LoraConfig().with_rank(lora_rank)
+        scfg = LoraStageConfig(box_weight=lora_box_weight, lora=lora)  # bad settings refused before any write
         stage_dir = lora_stage_dir(run_dir, case)
         steps = LORA_STEPS if steps is None else steps
     else:
