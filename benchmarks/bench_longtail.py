@@ -5,6 +5,9 @@ first frame of rare-case frames from their controls twice (same noise seed): wit
 and with the adapter applied. ``--task completion`` (a reference model as ``--base``, §6 task c)
 instead masks the rare object out of its frame, every sensor, and regenerates it under its
 controls, the rest of the frame observed: the object's own rendering, apart from the scene's.
+``--task reset`` renders what the env's ``reset()`` draws when a scenario names a completion
+adapter: the base model's first frame from controls, then the rare object's boxes regenerated in
+that generated frame with the adapter (the "base" row is the first frame alone).
 It writes a PNG (rows: ground truth, the ground truth through the VAE
 and back — the ceiling of any model generating through it —, base, adapted; one column per
 rare-object view crop) and JSON numbers: a pluggable ``Scorer(generated_crop, truth_crop) -> float``
@@ -48,12 +51,13 @@ from world_model.lora import apply_adapters, remove_adapters
 from world_model.model.conditions import Conditions, build_condition_arrays
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator, camera_box_pixels
+from world_model.model.sampler import latents_to_observations
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
-TASKS = ("first_frame", "completion")  # how the rare views are rendered (``_render``)
+TASKS = ("first_frame", "completion", "reset")  # how the rare views are rendered (``_render_both``)
 CROP_PX = 96  # figure cell size
 TEXT_PX = 14  # label band height
 
@@ -170,13 +174,29 @@ def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str, blank
     return out
 
 
-def _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame", blank_px=-1):  # noqa: ANN001, ANN202
-    """``views``' frames (:func:`_render`) without, then with, the adapters (same noise)."""
+def _render_both(
+    model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame", blank_px=-1, category=""
+):  # noqa: ANN001, ANN202, E501
+    """``views``' frames (:func:`_render`) without, then with, the adapters (same noise).
+
+    ``reset``: what the env's ``reset()`` draws with a completion adapter of ``category``
+    (``WorldModel.first_frame``): the base model's first frames from controls, then, with the
+    adapters, that category's boxes regenerated in them (``ReferenceGenerator.complete_category``)."""
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {TASKS}")
     gen = ReferenceGenerator(model, vae)
-    if task == "completion" and not gen.conditioned:
-        raise ValueError("--task completion needs a reference model as --base (RUN/reference/model)")
+    if task in ("completion", "reset") and not gen.conditioned:
+        raise ValueError(f"--task {task} needs a reference model as --base (RUN/reference/model)")
+    if task == "reset":
+        cond = _conditions(clips, views, vae)
+        first = gen.sample(cond, steps=steps, seed=seed)
+        frames = [clips[rv.clip].frames[rv.frame] for rv in views]
+        apply_adapters(model, adapters, search_dirs)
+        try:
+            completed = gen.complete_category(cond, first, frames, category, steps=steps, seed=seed)
+        finally:
+            remove_adapters(model)
+        return [[o[0] for o in latents_to_observations(vae, lat, vae.cfg.sensors.lidar)] for lat in (first, completed)]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)
     try:
@@ -198,16 +218,20 @@ def evaluate(
     search_dirs: Sequence[str | Path] = (),
     task: str = "first_frame",
     blank_px: int = -1,
+    category: str = "",
 ) -> dict:
     """Render every rare view with and without ``adapters`` (same seed; ``task`` and ``blank_px``
-    as in :func:`_render`) and score the object's box.
+    as in :func:`_render`, ``category`` the one ``reset`` completes: :func:`_render_both`) and
+    score the object's box.
 
     Returns per-view scores, their medians and the rendered cameras (``"images"``: truth, base,
     adapted lists of (H, W, 3) uint8 views) for the figure.
     """
     if not views:
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
-    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px)
+    base_obs, adapted_obs = _render_both(
+        model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px, category
+    )
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
     autoencoded = [autoencode(vae, clips[rv.clip], rv.frame)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
@@ -283,11 +307,14 @@ def judge_ordinary(
     seed: int,
     search_dirs: Sequence[str | Path] = (),
     task: str = "first_frame",
+    category: str = "",
 ) -> dict[str, dict[str, float]]:
     """Weather, time-of-day and existence (largest object) yes-frequencies on ordinary frames,
     for the truth and for the model without / with the adapters (same noise). ``completion``
     regenerates each frame's largest object only: its existence is the telling score there."""
-    base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, steps, seed, search_dirs, task)
+    base_obs, adapted_obs = _render_both(
+        model, vae, clips, frames, adapters, steps, seed, search_dirs, task, -1, category
+    )
     meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
     weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
     # Each frame's judged object is the one ordinary_frames picked (its track).
@@ -399,7 +426,9 @@ def main(argv: list[str] | None = None) -> int:
         choices=TASKS,
         default="first_frame",
         help="first_frame: the views' frames from their controls; completion: the object masked out of its "
-        "frame and regenerated (a reference model as --base); ordinary frames get both",
+        "frame and regenerated (a reference model as --base); reset: as the env's reset() with a completion "
+        "adapter, the base model's first frames from controls, then the case's boxes regenerated in them with "
+        "the adapter; ordinary frames get first_frame and the task",
     )
     p.add_argument(
         "--blank-px",
@@ -444,6 +473,7 @@ def main(argv: list[str] | None = None) -> int:
         search_dirs=dirs,
         task=a.task,
         blank_px=a.blank_px,
+        category=a.case,
     )
     out = Path(a.out)
     figure(result, views, out / "longtail.png")
@@ -460,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
             args = (judge, model, vae, ordinary, frames, [a.case], a.steps, a.seed, dirs)
             numbers["ordinary_judge"] = judge_ordinary(*args)
             if a.task != "first_frame":  # weather and time of day come from the controls there
-                numbers["ordinary_judge_" + a.task] = judge_ordinary(*args, a.task)
+                numbers["ordinary_judge_" + a.task] = judge_ordinary(*args, a.task, a.case)
     (out / "longtail.json").write_text(json.dumps(numbers, indent=1))
     print(
         f"{a.case}: {numbers['views']} rare-object views, {numbers['scorer']} median "

@@ -212,3 +212,57 @@ def test_world_model_backend_retains_the_heap_unless_told_not_to(tiny_bundle, mo
         "merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": {"retain_heap": retain}}
     )
     assert len(calls) == int(retain)
+
+
+def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_bundle, tmp_path):
+    """A reference-model adapter trained in the completion task acts at reset() only inside its
+    category's projected boxes: the controls pass runs without it (every latent cell outside the
+    boxes equals the plain model's), a frame without the category and a first frame anchored on
+    the user's images are untouched, and the adapters active before are active again after."""
+    from m4world_env.scenario import load_scenario
+    from world_model.bundle import load_bundle_files, save_bundle
+    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, read_adapter, remove_adapters, save_adapter
+    from world_model.model.reference import category_region
+    from world_model.runtime import load_world_model
+
+    files = load_bundle_files(tiny_bundle)
+    gen = torch.Generator().manual_seed(1)
+    tensors = dict(files.tensors)
+    tensors["reference"] = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors["reference"].items()}
+    configs = {"reference": files.component_config("reference")}
+    bundle = save_bundle(tmp_path / "bundle", files.model_config, tensors, component_configs=configs)
+    wm = load_world_model(bundle)
+    lora = LoraConfig(rank=2)
+    add_adapter(wm.reference, "van_completion", lora)
+    with torch.no_grad():
+        for name, param in wm.reference.named_parameters():
+            if "lora_B" in name:
+                param.normal_()
+    path = tmp_path / "adapters" / "van_completion"
+    train = {"case": "van", "reference_tasks": True}
+    save_adapter(wm.reference, "van_completion", path, lora, base_fingerprint(wm.reference), {"train": train})
+    remove_adapters(wm.reference)
+    assert read_adapter(path)[0].completes == "van"
+
+    def first(scenario, adapters, **reset):
+        scenario = load_scenario(scenario).model_copy(update={"adapters": adapters})
+        env = M4WorldEnv(scenario, backend="world_model", checkpoint=str(bundle), config=KEYS)
+        obs, _ = env.reset(seed=0, **reset)
+        return env, obs, env.backend.rollouts.engine.last[0, 0]  # the first frame's latents
+
+    env, adapted, lat = first("merge_cut_in", [str(path)])
+    _, plain, plain_lat = first("merge_cut_in", [])
+    region = category_region([env._frame], "van", env.backend.wm.cfg, env.backend.wm.first_frames.cfg)
+    region = torch.from_numpy(region[0])
+    assert region[:-1].any()  # the van is in a camera
+    outside = ~region[:, None].expand_as(lat)
+    assert torch.equal(lat[outside], plain_lat[outside]) and not torch.equal(lat, plain_lat)
+    assert not np.array_equal(adapted["cameras"], plain["cameras"])
+    assert env.backend.wm.reference.blocks[0].attn.q.active_adapters == ["van_completion"]  # restored
+    _, empty, _ = first("empty_highway", [str(path)])
+    _, empty_plain, _ = first("empty_highway", [])
+    assert np.array_equal(empty["cameras"], empty_plain["cameras"])
+    image = {"FRONT": plain["cameras"][0]}
+    _, anchored, _ = first("merge_cut_in", [str(path)], options={"reference": image})
+    _, anchored_plain, _ = first("merge_cut_in", [], options={"reference": image})
+    assert np.array_equal(anchored["cameras"], anchored_plain["cameras"])

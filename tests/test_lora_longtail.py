@@ -161,6 +161,11 @@ def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monke
     nameless = [replace(v, track="") for v in views]
     with pytest.raises(ValueError, match="names no object"):
         bench.evaluate(reference, vae, clips, nameless, ["tree_truck"], task="completion", **kw)
+    # reset: the base row is the first frame from controls; the adapter redraws the category's boxes in it
+    reset = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="reset", category="tree_truck", **kw)
+    for a, b in zip(reset["images"]["base"], first["images"]["base"], strict=True):
+        assert np.array_equal(a, b)
+    assert reset["adapted_median"] != reset["base_median"]  # (latent cells outside the boxes: test_env_world_model)
 
 
 def test_blank_object_fills_the_grown_box_with_the_views_mean_colour(bench, tmp_path):

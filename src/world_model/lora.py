@@ -30,7 +30,8 @@ import json
 import os
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -84,6 +85,14 @@ class AdapterInfo:
     lora: LoraConfig
     meta: dict = field(default_factory=dict)
 
+    @property
+    def completes(self) -> str | None:
+        """The object category this adapter completes, for an adapter trained on a reference
+        model in the completion task (``--stage lora --base RUN/reference/model``: its rare windows
+        regenerate that category's boxes, ``train.reference_tasks``); None for any other adapter."""
+        train = self.meta.get("train", {})
+        return train.get("case") if train.get("reference_tasks") else None
+
 
 def _check_name(name: str) -> str:
     if not _NAME.match(name):
@@ -132,6 +141,28 @@ def _set_active(model: nn.Module, names: list[str], trainable: str | None) -> No
         layer.set_adapter(names) if names else layer.set_adapter([])
     for n, p in model.named_parameters():
         p.requires_grad_(trainable is not None and ".lora_" in n and f".{trainable}." in n)
+
+
+@contextmanager
+def only_adapters(model: nn.Module, names: Sequence[str]) -> Iterator[None]:
+    """Within the block only the loaded adapters ``names`` act (none: the base model); the adapters
+    active before are restored after it. Gradients are left as they are."""
+    loaded = loaded_adapters(model)
+    unknown = [n for n in names if n not in loaded]
+    if unknown:
+        raise KeyError(f"adapters {unknown} are not loaded; loaded: {loaded}")
+    layers = [layer for _, layer in _lora_layers(model)]
+    before = [list(layer.active_adapters) for layer in layers]
+    grads = [(p, p.requires_grad) for layer in layers for p in layer.parameters()]  # peft's set_adapter sets them
+    try:
+        for layer in layers:
+            layer.set_adapter(list(names))
+        yield
+    finally:
+        for layer, active in zip(layers, before, strict=True):
+            layer.set_adapter(active)
+        for p, requires_grad in grads:
+            p.requires_grad_(requires_grad)
 
 
 def add_adapter(model: nn.Module, name: str, cfg: LoraConfig | None = None) -> list[nn.Parameter]:

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from world_model.bundle import CheckpointError, load_bundle_files, save_bundle  # noqa: F401 (re-export)
+from world_model.lora import loaded_adapters, only_adapters
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
@@ -58,6 +59,7 @@ class WorldModel:
         self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
         self._adapter_dirs: dict[tuple[str, str], Path] = {}  # (model, adapter name) -> its directory
+        self._completion: dict[str, str] = {}  # reference-model completion adapter -> the category it completes
 
     @property
     def dtype(self) -> str:
@@ -72,7 +74,9 @@ class WorldModel:
     def apply_adapters(self, names: Sequence[str | Path]) -> list[str]:
         """Load LoRA adapters (§5), each into the model it was trained on: the student (every
         chunk) or the reference model (first frames; adapters of ``--stage lora --base
-        RUN/reference/model``), matched by base fingerprint. All are matched before any is loaded,
+        RUN/reference/model``), matched by base fingerprint. A reference-model adapter trained in
+        the completion task (:attr:`world_model.lora.AdapterInfo.completes`) acts only where
+        :meth:`first_frame` completes its category. All are matched before any is loaded,
         so a refused list leaves the models as they were; an adapter already loaded from the same
         directory is skipped, another one under a loaded name is refused. Names are looked up in
         the bundle's ``adapters/`` folder, ``$M4WORLD_ADAPTERS`` and the package; paths are used as
@@ -106,12 +110,41 @@ class WorldModel:
             loaded = self._adapter_dirs.get((label, info.name))
             if loaded is not None and loaded != path:
                 raise ValueError(f"the {label} already has an adapter named {info.name!r}, from {loaded}, not {path}")
-            plan.append((label, info.name, path))
-        for label, name, path in plan:
-            if (label, name) not in self._adapter_dirs:
+            plan.append((label, info, path))
+        for label, info, path in plan:
+            if (label, info.name) not in self._adapter_dirs:
                 apply_adapters(models[label], [path])
-                self._adapter_dirs[(label, name)] = path
+                self._adapter_dirs[(label, info.name)] = path
+                if label == "reference model" and info.completes:
+                    self._completion[info.name] = info.completes
         return [name for model in models.values() for name in loaded_adapters(model)]
+
+    @torch.no_grad()
+    def first_frame(
+        self, cond: Conditions, frame: SceneFrame, reference: Mapping[str, np.ndarray] | None = None, seed: int = 0
+    ) -> tuple[torch.Tensor, Observation]:
+        """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w) and its observation.
+
+        From controls (``reference`` None) or anchored on the user's images (§6), by the
+        reference model without its completion adapters. Then, for a frame generated from
+        controls, each completion adapter whose category is in ``frame`` regenerates that
+        category's projected boxes with the rest of the frame observed (task (c), what the adapter
+        was trained for): the rare object is drawn into its box, the scene around it, and every
+        frame without the category, stay exactly what the base model drew. A user's images are
+        kept as given."""
+        gen = self.first_frames
+        model = gen.model
+        others = [n for n in loaded_adapters(model) if n not in self._completion]
+        with only_adapters(model, others):
+            latents = gen.sample(
+                cond.frames(0, 1), gen.encode_reference(reference, 1) if reference else None, seed=seed
+            )
+        if reference is None:
+            for name, category in self._completion.items():
+                if any(o.category == category for o in frame.objects):
+                    with only_adapters(model, [*others, name]):
+                        latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
+        return latents, self.decode(latents)[0][0]
 
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
@@ -231,7 +264,7 @@ class RolloutBatch:
         arrays = self.wm.condition_arrays([frame], frame, self.crops[row])
         cond = Conditions.collate([arrays])
         with torch.no_grad():
-            latents, obs = self.wm.first_frames.first_frame(cond, reference, seed=int(seed))
+            latents, obs = self.wm.first_frame(cond, frame, reference, seed=int(seed))
         self.last_arrays[row] = arrays
         if self.engine.batch_size == self.n:
             self.engine.start_rows([row], latents, cond)
@@ -242,7 +275,7 @@ class RolloutBatch:
                 first = torch.cat([self._pending[r][0] for r in rows])
                 self.engine.start(first, Conditions.collate([self._pending[r][1] for r in rows]))
                 self._pending.clear()
-        return obs[0]
+        return obs
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         """Advance every rollout whose chunk is given (``None``: idle, its output is discarded)."""

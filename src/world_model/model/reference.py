@@ -394,6 +394,29 @@ class ReferenceGenerator:
         lat = self.sample(cond, extra, steps, seed)
         return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar)
 
+    def complete_category(
+        self,
+        cond: Conditions,
+        latents: torch.Tensor,
+        frames: Sequence[SceneFrame],
+        category: str,
+        steps: int | None = None,
+        seed: int = 0,
+    ) -> torch.Tensor:
+        """Task (c) on first frames already generated: regenerate the projected boxes of every
+        ``category`` object in ``latents`` (B, 1, V, C, h, w), one SceneFrame per row, the rest of
+        each frame observed. A row without the category comes back unchanged (all of it observed,
+        and observed cells are pasted back); so does the batch when no row holds it."""
+        if latents.shape[1] != 1 or len(frames) != latents.shape[0]:
+            raise ValueError(
+                f"need one frame per row of single-frame latents, got {len(frames)} for {tuple(latents.shape)}"
+            )
+        region = np.stack([category_region([fr], category, self.mcfg, self.cfg)[0] for fr in frames])  # (B, V, h, w)
+        if not region.any():
+            return latents
+        mask = torch.from_numpy(~region).float()[:, None, :, None]
+        return self.sample(cond.frames(0, 1), reference_input(latents.cpu(), mask), steps, seed)
+
     def complete_object(
         self,
         cond: Conditions,

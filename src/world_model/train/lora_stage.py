@@ -339,6 +339,7 @@ def lora_stage(
             "base_file_sha256": lb.file_sha256,
             "model_config": model.cfg.to_dict(),
             "train": {
+                "case": case,  # the rare category (the adapter may be renamed; lora.AdapterInfo.completes)
                 "step": trainer.step,
                 "rare_clips": [clips[i].name for i in rare],
                 "ordinary_clips": len(ordinary),
