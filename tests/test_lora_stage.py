@@ -62,6 +62,13 @@ def train_lora(data, run: Path, steps: int, **kw) -> dict:
     return train_stage("lora", base, run, preset="tiny", steps=steps, progress=False, case=CASE, case_data=rare, **kw)
 
 
+def lora_argv(data, run: Path) -> list[str]:
+    """The train CLIs' arguments of a one-step ``--stage lora`` run on the fixture's datasets."""
+    base, rare = data
+    argv = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
+    return [*argv, "--preset", "tiny", "--no-progress", "--steps", "1"]
+
+
 def make_run(run: Path) -> Path:
     torch.manual_seed(0)
     meta = {"model_config": CFG.to_dict()}
@@ -169,10 +176,8 @@ def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_pat
     from m4world_env.cli import main as m4world
     from world_model.train.__main__ import main
 
-    base, rare = data
     run = make_run(tmp_path / "run")
-    argv = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
-    argv += ["--preset", "tiny", "--no-progress", "--steps", "1"]
+    argv = lora_argv(data, run)
     assert main([*argv, "--lora-box-weight", "-1"]) == 2
     assert m4world(["train", *argv, "--lora-box-weight", "nan"]) == 2
     assert main([*argv, "--lora-box-weight", "inf"]) == 2
@@ -348,10 +353,8 @@ def test_lora_rank_is_validated_recorded_and_fixed_for_a_run(data, tmp_path, cap
     from world_model.lora import LoraConfig
     from world_model.train.__main__ import main
 
-    base, rare = data
     run = make_run(tmp_path / "run")
-    argv = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
-    argv += ["--preset", "tiny", "--no-progress", "--steps", "1"]
+    argv = lora_argv(data, run)
     assert main([*argv, "--lora-rank", "0"]) == 2
     assert m4world(["train", *argv, "--lora-rank", "-3"]) == 2
     assert capsys.readouterr().err.count("LoRA rank must be an integer >= 1") == 2
