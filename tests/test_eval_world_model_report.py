@@ -63,6 +63,16 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     )
     assert json.loads((out / "rows" / "student.json").read_text())["key"] != old_key
     assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
+    # Another rolling window for the student (a study knob) is part of the student rows' key too.
+    bf16_key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    window = ["--dtype", "bfloat16", "--context-frames", "1"]
+    args = ["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]
+    assert main([*args, *window]) == 0
+    key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    assert key != bf16_key
+    assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
+    assert main([*args, "--context-frames", "0"]) == 2
+    assert "context_frames must be >= 1" in capsys.readouterr().err
     capsys.readouterr()
     none = ["--clips-prefix", "long_"]
     assert (

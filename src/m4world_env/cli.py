@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 from world_model.precision import DTYPES
@@ -100,17 +101,19 @@ def _cmd_report(args: argparse.Namespace) -> int:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
     retain_freed_memory()  # as the env's backend does on CPU (world_model.heap)
-    wm = load_world_model(args.checkpoint, dtype=args.dtype)
+    load = partial(load_world_model, dtype=args.dtype, context_frames=args.context_frames)
+    wm = load(args.checkpoint)
+    window = f",window={args.context_frames}" if args.context_frames else ""  # not the checkpoint's own
 
     def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
-        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)},dtype={wm.dtype}"
+        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)},dtype={wm.dtype}{window}"
 
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
     vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
     ids["autoencoder"] = f"autoencoder,vae={vae},dtype={wm.dtype}"  # cameras decode in the DiTs' dtype
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
-        rows["geometry_only"] = world_model_row(load_world_model(args.baseline, dtype=args.dtype), seed=args.seed)
+        rows["geometry_only"] = world_model_row(load(args.baseline), seed=args.seed)
         ids["geometry_only"] = student_id(args.baseline)
     rows["student"] = world_model_row(wm, seed=args.seed)
     ids["student"] = student_id(args.checkpoint)
@@ -119,7 +122,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
         from world_model.lora import WEIGHTS
 
-        adapted = load_world_model(args.checkpoint, dtype=args.dtype)
+        adapted = load(args.checkpoint)
         adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
         digests = [sha256_file(d / WEIGHTS)[:16] for d in adapted.adapter_dirs]
         rows["student_adapted"] = world_model_row(adapted, seed=args.seed)
@@ -342,6 +345,13 @@ def build_parser() -> argparse.ArgumentParser:
         choices=DTYPES,
         help="--report: the DiTs' precision, as the env's config model.dtype (auto: bf16 only where the CPU "
         "multiplies it natively); part of each cached row's key",
+    )
+    e.add_argument(
+        "--context-frames",
+        type=int,
+        default=None,
+        help="--report: run the student rows with a rolling window of N frames instead of the one the "
+        "checkpoint was trained with (a study of the window; part of those rows' key)",
     )
     e.set_defaults(func=_cmd_eval)
 

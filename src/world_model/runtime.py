@@ -23,7 +23,7 @@ import torch
 from world_model.bundle import CheckpointError, load_bundle_files, save_bundle  # noqa: F401 (re-export)
 from world_model.lora import loaded_adapters, only_adapters
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
-from world_model.model.config import ModelConfig
+from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceGenerator, reference_model_config
@@ -163,18 +163,25 @@ class WorldModel:
 
 
 def load_world_model(
-    path: str | Path | None = None, student: StudentConfig | None = None, device: str = "cpu", dtype: str = "auto"
+    path: str | Path | None = None,
+    student: StudentConfig | None = None,
+    device: str = "cpu",
+    dtype: str = "auto",
+    context_frames: int | None = None,
 ) -> WorldModel:
     """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
     bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation). ``dtype`` of the
     DiTs: "auto" (bf16 when the checkpoint was trained with ``dit.autocast_bf16`` and ``device``
     computes bf16 natively, else float32: :func:`world_model.precision.resolve_bf16`),
-    "float32" or "bfloat16"."""
+    "float32" or "bfloat16". ``context_frames`` runs the student with another rolling window than
+    the one it was trained with (None: the bundle's ``clip.context_frames``): a study knob."""
     check_dtype(dtype)
+    if context_frames is not None and context_frames < 1:
+        raise ValueError(f"context_frames must be >= 1, got {context_frames}")
     files = load_bundle_files(path)
     try:
         cfg = ModelConfig.from_dict(files.model_config)
-        cfg = cfg.with_depth(cfg.dit.depth)  # the bundle's config is the student's own
+        cfg = with_student_settings(cfg.with_depth(cfg.dit.depth), context_frames=context_frames)  # the student's
         own = files.component_config("reference") if files.has("reference") else None
         ref_cfg = reference_model_config(cfg) if own is None else ModelConfig.from_dict(own)
         if ref_cfg.shared_settings() != cfg.shared_settings():
