@@ -136,3 +136,15 @@ def test_fingerprint_is_the_same_for_float32_and_bf16_copies_of_a_base():
     with torch.no_grad():
         next(rounded.parameters()).add_(1.0)
     assert base_fingerprint(model) != base_fingerprint(rounded)
+
+
+def test_adapter_info_names_the_category_a_completion_adapter_completes():
+    from world_model.lora import AdapterInfo, LoraConfig
+
+    def info(name, train):
+        return AdapterInfo(name, "0" * 64, LoraConfig(), {"train": train})
+
+    assert info("renamed", {"case": "bus", "reference_tasks": True}).completes == "bus"
+    assert info("bus", {"reference_tasks": True}).completes == "bus"  # recorded before train.case existed
+    assert info("bus", {"case": "bus", "reference_tasks": False}).completes is None  # a student/teacher adapter
+    assert info("bus", {}).completes is None

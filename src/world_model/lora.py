@@ -89,9 +89,10 @@ class AdapterInfo:
     def completes(self) -> str | None:
         """The object category this adapter completes, for an adapter trained on a reference
         model in the completion task (``--stage lora --base RUN/reference/model``: its rare windows
-        regenerate that category's boxes, ``train.reference_tasks``); None for any other adapter."""
+        regenerate that category's boxes, ``train.reference_tasks``); None for any other adapter.
+        The category is ``train.case``; adapters trained before it was recorded were named after it."""
         train = self.meta.get("train", {})
-        return train.get("case") if train.get("reference_tasks") else None
+        return train.get("case", self.name) if train.get("reference_tasks") else None
 
 
 def _check_name(name: str) -> str:
