@@ -176,7 +176,7 @@ def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str, blank
 
 def _render_both(
     model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame", blank_px=-1, category=""
-):  # noqa: ANN001, ANN202, E501
+):  # noqa: ANN001, ANN202
     """``views``' frames (:func:`_render`) without, then with, the adapters (same noise).
 
     ``reset``: what the env's ``reset()`` draws with a completion adapter of ``category``
@@ -187,6 +187,8 @@ def _render_both(
     gen = ReferenceGenerator(model, vae)
     if task in ("completion", "reset") and not gen.conditioned:
         raise ValueError(f"--task {task} needs a reference model as --base (RUN/reference/model)")
+    if task == "reset" and not category:
+        raise ValueError("task reset completes one object category: give category")
     if task == "reset":
         cond = _conditions(clips, views, vae)
         first = gen.sample(cond, steps=steps, seed=seed)

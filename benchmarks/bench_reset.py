@@ -3,8 +3,9 @@
 A completion adapter (``world_model.lora.AdapterInfo.completes``) adds one reference-model sample
 at reset when its category is in the first frame (``WorldModel.first_frame``). This times
 ``env.reset(seed=r)`` of one scenario with its adapters as listed and with the completion adapters
-left out, in interleaved rounds (the shared machine's speed drifts), and reports the medians and
-their ratio; the first round (loading, allocator warm-up) is left out of the medians.
+left out, in interleaved rounds (the shared machine's speed drifts; the order alternates), and
+reports the medians and their ratio; the first round (loading, allocator warm-up) is left out of
+the medians.
 
     python benchmarks/bench_reset.py [--scenario tree_truck_highway] [--rounds 5] --out FILE.json
 """
@@ -19,6 +20,7 @@ from pathlib import Path
 
 from m4world_env.env import M4WorldEnv
 from m4world_env.scenario import load_scenario
+from world_model.bundle import resolve_bundle
 from world_model.lora import read_adapter, resolve_adapter
 
 
@@ -32,8 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.rounds < 2:
         ap.error("--rounds must be >= 2 (the first round is warm-up)")
     scenario = load_scenario(a.scenario)
-    probe = M4WorldEnv(scenario.model_copy(update={"adapters": []}), backend="world_model", checkpoint=a.checkpoint)
-    search = [probe.backend.wm.path / "adapters"] if probe.backend.wm.path else []
+    search = [resolve_bundle(a.checkpoint) / "adapters"]  # where the env looks first
     completing = [n for n in scenario.adapters if read_adapter(resolve_adapter(n, search))[0].completes]
     if not completing:
         ap.error(f"scenario {a.scenario!r} names no completion adapter (its adapters: {scenario.adapters})")
@@ -49,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     seconds: dict[str, list[float]] = {name: [] for name in envs}
     for r in range(a.rounds):
-        for name, env in envs.items():
+        for name, env in sorted(envs.items(), reverse=r % 2 == 1):  # each variant first in every other round
             t0 = time.perf_counter()
             env.reset(seed=r)
             seconds[name].append(time.perf_counter() - t0)

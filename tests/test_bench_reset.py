@@ -16,7 +16,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_reset import main  # noqa: E402
 
 
-def test_reset_is_timed_with_and_without_the_completion_adapter(tiny_bundle, tmp_path, capsys):
+def test_reset_is_timed_with_and_without_the_completion_adapter(tiny_bundle, tmp_path, capsys, monkeypatch):
+    from world_model.model.reference import ReferenceGenerator
+
+    completed = []
+    complete = ReferenceGenerator.complete_category
+
+    def counting(self, *args, **kwargs):
+        completed.append(args[3])  # the category
+        return complete(self, *args, **kwargs)
+
+    monkeypatch.setattr(ReferenceGenerator, "complete_category", counting)
     reference = load_world_model(tiny_bundle).reference
     add_adapter(reference, "van_completion", LoraConfig(rank=2))
     adapter = tmp_path / "van_completion"
@@ -34,6 +44,7 @@ def test_reset_is_timed_with_and_without_the_completion_adapter(tiny_bundle, tmp
     assert result["completion_adapters"] == [str(adapter)]
     assert all(len(s) == 2 for s in result["per_round_s"].values())
     assert result["ratio"] == result["with_completion_s"] / result["without_completion_s"]
+    assert completed == ["van", "van"]  # one completion per timed reset with the adapter, none without
     with pytest.raises(SystemExit):
         main(["--scenario", "merge_cut_in", "--checkpoint", str(tiny_bundle), "--out", str(tmp_path / "none.json")])
     assert "names no completion adapter" in capsys.readouterr().err

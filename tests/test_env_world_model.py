@@ -266,3 +266,12 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
     _, anchored, _ = first("merge_cut_in", [str(path)], options={"reference": image})
     _, anchored_plain, _ = first("merge_cut_in", [], options={"reference": image})
     assert np.array_equal(anchored["cameras"], anchored_plain["cameras"])
+    remove_adapters(env.backend.wm.reference)  # removed by hand: reset() no longer completes
+    assert np.array_equal(env.reset(seed=0)[0]["cameras"], plain["cameras"])
+    odd = tmp_path / "adapters" / "odd"
+    train = {"case": "spaceship", "reference_tasks": True}
+    add_adapter(wm.reference, "odd", lora)
+    save_adapter(wm.reference, "odd", odd, lora, base_fingerprint(wm.reference), {"train": train})
+    remove_adapters(wm.reference)
+    with pytest.raises(ValueError, match="'spaceship' is not one of"):
+        load_world_model(bundle).apply_adapters([str(odd)])

@@ -148,3 +148,40 @@ def test_adapter_info_names_the_category_a_completion_adapter_completes():
     assert info("bus", {"reference_tasks": True}).completes == "bus"  # recorded before train.case existed
     assert info("bus", {"case": "bus", "reference_tasks": False}).completes is None  # a student/teacher adapter
     assert info("bus", {}).completes is None
+
+
+def test_only_adapters_switches_for_a_block_and_restores_everything(setup):
+    """Inside: exactly the named adapters act (none: the base model), no requires_grad flag moves;
+    after, also after an exception: the adapters active before, per layer."""
+    from world_model.lora import only_adapters
+
+    model, cond, x, t = setup
+    with torch.no_grad():
+        base = model(x, t, cond)
+    for name in ("a", "b"):
+        add_adapter(model, name, LoraConfig(rank=2, target_modules=("fc2",) if name == "b" else ("q",)))
+        with torch.no_grad():
+            for pname, p in model.named_parameters():
+                if f"lora_B.{name}." in pname:
+                    p.normal_()
+    assert loaded_adapters(model) == ["a", "b"]  # b is not in the first LoRA layer (a q): still listed
+    model.blocks[0].attn.q.set_adapter(["a"])  # layers may differ in what is active
+    flags = {n: p.requires_grad for n, p in model.named_parameters()}
+    with torch.no_grad():
+        with only_adapters(model, []):
+            assert torch.equal(model(x, t, cond), base)
+            assert {n: p.requires_grad for n, p in model.named_parameters()} == flags
+        with only_adapters(model, ["b"]):
+            only_b = model(x, t, cond)
+        remove_adapters(model, ["a"])
+        assert torch.equal(model(x, t, cond), only_b)  # the same as b alone
+    add_adapter(model, "a", LoraConfig(rank=2, target_modules=("q",)))
+    model.blocks[0].attn.q.set_adapter(["a"])
+    flags = {n: p.requires_grad for n, p in model.named_parameters()}
+    before = {n: list(m.active_adapters) for n, m in model.named_modules() if hasattr(m, "lora_A")}
+    with pytest.raises(RuntimeError, match="inside"), only_adapters(model, ["a"]):
+        raise RuntimeError("inside")
+    assert {n: list(m.active_adapters) for n, m in model.named_modules() if hasattr(m, "lora_A")} == before
+    assert {n: p.requires_grad for n, p in model.named_parameters()} == flags
+    with pytest.raises(KeyError, match="not loaded"), only_adapters(model, ["c"]):
+        pass

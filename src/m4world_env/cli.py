@@ -120,11 +120,12 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
-        from world_model.lora import WEIGHTS
+        from world_model.lora import META, WEIGHTS
 
         adapted = load(args.checkpoint)
         adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
-        digests = [sha256_file(d / WEIGHTS)[:16] for d in adapted.adapter_dirs]
+        # The JSON too: it decides how an adapter acts (a completion adapter only redraws its category).
+        digests = [sha256_file(d / f)[:16] for d in adapted.adapter_dirs for f in (WEIGHTS, META)]
         rows["student_adapted"] = world_model_row(adapted, seed=args.seed)
         ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
     if args.teacher:

@@ -108,9 +108,11 @@ def _lora_layers(model: nn.Module) -> list[tuple[str, nn.Module]]:
 
 
 def loaded_adapters(model: nn.Module) -> list[str]:
-    """Names of the adapters injected into ``model`` (in injection order)."""
-    layers = _lora_layers(model)
-    return list(layers[0][1].lora_A.keys()) if layers else []
+    """Names of the adapters injected into ``model`` (in injection order), whichever layers they target."""
+    names: dict[str, None] = {}
+    for _, layer in _lora_layers(model):
+        names.update(dict.fromkeys(layer.lora_A.keys()))
+    return list(names)
 
 
 def base_state(model: nn.Module) -> dict[str, torch.Tensor]:
@@ -147,7 +149,8 @@ def _set_active(model: nn.Module, names: list[str], trainable: str | None) -> No
 @contextmanager
 def only_adapters(model: nn.Module, names: Sequence[str]) -> Iterator[None]:
     """Within the block only the loaded adapters ``names`` act (none: the base model); the adapters
-    active before are restored after it. Gradients are left as they are."""
+    active before are restored after it, also after an exception. No parameter's ``requires_grad``
+    changes, inside the block or after it (a compiled graph keyed on it is not recompiled)."""
     loaded = loaded_adapters(model)
     unknown = [n for n in names if n not in loaded]
     if unknown:
@@ -157,7 +160,9 @@ def only_adapters(model: nn.Module, names: Sequence[str]) -> Iterator[None]:
     grads = [(p, p.requires_grad) for layer in layers for p in layer.parameters()]  # peft's set_adapter sets them
     try:
         for layer in layers:
-            layer.set_adapter(list(names))
+            layer.set_adapter(list(names), inference_mode=True)
+        for p, requires_grad in grads:  # inference_mode froze the active ones: put every flag back
+            p.requires_grad_(requires_grad)
         yield
     finally:
         for layer, active in zip(layers, before, strict=True):
@@ -297,9 +302,12 @@ def remove_adapters(model: nn.Module, names: Sequence[str] | None = None) -> lis
         raise KeyError(f"adapters {unknown} are not loaded; loaded: {current}")
     remaining = [n for n in current if n not in names]
     if remaining:
-        for _, layer in _lora_layers(model):
-            for n in names:
-                layer.delete_adapter(n)
+        with warnings.catch_warnings():
+            # peft warns when an active adapter goes; the remaining ones are activated right below.
+            warnings.filterwarnings("ignore", message="Adapter .* was active which is now deleted")
+            for _, layer in _lora_layers(model):
+                for n in names:
+                    layer.delete_adapter(n)
         _set_active(model, remaining, trainable=None)
         return remaining
     for path, layer in _lora_layers(model):

@@ -32,7 +32,7 @@ from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
-from world_model.scene import SceneFrame
+from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim import ProceduralSimulator
 from world_model.student.config import StudentConfig
@@ -83,6 +83,7 @@ class WorldModel:
         given. Returns the names loaded in the student, then those in the reference model.
         Raises ``AdapterMismatchError`` for an adapter that fits neither model."""
         from world_model.lora import (
+            META,
             AdapterMismatchError,
             apply_adapters,
             base_fingerprint,
@@ -106,6 +107,11 @@ class WorldModel:
                 raise AdapterMismatchError(
                     f"adapter {info.name!r} ({path}) was trained on base weights {info.base_sha256[:16]}…, "
                     f"none of this checkpoint's models ({ours}); retrain it with --base pointing at one of them"
+                )
+            if label == "reference model" and info.completes and info.completes not in CATEGORIES:
+                raise ValueError(
+                    f"completion adapter {info.name!r} ({path}) names no object category it completes "
+                    f"({info.completes!r} is not one of {CATEGORIES}); set train.case in its {META}"
                 )
             loaded = self._adapter_dirs.get((label, info.name))
             if loaded is not None and loaded != path:
@@ -134,13 +140,17 @@ class WorldModel:
         kept as given."""
         gen = self.first_frames
         model = gen.model
-        others = [n for n in loaded_adapters(model) if n not in self._completion]
-        with only_adapters(model, others):
-            latents = gen.sample(
-                cond.frames(0, 1), gen.encode_reference(reference, 1) if reference else None, seed=seed
-            )
-        if reference is None:
-            for name, category in self._completion.items():
+        loaded = loaded_adapters(model)
+        completion = {n: c for n, c in self._completion.items() if n in loaded}  # not removed since
+        others = [n for n in loaded if n not in completion]
+        anchor = gen.encode_reference(reference, 1) if reference else None
+        if completion:
+            with only_adapters(model, others):
+                latents = gen.sample(cond.frames(0, 1), anchor, seed=seed)
+        else:  # the adapters as they are: no switching
+            latents = gen.sample(cond.frames(0, 1), anchor, seed=seed)
+        if anchor is None:
+            for name, category in completion.items():
                 if any(o.category == category for o in frame.objects):
                     with only_adapters(model, [*others, name]):
                         latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
@@ -176,7 +186,7 @@ def load_world_model(
     "float32" or "bfloat16". ``context_frames`` runs the student with another rolling window than
     the one it was trained with (None: the bundle's ``clip.context_frames``): a study knob."""
     check_dtype(dtype)
-    if context_frames is not None and context_frames < 1:
+    if context_frames is not None and context_frames < 1:  # here: in the try below it would read as a bad bundle
         raise ValueError(f"context_frames must be >= 1, got {context_frames}")
     files = load_bundle_files(path)
     try:
