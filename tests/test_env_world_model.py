@@ -39,6 +39,15 @@ def test_world_model_same_seed_same_observations(tiny_bundle):
     assert not np.array_equal(a[-1]["cameras"], c[-1]["cameras"])
 
 
+def assert_rows_equal_singles(vobs: dict, sobs: list[dict], step: int) -> None:
+    """Vector-env row i equals single env i: one batched forward vs N batch-of-one forwards are
+    equal up to float summation order."""
+    for i, single in enumerate(sobs):
+        diff = np.abs(vobs["cameras"][i].astype(int) - single["cameras"].astype(int))
+        assert diff.max() <= 2 and diff.mean() < 0.05, (step, i)
+        assert np.allclose(vobs["lidar"][i], single["lidar"], atol=0.5)
+
+
 def test_world_model_vector_env_equals_single_envs(tiny_bundle):
     n, seed = 3, 5
     cfg = {"observation_keys": ["cameras", "lidar"]}
@@ -62,11 +71,7 @@ def test_world_model_vector_env_equals_single_envs(tiny_bundle):
             actions = rng.uniform(-0.5, 0.5, size=(n, 2)).astype(np.float32)
             vobs = venv.step(actions)[0]
             sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
-        for i in range(n):
-            # One batched forward vs N batch-of-one forwards: equal up to float summation order.
-            diff = np.abs(vobs["cameras"][i].astype(int) - sobs[i]["cameras"].astype(int))
-            assert diff.max() <= 2 and diff.mean() < 0.05, (step, i)
-            assert np.allclose(vobs["lidar"][i], sobs[i]["lidar"], atol=0.5)
+        assert_rows_equal_singles(vobs, sobs, step)
 
 
 def test_reset_with_reference_image_and_bad_references(tiny_bundle):
@@ -214,15 +219,11 @@ def test_world_model_backend_retains_the_heap_unless_told_not_to(tiny_bundle, mo
     assert len(calls) == int(retain)
 
 
-def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_bundle, tmp_path):
-    """A reference-model adapter trained in the completion task acts at reset() only inside its
-    category's projected boxes: the controls pass runs without it (every latent cell outside the
-    boxes equals the plain model's), a frame without the category and a first frame anchored on
-    the user's images are untouched, and the adapters active before are active again after."""
-    from m4world_env.scenario import load_scenario
+def _bundle_with_completion_adapter(tiny_bundle, root):
+    """A tiny bundle whose reference model's output depends on its blocks, and a completion adapter
+    (random LoRA B) trained on it for category "van" (merge_cut_in's cutting van)."""
     from world_model.bundle import load_bundle_files, save_bundle
-    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, read_adapter, remove_adapters, save_adapter
-    from world_model.model.reference import category_region
+    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
     from world_model.runtime import load_world_model
 
     files = load_bundle_files(tiny_bundle)
@@ -230,7 +231,7 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
     tensors = dict(files.tensors)
     tensors["reference"] = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors["reference"].items()}
     configs = {"reference": files.component_config("reference")}
-    bundle = save_bundle(tmp_path / "bundle", files.model_config, tensors, component_configs=configs)
+    bundle = save_bundle(root / "bundle", files.model_config, tensors, component_configs=configs)
     wm = load_world_model(bundle)
     lora = LoraConfig(rank=2)
     add_adapter(wm.reference, "van_completion", lora)
@@ -238,10 +239,24 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
         for name, param in wm.reference.named_parameters():
             if "lora_B" in name:
                 param.normal_()
-    path = tmp_path / "adapters" / "van_completion"
+    path = root / "adapters" / "van_completion"
     train = {"case": "van", "reference_tasks": True}
     save_adapter(wm.reference, "van_completion", path, lora, base_fingerprint(wm.reference), {"train": train})
     remove_adapters(wm.reference)
+    return bundle, path
+
+
+def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_bundle, tmp_path):
+    """A reference-model adapter trained in the completion task acts at reset() only inside its
+    category's projected boxes: the controls pass runs without it (every latent cell outside the
+    boxes equals the plain model's), a frame without the category and a first frame anchored on
+    the user's images are untouched, and the adapters active before are active again after."""
+    from m4world_env.scenario import load_scenario
+    from world_model.lora import LoraConfig, add_adapter, base_fingerprint, read_adapter, remove_adapters, save_adapter
+    from world_model.model.reference import category_region
+    from world_model.runtime import load_world_model
+
+    bundle, path = _bundle_with_completion_adapter(tiny_bundle, tmp_path)
     assert read_adapter(path)[0].completes == "van"
 
     def first(scenario, adapters, **reset):
@@ -270,8 +285,39 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
     assert np.array_equal(env.reset(seed=0)[0]["cameras"], plain["cameras"])
     odd = tmp_path / "adapters" / "odd"
     train = {"case": "spaceship", "reference_tasks": True}
+    wm, lora = load_world_model(bundle), LoraConfig(rank=2)
     add_adapter(wm.reference, "odd", lora)
     save_adapter(wm.reference, "odd", odd, lora, base_fingerprint(wm.reference), {"train": train})
     remove_adapters(wm.reference)
     with pytest.raises(ValueError, match="'spaceship' is not one of"):
         load_world_model(bundle).apply_adapters([str(odd)])
+
+
+def test_vector_env_with_a_completion_adapter_equals_single_envs(tiny_bundle, tmp_path):
+    """A scenario's completion adapter in the batched vector env: each row's reset completes the
+    van as its single env does (seeds s + i), and the rollouts stay equal."""
+    import yaml
+
+    from m4world_env.scenario import SCENARIOS_DIR
+
+    bundle, adapter = _bundle_with_completion_adapter(tiny_bundle, tmp_path)
+    scenario = tmp_path / "van.yaml"
+    scenario.write_text(
+        yaml.safe_dump(
+            {**yaml.safe_load((SCENARIOS_DIR / "merge_cut_in.yaml").read_text()), "adapters": [str(adapter)]}
+        )
+    )
+    n, seed, cfg = 2, 3, {"observation_keys": ["cameras", "lidar"]}
+    kw = {"scenario": str(scenario), "backend": "world_model", "checkpoint": str(bundle), "config": cfg}
+    venv = gym.make_vec("M4World-v0", num_envs=n, vectorization_mode="vector_entry_point", **kw)
+    singles = [M4WorldEnv(kw["scenario"], backend="world_model", checkpoint=str(bundle), config=cfg) for _ in range(n)]
+    plain = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(bundle), config=cfg)
+    vobs, _ = venv.reset(seed=seed)
+    sobs = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
+    assert not np.array_equal(sobs[0]["cameras"], plain.reset(seed=seed)[0]["cameras"])  # completed
+    actions = np.zeros((n, 2), np.float32)
+    for step in range(2):
+        if step:
+            vobs = venv.step(actions)[0]
+            sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
+        assert_rows_equal_singles(vobs, sobs, step)
