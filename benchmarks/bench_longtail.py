@@ -191,14 +191,14 @@ def _render_both(
         raise ValueError("task reset completes one object category: give category")
     if task == "reset":
         cond = _conditions(clips, views, vae)
-        first = gen.sample(cond, steps=steps, seed=seed)
+        first, base_obs = gen.first_frame(cond, steps=steps, seed=seed)
         frames = [clips[rv.clip].frames[rv.frame] for rv in views]
         apply_adapters(model, adapters, search_dirs)
         try:
             completed = gen.complete_category(cond, first, frames, category, steps=steps, seed=seed)
         finally:
             remove_adapters(model)
-        return [[o[0] for o in latents_to_observations(vae, lat, vae.cfg.sensors.lidar)] for lat in (first, completed)]
+        return base_obs, [o[0] for o in latents_to_observations(vae, completed, vae.cfg.sensors.lidar)]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)
     try:

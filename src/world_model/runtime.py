@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -143,17 +144,14 @@ class WorldModel:
         loaded = loaded_adapters(model)
         completion = {n: c for n, c in self._completion.items() if n in loaded}  # not removed since
         others = [n for n in loaded if n not in completion]
-        anchor = gen.encode_reference(reference, 1) if reference else None
-        if completion:
-            with only_adapters(model, others):
-                latents = gen.sample(cond.frames(0, 1), anchor, seed=seed)
-        else:  # the adapters as they are: no switching
-            latents = gen.sample(cond.frames(0, 1), anchor, seed=seed)
-        if anchor is None:
-            for name, category in completion.items():
-                if any(o.category == category for o in frame.objects):
-                    with only_adapters(model, [*others, name]):
-                        latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
+        with only_adapters(model, others) if completion else nullcontext():  # no switching without one
+            latents, obs = gen.first_frame(cond, reference, seed=seed)
+        wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
+        if reference or not wanted:
+            return latents, obs[0]
+        for name, category in wanted.items():
+            with only_adapters(model, [*others, name]):
+                latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
         return latents, self.decode(latents)[0][0]
 
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:
