@@ -72,7 +72,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     """gym.make keywords for a backend spec: ``procedural``, or ``world_model`` with optional
     ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
-    world-model backend) and/or ``default-heap`` (``retain_heap`` off: glibc's allocator as is)."""
+    world-model backend), ``default-heap`` (``retain_heap`` off: glibc's allocator as is) and/or
+    ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -87,8 +88,12 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             model["compile"] = True
         elif q == "default-heap":
             model["retain_heap"] = False
+        elif q == "no-refresh":
+            model["context_refresh"] = False
         else:
-            raise SystemExit(f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile or default-heap")
+            raise SystemExit(
+                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap or no-refresh"
+            )
     if checkpoint:
         kw["checkpoint"] = checkpoint
     if model:
@@ -211,8 +216,8 @@ def main() -> None:
         nargs="+",
         default=["procedural"],
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
-        "compile (config.model.compile) and/or default-heap (config.model.retain_heap off), "
-        "e.g. world_model:compile or world_model:float32:default-heap",
+        "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
+        "no-refresh (config.model.context_refresh off), e.g. world_model:compile or world_model:compile:no-refresh",
     )
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")

@@ -34,8 +34,8 @@ def test_bench_env_backend_spec_names_the_world_models_dtype():
 
 def test_bench_env_backend_spec_qualifiers_combine():
     kwargs = _load("bench_env")._make_kwargs
-    model = kwargs("world_model:float32:compile:default-heap", None)["config"]["model"]
-    assert model == {"dtype": "float32", "compile": True, "retain_heap": False}
+    model = kwargs("world_model:float32:compile:default-heap:no-refresh", None)["config"]["model"]
+    assert model == {"dtype": "float32", "compile": True, "retain_heap": False, "context_refresh": False}
     with pytest.raises(SystemExit, match="unknown qualifier 'fast'"):
         kwargs("world_model:fast", None)
 

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from world_model.eval.metrics import (
+    JumpSums,
     chamfer_distance,
+    chunk_jumps,
     clip_window_features,
     frechet_distance,
     frechet_features,
@@ -119,3 +121,20 @@ def test_per_second_curve_and_long_horizon_ratio():
     assert long_horizon_ratio(np.ones(60)) == 1.0
     with pytest.raises(ValueError, match="at least window_s"):
         long_horizon_ratio(np.ones(5), 10)
+
+
+def test_chunk_jumps_split_changes_at_pass_starts():
+    # Steady motion of 1 per frame, plus a jump of 4 into frames 3 and 6 (where new passes start).
+    frames = np.arange(8, dtype=np.float64)[:, None, None] + np.zeros((8, 2, 3))
+    frames[3:] += 4
+    frames[6:] += 4
+    sums = chunk_jumps(frames, [3, 6])
+    assert (sums.boundary, sums.boundary_count, sums.within, sums.within_count) == (10.0, 2, 5.0, 5)
+    assert sums.ratio() == pytest.approx(5.0)
+    assert chunk_jumps(np.arange(8.0)[:, None], [3, 6]).ratio() == pytest.approx(1.0)  # no jumps
+    pooled = sums + chunk_jumps(np.arange(4.0)[:, None], [2])  # clips pool by adding sums
+    assert (pooled.boundary_count, pooled.within_count) == (3, 7)
+    assert pooled.ratio() == pytest.approx((11 / 3) / (7 / 7))
+    assert JumpSums().ratio() is None and chunk_jumps(np.zeros((4, 2)), [2]).ratio() is None  # frozen
+    with pytest.raises(ValueError, match="pass starts must be frames 1..7"):
+        chunk_jumps(frames, [0])

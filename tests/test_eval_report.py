@@ -116,3 +116,29 @@ def test_finished_rows_are_cached_by_key(clips, judge, tmp_path):
         {"a": counted}, clips[:1], judge, ReportConfig(frame_stride=3), cache_dir=tmp_path, row_ids={"a": "A2"}
     )
     assert len(calls) == 4 + 2 + 1 + 1
+
+
+def test_chunk_jump_scores_rows_generated_in_passes(clips, judge):
+    def shifted_every_pass(clip):  # the recording, brightened by a new amount in every 3-frame pass
+        cams = np.asarray(clip.cameras).astype(np.int16)
+        starts = tuple(range(1, clip.num_frames, 3))
+        for i, s in enumerate(starts):
+            cams[s:] += 30 if i % 2 == 0 else -30
+        lidar = np.asarray(clip.lidar, np.float32)
+        return Generated(np.clip(cams, 0, 255).astype(np.uint8), lidar, pass_starts=starts)
+
+    rows = {
+        "oracle": oracle_row,
+        "oracle_in_passes": lambda c: Generated(np.asarray(c.cameras), np.asarray(c.lidar, np.float32), (1, 4, 7)),
+        "flicker": shifted_every_pass,
+    }
+    cfg = ReportConfig(frame_stride=6, lidar_stride=30, chamfer_max_points=512)
+    report = evaluate_rows(rows, clips, judge=judge, config=cfg)
+    t1 = {k: r["table1"] for k, r in report["rows"].items()}
+    assert t1["oracle"]["chunk_jump_cameras"] is None and t1["oracle"]["chunk_jump_lidar"] is None
+    assert t1["oracle_in_passes"]["chunk_jump_cameras"] == pytest.approx(1.0)  # the recording's own motion
+    assert t1["oracle_in_passes"]["chunk_jump_lidar"] == pytest.approx(1.0)
+    assert t1["flicker"]["chunk_jump_cameras"] > 2.0 and t1["flicker"]["chunk_jump_lidar"] == pytest.approx(1.0)
+    jumps = report["rows"]["flicker"]["chunk_jumps"]["cameras"]
+    assert jumps["generated"] > jumps["recording"] > 0
+    assert "chunk_jump_cameras" in format_markdown(report)

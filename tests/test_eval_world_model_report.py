@@ -41,6 +41,8 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     oracle, student = report["rows"]["oracle"]["table1"], report["rows"]["student"]["table1"]
     assert oracle["psnr_db"] > student["psnr_db"]  # an untrained model is far from the ground truth
     assert student["lidar_range_mae_m"] > oracle["lidar_range_mae_m"] == 0.0
+    # The tiny preset's chunks are single frames: every change crosses a chunk boundary, no ratio.
+    assert student["chunk_jump_cameras"] is None and oracle["chunk_jump_cameras"] is None
     assert report["rows"]["autoencoder"]["table1"]["psnr_db"] < oracle["psnr_db"]  # the VAE loses detail
     printed = capsys.readouterr().out
     assert "student_no_refresh" in printed
@@ -99,6 +101,9 @@ def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
     for clip, gen in zip(clips, together, strict=True):
         alone = row(clip)
         assert gen.cameras.shape[0] == clip.num_frames
+        # frame 0 from the reference model, then one causal chunk every chunk_frames frames
+        chunk = row.wm.cfg.clip.chunk_frames
+        assert gen.pass_starts == tuple(range(1, clip.num_frames, chunk)) and gen.pass_starts[:2] == (1, 1 + chunk)
         assert np.abs(gen.cameras.astype(int) - alone.cameras).max() <= 1  # same noise, same frames
         assert np.allclose(gen.lidar, alone.lidar, atol=0.05)
 

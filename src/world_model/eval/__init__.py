@@ -4,7 +4,7 @@
 * :mod:`~world_model.eval.judge`: the :class:`JudgeBackend` question interface and the default
   CNN backend (:func:`load_default_judge`); :mod:`~world_model.eval.train_judge` trains it.
 * :mod:`~world_model.eval.metrics`: PSNR, SSIM, judge-feature Fréchet distances, LiDAR errors,
-  long-horizon curves.
+  long-horizon curves, inter-chunk jumps.
 * :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2.
 """
 
@@ -12,6 +12,7 @@ from world_model.eval.crops import CropConfig, ObjectCrop, crop_boxes, extract_c
 from world_model.eval.judge import CnnJudge, JudgeBackend, JudgeThresholds, load_default_judge, load_judge
 from world_model.eval.metrics import (
     chamfer_distance,
+    chunk_jumps,
     frechet_distance,
     frechet_judge_clip,
     frechet_judge_frame,
@@ -31,6 +32,7 @@ __all__ = [
     "JudgeThresholds",
     "ObjectCrop",
     "chamfer_distance",
+    "chunk_jumps",
     "crop_boxes",
     "evaluate_rows",
     "extract_crops",

@@ -8,11 +8,14 @@
 * LiDAR: range MAE on ground-truth returns and the Chamfer distance of back-projected points.
 * Long horizon: any per-frame metric averaged per second of a rollout, and the ratio of its last
   10 s to its first 10 s (:func:`long_horizon_ratio`).
+* Inter-chunk consistency: how much more a stream changes where a new generation pass begins (a
+  causal chunk, a teacher window) than between frames of one pass (:func:`chunk_jumps`), the
+  flickering that latent context refresh is meant to reduce (§4.2).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -195,6 +198,51 @@ def chamfer_distance(
     a_to_b = cKDTree(b).query(a)[0]
     b_to_a = cKDTree(a).query(b)[0]
     return float(a_to_b.mean() + b_to_a.mean())
+
+
+# ------------------------------------------------------------------------ inter-chunk consistency
+
+
+@dataclass
+class JumpSums:
+    """Summed frame-to-frame changes of a stream, split at the starts of its generation passes.
+    Sums (not means) so that clips of different lengths pool by adding."""
+
+    boundary: float = 0.0  # change into a frame that starts a new pass
+    boundary_count: int = 0
+    within: float = 0.0  # change between consecutive frames of one pass
+    within_count: int = 0
+
+    def __add__(self, other: JumpSums) -> JumpSums:
+        return JumpSums(
+            self.boundary + other.boundary,
+            self.boundary_count + other.boundary_count,
+            self.within + other.within,
+            self.within_count + other.within_count,
+        )
+
+    def ratio(self) -> float | None:
+        """Mean change at pass starts over mean change inside passes (None: a side is empty or the
+        stream never changes inside a pass)."""
+        if not self.boundary_count or not self.within_count or self.within == 0:
+            return None
+        return (self.boundary / self.boundary_count) / (self.within / self.within_count)
+
+
+def chunk_jumps(frames: np.ndarray, starts: Sequence[int]) -> JumpSums:
+    """Frame-to-frame changes of ``frames`` (T, ...): the mean absolute difference between frame t
+    and t - 1, for every t >= 1, summed separately over the ``starts`` (frames that begin a new
+    generation pass) and over the other frames. Frame 0 has no predecessor and is ignored."""
+    t = len(frames)
+    first = sorted({int(s) for s in starts})
+    if any(not 1 <= s < t for s in first):
+        raise ValueError(f"pass starts must be frames 1..{t - 1}, got {list(starts)}")
+    change = np.array([np.abs(frames[i].astype(np.float64) - frames[i - 1]).mean() for i in range(1, t)])
+    at_start = np.zeros(t - 1, dtype=bool)
+    at_start[[s - 1 for s in first]] = True
+    return JumpSums(
+        float(change[at_start].sum()), int(at_start.sum()), float(change[~at_start].sum()), int((~at_start).sum())
+    )
 
 
 # ---------------------------------------------------------------------------------- long horizon

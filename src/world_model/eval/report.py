@@ -24,7 +24,9 @@ from world_model.data.clips import clip_fingerprint, write_json_atomic
 from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_by_track_time
 from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
 from world_model.eval.metrics import (
+    JumpSums,
     chamfer_distance,
+    chunk_jumps,
     clip_window_features,
     frechet_features,
     lidar_range_mae,
@@ -37,15 +39,21 @@ from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
-REPORT_VERSION = 3  # part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding)
+# Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: chunk jumps).
+REPORT_VERSION = 4
 
 
 @dataclass
 class Generated:
-    """A row's sensors for one clip: cameras uint8 (T, V, H, W, 3), optional LiDAR (T, beams, azimuth) m."""
+    """A row's sensors for one clip: cameras uint8 (T, V, H, W, 3), optional LiDAR (T, beams, azimuth) m.
+
+    ``pass_starts``: the frames (>= 1) that begin a new generation pass (the student's causal
+    chunks, the teacher's windows), for the inter-chunk consistency scores; None for rows that
+    are not generated in passes (the recording, the autoencoder)."""
 
     cameras: np.ndarray
     lidar: np.ndarray | None = None
+    pass_starts: tuple[int, ...] | None = None
 
 
 RowFn = Callable[[Clip], Generated]
@@ -230,6 +238,7 @@ def score_row(
     answers: list[Answer] = []
     psnrs, ssims, maes, maes_first_s, chamfers, feats = [], [], [], [], [], []
     long_curves = []
+    jumps: dict[str, dict[str, JumpSums]] = {}  # sensor -> generated / recording
     # A row may generate every clip at once (batched rollouts): then all of them up front.
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
     for ci, clip in enumerate(clips):
@@ -257,6 +266,8 @@ def score_row(
             chamfers += [chamfer_distance(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec,
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
+        if gen.pass_starts:
+            _add_jumps(jumps, gen, clip)
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
             long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
@@ -281,13 +292,40 @@ def score_row(
                 np.concatenate([clip_window_features(feats[i], w) for i in long_enough]),
                 np.concatenate([clip_window_features(gt_feats[i], w) for i in long_enough]),
             )
+    table1.update(chunk_jump_scores(jumps))
     return {
         "table1": table1,
+        "chunk_jumps": {k: {side: v.ratio() for side, v in sides.items()} for k, sides in jumps.items()},
         "table2": yes_frequencies(answers),
         "per_category": per_category(answers),
         "answers": len(answers),
         "long_horizon": long_curves,
     }
+
+
+def _add_jumps(jumps: dict[str, dict[str, JumpSums]], gen: Generated, clip: Clip) -> None:
+    """Add one clip's frame-to-frame changes at and between ``gen``'s pass starts, for the
+    generated stream and for the recording at the same frames."""
+    starts = [s for s in gen.pass_starts if 1 <= s < clip.num_frames]
+    pairs = {"cameras": (gen.cameras, clip.cameras)}
+    if gen.lidar is not None:
+        pairs["lidar"] = (gen.lidar, clip.lidar)
+    for sensor, (generated, recorded) in pairs.items():
+        sides = jumps.setdefault(sensor, {"generated": JumpSums(), "recording": JumpSums()})
+        sides["generated"] = sides["generated"] + chunk_jumps(generated, starts)
+        sides["recording"] = sides["recording"] + chunk_jumps(np.asarray(recorded), starts)
+
+
+def chunk_jump_scores(jumps: dict[str, dict[str, JumpSums]]) -> dict[str, float | None]:
+    """Table 1's inter-chunk consistency: per sensor, how much more the stream changes into the
+    first frame of a generation pass than between frames of one pass (:func:`metrics.chunk_jumps`),
+    relative to the recording at the same frames. 1 = pass boundaries as smooth as the recording's
+    motion; above 1 = a visible jump (flicker) at every chunk boundary. None without passes."""
+    out: dict[str, float | None] = {"chunk_jump_cameras": None, "chunk_jump_lidar": None}
+    for sensor, sides in jumps.items():
+        gen, rec = sides["generated"].ratio(), sides["recording"].ratio()
+        out[f"chunk_jump_{sensor}"] = gen / rec if gen is not None and rec else None
+    return out
 
 
 def long_horizon(
@@ -340,11 +378,13 @@ def format_markdown(report: dict) -> str:
         "lidar_range_mae_m",
         "lidar_range_mae_first_s_m",
         "lidar_chamfer_m",
+        "chunk_jump_cameras",
+        "chunk_jump_lidar",
     ]
     lines = ["### Table 1: generation quality (judge-feature Fréchet distances, not Inception FID/FVD)", ""]
     lines += ["| row | " + " | ".join(t1) + " |", "|---" * (len(t1) + 1) + "|"]
     for row, r in report["rows"].items():
-        lines.append(f"| {row} | " + " | ".join(_fmt(r["table1"][k]) for k in t1) + " |")
+        lines.append(f"| {row} | " + " | ".join(_fmt(r["table1"].get(k)) for k in t1) + " |")
     lines += ["", "### Table 2: controllability (judge yes-frequencies)", ""]
     lines += ["| row | " + " | ".join(QUESTION_TYPES) + " |", "|---" * (len(QUESTION_TYPES) + 1) + "|"]
     for row, r in report["rows"].items():

@@ -82,7 +82,10 @@ class StudentRow:
         gens = []
         for clip, o in zip(clips, obs, strict=True):
             o = o[: clip.num_frames]
-            gens.append(Generated(cameras=np.stack([x.cameras for x in o]), lidar=np.stack([x.lidar for x in o])))
+            cameras, lidar = np.stack([x.cameras for x in o]), np.stack([x.lidar for x in o])
+            # Frame 0 comes from the reference model, then a causal chunk starts every `chunk` frames.
+            starts = tuple(range(1, clip.num_frames, chunk))
+            gens.append(Generated(cameras=cameras, lidar=lidar, pass_starts=starts))
         return gens
 
 
@@ -127,7 +130,8 @@ def teacher_row(wm: WorldModel, teacher: MultiViewDiT, seed: int = 0, window: in
             part = frames[start : start + w]
             cond = Conditions.collate([wm.condition_arrays(part, part[0], clip.crops)])
             obs += wm.decode(sample_latents(teacher, cond, gen))[0]
-        return Generated(cameras=np.stack([o.cameras for o in obs]), lidar=np.stack([o.lidar for o in obs]))
+        cameras, lidar = np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs])
+        return Generated(cameras=cameras, lidar=lidar, pass_starts=tuple(range(w, len(frames), w)))
 
     return row
 
