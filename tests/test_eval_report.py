@@ -12,7 +12,7 @@ from world_model.data import read_clip
 from world_model.eval import Generated, evaluate_rows, format_markdown, load_default_judge, oracle_row, write_report
 from world_model.eval.corrupt import blur, color_shift
 from world_model.eval.crops import extract_crops
-from world_model.eval.report import ReportConfig
+from world_model.eval.report import ReportConfig, chunk_jumps_per_clip
 from world_model.scene import CATEGORIES
 from world_model.sim import ProceduralSimulator
 
@@ -141,4 +141,12 @@ def test_chunk_jump_scores_rows_generated_in_passes(clips, judge):
     assert t1["flicker"]["chunk_jump_cameras"] > 2.0 and t1["flicker"]["chunk_jump_lidar"] == pytest.approx(1.0)
     jumps = report["rows"]["flicker"]["chunk_jumps"]["cameras"]
     assert jumps["generated"] > jumps["recording"] > 0
-    assert "chunk_jump_cameras" in format_markdown(report)
+    per_clip = report["rows"]["flicker"]["chunk_jumps_per_clip"]
+    assert [c["clip"] for c in per_clip] == report["clips"] and all(c["chunk_jump_cameras"] > 1.5 for c in per_clip)
+    assert report["rows"]["oracle"]["chunk_jumps_per_clip"] == []
+    md = format_markdown(report)
+    assert "chunk_jump_cameras" in md and "### Chunk jumps per clip" in md
+    n = len(clips)
+    vs = "\n".join(chunk_jumps_per_clip(report, reference="oracle_in_passes"))
+    assert f"| flicker | {n} | " in vs and f", {n} of {n} |" in vs  # jumps more than the recording on every clip
+    assert f"| flicker | {n} |" in md and "| oracle |" not in md.split("### Chunk jumps per clip")[1]

@@ -39,8 +39,9 @@ from world_model.eval.questions import QUESTION_TYPES
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
-# Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: chunk jumps).
-REPORT_VERSION = 4
+# Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: chunk
+# jumps; 5: per-clip chunk jumps).
+REPORT_VERSION = 5
 
 
 @dataclass
@@ -238,7 +239,8 @@ def score_row(
     answers: list[Answer] = []
     psnrs, ssims, maes, maes_first_s, chamfers, feats = [], [], [], [], [], []
     long_curves = []
-    jumps: dict[str, dict[str, JumpSums]] = {}  # sensor -> generated / recording
+    jumps: dict[str, dict[str, JumpSums]] = {}  # sensor -> generated / recording, pooled over clips
+    clip_jump_scores = []
     # A row may generate every clip at once (batched rollouts): then all of them up front.
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
     for ci, clip in enumerate(clips):
@@ -267,7 +269,12 @@ def score_row(
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
         if gen.pass_starts:
-            _add_jumps(jumps, gen, clip)
+            one = clip_jumps(gen, clip)
+            clip_jump_scores.append({"clip": clip.name, **chunk_jump_scores(one)})
+            for sensor, sides in one.items():
+                pooled = jumps.setdefault(sensor, {"generated": JumpSums(), "recording": JumpSums()})
+                for side, sums in sides.items():
+                    pooled[side] = pooled[side] + sums
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
             long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
@@ -296,6 +303,7 @@ def score_row(
     return {
         "table1": table1,
         "chunk_jumps": {k: {side: v.ratio() for side, v in sides.items()} for k, sides in jumps.items()},
+        "chunk_jumps_per_clip": clip_jump_scores,
         "table2": yes_frequencies(answers),
         "per_category": per_category(answers),
         "answers": len(answers),
@@ -303,17 +311,17 @@ def score_row(
     }
 
 
-def _add_jumps(jumps: dict[str, dict[str, JumpSums]], gen: Generated, clip: Clip) -> None:
-    """Add one clip's frame-to-frame changes at and between ``gen``'s pass starts, for the
+def clip_jumps(gen: Generated, clip: Clip) -> dict[str, dict[str, JumpSums]]:
+    """One clip's frame-to-frame changes at and between ``gen``'s pass starts, per sensor, for the
     generated stream and for the recording at the same frames."""
-    starts = [s for s in gen.pass_starts if 1 <= s < clip.num_frames]
+    starts = [s for s in gen.pass_starts or () if 1 <= s < clip.num_frames]
     pairs = {"cameras": (gen.cameras, clip.cameras)}
     if gen.lidar is not None:
         pairs["lidar"] = (gen.lidar, clip.lidar)
-    for sensor, (generated, recorded) in pairs.items():
-        sides = jumps.setdefault(sensor, {"generated": JumpSums(), "recording": JumpSums()})
-        sides["generated"] = sides["generated"] + chunk_jumps(generated, starts)
-        sides["recording"] = sides["recording"] + chunk_jumps(np.asarray(recorded), starts)
+    return {
+        sensor: {"generated": chunk_jumps(generated, starts), "recording": chunk_jumps(np.asarray(recorded), starts)}
+        for sensor, (generated, recorded) in pairs.items()
+    }
 
 
 def chunk_jump_scores(jumps: dict[str, dict[str, JumpSums]]) -> dict[str, float | None]:
@@ -399,8 +407,35 @@ def format_markdown(report: dict) -> str:
         lines += ["| row | clip | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
         for row, c in long_rows:
             lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
+    lines += chunk_jumps_per_clip(report)
     lines += quality_bars(report)
     return "\n".join(lines) + "\n"
+
+
+def chunk_jumps_per_clip(report: dict, reference: str = "student") -> list[str]:
+    """Markdown: the spread over clips of each row's chunk-jump scores, and on how many clips a
+    row jumps more than the ``reference`` row (when present), per sensor."""
+    rows = {row: r["chunk_jumps_per_clip"] for row, r in report["rows"].items() if r.get("chunk_jumps_per_clip")}
+    if not rows:
+        return []
+    ref = {c["clip"]: c for c in rows.get(reference, [])}
+    cols = ["clips"] + [f"{s}: median (min-max), above {reference}" for s in ("cameras", "lidar")]
+    lines = ["", "### Chunk jumps per clip", ""]
+    lines += ["| row | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
+    for row, clips in rows.items():
+        cells = [str(len(clips))]
+        for sensor in ("cameras", "lidar"):
+            key = f"chunk_jump_{sensor}"
+            v = np.array([c[key] for c in clips if c[key] is not None])
+            if not len(v):
+                cells.append("n/a")
+                continue
+            pairs = [(c[key], ref[c["clip"]][key]) for c in clips if c["clip"] in ref]
+            pairs = [(a, b) for a, b in pairs if a is not None and b is not None]
+            above = f", {sum(a > b for a, b in pairs)} of {len(pairs)}" if pairs and row != reference else ""
+            cells.append(f"{np.median(v):.3f} ({v.min():.3f}-{v.max():.3f}){above}")
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def existence_by_category(report: dict) -> list[str]:
