@@ -419,7 +419,8 @@ def chunk_jumps_per_clip(report: dict, reference: str = "student") -> list[str]:
     if not rows:
         return []
     ref = {c["clip"]: c for c in rows.get(reference, [])}
-    cols = ["clips"] + [f"{s}: median (min-max), above {reference}" for s in ("cameras", "lidar")]
+    above_ref = f", above {reference}" if ref else ""
+    cols = ["clips"] + [f"{s}: median (min-max){above_ref}" for s in ("cameras", "lidar")]
     lines = ["", "### Chunk jumps per clip", ""]
     lines += ["| row | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
     for row, clips in rows.items():
