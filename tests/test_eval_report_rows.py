@@ -47,4 +47,5 @@ def test_report_with_geometry_only_and_teacher_rows(tiny_bundle, tmp_path):
     n = rows["oracle"]["answers"]
     assert all(r["answers"] == n for r in rows.values())  # every row answered the same questions
     # The teacher's independent 3-frame windows: a jump into each window start, scored against the recording.
-    assert rows["teacher"]["table1"]["chunk_jump_cameras"] > 0 and rows["teacher"]["chunk_jumps"]["lidar"]
+    assert rows["teacher"]["table1"]["chunk_jump_cameras"] > 0 and rows["teacher"]["table1"]["chunk_jump_lidar"] > 0
+    assert all(v > 0 for v in rows["teacher"]["chunk_jumps"]["lidar"].values())

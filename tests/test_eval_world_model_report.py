@@ -101,9 +101,7 @@ def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
     for clip, gen in zip(clips, together, strict=True):
         alone = row(clip)
         assert gen.cameras.shape[0] == clip.num_frames
-        # frame 0 from the reference model, then one causal chunk every chunk_frames frames
-        chunk = row.wm.cfg.clip.chunk_frames
-        assert gen.pass_starts == tuple(range(1, clip.num_frames, chunk)) and gen.pass_starts[:2] == (1, 1 + chunk)
+        assert gen.pass_starts == tuple(range(1, clip.num_frames))  # the tiny preset's 1-frame chunks
         assert np.abs(gen.cameras.astype(int) - alone.cameras).max() <= 1  # same noise, same frames
         assert np.allclose(gen.lidar, alone.lidar, atol=0.05)
 
@@ -157,3 +155,38 @@ def test_report_row_with_lora_adapters(tmp_path, capsys):
     assert key("student_adapted") != adapted_key
     assert main([*args, "--adapters", "no_such_adapter"]) == 2
     assert "adapter 'no_such_adapter' not found" in capsys.readouterr().err
+
+
+def test_student_row_marks_each_causal_chunk_for_the_chunk_jump_scores(tiny_bundle, tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from world_model.data import iter_clips
+    from world_model.eval import evaluate_rows, load_default_judge
+    from world_model.eval.report import ReportConfig
+    from world_model.eval.rows import world_model_row
+    from world_model.runtime import load_world_model
+    from world_model.student.engine import StreamingEngine
+
+    args = ["record", "--scenario", "merge_cut_in", "--episodes", "1", "--duration", "0.6", "--out", str(tmp_path)]
+    assert main([*args, "--height", "16", "--width", "32"]) == 0
+    (clip,) = iter_clips(tmp_path)
+    wm = load_world_model(tiny_bundle)
+    cfg = replace(wm.cfg, clip=replace(wm.cfg.clip, chunk_frames=2))  # weights do not depend on the chunking
+    wm.student.cfg = cfg
+    wm = replace(wm, cfg=cfg)
+    passes = []
+    real_step = StreamingEngine.step
+
+    def counted(self, controls, *a, **kw):
+        passes.append(controls.num_frames)
+        return real_step(self, controls, *a, **kw)
+
+    monkeypatch.setattr(StreamingEngine, "step", counted)
+    row = world_model_row(wm, seed=3)
+    gen = row(clip)
+    # frame 0 from the reference model, then one 2-frame chunk per engine step (the last one padded)
+    assert passes == [2] * len(gen.pass_starts) and gen.pass_starts[:2] == (1, 3)
+    assert 2 * len(passes) >= clip.num_frames - 1 > 2 * (len(passes) - 1)
+    cfg = ReportConfig(frame_stride=3, lidar_stride=30, chamfer_max_points=256)
+    t1 = evaluate_rows({"student": row}, [clip], judge=load_default_judge(), config=cfg)["rows"]["student"]["table1"]
+    assert t1["chunk_jump_cameras"] > 0 and t1["chunk_jump_lidar"] > 0

@@ -222,8 +222,9 @@ class JumpSums:
         )
 
     def ratio(self) -> float | None:
-        """Mean change at pass starts over mean change inside passes (None: a side is empty or the
-        stream never changes inside a pass)."""
+        """Mean change at pass starts over mean change inside passes. None when a side is empty or
+        the stream never changes inside a pass (a stream frozen within its passes is better read
+        from its PSNR curves than from an infinite ratio)."""
         if not self.boundary_count or not self.within_count or self.within == 0:
             return None
         return (self.boundary / self.boundary_count) / (self.within / self.within_count)
@@ -232,7 +233,9 @@ class JumpSums:
 def chunk_jumps(frames: np.ndarray, starts: Sequence[int]) -> JumpSums:
     """Frame-to-frame changes of ``frames`` (T, ...): the mean absolute difference between frame t
     and t - 1, for every t >= 1, summed separately over the ``starts`` (frames that begin a new
-    generation pass) and over the other frames. Frame 0 has no predecessor and is ignored."""
+    generation pass) and over the other frames. Frame 0 has no predecessor and is ignored. On LiDAR
+    range maps a ray switching between a return and no return counts its whole range: such
+    dropouts at a chunk boundary are flicker too."""
     t = len(frames)
     first = sorted({int(s) for s in starts})
     if any(not 1 <= s < t for s in first):

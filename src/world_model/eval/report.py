@@ -328,7 +328,9 @@ def chunk_jump_scores(jumps: dict[str, dict[str, JumpSums]]) -> dict[str, float 
     """Table 1's inter-chunk consistency: per sensor, how much more the stream changes into the
     first frame of a generation pass than between frames of one pass (:func:`metrics.chunk_jumps`),
     relative to the recording at the same frames. 1 = pass boundaries as smooth as the recording's
-    motion; above 1 = a visible jump (flicker) at every chunk boundary. None without passes."""
+    motion; above 1 = a visible jump (flicker) at every chunk boundary. None without passes. For
+    the student the first boundary is the switch from the reference model's first frame to the
+    first causal chunk; it weighs the same in rows with and without context refresh."""
     out: dict[str, float | None] = {"chunk_jump_cameras": None, "chunk_jump_lidar": None}
     for sensor, sides in jumps.items():
         gen, rec = sides["generated"].ratio(), sides["recording"].ratio()
@@ -419,7 +421,8 @@ def chunk_jumps_per_clip(report: dict, reference: str = "student") -> list[str]:
     if not rows:
         return []
     ref = {c["clip"]: c for c in rows.get(reference, [])}
-    above_ref = f", above {reference}" if ref else ""
+    scored = any(v is not None for c in ref.values() for k, v in c.items() if k != "clip")
+    above_ref = f", above {reference}" if scored else ""
     cols = ["clips"] + [f"{s}: median (min-max){above_ref}" for s in ("cameras", "lidar")]
     lines = ["", "### Chunk jumps per clip", ""]
     lines += ["| row | " + " | ".join(cols) + " |", "|---" * (len(cols) + 1) + "|"]
