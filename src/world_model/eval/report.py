@@ -239,7 +239,7 @@ def score_row(
     answers: list[Answer] = []
     psnrs, ssims, maes, maes_first_s, chamfers, feats = [], [], [], [], [], []
     long_curves = []
-    jumps: dict[str, dict[str, JumpSums]] = {}  # sensor -> generated / recording, pooled over clips
+    clip_jump_sums: list[dict[str, dict[str, JumpSums]]] = []  # per clip: sensor -> generated / recording
     clip_jump_scores = []
     # A row may generate every clip at once (batched rollouts): then all of them up front.
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
@@ -269,12 +269,8 @@ def score_row(
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
         if gen.pass_starts:
-            one = clip_jumps(gen, clip)
-            clip_jump_scores.append({"clip": clip.name, **chunk_jump_scores(one)})
-            for sensor, sides in one.items():
-                pooled = jumps.setdefault(sensor, {"generated": JumpSums(), "recording": JumpSums()})
-                for side, sums in sides.items():
-                    pooled[side] = pooled[side] + sums
+            clip_jump_sums.append(clip_jumps(gen, clip))
+            clip_jump_scores.append({"clip": clip.name, **chunk_jump_scores(clip_jump_sums[-1])})
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
             long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
@@ -299,6 +295,11 @@ def score_row(
                 np.concatenate([clip_window_features(feats[i], w) for i in long_enough]),
                 np.concatenate([clip_window_features(gt_feats[i], w) for i in long_enough]),
             )
+    # Pooled over clips: sums add, so a long clip weighs by its number of boundaries.
+    jumps = {
+        sensor: {side: sum((c[sensor][side] for c in clip_jump_sums if sensor in c), JumpSums()) for side in sides}
+        for sensor, sides in (clip_jump_sums[0] if clip_jump_sums else {}).items()
+    }
     table1.update(chunk_jump_scores(jumps))
     return {
         "table1": table1,
@@ -314,7 +315,7 @@ def score_row(
 def clip_jumps(gen: Generated, clip: Clip) -> dict[str, dict[str, JumpSums]]:
     """One clip's frame-to-frame changes at and between ``gen``'s pass starts, per sensor, for the
     generated stream and for the recording at the same frames."""
-    starts = [s for s in gen.pass_starts or () if 1 <= s < clip.num_frames]
+    starts = gen.pass_starts or ()
     pairs = {"cameras": (gen.cameras, clip.cameras)}
     if gen.lidar is not None:
         pairs["lidar"] = (gen.lidar, clip.lidar)
