@@ -73,7 +73,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
     world-model backend), ``default-heap`` (``retain_heap`` off: glibc's allocator as is) and/or
-    ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)."""
+    ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)
+    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``)."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -90,9 +91,12 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             model["retain_heap"] = False
         elif q == "no-refresh":
             model["context_refresh"] = False
+        elif q.startswith("refresh="):
+            model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
         else:
             raise SystemExit(
-                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap or no-refresh"
+                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh "
+                "or refresh=K[,K...]"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
@@ -217,7 +221,8 @@ def main() -> None:
         default=["procedural"],
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
         "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
-        "no-refresh (config.model.context_refresh off), e.g. world_model:compile or world_model:compile:no-refresh",
+        "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps), "
+        "e.g. world_model:compile or world_model:compile:no-refresh or world_model:refresh=0",
     )
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")

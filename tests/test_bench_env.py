@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -38,3 +40,18 @@ def test_bench_env_in_process_and_memory_probe_reads_its_own_peak(tmp_path):
     r = result["backends"]["procedural"]
     # the probe's own peak, not the (bigger) parent's: Linux keeps ru_maxrss across execve
     assert 0 < r["one_env_peak_rss_mb"] < result["peak_rss_mb"]
+
+
+def test_world_model_qualifiers_become_model_options():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_env
+
+    from m4world_env.config import EnvConfig
+
+    kw = bench_env._make_kwargs("world_model:compile:refresh=0,3", checkpoint=None)
+    model = kw["config"]["model"]
+    assert model == {"compile": True, "refresh_steps": [0, 3]}
+    assert EnvConfig.from_dict(kw["config"]).model.refresh_steps == (0, 3)  # what gym.make gets
+    assert bench_env._make_kwargs("world_model:no-refresh", None)["config"]["model"] == {"context_refresh": False}
+    with pytest.raises(SystemExit, match="refresh=K"):
+        bench_env._make_kwargs("world_model:refresh-first", None)

@@ -30,6 +30,10 @@ def test_unknown_option_names_key_and_suggests():
         {"height": 0},
         {"reward": {"speed_range": (30, 20)}},
         {"model": {"dtype": "int8"}},
+        {"model": {"refresh_steps": "0"}},
+        {"model": {"refresh_steps": [0.5]}},
+        {"model": {"refresh_steps": 0}},
+        {"model": {"refresh_steps": [0], "context_refresh": False}},
     ],
 )
 def test_invalid_values_rejected(bad):

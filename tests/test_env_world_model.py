@@ -7,8 +7,11 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 import m4world_env  # noqa: F401
+from m4world_env.config import InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import CheckpointError, CheckpointNotFoundError
+
+from .model_fixtures import perturbed
 
 KEYS = {"observation_keys": ["cameras", "lidar", "bev", "state"]}
 
@@ -205,6 +208,25 @@ def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
         obs, *_ = env.step(env.action_space.sample())
         assert np.isfinite(obs["lidar"]).all()
         env.close()
+
+
+def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
+    def episode(model: dict) -> list[np.ndarray]:
+        env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
+        perturbed(env.backend.wm.student)  # the untrained student's zero output ignores its context
+        obs, _ = env.reset(seed=0)
+        frames = [obs["lidar"]] + [env.step(np.zeros(2, np.float32))[0]["lidar"] for _ in range(3)]
+        want = model.get("refresh_steps")
+        assert env.backend.wm.student_cfg.refresh_steps == (None if want is None else tuple(want))
+        env.close()
+        return frames
+
+    every, first = episode({}), episode({"refresh_steps": [0]})
+    np.testing.assert_array_equal(every[0], first[0])  # the reset frame does not involve the student
+    assert any(not np.array_equal(a, b) for a, b in zip(every[1:], first[1:], strict=True))
+    beyond = {"model": {"refresh_steps": [4]}}  # the student takes 4 steps: 0 to 3
+    with pytest.raises(InvalidOptionError, match="refresh_steps"):
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=beyond)
 
 
 @pytest.mark.parametrize("retain", [True, False])

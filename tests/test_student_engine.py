@@ -24,16 +24,19 @@ def _model(chunk: int, window: int, seed: int = 0) -> MultiViewDiT:
 
 def _reference_rollout(model, scfg, first, cond, noises):
     """The same rollout from the model's full-sequence definition: every chunk recomputes all
-    history from scratch (one block-causal forward), no cache object."""
+    history from scratch (one block-causal forward), no cache object. Denoising steps are counted
+    here (the engine reads them from t) to pick where ``scfg.refresh_steps`` refreshes."""
     c, f0, n = model.cfg.clip.chunk_frames, first.shape[1], model.cfg.tokens_per_frame
+    steps = range(scfg.num_steps) if scfg.refresh_steps is None else scfg.refresh_steps
     hist, outs = first, []
     for k, noise in enumerate(noises):
         f = hist.shape[1]
         ccond = cond.frames(0, f + c)
         blocks = rollout_blocks(0, f + c, f0, c)
+        step = iter(range(scfg.num_steps))
 
-        def x0_fn(x, t, hist=hist, f=f, ccond=ccond, blocks=blocks):
-            if not scfg.context_refresh:
+        def x0_fn(x, t, hist=hist, f=f, ccond=ccond, blocks=blocks, step=step):
+            if not scfg.context_refresh or next(step) not in steps:
                 tt = torch.cat([torch.ones(x.shape[0], f), t[:, None].expand(-1, c)], dim=1)
                 v = model(torch.cat([hist, x], 1), tt, ccond, causal=True, blocks=blocks)[:, f:]
                 return predict_x0(x, v, t)
@@ -53,12 +56,13 @@ def _reference_rollout(model, scfg, first, cond, noises):
     return torch.cat(outs, 1)
 
 
-@pytest.mark.parametrize("refresh", [False, True])
+@pytest.mark.parametrize("refresh", [False, True, (0,), (1, 3)])  # (steps): refresh_steps
 @pytest.mark.parametrize("chunk", [1, 2])
 def test_cached_streaming_equals_full_recompute(refresh, chunk):
     chunks, f0 = 3, 1
     model = _model(chunk, window=f0 + chunks * chunk)  # window holds everything: nothing evicted
-    scfg = StudentConfig(context_refresh=refresh, renoise="ddim")
+    steps = refresh if isinstance(refresh, tuple) else None
+    scfg = StudentConfig(context_refresh=bool(refresh), refresh_steps=steps, renoise="ddim")
     total = f0 + chunks * chunk
     cond = tiny_conditions(model.cfg, total, batch=2)
     gen = torch.Generator().manual_seed(1)

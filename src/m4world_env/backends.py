@@ -112,7 +112,15 @@ class WorldModelBackend:
         if n < 1:
             raise InvalidOptionError(f"config.model.denoising_steps must be >= 1, got {n}")
         steps = tuple(round(DIFFUSION_STEPS * (1 - k / n)) for k in range(n))  # 4 -> 1000, 750, 500, 250
-        self.wm.student_cfg = replace(self.wm.student_cfg, denoising_steps=steps, context_refresh=mc.context_refresh)
+        try:
+            self.wm.student_cfg = replace(
+                self.wm.student_cfg,
+                denoising_steps=steps,
+                context_refresh=mc.context_refresh,
+                refresh_steps=mc.refresh_steps,
+            )
+        except ValueError as e:  # refresh_steps beyond the denoising steps
+            raise InvalidOptionError(f"config.model: {e}") from e
         if mc.compile:
             self.wm.student.compile_blocks()
         self.rollouts = RolloutBatch(self.wm, num_rollouts)

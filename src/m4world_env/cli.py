@@ -108,6 +108,8 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
         return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)},dtype={wm.dtype}{window}"
 
+    refresh_rows = [_step_list(s) for s in args.refresh_steps]  # parsed before any row is generated
+
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
     vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
@@ -119,6 +121,10 @@ def _cmd_report(args: argparse.Namespace) -> int:
     ids["student"] = student_id(args.checkpoint)
     rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
+    for steps in refresh_rows:
+        name = "student_refresh_" + "_".join(map(str, steps))
+        rows[name] = world_model_row(wm, seed=args.seed, refresh_steps=steps)
+        ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps}"
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
         from world_model.lora import META, WEIGHTS
 
@@ -145,6 +151,14 @@ def _cmd_report(args: argparse.Namespace) -> int:
         md, js = write_report(report, args.out)
         print(f"wrote {md} and {js}")
     return 0
+
+
+def _step_list(text: str) -> tuple[int, ...]:
+    """ "0,3" -> (0, 3): a --refresh-steps value (StudentConfig checks the indices)."""
+    try:
+        return tuple(int(k) for k in text.split(","))
+    except ValueError:
+        raise ValueError(f"--refresh-steps takes comma-separated step indices such as 0 or 1,3, got {text!r}") from None
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
@@ -353,6 +367,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="--report: run the student rows with a rolling window of N frames instead of the one the "
         "checkpoint was trained with (a study of the window; part of those rows' key)",
+    )
+    e.add_argument(
+        "--refresh-steps",
+        action="append",
+        default=[],
+        metavar="K[,K...]",
+        help="--report: an extra student row refreshing the context frame at these denoising steps only "
+        "(0 = the first; config model.refresh_steps), e.g. --refresh-steps 0 --refresh-steps 3 for two rows, "
+        "student_refresh_0 and student_refresh_3",
     )
     e.set_defaults(func=_cmd_eval)
 

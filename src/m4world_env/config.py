@@ -48,6 +48,10 @@ class ModelBackendConfig:
 
     denoising_steps: int = 4
     context_refresh: bool = True
+    # With context_refresh: the denoising steps (0 = the first of denoising_steps) that refresh the
+    # context frame; the others attend to the cache's copy. None: every step (the paper's §4.2).
+    # E.g. [0] refreshes once per chunk (docs/MODEL_CARD.md, "Inter-chunk consistency").
+    refresh_steps: tuple[int, ...] | None = None
     guidance_scale: float = 1.0
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
@@ -90,6 +94,17 @@ class EnvConfig:
         lo, hi = self.reward.speed_range
         if not lo < hi:
             raise InvalidOptionError(f"config.reward.speed_range must be (low, high) with low < high, got {(lo, hi)}")
+        m = self.model
+        if m.refresh_steps is not None:
+            steps = None if isinstance(m.refresh_steps, str) else _int_tuple(m.refresh_steps)
+            if steps is None:
+                raise InvalidOptionError(
+                    "config.model.refresh_steps must be a list of denoising-step indices or None, "
+                    f"got {m.refresh_steps!r}"
+                )
+            if not m.context_refresh:
+                raise InvalidOptionError("config.model.refresh_steps needs config.model.context_refresh=True")
+            m.refresh_steps = steps
         if self.model.dtype not in DTYPES:
             raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
 
@@ -99,6 +114,15 @@ class EnvConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def _int_tuple(x: Any) -> tuple[int, ...] | None:
+    """``x`` as a tuple of ints, or None when it is not an iterable of ints (bools refused)."""
+    try:
+        items = tuple(x)
+    except TypeError:
+        return None
+    return items if all(isinstance(k, int) and not isinstance(k, bool) for k in items) else None
 
 
 def _build(cls: type, d: dict[str, Any], path: str) -> Any:

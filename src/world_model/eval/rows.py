@@ -27,14 +27,18 @@ def world_model_row(
     anchor_first_frame: bool = False,
     context_refresh: bool | None = None,
     batch: int = 8,
+    refresh_steps: tuple[int, ...] | None = None,
 ) -> StudentRow:
     """A row generating each clip with ``wm``'s student (see :class:`StudentRow`).
 
     ``anchor_first_frame``: start from the clip's true first frame (all views, §6 task (a)) instead
-    of sampling it from the controls. ``context_refresh`` overrides the bundle's setting (ablation).
+    of sampling it from the controls. ``context_refresh`` overrides the bundle's setting (ablation);
+    ``refresh_steps`` limits the refresh to those denoising steps (``StudentConfig.refresh_steps``).
     """
     if context_refresh is not None:
         wm = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=context_refresh))
+    if refresh_steps is not None:
+        wm = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=tuple(refresh_steps)))
     return StudentRow(wm, seed, anchor_first_frame, batch)
 
 

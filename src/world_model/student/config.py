@@ -36,6 +36,10 @@ class StudentConfig:
     timestep_shift: float = 1.0  # SD3 shift of that list; 1 matches the presets' FlowConfig.shift
     renoise: str = "fresh"  # "fresh" noise between steps (Self-Forcing) or "ddim" (implied noise)
     context_refresh: bool = True  # §4.2 latent context refresh of the previous chunk's last frame
+    # Which denoising steps (indices into ``denoising_steps``) refresh the context frame; the others
+    # attend to the cache's copy of it, as without refresh. None: every step (the paper's). Each
+    # refresh costs a frame more per forward (refreshing at all 4 steps: ~1.4x a chunk's compute).
+    refresh_steps: tuple[int, ...] | None = None
     sink_frames: int = 0  # first frames of a rollout kept in context forever (attention sink)
     prefix_frames: int = 1  # clean conditioning frames a rollout starts from (the reset frame)
     kv_cache: bool = True  # False: recompute the whole window at every denoising step (ablation)
@@ -71,6 +75,13 @@ class StudentConfig:
             raise ValueError(f"denoising_steps must be decreasing values in (0, {DIFFUSION_STEPS}], got {steps}")
         if steps[0] != DIFFUSION_STEPS:
             raise ValueError(f"denoising_steps must start at pure noise ({DIFFUSION_STEPS}), got {steps}")
+        if self.refresh_steps is not None:
+            idx = self.refresh_steps
+            if not idx or sorted(set(idx)) != list(idx) or not 0 <= idx[0] <= idx[-1] < len(steps):
+                raise ValueError(
+                    f"refresh_steps must be increasing step indices in [0, {len(steps) - 1}] (one per "
+                    f"denoising step to refresh at), or None for every step; got {idx}"
+                )
         if self.renoise not in ("fresh", "ddim"):
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
         if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:

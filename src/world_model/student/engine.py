@@ -13,7 +13,9 @@ forward of the clean chunk at t = 1 that writes its keys/values into the :class:
 Latent context refresh (§4.2, ``StudentConfig.context_refresh``): the previous chunk's last clean
 frame latent is fed again, at t = 1, in front of the noisy chunk at every denoising step; the
 two form one attention block, so its keys/values depend on the chunk noise and are recomputed
-each step; the cache's copy of that frame is left out of the context.
+each step; the cache's copy of that frame is left out of the context. ``refresh_steps`` limits the
+refresh to some denoising steps (the others attend to the cache's copy, as without refresh): a
+cheaper middle point between the two, measured in docs/MODEL_CARD.md.
 
 Time positions: one RoPE frame counter is shared by the batch. A row restarted with
 :meth:`start_rows` places its first frames just before the next chunk; RoPE only sees relative
@@ -262,16 +264,13 @@ class StreamingEngine:
                 )
                 return predict_x0(x, v, t)
 
-            return refreshed, tokens.frames(1, 1 + c)  # the commit's: no second tokenization
+            chunk_tokens = tokens.frames(1, 1 + c)  # the commit's: no second tokenization
+            if self.scfg.refresh_steps is None:
+                return refreshed, chunk_tokens
+            return self._partly_refreshed(refreshed, self._cached_fn(chunk_tokens)), chunk_tokens
         if self.scfg.kv_cache:
-            ctx, valid = self.cache.context()
             tokens = m.tokenize(controls)
-
-            def cached(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-                v = m(x, t, tokens, frame_offset=self.position, kv_context=ctx, context_valid=valid)
-                return predict_x0(x, v, t)
-
-            return cached, tokens
+            return self._cached_fn(tokens), tokens
         hist, f = self.history, self.history.shape[1]
         tokens = m.tokenize(cat_frames(self.history_controls, controls))
         blocks = rollout_blocks(self.position - f, f + c, self.prefix, c)
@@ -284,6 +283,27 @@ class StreamingEngine:
             return predict_x0(x, v, t)
 
         return recompute, None
+
+    def _cached_fn(self, tokens: ControlTokens) -> X0Fn:
+        """x0-prediction of the next chunk attending to the whole cache (no context refresh)."""
+        ctx, valid = self.cache.context()
+
+        def cached(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            v = self.model(x, t, tokens, frame_offset=self.position, kv_context=ctx, context_valid=valid)
+            return predict_x0(x, v, t)
+
+        return cached
+
+    def _partly_refreshed(self, refreshed: X0Fn, cached: X0Fn) -> X0Fn:
+        """``refreshed`` at the denoising times of ``StudentConfig.refresh_steps``, ``cached`` at the
+        others. The step is read from ``t`` (shared by the batch, as :func:`few_step_sample` passes
+        it); a time off the schedule refreshes."""
+        skip = self.times[[k for k in range(len(self.times)) if k not in self.scfg.refresh_steps]]
+
+        def partly(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            return cached(x, t) if bool((skip == t[0].detach().cpu()).any()) else refreshed(x, t)
+
+        return partly
 
     def step(
         self,
