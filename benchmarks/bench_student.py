@@ -11,8 +11,8 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
    alone, no context: a lower bound that no streaming teacher achieves. Teacher samples are long
    (tens of forwards), so they are timed without a warm-up run.
 2. ``cache_vs_recompute``: the engine with its KV cache vs the same engine recomputing the whole
-   window at every denoising step (``StudentConfig(kv_cache=False)``), window full; the engines
-   are timed in interleaved rounds.
+   window at every denoising step (``StudentConfig(kv_cache=False)``), window full, with context
+   refresh at every step, at the last two only, or off; the engines are timed in interleaved rounds.
 3. ``rollout``: a ``--frames`` long rollout (``--rollout-envs`` rows): per-chunk latency, process
    RSS along the way, cache bytes; memory growth from frame 100 to the end.
 4. ``compiled_vs_eager`` (only when named in ``--sections``; inductor needs a C++ compiler): one
@@ -156,20 +156,22 @@ def compiled_vs_eager(model: MultiViewDiT, envs: int, repeats: int) -> dict:
 
 @torch.no_grad()
 def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
-    """The three engines warmed first, then timed in interleaved rounds (one chunk each per
-    round), so a drift of the shared machine's speed hits all three alike."""
+    """The engines warmed first, then timed in interleaved rounds (one chunk each per round), so
+    a drift of the shared machine's speed hits all alike. ``cached_refresh_late``: the context
+    frame refreshed at the last two denoising steps only (``refresh_steps``)."""
     out = {"envs": envs, "window": model.cfg.clip.context_frames}
-    steps = {
-        name: warm_engine(model, scfg, envs)[1]
-        for name, scfg in {
-            "cached_refresh": StudentConfig(),
-            "cached_no_refresh": StudentConfig(context_refresh=False),
-            "recompute": StudentConfig(kv_cache=False),
-        }.items()
+    n = StudentConfig().num_steps
+    configs = {
+        "cached_refresh": StudentConfig(),
+        "cached_refresh_late": StudentConfig(refresh_steps=(n - 2, n - 1)),
+        "cached_no_refresh": StudentConfig(context_refresh=False),
+        "recompute": StudentConfig(kv_cache=False),
     }
+    steps = {name: warm_engine(model, scfg, envs)[1] for name, scfg in configs.items()}
     out |= interleaved(steps, repeats)
-    out["recompute_over_cached_refresh"] = out["recompute_chunk_s"] / out["cached_refresh_chunk_s"]
-    out["recompute_over_cached_no_refresh"] = out["recompute_chunk_s"] / out["cached_no_refresh_chunk_s"]
+    for name in configs:
+        if name != "recompute":
+            out[f"recompute_over_{name}"] = out["recompute_chunk_s"] / out[f"{name}_chunk_s"]
     return out
 
 

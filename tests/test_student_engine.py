@@ -2,6 +2,7 @@
 
 import dataclasses
 import gc
+import json
 
 import pytest
 import torch
@@ -224,3 +225,13 @@ def test_bad_input_is_rejected():
         StudentConfig(denoising_steps=(750, 1000))
     with pytest.raises(ValueError, match="denoising_steps"):
         StudentConfig(denoising_steps=(1000, 500, 500))
+
+
+@pytest.mark.parametrize("steps", [(), (4,), (-1,), (1, 0), (2, 2)])
+def test_refresh_steps_must_be_increasing_indices_of_the_denoising_steps(steps):
+    with pytest.raises(ValueError, match=r"refresh_steps must be increasing step indices in \[0, 3\]"):
+        StudentConfig(refresh_steps=steps)
+    with pytest.raises(ValueError, match="needs context_refresh"):
+        StudentConfig(context_refresh=False, refresh_steps=(3,))
+    saved = json.loads(json.dumps(StudentConfig(refresh_steps=(2, 3)).to_dict()))  # as a bundle manifest holds it
+    assert StudentConfig.from_dict(saved).refresh_steps == (2, 3)

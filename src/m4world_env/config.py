@@ -50,7 +50,8 @@ class ModelBackendConfig:
     context_refresh: bool = True
     # With context_refresh: the denoising steps (0 = the first of denoising_steps) that refresh the
     # context frame; the others attend to the cache's copy. None: every step (the paper's §4.2).
-    # E.g. [0] refreshes once per chunk (docs/MODEL_CARD.md, "Inter-chunk consistency").
+    # [2, 3] (the last two of 4 steps) scored like every step on the shipped checkpoint for 12 frame
+    # passes a chunk instead of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only").
     refresh_steps: tuple[int, ...] | None = None
     guidance_scale: float = 1.0
     device: str = "cpu"

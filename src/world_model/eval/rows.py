@@ -36,7 +36,8 @@ def world_model_row(
     ``refresh_steps`` limits the refresh to those denoising steps (``StudentConfig.refresh_steps``).
     """
     if context_refresh is not None:
-        wm = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=context_refresh))
+        steps = wm.student_cfg.refresh_steps if context_refresh else None
+        wm = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=context_refresh, refresh_steps=steps))
     if refresh_steps is not None:
         wm = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=tuple(refresh_steps)))
     return StudentRow(wm, seed, anchor_first_frame, batch)

@@ -82,6 +82,8 @@ class StudentConfig:
                     f"refresh_steps must be increasing step indices in [0, {len(steps) - 1}] (one per "
                     f"denoising step to refresh at), or None for every step; got {idx}"
                 )
+            if not self.context_refresh:
+                raise ValueError("refresh_steps needs context_refresh=True (without refresh no step refreshes)")
         if self.renoise not in ("fresh", "ddim"):
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
         if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:
