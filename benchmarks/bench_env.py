@@ -92,7 +92,10 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
         elif q == "no-refresh":
             model["context_refresh"] = False
         elif q.startswith("refresh="):
-            model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
+            try:
+                model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
+            except ValueError:
+                raise SystemExit(f"refresh=K[,K...] takes denoising-step indices, got {q!r} in {backend!r}") from None
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh "

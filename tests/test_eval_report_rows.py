@@ -1,4 +1,4 @@
-"""The report's optional rows: the geometry-only baseline and the bidirectional teacher."""
+"""The report's optional rows: the geometry-only baseline, the bidirectional teacher, refresh variants."""
 
 import json
 from dataclasses import replace
@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from m4world_env.cli import main
+from world_model.eval.rows import world_model_row
 from world_model.model import MultiViewDiT, get_preset
 from world_model.runtime import load_world_model, save_untrained_bundle
 from world_model.train.checkpoint import export_weights
@@ -49,3 +50,17 @@ def test_report_with_geometry_only_and_teacher_rows(tiny_bundle, tmp_path):
     # The teacher's independent 3-frame windows: a jump into each window start, scored against the recording.
     assert rows["teacher"]["table1"]["chunk_jump_cameras"] > 0 and rows["teacher"]["table1"]["chunk_jump_lidar"] > 0
     assert all(v > 0 for v in rows["teacher"]["chunk_jumps"]["lidar"].values())
+
+
+def test_student_rows_stream_with_the_refresh_they_are_named_for(tiny_bundle):
+    wm = load_world_model(tiny_bundle)
+    assert world_model_row(wm, refresh_steps=(2, 3)).wm.student_cfg.refresh_steps == (2, 3)
+    off = world_model_row(wm, context_refresh=False).wm.student_cfg
+    assert not off.context_refresh and off.refresh_steps is None
+    partial = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=(3,)))
+    assert world_model_row(partial, context_refresh=False).wm.student_cfg.refresh_steps is None
+    # A bundle streaming without refresh still gets the partial-refresh row it is asked for.
+    no_refresh = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=False))
+    scfg = world_model_row(no_refresh, refresh_steps=(0,)).wm.student_cfg
+    assert scfg.context_refresh and scfg.refresh_steps == (0,)
+    assert world_model_row(wm).wm.student_cfg.refresh_steps is None  # the bundle's own: every step

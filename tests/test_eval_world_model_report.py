@@ -87,7 +87,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     rows = json.loads((out / "report.json").read_text())["rows"]
     assert {"student_refresh_0", "student_refresh_1_3"} <= set(rows)
     keys = {json.loads((out / "rows" / f"{r}.json").read_text())["key"] for r in rows if r.startswith("student")}
-    assert len(keys) == 4  # no-refresh, refresh at 0, at 1 and 3: each its own cached row
+    assert len(keys) == 4  # student, no-refresh, refresh at 0, at 1 and 3: each its own cached row
     for bad, says in (("9", "refresh_steps must be increasing step indices in [0, 3]"), ("first", "--refresh-steps")):
         assert main([*args, "--refresh-steps", bad]) == 2
         assert says in capsys.readouterr().err

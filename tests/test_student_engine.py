@@ -227,11 +227,27 @@ def test_bad_input_is_rejected():
         StudentConfig(denoising_steps=(1000, 500, 500))
 
 
-@pytest.mark.parametrize("steps", [(), (4,), (-1,), (1, 0), (2, 2)])
+@pytest.mark.parametrize("steps", [(), (4,), (-1,), (1, 0), (2, 2), (1.5,), (True,)])
 def test_refresh_steps_must_be_increasing_indices_of_the_denoising_steps(steps):
     with pytest.raises(ValueError, match=r"refresh_steps must be increasing step indices in \[0, 3\]"):
         StudentConfig(refresh_steps=steps)
-    with pytest.raises(ValueError, match="needs context_refresh"):
+    with pytest.raises(ValueError, match="needs context_refresh=True and kv_cache=True"):
         StudentConfig(context_refresh=False, refresh_steps=(3,))
+    with pytest.raises(ValueError, match="needs context_refresh=True and kv_cache=True"):
+        StudentConfig(kv_cache=False, refresh_steps=(3,))
+    assert StudentConfig(refresh_steps=[2, 3]).refresh_steps == (2, 3)  # a list is kept as a tuple
     saved = json.loads(json.dumps(StudentConfig(refresh_steps=(2, 3)).to_dict()))  # as a bundle manifest holds it
     assert StudentConfig.from_dict(saved).refresh_steps == (2, 3)
+
+
+def test_partial_refresh_refuses_rows_at_different_times():
+    model = _model(chunk=2, window=4)
+    cond = tiny_conditions(model.cfg, 3, batch=2)
+    engine = StreamingEngine(model, StudentConfig(refresh_steps=(3,)))
+    with torch.no_grad():
+        engine.start(torch.randn(2, *model.cfg.latent_shape(1)), cond.frames(0, 1))
+        x0_fn = engine.chunk_x0_fn(cond.frames(1, 3))
+        x = torch.randn(2, *model.cfg.latent_shape(2))
+        assert x0_fn(x, engine.times[[3, 3]]).shape == x.shape
+        with pytest.raises(ValueError, match="same denoising time"):
+            x0_fn(x, engine.times[[0, 3]])

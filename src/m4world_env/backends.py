@@ -119,7 +119,7 @@ class WorldModelBackend:
                 context_refresh=mc.context_refresh,
                 refresh_steps=mc.refresh_steps,
             )
-        except ValueError as e:  # refresh_steps beyond the denoising steps
+        except ValueError as e:  # e.g. refresh_steps beyond the denoising steps
             raise InvalidOptionError(f"config.model: {e}") from e
         if mc.compile:
             self.wm.student.compile_blocks()

@@ -7,6 +7,7 @@ it into these dataclasses and names any key it does not know (with the closest v
 from __future__ import annotations
 
 import difflib
+import numbers
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -123,7 +124,8 @@ def _int_tuple(x: Any) -> tuple[int, ...] | None:
         items = tuple(x)
     except TypeError:
         return None
-    return items if all(isinstance(k, int) and not isinstance(k, bool) for k in items) else None
+    integral = all(isinstance(k, numbers.Integral) and not isinstance(k, bool) for k in items)
+    return tuple(int(k) for k in items) if integral else None
 
 
 def _build(cls: type, d: dict[str, Any], path: str) -> Any:

@@ -39,7 +39,8 @@ def world_model_row(
         steps = wm.student_cfg.refresh_steps if context_refresh else None
         wm = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=context_refresh, refresh_steps=steps))
     if refresh_steps is not None:
-        wm = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=tuple(refresh_steps)))
+        scfg = replace(wm.student_cfg, context_refresh=True, refresh_steps=tuple(refresh_steps))
+        wm = replace(wm, student_cfg=scfg)
     return StudentRow(wm, seed, anchor_first_frame, batch)
 
 

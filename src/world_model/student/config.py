@@ -76,14 +76,19 @@ class StudentConfig:
         if steps[0] != DIFFUSION_STEPS:
             raise ValueError(f"denoising_steps must start at pure noise ({DIFFUSION_STEPS}), got {steps}")
         if self.refresh_steps is not None:
-            idx = self.refresh_steps
-            if not idx or sorted(set(idx)) != list(idx) or not 0 <= idx[0] <= idx[-1] < len(steps):
+            idx = tuple(self.refresh_steps)
+            object.__setattr__(self, "refresh_steps", idx)  # a list from a caller: hashable like the rest
+            integral = all(isinstance(k, int) and not isinstance(k, bool) for k in idx)
+            if not integral or not idx or sorted(set(idx)) != list(idx) or not 0 <= idx[0] <= idx[-1] < len(steps):
                 raise ValueError(
                     f"refresh_steps must be increasing step indices in [0, {len(steps) - 1}] (one per "
                     f"denoising step to refresh at), or None for every step; got {idx}"
                 )
-            if not self.context_refresh:
-                raise ValueError("refresh_steps needs context_refresh=True (without refresh no step refreshes)")
+            if not (self.context_refresh and self.kv_cache):
+                raise ValueError(
+                    "refresh_steps needs context_refresh=True and kv_cache=True (the recompute ablation has no "
+                    "cached copy of the context frame to fall back on)"
+                )
         if self.renoise not in ("fresh", "ddim"):
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
         if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:

@@ -240,7 +240,8 @@ class StreamingEngine:
 
     # -- one chunk --
     def chunk_x0_fn(self, controls: Conditions) -> X0Fn:
-        """x0-prediction of the next chunk given the current context: (x_t, t (B,)) -> x0."""
+        """x0-prediction of the next chunk given the current context: (x_t, t (B,)) -> x0. With
+        ``StudentConfig.refresh_steps`` all rows share one time (the step is read from it)."""
         return self._chunk(controls)[0]
 
     def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens | None]:
@@ -301,6 +302,8 @@ class StreamingEngine:
         skip = self.times[[k for k in range(len(self.times)) if k not in self.scfg.refresh_steps]]
 
         def partly(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            if bool((t != t[0]).any()):
+                raise ValueError("with refresh_steps every row of a chunk must be at the same denoising time")
             return cached(x, t) if bool((skip == t[0].detach().cpu()).any()) else refreshed(x, t)
 
         return partly
