@@ -98,7 +98,7 @@ class EnvConfig:
             raise InvalidOptionError(f"config.reward.speed_range must be (low, high) with low < high, got {(lo, hi)}")
         m = self.model
         if m.refresh_steps is not None:
-            steps = None if isinstance(m.refresh_steps, str) else _int_tuple(m.refresh_steps)
+            steps = _int_tuple(m.refresh_steps)  # a string is characters, not ints: refused too
             if steps is None:
                 raise InvalidOptionError(
                     "config.model.refresh_steps must be a list of denoising-step indices or None, "
