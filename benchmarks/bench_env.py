@@ -74,7 +74,9 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
     world-model backend), ``default-heap`` (``retain_heap`` off: glibc's allocator as is) and/or
     ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)
-    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``)."""
+    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``),
+    and ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two checkpoints
+    compared within one run's rounds)."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -91,6 +93,10 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             model["retain_heap"] = False
         elif q == "no-refresh":
             model["context_refresh"] = False
+        elif q.startswith("checkpoint="):
+            checkpoint = q.removeprefix("checkpoint=")
+            if not checkpoint:
+                raise SystemExit(f"checkpoint=BUNDLE needs a bundle folder, got {backend!r}")
         elif q.startswith("refresh="):
             try:
                 model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
@@ -98,8 +104,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
                 raise SystemExit(f"refresh=K[,K...] takes denoising-step indices, got {q!r} in {backend!r}") from None
         else:
             raise SystemExit(
-                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh "
-                "or refresh=K[,K...]"
+                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh, "
+                "refresh=K[,K...] or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint

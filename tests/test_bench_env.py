@@ -55,3 +55,9 @@ def test_world_model_qualifiers_become_model_options():
     assert bench_env._make_kwargs("world_model:no-refresh", None)["config"]["model"] == {"context_refresh": False}
     with pytest.raises(SystemExit, match="refresh=K"):
         bench_env._make_kwargs("world_model:refresh-first", None)
+    # a backend's own bundle overrides --checkpoint, so two checkpoints share one run's rounds
+    kw = bench_env._make_kwargs("world_model:checkpoint=runs/x/bundle", checkpoint="other")
+    assert kw["checkpoint"] == "runs/x/bundle" and "model" not in kw["config"]
+    assert bench_env._make_kwargs("world_model", checkpoint="other")["checkpoint"] == "other"
+    with pytest.raises(SystemExit, match="checkpoint=BUNDLE"):
+        bench_env._make_kwargs("world_model:checkpoint=", None)
