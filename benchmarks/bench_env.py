@@ -231,7 +231,8 @@ def main() -> None:
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
         "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps), "
-        "e.g. world_model:compile or world_model:compile:no-refresh or world_model:refresh=0",
+        "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
+        "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",
     )
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--steps", type=int, default=300, help="single-env steps per backend, split over the rounds")
