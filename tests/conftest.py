@@ -21,3 +21,23 @@ def tiny_bundle(tmp_path_factory):
     from world_model.runtime import save_untrained_bundle
 
     return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny")
+
+
+@pytest.fixture(scope="session")
+def active_bundle(tiny_bundle, tmp_path_factory):
+    """``tiny_bundle`` with noise on the student's and reference model's weights: an untrained DiT's
+    zero-initialized output ignores its controls and context (adaLN-zero), so only a bundle like
+    this one shows a test that actions, scenarios and batch rows actually reach the model."""
+    import torch
+
+    from world_model.bundle import load_bundle_files, save_bundle
+
+    files = load_bundle_files(tiny_bundle)
+    gen = torch.Generator().manual_seed(0)
+    tensors = dict(files.tensors)
+    for part in ("student", "reference"):
+        tensors[part] = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors[part].items()}
+    configs = {"reference": files.component_config("reference")}
+    return save_bundle(
+        tmp_path_factory.mktemp("bundle") / "active", files.model_config, tensors, component_configs=configs
+    )

@@ -42,39 +42,87 @@ def test_world_model_same_seed_same_observations(tiny_bundle):
     assert not np.array_equal(a[-1]["cameras"], c[-1]["cameras"])
 
 
+LIDAR_ATOL_M = 0.01  # batched vs batch-of-one LiDAR: measured ~3e-5 m apart
+
+
 def assert_rows_equal_singles(vobs: dict, sobs: list[dict], step: int) -> None:
     """Vector-env row i equals single env i: one batched forward vs N batch-of-one forwards are
     equal up to float summation order."""
     for i, single in enumerate(sobs):
         diff = np.abs(vobs["cameras"][i].astype(int) - single["cameras"].astype(int))
         assert diff.max() <= 2 and diff.mean() < 0.05, (step, i)
-        assert np.allclose(vobs["lidar"][i], single["lidar"], atol=0.5)
+        assert np.allclose(vobs["lidar"][i], single["lidar"], atol=LIDAR_ATOL_M), (step, i)
 
 
-def test_world_model_vector_env_equals_single_envs(tiny_bundle):
-    n, seed = 3, 5
-    cfg = {"observation_keys": ["cameras", "lidar"]}
-    venv = gym.make_vec(
+def _wm_env(scenario, bundle, cfg) -> M4WorldEnv:
+    return M4WorldEnv(scenario, backend="world_model", checkpoint=str(bundle), config=cfg)
+
+
+def _wm_vector(scenario, bundle, cfg, n):
+    return gym.make_vec(
         "M4World-v0",
         num_envs=n,
         vectorization_mode="vector_entry_point",
-        scenario="merge_cut_in",
+        scenario=scenario,
         backend="world_model",
-        checkpoint=str(tiny_bundle),
+        checkpoint=str(bundle),
         config=cfg,
     )
-    singles = [
-        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=cfg) for _ in range(n)
-    ]
+
+
+def test_world_model_vector_env_equals_single_envs(active_bundle):
+    """Each row gets its own actions; on a bundle whose output depends on its controls, swapped or
+    shared rows would show: the rows differ, and a single env fed another row's actions does not
+    reproduce that row."""
+    n, seed = 3, 5
+    cfg = {"observation_keys": ["cameras", "lidar"]}
+    venv = _wm_vector("merge_cut_in", active_bundle, cfg, n)
+    singles = [_wm_env("merge_cut_in", active_bundle, cfg) for _ in range(n)]
+    swapped = _wm_env("merge_cut_in", active_bundle, cfg)  # row 0's seed, row 1's actions
     vobs, _ = venv.reset(seed=seed)
     sobs = [env.reset(seed=seed + i)[0] for i, env in enumerate(singles)]
-    rng = np.random.default_rng(0)
-    for step in range(3):
-        if step:
-            actions = rng.uniform(-0.5, 0.5, size=(n, 2)).astype(np.float32)
-            vobs = venv.step(actions)[0]
-            sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
+    swapped.reset(seed=seed)
+    actions = np.array([[1.0, 0.05], [-1.0, -0.05], [0.0, 0.0]], np.float32)
+    assert_rows_equal_singles(vobs, sobs, 0)
+    for step in range(1, 4):
+        vobs = venv.step(actions)[0]
+        sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
+        other = swapped.step(actions[1])[0]
         assert_rows_equal_singles(vobs, sobs, step)
+    assert np.abs(vobs["lidar"][0] - vobs["lidar"][1]).max() > 10 * LIDAR_ATOL_M
+    assert np.abs(other["lidar"] - vobs["lidar"][0]).max() > 10 * LIDAR_ATOL_M  # the actions reached the model
+
+
+def test_world_model_vector_env_autoreset_equals_a_single_env_reset(active_bundle):
+    """A row whose episode ended is reset at the next step (AutoresetMode.NEXT_STEP) exactly as a
+    single env's ``reset()`` without a seed, and both continue alike while the other rows go on."""
+    from m4world_env.scenario import load_scenario
+
+    n, seed = 2, 7
+    cfg = {"observation_keys": ["cameras", "lidar"]}
+    short = load_scenario("merge_cut_in").model_copy(update={"duration": 1.0})
+    venv = _wm_vector(short, active_bundle, cfg, n)
+    assert venv.metadata["autoreset_mode"] == gym.vector.AutoresetMode.NEXT_STEP
+    singles = [_wm_env(short, active_bundle, cfg) for _ in range(n)]
+    venv.reset(seed=seed)
+    for i, env in enumerate(singles):
+        env.reset(seed=seed + i)
+    actions = np.array([[0.5, 0.0], [-0.5, 0.2]], np.float32)
+    ended = np.zeros(n, bool)
+    resets = 0
+    for step in range(12):
+        vobs, rew, term, trunc, _ = venv.step(actions)
+        sobs = []
+        for i, env in enumerate(singles):
+            if ended[i]:
+                sobs.append(env.reset()[0])
+                assert rew[i] == 0.0 and not term[i] and not trunc[i]
+                resets += 1
+            else:
+                sobs.append(env.step(actions[i])[0])
+        assert_rows_equal_singles(vobs, sobs, step)
+        ended = term | trunc
+    assert resets >= 2  # an episode is 5 steps: every row was reset at least once and continued
 
 
 def test_reset_with_reference_image_and_bad_references(tiny_bundle):
@@ -100,20 +148,16 @@ def test_missing_or_corrupt_checkpoint_is_a_clear_error(tiny_bundle, tmp_path):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(broken))
 
 
-def test_scenario_adapters_are_applied_to_the_student(tiny_bundle, tmp_path):
+def test_scenario_adapters_are_applied_to_the_student(active_bundle, tmp_path):
+    import shutil
 
     import torch
 
     from m4world_env.scenario import load_scenario
-    from world_model.bundle import load_bundle_files, save_bundle
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, loaded_adapters, save_adapter
     from world_model.runtime import load_world_model
 
-    # adaLN-Zero leaves an untrained DiT's output independent of its blocks: give it weights.
-    files = load_bundle_files(tiny_bundle)
-    gen = torch.Generator().manual_seed(0)
-    student = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in files.tensors["student"].items()}
-    bundle = save_bundle(tmp_path / "bundle", files.model_config, {**files.tensors, "student": student})
+    bundle = shutil.copytree(active_bundle, tmp_path / "bundle")  # the adapter is written into it
     wm = load_world_model(bundle)
     base = base_fingerprint(wm.student)
     lora = LoraConfig(rank=2)
