@@ -65,6 +65,16 @@ def test_block_causal_outputs_ignore_later_frames():
     assert not torch.allclose(a[:, 2:], b[:, 2:], atol=1e-3)
     # Bidirectional attention does look ahead (so the check above can fail).
     assert not torch.allclose(model(x, t, cond)[:, :2], model(later, t, cond)[:, :2], atol=1e-4)
+    # Later frames' controls and timesteps do not reach earlier frames either.
+    moved = cond.apply(lambda _name, v: v.clone())
+    moved.ego[:, 2:] += 1.0
+    moved.obj_corners[:, 2:] += 5.0
+    noisier = t.clone()
+    noisier[:, 2:] = 0.9
+    for c, tt in ((moved, t), (cond, noisier)):
+        out = model(x, tt, c, causal=True)
+        assert torch.allclose(out[:, :2], a[:, :2], atol=1e-5)
+        assert not torch.allclose(out[:, 2:], a[:, 2:], atol=1e-3)
 
 
 def test_kv_context_streaming_matches_full_causal_forward():

@@ -195,3 +195,22 @@ def test_ode_regression_reduces_the_few_step_error_against_the_teacher_ode():
     after, after_one = error()
     assert after * 3 <= before, (before, after)
     assert after_one * 3 <= before_one, (before_one, after_one)
+
+
+def test_ode_trajectory_is_the_samplers_euler_integration():
+    """The teacher trajectories of the ODE stage and inference sampling share one Euler loop: on the
+    sampler's grid the endpoint is euler_sample's, and a recorded point is the state reached there."""
+    from world_model.model.flow import euler_sample, time_grid
+
+    def velocity(x, t):  # a nonlinear field, so any difference in the steps would show
+        return torch.sin(3.0 * x) - x * t[:, None]
+
+    noise = torch.randn(5, 2, generator=torch.Generator().manual_seed(0))
+    grid = time_grid(8, shift=3.0)
+    points, end = ode_trajectory(velocity, noise, grid, grid[[0, 5]])
+    assert torch.equal(end, euler_sample(velocity, noise, 8, shift=3.0))
+    assert torch.equal(points[0], noise)
+    x = noise
+    for i in range(5):
+        x = x + (grid[i + 1] - grid[i]) * velocity(x, grid[i].expand(5))
+    assert torch.allclose(points[1], x, atol=1e-6)

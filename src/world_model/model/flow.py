@@ -97,17 +97,33 @@ def denoise_step(
     return x + _bcast(t_next - t, x) * v, v
 
 
+def euler_integrate(
+    velocity_fn: VelocityFn,
+    noise: torch.Tensor,
+    grid: torch.Tensor,
+    t_dims: int = 1,
+    visit: Callable[[float, torch.Tensor], None] | None = None,
+) -> torch.Tensor:
+    """Integrate dx/dt = v from ``grid[0]`` (``noise``) to ``grid[-1]`` with one Euler step per
+    interval of ``grid`` (increasing times). The one Euler loop of the project: sampling
+    (:func:`euler_sample`) and the causal ODE initialization's teacher trajectories use it.
+
+    ``t_dims`` leading dims of ``noise`` get their own time entry (1: per sample (B,); 2: (B, T)).
+    ``visit(t, x)``, when given, sees the state at every grid time before its step.
+    """
+    grid = grid.to(noise.device)
+    x = noise
+    lead = noise.shape[:t_dims]
+    for i in range(len(grid) - 1):
+        if visit is not None:
+            visit(float(grid[i]), x)
+        x, _ = denoise_step(velocity_fn, x, grid[i].expand(lead), grid[i + 1].expand(lead))
+    return x
+
+
 def euler_sample(
     velocity_fn: VelocityFn, noise: torch.Tensor, steps: int, shift: float = 1.0, t_dims: int = 1
 ) -> torch.Tensor:
-    """Integrate dx/dt = v from t = 0 (``noise``) to t = 1 in ``steps`` Euler steps.
-
-    ``t_dims`` leading dims of ``noise`` get their own time entry (1: per sample (B,); 2: (B, T)).
-    """
-    grid = time_grid(steps, shift).to(noise.device)
-    x = noise
-    lead = noise.shape[:t_dims]
-    for i in range(steps):
-        t = grid[i].expand(lead)
-        x, _ = denoise_step(velocity_fn, x, t, grid[i + 1].expand(lead))
-    return x
+    """Integrate dx/dt = v from t = 0 (``noise``) to t = 1 in ``steps`` Euler steps on the shifted
+    grid :func:`time_grid`; ``t_dims`` as :func:`euler_integrate`."""
+    return euler_integrate(velocity_fn, noise, time_grid(steps, shift), t_dims)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from world_model.model.flow import VelocityFn, denoise_step, flow_matching_loss, shift_time
+from world_model.model.flow import VelocityFn, euler_integrate, flow_matching_loss, shift_time
 
 NORM_EPS = 1e-6  # keeps the per-sample DMD normalization finite when the teacher is exact
 
@@ -75,14 +75,14 @@ def ode_trajectory(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Euler-integrate from t = 0 along ``grid``; returns (x at each ``record`` time (K, B, ...),
     the endpoint x at t = 1 (B, ...)). ``velocity_fn`` gets t of shape (B,)."""
-    b = noise.shape[0]
-    x, points = noise, {}
+    points: dict[float, torch.Tensor] = {}
     want = {round(float(t), 6) for t in record}
-    for i in range(len(grid) - 1):
-        key = round(float(grid[i]), 6)
-        if key in want:
-            points[key] = x
-        x, _ = denoise_step(velocity_fn, x, grid[i].expand(b), grid[i + 1].expand(b))
+
+    def keep(t: float, x: torch.Tensor) -> None:
+        if round(t, 6) in want:
+            points[round(t, 6)] = x
+
+    x = euler_integrate(velocity_fn, noise, grid, visit=keep)
     missing = want - set(points)
     if missing:
         raise ValueError(f"record times {sorted(missing)} are not on the grid (use ode_grid)")
