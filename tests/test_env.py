@@ -167,6 +167,34 @@ def test_object_manipulation_reflected_next_step():
     assert removed["state"][1, 0] == 0.0
 
 
+def test_a_bad_action_in_one_sub_env_leaves_every_sub_env_as_it_was():
+    venv = gym.make_vec(
+        "M4World-v0", num_envs=2, vectorization_mode="vector_entry_point", scenario="merge_cut_in", config=SMALL
+    )
+    venv.reset(seed=5)
+    with pytest.raises(ActionError, match="sub-env 1"):
+        venv.step(np.array([[0.1, 0.0], [0.0, np.nan]], np.float32))
+    with pytest.raises(InvalidOptionError, match="one per sub-env"):
+        venv.step([[0.1, 0.0], [0.0]])
+    *_, info = venv.step(np.zeros((2, 2), np.float32))
+    assert np.allclose(info["time"], info["time"][0])  # no sub-env advanced by the refused steps
+
+
+def test_a_failed_reset_leaves_no_half_reset_episode():
+    env = make(config={**SMALL, "observation_keys": ["state"]})
+    env.reset(seed=0)
+    for _ in range(3):
+        env.step(np.array([0.5, 0.0], np.float32))
+    h, w = SMALL["height"], SMALL["width"]
+    with pytest.raises(ValueError, match="world_model"):  # the procedural backend takes no reference
+        env.reset(seed=1, options={"reference": {"FRONT": np.zeros((h, w, 3), np.uint8)}})
+    with pytest.raises(ResetNeeded, match="last reset failed"):
+        env.step(np.zeros(2, np.float32))
+    env.reset(seed=1)
+    *_, info = env.step(np.zeros(2, np.float32))
+    assert info["episode_metrics"]["steps"] == 1 and info["time"] == pytest.approx(0.2)
+
+
 def test_vector_env_equals_single_envs_and_autoreset():
     n, seed = 3, 11
     cfg = {**SMALL, "observation_keys": ["cameras", "lidar", "state"]}

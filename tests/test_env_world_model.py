@@ -4,6 +4,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 
 import m4world_env  # noqa: F401
@@ -131,9 +132,16 @@ def test_reset_with_reference_image_and_bad_references(tiny_bundle):
     front = np.full((h, w, 3), 200, np.uint8)
     obs, _ = env.reset(seed=0, options={"reference": {"FRONT": front}})
     assert obs["cameras"].shape[1:3] == (h, w)
-    with pytest.raises(ValueError, match="FRONT"):
+    with pytest.raises(ValueError, match="FRONT.*resize"):
         env.reset(seed=0, options={"reference": {"FRONT": np.zeros((h + 1, w, 3), np.uint8)}})
+    with pytest.raises(ValueError, match="channels last"):
+        env.reset(seed=0, options={"reference": {"FRONT": np.zeros((3, h, w), np.uint8)}})
+    with pytest.raises(TypeError, match="must be a dict"):
+        env.reset(seed=0, options={"reference": [front]})
+    with pytest.raises(ResetNeeded, match="last reset failed"):  # no half-reset episode to step on
+        env.step(np.zeros(2, np.float32))
     env.reset(seed=0)  # still usable
+    env.step(np.zeros(2, np.float32))
 
 
 def test_missing_or_corrupt_checkpoint_is_a_clear_error(tiny_bundle, tmp_path):

@@ -140,6 +140,9 @@ class M4WorldEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
+        # Until this reset succeeds the env holds no valid episode: a failed reset (e.g. a bad
+        # reference image) leaves it asking for another reset rather than half-reset.
+        self._needs_reset = True
         options = dict(options or {})
         unknown = set(options) - set(RESET_OPTIONS)
         if unknown:
@@ -160,11 +163,18 @@ class M4WorldEnv(gym.Env):
         (observations,) = self.backend.step([frames])
         return self.finish_step(frames, observations)
 
+    def check_action(self, action: Any) -> None:
+        """Raise :class:`ResetNeeded` or :class:`ActionError` if :meth:`step` would refuse ``action``;
+        changes nothing (the vector env checks every sub-env's action before advancing any)."""
+        if self._needs_reset:
+            raise ResetNeeded(
+                "call env.reset() before env.step() (the episode ended, never started, or the last reset failed)"
+            )
+        self.bridge.parse_action(action)  # highway-env's ranges
+
     def advance(self, action: Any) -> list[SceneFrame]:
         """First half of a step: validate the action and run the traffic for one chunk."""
-        if self._needs_reset:
-            raise ResetNeeded("call env.reset() before env.step() (the episode ended or never started)")
-        # The bridge checks the action (highway-env's ranges, ActionError) before touching any state.
+        self.check_action(action)
         return self.bridge.step(action)
 
     def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):

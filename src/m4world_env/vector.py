@@ -15,6 +15,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
@@ -22,6 +23,7 @@ from m4world_env.backends import make_backend
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from m4world_env.scenario import Scenario, load_scenario
+from m4world_env.traffic import ActionError
 
 
 class M4WorldVectorEnv(VectorEnv):
@@ -82,6 +84,12 @@ class M4WorldVectorEnv(VectorEnv):
 
     def step(self, actions: Any):
         actions = self._split_actions(actions)
+        for i, env in enumerate(self.envs):  # all checked first: a bad action leaves every sub-env as it was
+            if not self._autoreset[i]:
+                try:
+                    env.check_action(actions[i])
+                except (ActionError, ResetNeeded) as e:
+                    raise type(e)(f"sub-env {i}: {e}") from e
         chunks: list[list | None] = []
         for i, env in enumerate(self.envs):
             chunks.append(None if self._autoreset[i] else env.advance(actions[i]))
@@ -110,7 +118,12 @@ class M4WorldVectorEnv(VectorEnv):
             env.close()
 
     def _split_actions(self, actions: Any) -> list[Any]:
-        arr = np.asarray(actions)
+        try:
+            arr = np.asarray(actions)
+        except ValueError as e:  # ragged nested lists
+            raise InvalidOptionError(
+                f"vector env expects an array of {self.num_envs} actions of equal shape (one per sub-env): {e}"
+            ) from e
         if arr.shape[:1] != (self.num_envs,):
             raise InvalidOptionError(
                 f"vector env expects one action per sub-env (leading dimension {self.num_envs}), got shape {arr.shape}"

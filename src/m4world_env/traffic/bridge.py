@@ -134,13 +134,16 @@ class TrafficBridge:
         if self.road is None:
             raise RuntimeError("call reset() before using the bridge")
 
+    def parse_action(self, action: object) -> dict[str, float] | str:
+        """The ego controls ``action`` stands for; raises :class:`ActionError` and changes nothing."""
+        if self.action_type == "continuous":
+            return continuous_controls(action, self.config.actions)
+        return meta_action(action)
+
     def step(self, action: object) -> list[SceneFrame]:
         """Apply one ego action, simulate one policy step, return its ``frames_per_step`` frames."""
         self._require_reset()
-        if self.action_type == "continuous":
-            self.ego_vehicle.act(continuous_controls(action, self.config.actions))
-        else:
-            self.ego_vehicle.act(meta_action(action))
+        self.ego_vehicle.act(self.parse_action(action))
         dt = self.scenario.sim_dt
         frames = []
         for _ in range(self.frames_per_step):

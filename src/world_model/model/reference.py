@@ -290,9 +290,13 @@ class ReferenceGenerator:
             arr = np.broadcast_to(arr, (batch, *want))
         if arr.shape != (batch, *want):
             h, w = self.mcfg.sensors.height, self.mcfg.sensors.width
-            raise ValueError(
-                f"reference {key!r} must be {want} or {(batch, *want)} for this model, got {arr.shape}; "
+            hint = (
                 f"resize camera images to the model's view size {w}x{h} (e.g. cv2.resize(img, ({w}, {h})))"
+                if key == "lidar" or (h, w) not in (arr.shape[-3:-1], arr.shape[-2:])
+                else "the size is right: give uint8 RGB images with channels last, (H, W, 3)"
+            )
+            raise ValueError(
+                f"reference {key!r} must be {want} or {(batch, *want)} for this model, got {arr.shape}; {hint}"
             )
         return arr
 
@@ -308,6 +312,11 @@ class ReferenceGenerator:
         mask = torch.zeros(batch, 1, v, 1, h, w)
         valid = ("cameras", "lidar", *self.names)
         device = next(self.vae.parameters()).device
+        if reference is not None and not isinstance(reference, Mapping):
+            raise TypeError(
+                f"the reference must be a dict such as {{'FRONT': image}} or {{'cameras': images}}, "
+                f"got {type(reference).__name__}"
+            )
         for key, value in (reference or {}).items():
             if key not in valid:
                 raise ValueError(f"unknown reference key {key!r}; use one of {valid}")
