@@ -395,3 +395,28 @@ def test_vector_env_with_a_completion_adapter_equals_single_envs(tiny_bundle, tm
             vobs = venv.step(actions)[0]
             sobs = [env.step(a)[0] for env, a in zip(singles, actions, strict=True)]
         assert_rows_equal_singles(vobs, sobs, step)
+
+
+def test_an_image_given_to_an_inserted_object_reaches_the_model(active_bundle, tmp_path):
+    import cv2
+
+    from m4world_env.scenario import ScenarioError
+
+    image = tmp_path / "truck.png"
+    cv2.imwrite(str(image), np.tile(np.array([0, 0, 255], np.uint8), (24, 24, 1)))
+    spec = {"id": "new", "category": "truck", "track": {"kind": "static", "x": 20.0, "y": 0.0}}
+
+    def after_insert(**extra) -> np.ndarray:
+        env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(active_bundle), config=KEYS)
+        env.reset(seed=0)
+        env.insert_object({**spec, **extra})
+        return env.step(np.zeros(2, np.float32))[0]["cameras"]
+
+    assert not np.array_equal(after_insert(image=str(image)), after_insert())
+    env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(active_bundle), config=KEYS)
+    env.reset(seed=0)
+    with pytest.raises(ScenarioError, match="image"):
+        env.insert_object({**spec, "image": str(tmp_path / "missing.png")})
+    with pytest.raises(ScenarioError, match="image"):
+        env.edit_object("cutting_van", image=str(tmp_path / "missing.png"))
+    env.step(np.zeros(2, np.float32))  # still usable

@@ -280,3 +280,17 @@ def test_vectorized_separation_never_skips_a_pair_highway_env_would_collide():
     assert not (apart & will).any()  # never skips a collision
     assert (apart == ~will).mean() > 0.97  # and skips nearly every pair that is apart
     assert apart.any() and will.any()
+
+
+def test_a_refused_edit_changes_nothing():
+    b = TrafficBridge(load_scenario("highway_sunny_day"))
+    frame = b.reset(seed=0)
+    car = next(o for o in frame.objects if o.track_id.startswith("idm_"))
+    for speed in (-5, "fast", float("nan")):
+        with pytest.raises(ValueError, match="speed"):
+            b.edit_object(car.track_id, color="green", speed=speed)
+    after = next(o for o in b.step([0.0, 0.0])[-1].objects if o.track_id == car.track_id)
+    assert after.color_name == car.color_name and after.description == car.description
+    b.edit_object(car.track_id, color="green", speed=5)
+    after = next(o for o in b.step([0.0, 0.0])[-1].objects if o.track_id == car.track_id)
+    assert after.color_name == "green"

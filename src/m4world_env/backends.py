@@ -158,6 +158,9 @@ class WorldModelBackend:
         return self._with_bev(obs, frame)
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
+        for i, chunk in enumerate(chunks):  # objects inserted or edited since reset may name images
+            if chunk is not None:
+                self.rollouts.crops[i] = self._crops(chunk[-1])
         outs = self.rollouts.step(chunks)
         return [
             None if out is None else [self._with_bev(o, chunk[-1]) for o in out]

@@ -236,6 +236,13 @@ class ObjectSpec(_Strict):
     def _color(cls, v: Color) -> Color:
         return _check_color(v)
 
+    @field_validator("image")
+    @classmethod
+    def _image(cls, v: str | None) -> str | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"image file {v!r} not found (relative paths start at the working directory)")
+        return v
+
     @field_validator("size")
     @classmethod
     def _size(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:

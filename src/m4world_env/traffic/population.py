@@ -183,6 +183,7 @@ def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
         return make_scripted(road, layout, parse_spec(data, f"edit_object({obj.track_id})"), "edit_object")
     if "speed" in changes and not is_vehicle(obj):
         raise ValueError(f"{obj.track_id!r} follows a scripted track: change its motion with track=..., not speed")
+    speed = _checked_speed(changes["speed"]) if "speed" in changes else None  # checked before anything changes
     category = changes.get("category", look.category)
     probe = {
         "id": obj.track_id,
@@ -212,10 +213,17 @@ def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
         obj.spec = spec.model_copy(
             update={k: v for k, v in changes.items() if k in ("category", "color", "description", "image", "size")}
         )
-    if "speed" in changes:
-        speed = float(changes["speed"])
-        if not (math.isfinite(speed) and speed >= 0):
-            raise ValueError(f"speed must be a finite, non-negative number, got {changes['speed']!r}")
+    if speed is not None:
         obj.target_speed = speed
     road.invalidate()
     return obj
+
+
+def _checked_speed(value: object) -> float:
+    try:
+        speed = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        speed = math.nan
+    if not (math.isfinite(speed) and speed >= 0):
+        raise ValueError(f"speed must be a finite, non-negative number, got {value!r}")
+    return speed
