@@ -106,6 +106,24 @@ def test_bad_construction_and_options():
         env.reset(seed=0, options={"referense": None})
 
 
+@pytest.mark.parametrize(
+    "config,match",
+    [
+        ({"height": "abc"}, "config.height must be an integer"),
+        ({"reward": {"collision": "big"}}, "config.reward.collision must be a finite number"),
+        ({"reward": {"high_speed": float("nan")}}, "config.reward.high_speed must be a finite number"),
+        ({"reward": {"speed_range": 5}}, "speed_range must be two finite numbers"),
+        ({"reward": {"speed_range": [1, 2, 3]}}, "speed_range must be two finite numbers"),
+        ({"offroad_terminal": "no"}, "config.offroad_terminal must be True or False"),
+        ({"model": {"context_refresh": "no"}}, "config.model.context_refresh must be True or False"),
+        ({"model": {"denoising_steps": 2.5}}, "config.model.denoising_steps must be an integer"),
+    ],
+)
+def test_option_values_of_the_wrong_type_are_refused_by_name(config, match):
+    with pytest.raises(InvalidOptionError, match=match):
+        make(config={**SMALL, **config})
+
+
 def test_step_before_reset_and_after_termination():
     env = M4WorldEnv("stopped_vehicle_snow", config=SMALL)
     with pytest.raises(ResetNeeded):

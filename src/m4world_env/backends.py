@@ -104,6 +104,12 @@ class WorldModelBackend:
         from world_model.runtime import RolloutBatch, load_world_model
 
         mc = config.model
+        try:
+            device = torch.device(mc.device)
+        except RuntimeError as e:
+            raise InvalidOptionError(f"config.model.device: {e}") from e
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise InvalidOptionError(f"config.model.device={mc.device!r}, but this torch build sees no CUDA device")
         torch.set_num_threads(max(1, torch.get_num_threads()))
         if mc.retain_heap and torch.device(mc.device).type == "cpu":
             retain_freed_memory()

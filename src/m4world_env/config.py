@@ -7,9 +7,12 @@ it into these dataclasses and names any key it does not know (with the closest v
 from __future__ import annotations
 
 import difflib
+import math
 import numbers
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from typing import Any
+from typing import Any, get_type_hints
+
+import numpy as np
 
 from world_model.precision import DTYPES
 
@@ -54,7 +57,6 @@ class ModelBackendConfig:
     # [2, 3] (the last two of 4 steps) scored like every step on the shipped checkpoint for 12 frame
     # passes a chunk instead of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only").
     refresh_steps: tuple[int, ...] | None = None
-    guidance_scale: float = 1.0
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
     # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
@@ -137,11 +139,42 @@ def _build(cls: type, d: dict[str, Any], path: str) -> Any:
         if key not in known:
             close = difflib.get_close_matches(key, list(known), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""
-            raise UnknownOptionError(f"unknown option {path}.{key}{hint} Valid keys: {sorted(known)}")
+            raise UnknownOptionError(f"unknown option {path}.{key}{hint}; valid keys: {sorted(known)}")
         factory = known[key].default_factory
         nested_cls = factory if isinstance(factory, type) and is_dataclass(factory) else None
         kwargs[key] = _build(nested_cls, value, f"{path}.{key}") if nested_cls else value
+    hints = get_type_hints(cls)
+    for key, value in kwargs.items():
+        _check_type(value, hints[key], f"{path}.{key}")
     try:
         return cls(**kwargs)
     except TypeError as e:
         raise InvalidOptionError(f"{path}: {e}") from e
+
+
+def _check_type(value: Any, kind: Any, name: str) -> None:
+    """Refuse a value of the wrong type for a scalar option (a bool given as "no" would otherwise
+    count as True, a weight given as a string fail only at the first step); float options must be
+    finite. Options of other types (tuples, nested configs) are checked where they are used."""
+    is_bool = isinstance(value, bool | np.bool_)
+    if kind is bool and not is_bool:
+        raise InvalidOptionError(f"{name} must be True or False, got {value!r}")
+    if kind is int and (is_bool or not isinstance(value, numbers.Integral)):
+        raise InvalidOptionError(f"{name} must be an integer, got {value!r}")
+    if kind is float and (is_bool or not isinstance(value, numbers.Real) or not math.isfinite(value)):
+        raise InvalidOptionError(f"{name} must be a finite number, got {value!r}")
+    if kind is str and not isinstance(value, str):
+        raise InvalidOptionError(f"{name} must be a string, got {value!r}")
+    if kind == tuple[float, float]:
+        pair = _real_tuple(value)
+        if pair is None or len(pair) != 2:
+            raise InvalidOptionError(f"{name} must be two finite numbers (low, high), got {value!r}")
+
+
+def _real_tuple(x: Any) -> tuple[float, ...] | None:
+    try:
+        items = tuple(x)
+    except TypeError:
+        return None
+    ok = all(isinstance(k, numbers.Real) and not isinstance(k, bool) and math.isfinite(k) for k in items)
+    return tuple(float(k) for k in items) if ok else None
