@@ -154,6 +154,11 @@ def test_missing_or_corrupt_checkpoint_is_a_clear_error(tiny_bundle, tmp_path):
     (broken / "vae.safetensors").write_bytes(b"garbage")
     with pytest.raises(CheckpointError, match="vae.safetensors is corrupt"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(broken))
+    with pytest.raises(CheckpointError, match="is a file"):
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle / "student.safetensors"))
+    (broken / "manifest.json").write_text("[]")
+    with pytest.raises(CheckpointError, match="not a bundle manifest"):
+        M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(broken))
 
 
 def test_scenario_adapters_are_applied_to_the_student(active_bundle, tmp_path):

@@ -76,6 +76,7 @@ BAD_CASES = {
         GOOD.replace("kind: lane_follow, lane: 0, start: 50, speed: 10", "kind: static"),
         "objects.0.track",
     ),
+    "infinite": (GOOD.replace("speed: 10", "speed: .inf"), "objects.0.track.speed: Input should be a finite number"),
     "ratio": (GOOD.replace("policy_frequency: 5", "policy_frequency: 3"), "integer"),
     "yaml_syntax": (
         GOOD.replace("road: {type: highway, lanes: 3}", "road: {type: highway, lanes: 3"),

@@ -40,7 +40,7 @@ class ScenarioError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # an inf speed would fail only mid-episode
 
 
 def _check_color(value: str | tuple[int, int, int]) -> str | tuple[int, int, int]:

@@ -214,6 +214,10 @@ def resolve_bundle(path: str | Path | None) -> Path:
 def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
     """Read and verify a bundle. Raises :class:`CheckpointError` with the offending file named."""
     root = resolve_bundle(path)
+    if not root.is_dir():
+        raise CheckpointError(
+            f"checkpoint {root} is a file; give the bundle folder that holds it and manifest.json ({root.parent})"
+        )
     manifest_path = root / "manifest.json"
     try:
         manifest = json.loads(manifest_path.read_text())
@@ -221,6 +225,8 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
         raise CheckpointError(f"{root} is not a checkpoint bundle: {manifest_path.name} is missing") from e
     except json.JSONDecodeError as e:
         raise CheckpointError(f"{manifest_path} is corrupt (not valid JSON: {e})") from e
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("components", {}), dict):
+        raise CheckpointError(f"{manifest_path} is corrupt: not a bundle manifest (an object with 'components')")
     if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != BUNDLE_VERSION:
         raise CheckpointError(
             f"{manifest_path}: format {manifest.get('format')!r} v{manifest.get('version')} is not "
@@ -232,6 +238,8 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
         raise CheckpointError(f"{manifest_path} lists no {missing} component: the bundle is incomplete")
     tensors = {}
     for name, info in components.items():
+        if not isinstance(info, dict) or not {"file", "bytes", "sha256"} <= set(info):
+            raise CheckpointError(f"{manifest_path} is corrupt: component {name!r} needs 'file', 'bytes' and 'sha256'")
         file = root / info["file"]
         if not file.exists():
             raise CheckpointError(f"checkpoint file {file} is missing (listed in {manifest_path.name})")
