@@ -41,3 +41,13 @@ def test_every_shipped_adapter_fits_a_model_of_the_shipped_bundle():
     assert wm.apply_adapters(names) == ["tree_truck", "tree_truck_completion"]  # student's, then reference's
     assert loaded_adapters(wm.reference) == ["tree_truck_completion"]
     assert [read_adapter(DEFAULT_BUNDLE / "adapters" / n)[0].completes for n in names] == [None, "tree_truck"]
+
+
+def test_a_scenario_whose_steps_split_a_chunk_is_refused_at_construction():
+    from m4world_env.config import InvalidOptionError
+    from m4world_env.env import M4WorldEnv
+    from m4world_env.scenario import load_scenario
+
+    one_frame_steps = load_scenario("merge_cut_in").model_copy(update={"policy_frequency": 10})
+    with pytest.raises(InvalidOptionError, match="2-frame chunks"):  # the default checkpoint's chunks
+        M4WorldEnv(one_frame_steps, backend="world_model")

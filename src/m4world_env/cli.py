@@ -153,6 +153,16 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
 def _step_list(text: str) -> tuple[int, ...]:
     """ "0,3" -> (0, 3): a --refresh-steps value (StudentConfig checks the indices)."""
     try:
@@ -312,7 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("record", help="record training clips (procedural sensors) from scenarios")
     r.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
-    r.add_argument("--episodes", type=int, default=1)
+    r.add_argument("--episodes", type=_positive_int, default=1)
     r.add_argument("--out", required=True)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--duration", type=float, default=None, help="override the scenarios' duration (s)")
@@ -325,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="score a policy over scenarios (PDM-style)")
     e.add_argument("--policy", default="idm")
     e.add_argument("--scenarios", nargs="+", default=["all"])
-    e.add_argument("--episodes", type=int, default=1)
+    e.add_argument("--episodes", type=_positive_int, default=1)
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--backend", default="procedural", choices=("procedural", "world_model"))
     e.add_argument("--checkpoint", default=None)

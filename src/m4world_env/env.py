@@ -91,6 +91,13 @@ class M4WorldEnv(gym.Env):
         model_cfg = getattr(getattr(self.backend, "wm", None), "cfg", None)
         if model_cfg is not None:
             self.rig, self.lidar_spec, self.bev_spec = self.backend.rig, model_cfg.sensors.lidar, model_cfg.sensors.bev
+            chunk = model_cfg.clip.chunk_frames
+            if self.scenario.frames_per_step % chunk:
+                raise InvalidOptionError(
+                    f"scenario {self.scenario.name!r}: a step spans {self.scenario.frames_per_step} sensor frame(s) "
+                    f"(sensor_frequency / policy_frequency), not a multiple of the checkpoint's {chunk}-frame chunks; "
+                    f"choose frequencies whose ratio is a multiple of {chunk} for backend='world_model'"
+                )
         else:
             self.rig = default_rig(width=self.cfg.width, height=self.cfg.height)
             self.lidar_spec, self.bev_spec = LidarSpec(), BevSpec()
