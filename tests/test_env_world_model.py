@@ -46,6 +46,21 @@ def test_world_model_same_seed_same_observations(tiny_bundle):
 LIDAR_ATOL_M = 0.01  # batched vs batch-of-one LiDAR: measured ~3e-5 m apart
 
 
+def test_a_second_reset_with_the_same_seed_repeats_the_episode_exactly(active_bundle):
+    env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(active_bundle), config=KEYS)
+
+    def episode() -> list[dict]:
+        out = [env.reset(seed=3)[0]]
+        for a in ([0.3, 0.0], [0.0, 0.1], [-0.2, 0.0]):
+            out.append(env.step(np.array(a, np.float32))[0])
+        return out
+
+    first, again = episode(), episode()
+    for step, (oa, ob) in enumerate(zip(first, again, strict=True)):
+        for k in oa:
+            assert np.array_equal(oa[k], ob[k]), (step, k)
+
+
 def assert_rows_equal_singles(vobs: dict, sobs: list[dict], step: int) -> None:
     """Vector-env row i equals single env i: one batched forward vs N batch-of-one forwards are
     equal up to float summation order."""

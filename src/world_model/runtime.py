@@ -281,9 +281,10 @@ class RolloutBatch:
         with torch.no_grad():
             latents, obs = self.wm.first_frame(cond, frame, reference, seed=int(seed))
         self.last_arrays[row] = arrays
-        if self.engine.batch_size == self.n:
+        if self.engine.batch_size == self.n and self.n > 1:
             self.engine.start_rows([row], latents, cond)
-        else:
+        else:  # the first start, or a single rollout: a fresh engine, so frame positions restart at 0
+            # and a reset with the same seed repeats the episode bit for bit
             self._pending[row] = (latents, arrays)
             if len(self._pending) == self.n:
                 rows = sorted(self._pending)
