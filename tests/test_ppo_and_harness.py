@@ -63,6 +63,8 @@ def test_eval_cli_custom_policy_table_and_json(tmp_path, capsys):
     assert rep["policy"] == "tests.policy_fixture:brake" and len(rep["episodes"]) == 1
     assert main(["eval", "--policy", "no_such_module:f", "--scenarios", "empty_highway"]) == 2
     assert "cannot load policy" in capsys.readouterr().err
+    assert main(["eval", "--policy", "tests.policy_fixture:make_braker", "--scenarios", "empty_highway"]) == 0
+    assert "OVERALL" in capsys.readouterr().out
     with pytest.raises(SystemExit):  # argparse: usage error, exit status 2
         main(["eval", "--episodes", "0", "--scenarios", "empty_highway"])
     assert "--episodes: must be a positive integer" in capsys.readouterr().err

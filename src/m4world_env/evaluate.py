@@ -60,8 +60,13 @@ def make_policy(spec: str, env) -> Policy:
         raise ValueError(f"cannot load policy {spec!r}: {e}") from e
     if inspect.isclass(obj):
         return obj(env)
-    params = list(inspect.signature(obj).parameters)
-    return obj(env) if params == ["env"] else obj
+    # A policy takes (obs, info); a factory takes the env alone, whatever its parameter is called.
+    positional = [
+        p
+        for p in inspect.signature(obj).parameters.values()
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
+    ]
+    return obj(env) if len(positional) == 1 else obj
 
 
 def run_episode(env, policy: Policy | str, seed: int, max_steps: int | None = None) -> dict[str, float]:
