@@ -313,19 +313,13 @@ def test_world_model_backend_retains_the_heap_unless_told_not_to(tiny_bundle, mo
     assert len(calls) == int(retain)
 
 
-def _bundle_with_completion_adapter(tiny_bundle, root):
-    """A tiny bundle whose reference model's output depends on its blocks, and a completion adapter
-    (random LoRA B) trained on it for category "van" (merge_cut_in's cutting van)."""
-    from world_model.bundle import load_bundle_files, save_bundle
+def _bundle_with_completion_adapter(bundle, root):
+    """A completion adapter (random LoRA B) for category "van" (merge_cut_in's cutting van) on
+    ``bundle``'s reference model (``active_bundle``: its output depends on its blocks), saved
+    under ``root``. Returns the bundle and the adapter's path."""
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
     from world_model.runtime import load_world_model
 
-    files = load_bundle_files(tiny_bundle)
-    gen = torch.Generator().manual_seed(1)
-    tensors = dict(files.tensors)
-    tensors["reference"] = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors["reference"].items()}
-    configs = {"reference": files.component_config("reference")}
-    bundle = save_bundle(root / "bundle", files.model_config, tensors, component_configs=configs)
     wm = load_world_model(bundle)
     lora = LoraConfig(rank=2)
     add_adapter(wm.reference, "van_completion", lora)
@@ -340,7 +334,7 @@ def _bundle_with_completion_adapter(tiny_bundle, root):
     return bundle, path
 
 
-def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_bundle, tmp_path):
+def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(active_bundle, tmp_path):
     """A reference-model adapter trained in the completion task acts at reset() only inside its
     category's projected boxes: the controls pass runs without it (every latent cell outside the
     boxes equals the plain model's), a frame without the category and a first frame anchored on
@@ -350,7 +344,7 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
     from world_model.model.reference import category_region
     from world_model.runtime import load_world_model
 
-    bundle, path = _bundle_with_completion_adapter(tiny_bundle, tmp_path)
+    bundle, path = _bundle_with_completion_adapter(active_bundle, tmp_path)
     assert read_adapter(path)[0].completes == "van"
 
     def first(scenario, adapters, **reset):
@@ -387,14 +381,14 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(tiny_
         load_world_model(bundle).apply_adapters([str(odd)])
 
 
-def test_vector_env_with_a_completion_adapter_equals_single_envs(tiny_bundle, tmp_path):
+def test_vector_env_with_a_completion_adapter_equals_single_envs(active_bundle, tmp_path):
     """A scenario's completion adapter in the batched vector env: each row's reset completes the
     van as its single env does (seeds s + i), and the rollouts stay equal."""
     import yaml
 
     from m4world_env.scenario import SCENARIOS_DIR
 
-    bundle, adapter = _bundle_with_completion_adapter(tiny_bundle, tmp_path)
+    bundle, adapter = _bundle_with_completion_adapter(active_bundle, tmp_path)
     scenario = tmp_path / "van.yaml"
     scenario.write_text(
         yaml.safe_dump(

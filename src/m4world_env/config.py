@@ -122,12 +122,18 @@ class EnvConfig:
 
 def _int_tuple(x: Any) -> tuple[int, ...] | None:
     """``x`` as a tuple of ints, or None when it is not an iterable of ints (bools refused)."""
+    items = _number_tuple(x, numbers.Integral)
+    return None if items is None else tuple(int(k) for k in items)
+
+
+def _number_tuple(x: Any, kind: type = numbers.Real) -> tuple[Any, ...] | None:
+    """``x`` as a tuple of finite numbers of ``kind``, or None when it is not one (bools refused)."""
     try:
         items = tuple(x)
     except TypeError:
         return None
-    integral = all(isinstance(k, numbers.Integral) and not isinstance(k, bool) for k in items)
-    return tuple(int(k) for k in items) if integral else None
+    ok = all(isinstance(k, kind) and not isinstance(k, bool) and math.isfinite(k) for k in items)
+    return items if ok else None
 
 
 def _build(cls: type, d: dict[str, Any], path: str) -> Any:
@@ -166,15 +172,6 @@ def _check_type(value: Any, kind: Any, name: str) -> None:
     if kind is str and not isinstance(value, str):
         raise InvalidOptionError(f"{name} must be a string, got {value!r}")
     if kind == tuple[float, float]:
-        pair = _real_tuple(value)
+        pair = _number_tuple(value)
         if pair is None or len(pair) != 2:
             raise InvalidOptionError(f"{name} must be two finite numbers (low, high), got {value!r}")
-
-
-def _real_tuple(x: Any) -> tuple[float, ...] | None:
-    try:
-        items = tuple(x)
-    except TypeError:
-        return None
-    ok = all(isinstance(k, numbers.Real) and not isinstance(k, bool) and math.isfinite(k) for k in items)
-    return tuple(float(k) for k in items) if ok else None

@@ -170,19 +170,22 @@ class M4WorldEnv(gym.Env):
         (observations,) = self.backend.step([frames])
         return self.finish_step(frames, observations)
 
-    def check_action(self, action: Any) -> None:
-        """Raise :class:`ResetNeeded` or :class:`ActionError` if :meth:`step` would refuse ``action``;
-        changes nothing (the vector env checks every sub-env's action before advancing any)."""
+    def _require_episode(self) -> None:
         if self._needs_reset:
             raise ResetNeeded(
                 "call env.reset() before env.step() (the episode ended, never started, or the last reset failed)"
             )
+
+    def check_action(self, action: Any) -> None:
+        """Raise :class:`ResetNeeded` or :class:`ActionError` if :meth:`step` would refuse ``action``;
+        changes nothing (the vector env checks every sub-env's action before advancing any)."""
+        self._require_episode()
         self.bridge.parse_action(action)  # highway-env's ranges
 
     def advance(self, action: Any) -> list[SceneFrame]:
         """First half of a step: validate the action and run the traffic for one chunk."""
-        self.check_action(action)
-        return self.bridge.step(action)
+        self._require_episode()
+        return self.bridge.step(action)  # parses the action (ActionError) before touching any state
 
     def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""
