@@ -149,6 +149,37 @@ def test_crash_terminates_with_collision_reward():
     assert info["episode_metrics"]["collision"] == 1.0 and info["episode_metrics"]["pdms"] == 0.0
 
 
+def test_reaching_the_end_of_the_road_network_truncates_instead_of_going_off_road():
+    """The roundabout's exit lane ends 150 m out; an IDM ego gets there before the 30 s are up."""
+    from m4world_env.policies import IDMAutopilot
+
+    env = M4WorldEnv("roundabout_fog", config={**SMALL, "observation_keys": ["state"]})
+    env.reset(seed=0)
+    pilot = IDMAutopilot(seed=0)
+    terminated = truncated = False
+    while not (terminated or truncated):
+        _, reward, terminated, truncated, info = env.step(pilot(env))
+    assert truncated and not terminated and info["end_of_road"] and info["on_road"]
+    assert info["time"] < env.unwrapped.scenario.duration
+    assert info["episode_metrics"]["off_road"] == 0.0 and reward > 0
+
+
+def test_progress_is_relative_to_the_road_speed_limit():
+    """Driving at a 12 m/s roundabout's limit earns the same full progress as 30 m/s on a motorway."""
+    from m4world_env.policies import IDMAutopilot
+
+    for scenario in ("roundabout_fog", "empty_highway"):
+        env = M4WorldEnv(scenario, config={**SMALL, "observation_keys": ["state"]})
+        env.reset(seed=0)
+        limit = env.scenario.road.speed_limit
+        pilot = IDMAutopilot(seed=0)
+        for _ in range(10):
+            _, _, _, _, info = env.step(pilot(env))
+        speed_fraction = info["speed"] / limit
+        assert info["rewards"]["progress"] == pytest.approx(min(speed_fraction, 1.0), abs=0.1)
+        assert info["episode_metrics"]["progress"] > 0.5
+
+
 def test_render_mosaic():
     env = make(render_mode="rgb_array")
     env.reset(seed=0)

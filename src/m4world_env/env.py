@@ -159,7 +159,7 @@ class M4WorldEnv(gym.Env):
         model_seed = int(self.np_random.integers(0, 2**31 - 1))
         self._obs = self.backend.reset(self.backend_index, self._frame, options, model_seed)
         self._metrics = EpisodeMetrics(
-            dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.cfg.reward.speed_range[1]
+            dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.scenario.road.speed_limit
         )
         self._metrics.add_frame(self._frame)
         self._needs_reset = False
@@ -189,10 +189,11 @@ class M4WorldEnv(gym.Env):
 
     def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""
+        previous = self._frame
         self._frame, self._obs = frames[-1], observations[-1]
         for fr in frames:
             self._metrics.add_frame(fr)
-        terms = self._reward_terms(frames)
+        terms = self._reward_terms(previous, frames)
         reward = combine_reward(terms, self.cfg.reward)
         crashed, on_road = bool(self.bridge.crashed), bool(self.bridge.on_road)
         self._metrics.add_step(reward, crashed, on_road)
@@ -227,11 +228,11 @@ class M4WorldEnv(gym.Env):
 
     # -- internals --
 
-    def _reward_terms(self, frames: list[SceneFrame]) -> dict[str, float]:
+    def _reward_terms(self, previous: SceneFrame, frames: list[SceneFrame]) -> dict[str, float]:
+        """Terms of the step from ``previous`` (the last frame before it) through ``frames``."""
         dt = len(frames) / self.scenario.sensor_frequency
         ego = self.bridge.ego
-        first = frames[0]
-        progress = float(np.hypot(ego.x - first.ego.x, ego.y - first.ego.y))
+        progress = float(np.hypot(ego.x - previous.ego.x, ego.y - previous.ego.y))
         return reward_terms(
             crashed=bool(self.bridge.crashed),
             speed=float(ego.speed),
@@ -239,7 +240,7 @@ class M4WorldEnv(gym.Env):
             num_lanes=int(self.bridge.num_lanes),
             on_road=bool(self.bridge.on_road),
             progress_m=progress,
-            max_progress_m=self.cfg.reward.speed_range[1] * dt,
+            max_progress_m=self.scenario.road.speed_limit * dt,
             cfg=self.cfg.reward,
         )
 
@@ -263,6 +264,7 @@ class M4WorldEnv(gym.Env):
             "speed": float(ego.speed),
             "crashed": bool(self.bridge.crashed),
             "on_road": bool(self.bridge.on_road),
+            "end_of_road": bool(self.bridge.end_of_road),
             "lane_index": int(self.bridge.lane_index[2]),
             "rewards": dict(terms),
             "episode_metrics": self._metrics.summary(),

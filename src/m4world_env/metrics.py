@@ -8,8 +8,8 @@ acceleration). :meth:`EpisodeMetrics.summary` turns them into NAVSIM's sub-score
     PDMS = NC x DAC x (5 EP + 5 TTC + 2 C) / 12
 
 with NC no-collision (1, or 0 after a collision), DAC drivable-area compliance (0 after leaving the
-road), EP ego progress (driven distance relative to driving the whole episode at the top of the
-reward speed range, clipped to [0, 1]), TTC (1 when the time to collision never fell under
+road), EP ego progress (driven distance relative to driving the whole episode at the road's
+speed limit, clipped to [0, 1]), TTC (1 when the time to collision never fell under
 ``ttc_threshold``), C comfort (1 when every comfort signal stayed inside NAVSIM's bounds).
 """
 

@@ -25,7 +25,7 @@ def reward_terms(
 
     ``lane_index`` counts from the leftmost lane (highway-env's convention: the right lane has the
     highest index). ``progress_m`` is the distance driven this step; ``max_progress_m`` the distance
-    at the top of ``cfg.speed_range``.
+    driven at the road's speed limit (so a slow roundabout scores progress like a motorway).
     """
     high_speed = min(max(lmap(speed, cfg.speed_range, (0.0, 1.0)), 0.0), 1.0)
     right_lane = lane_index / max(num_lanes - 1, 1)

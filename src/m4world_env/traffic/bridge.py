@@ -166,8 +166,20 @@ class TrafficBridge:
 
     @property
     def truncated(self) -> bool:
-        """The scenario's duration is reached."""
-        return self.time >= self.scenario.duration - 1e-9
+        """The scenario's duration is reached, or the ego has reached the end of the road network."""
+        return self.time >= self.scenario.duration - 1e-9 or self.end_of_road
+
+    @property
+    def end_of_road(self) -> bool:
+        """The ego is at the end of a lane the network does not continue (e.g. a roundabout's exit),
+        still inside the lane's width: the map ends here, which is the end of the route rather than
+        leaving the road."""
+        ego = self.ego_vehicle
+        _, to, _ = ego.lane_index
+        if self.road.network.graph.get(to):
+            return False
+        longitudinal, lateral = ego.lane.local_coordinates(ego.position)
+        return longitudinal >= ego.lane.length and abs(lateral) <= ego.lane.width_at(longitudinal) / 2
 
     @property
     def crashed(self) -> bool:
@@ -175,7 +187,9 @@ class TrafficBridge:
 
     @property
     def on_road(self) -> bool:
-        return bool(self.ego_vehicle.on_road)
+        """On a lane; running past the end of the network counts as the end of the route, not as
+        leaving the road (at speed the ego can overshoot the lane's on-lane margin in one step)."""
+        return bool(self.ego_vehicle.on_road) or self.end_of_road
 
     @property
     def lane_index(self) -> tuple[str, str, int]:
