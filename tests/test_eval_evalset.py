@@ -3,7 +3,7 @@
 import pytest
 
 from m4world_env.evalset import EvalsetConfig, evalset_plan, load_manifest, record_evalset
-from m4world_env.recorder import episode_seed
+from m4world_env.recorder import SCENARIO_KEYS, episode_seed
 from m4world_env.scenario import list_scenarios
 from world_model.data import read_clip
 from world_model.scene import CATEGORIES, TIMES_OF_DAY, WEATHERS
@@ -26,7 +26,7 @@ def test_default_plan_covers_roads_weathers_times_categories_and_long_clips():
 
 
 def test_seeds_are_disjoint_from_training():
-    train = {episode_seed(0, si, e) for si in range(len(list_scenarios()) + 5) for e in range(5000)}
+    train = {episode_seed(0, key, e) for key in range(SCENARIO_KEYS) for e in range(5000)}
     assert not train & {j.seed for j in evalset_plan()}
     with pytest.raises(ValueError, match="collide with training"):
         EvalsetConfig(base_seed=0)

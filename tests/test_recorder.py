@@ -50,6 +50,48 @@ def test_record_cli_writes_loadable_clips_and_resumes(tmp_path, capsys):
     assert "4 clips" in capsys.readouterr().out
 
 
+def _record_args(out, *scenarios, height=32, extra=()):
+    return [
+        "record",
+        "--scenario",
+        *scenarios,
+        "--duration",
+        "0.5",
+        "--out",
+        str(out),
+        "--height",
+        str(height),
+        "--width",
+        "56",
+        *extra,
+    ]
+
+
+def test_resuming_with_other_settings_is_refused_not_mixed(tmp_path, capsys):
+    out = tmp_path / "clips"
+    assert main(_record_args(out, "empty_highway")) == 0
+    before = list_clips(out)
+    assert main(_record_args(out, "empty_highway", "merge_cut_in", height=48)) == 2
+    err = capsys.readouterr().err
+    assert "height: recorded 32, now 48" in err and "another --out" in err
+    assert list_clips(out) == before  # nothing was written
+    assert main(_record_args(out, "empty_highway", extra=["--no-randomize"])) == 2
+    assert "randomize: recorded True, now False" in capsys.readouterr().err
+    assert main(_record_args(out, "empty_highway", "merge_cut_in")) == 0  # same settings: resumes
+    assert len(list_clips(out)) == 2
+
+
+def test_clip_seeds_do_not_depend_on_the_scenario_list(tmp_path, capsys):
+    alone, listed = tmp_path / "alone", tmp_path / "listed"
+    assert main(_record_args(alone, "merge_cut_in")) == 0
+    assert main(_record_args(listed, "empty_highway", "merge_cut_in")) == 0
+    (name,) = list_clips(alone)
+    assert name in list_clips(listed)
+    assert np.array_equal(read_clip(alone, name).cameras, read_clip(listed, name).cameras)
+    assert main(_record_args(tmp_path / "twice", "merge_cut_in", "merge_cut_in")) == 2
+    assert "given more than once" in capsys.readouterr().err
+
+
 def test_excluding_a_category_removes_it(tmp_path):
     out = tmp_path / "base"
     args = [

@@ -10,8 +10,8 @@ What it holds (all at the training resolution, procedural ground truth):
   seen up close, ``short_duration`` seconds;
 * ``long`` clips: ``long_duration`` seconds (600 frames at 10 Hz) for long-horizon curves.
 
-Held out by seed. Training data use ``episode_seed(base_seed=0, ...)`` = ``scenario_index * 10_007 +
-episode`` (< 10^6 for any realistic recording); the evaluation set uses ``base_seed >= 1000``, whose
+Held out by seed. Training data use ``episode_seed(base_seed=0, ...)`` = ``scenario_key * 10_007 +
+episode`` (< 10^6 for any realistic recording: keys are < 97); the evaluation set uses ``base_seed >= 1000``, whose
 seeds are ``>= 1000 * 1_000_003`` -- disjoint from every training seed. Long clips must be complete:
 a crashed episode is retried with the next seed (deterministically).
 
@@ -29,7 +29,15 @@ from pathlib import Path
 
 import numpy as np
 
-from m4world_env.recorder import RecordConfig, clip_name, episode_seed, record_episode
+from m4world_env.recorder import (
+    RecordConfig,
+    check_recording_settings,
+    clip_name,
+    content_settings,
+    episode_seed,
+    record_episode,
+    scenario_key,
+)
 from m4world_env.scenario import (
     ObjectSpec,
     Scenario,
@@ -153,19 +161,18 @@ def parade_objects(scenario: Scenario, rng: np.random.Generator, config: Evalset
 def evalset_plan(config: EvalsetConfig = EvalsetConfig()) -> list[EvalJob]:
     """Every clip of the evaluation set, deterministic in ``config``."""
     names = list_scenarios() if config.scenarios is None else list(config.scenarios)
-    index = {n: i for i, n in enumerate(list_scenarios())}
     jobs = []
     for n in names:
         base = load_scenario(n)
         for e in range(config.episodes_per_scenario):
-            seed = episode_seed(config.base_seed, index.get(n, 0), e)
+            seed = episode_seed(config.base_seed, scenario_key(n), e)
             s = randomize_scenario(base, np.random.default_rng(seed))
             s = s.model_copy(update={"duration": config.short_duration})
             jobs.append(EvalJob(clip_name(f"eval_{n}", seed), "scenario", s, seed))
     cells = [(w, t) for w in config.grid_weathers for t in config.grid_times]
     for g, (weather, tod) in enumerate(cells):
         n = config.grid_scenarios[g % len(config.grid_scenarios)]
-        seed = episode_seed(config.base_seed + 1, index.get(n, 0), g)
+        seed = episode_seed(config.base_seed + 1, scenario_key(n), g)
         rng = np.random.default_rng(seed)
         s = randomize_scenario(load_scenario(n), rng)
         s = s.model_copy(
@@ -174,7 +181,7 @@ def evalset_plan(config: EvalsetConfig = EvalsetConfig()) -> list[EvalJob]:
         s = s.model_copy(update={"objects": parade_objects(s, rng, config)})
         jobs.append(EvalJob(f"grid_{weather}_{tod}__{n}__s{seed:06d}", "grid", s, seed))
     for e, n in enumerate(config.long_scenarios):
-        seed = episode_seed(config.base_seed + 2, index.get(n, 0), e)
+        seed = episode_seed(config.base_seed + 2, scenario_key(n), e)
         s = randomize_scenario(load_scenario(n), np.random.default_rng(seed))
         s = s.model_copy(update={"duration": config.long_duration})
         jobs.append(EvalJob(clip_name(f"long_{n}", seed), "long", s, seed, must_complete=True))
@@ -206,6 +213,7 @@ def record_evalset(out_dir: str | Path, config: EvalsetConfig = EvalsetConfig(),
 
     out = Path(out_dir)
     rec = _record_config(config, out)
+    check_recording_settings(out, content_settings(rec))
     sim = ProceduralSimulator()
     entries = []
     for job in tqdm(evalset_plan(config), desc="evalset", unit="clip", disable=not progress):
@@ -228,7 +236,7 @@ def _record_job(job: EvalJob, rec: RecordConfig, sim: ProceduralSimulator, confi
         frames, cams, lidar, bev, crops = record_episode(job.scenario, seed, rec, sim=sim)
         if len(frames) >= expected or not job.must_complete:
             break
-        seed += 1  # the ego crashed: a long clip must cover the whole duration
+        seed += 1  # the episode ended early (a crash): a long clip must cover the whole duration
     else:
         raise RuntimeError(f"{job.name}: no crash-free episode in {config.max_attempts} seeds from {job.seed}")
     meta = {"seed": seed, "randomized": True, "base_scenario": job.scenario.name, "evalset_kind": job.kind}

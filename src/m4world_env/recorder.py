@@ -4,21 +4,26 @@
 autopilot ego (lane and speed changes) and seeded randomization of traffic, colours, categories,
 weather and time, and writes one clip per episode in the format of :mod:`world_model.data.clips`.
 Clip names are derived from (scenario, seed), so a killed recording restarts where it stopped:
-complete clips are skipped, a partial one is rewritten.
+complete clips are skipped, a partial one is rewritten. The settings that shape a clip's content
+(resolution, sensors, duration, randomization, action type, excluded categories) are kept in the
+dataset's ``recording.json``; resuming into it with other settings is refused rather than mixed.
 """
 
 from __future__ import annotations
 
+import json
+import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from m4world_env.policies import IDMAutopilot
-from m4world_env.scenario import Scenario, load_scenario, randomize_scenario
+from m4world_env.scenario import Scenario, list_scenarios, load_scenario, randomize_scenario
 from m4world_env.traffic import TrafficBridge
 from world_model.data import clip_exists, write_clip
+from world_model.data.clips import write_json_atomic
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
 from world_model.sim import ProceduralSimulator
@@ -57,9 +62,61 @@ def clip_name(scenario: str, seed: int) -> str:
     return f"{scenario}__s{seed:06d}"
 
 
-def episode_seed(base_seed: int, scenario_index: int, episode: int) -> int:
+SCENARIO_KEYS = 97  # scenario keys stay below this, so training seeds stay below 10^6 (evalset.py)
+
+
+def scenario_key(name: str) -> int:
+    """A stable small integer per scenario name, whatever the order scenarios are listed in: the
+    bundled scenario's position among the bundled ones, else a hash of the name past them."""
+    bundled = list_scenarios()
+    if name in bundled:
+        return bundled.index(name)
+    return len(bundled) + zlib.crc32(name.encode()) % (SCENARIO_KEYS - len(bundled))
+
+
+def episode_seed(base_seed: int, scenario_key: int, episode: int) -> int:
     """Distinct, stable seeds per (scenario, episode); independent of how many are recorded."""
-    return base_seed * 1_000_003 + scenario_index * 10_007 + episode
+    return base_seed * 1_000_003 + scenario_key * 10_007 + episode
+
+
+class RecordingMismatchError(ValueError):
+    """A dataset directory already holds clips recorded with other settings."""
+
+
+RECORDING_MANIFEST = "recording.json"
+
+
+def check_recording_settings(out: Path, settings: dict) -> None:
+    """Write ``settings`` to ``out/recording.json``, or, when the directory was recorded before,
+    refuse settings that differ from the recorded ones (clips of two resolutions must not mix)."""
+    path = Path(out) / RECORDING_MANIFEST
+    settings = json.loads(json.dumps(settings))  # tuples -> lists, as they come back from disk
+    if path.exists():
+        recorded = json.loads(path.read_text())
+        changed = sorted(k for k in set(recorded) | set(settings) if recorded.get(k) != settings.get(k))
+        if changed:
+            diff = "; ".join(f"{k}: recorded {recorded.get(k)!r}, now {settings.get(k)!r}" for k in changed)
+            raise RecordingMismatchError(
+                f"{out} was recorded with other settings ({diff}); record into another --out or "
+                "repeat the original settings to resume"
+            )
+        return
+    Path(out).mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, settings)
+
+
+def content_settings(cfg: RecordConfig) -> dict:
+    """The settings of ``cfg`` that shape the clips' content (not which or how many are recorded)."""
+    return {
+        "randomize": cfg.randomize,
+        "duration": cfg.duration,
+        "height": cfg.height,
+        "width": cfg.width,
+        "lidar": asdict(cfg.lidar),
+        "bev": asdict(cfg.bev),
+        "action_type": cfg.action_type,
+        "exclude_categories": sorted(cfg.exclude_categories),
+    }
 
 
 def record_episode(
@@ -101,11 +158,16 @@ def record(cfg: RecordConfig, progress: bool = True) -> list[str]:
     from tqdm import tqdm
 
     scenarios = [load_scenario(s) for s in cfg.scenarios]
-    jobs = [(si, sc, episode_seed(cfg.seed, si, e)) for si, sc in enumerate(scenarios) for e in range(cfg.episodes)]
+    seen = [sc.name for sc in scenarios]
+    repeated = sorted({n for n in seen if seen.count(n) > 1})
+    if repeated:
+        raise ValueError(f"scenario name(s) {repeated} given more than once; clip names come from scenario names")
+    check_recording_settings(cfg.out, content_settings(cfg))
+    jobs = [(sc, episode_seed(cfg.seed, scenario_key(sc.name), e)) for sc in scenarios for e in range(cfg.episodes)]
     names = []
     sim = ProceduralSimulator()
     bar = tqdm(jobs, desc="recording", unit="clip", disable=not progress)
-    for _si, sc, seed in bar:
+    for sc, seed in bar:
         name = clip_name(sc.name, seed)
         names.append(name)
         if clip_exists(cfg.out, name):
