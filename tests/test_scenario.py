@@ -10,6 +10,7 @@ from m4world_env.scenario import (
     list_scenarios,
     load_scenario,
     randomize_scenario,
+    scenario_from_dict,
 )
 from world_model.scene import TIMES_OF_DAY, WEATHERS, ScenePrompt
 
@@ -78,6 +79,21 @@ BAD_CASES = {
     ),
     "infinite": (GOOD.replace("speed: 10", "speed: .inf"), "objects.0.track.speed: Input should be a finite number"),
     "ratio": (GOOD.replace("policy_frequency: 5", "policy_frequency: 3"), "integer"),
+    "ego_lane_out_of_range": (
+        GOOD.replace("duration: 4", "duration: 4\nego: {lane: 3}"),
+        "ego.lane: lane 3 does not exist; the highway road starts with 3 lanes",
+    ),
+    "object_lane_out_of_range": (
+        GOOD.replace("lane: 0, start: 50", "lane: 7, start: 50"),
+        "objects.0.track.lane: lane 7 does not exist",
+    ),
+    "cut_in_lane_out_of_range": (
+        GOOD.replace("road: {type: highway, lanes: 3}", "road: {type: roundabout}\nego: {lane: 0}").replace(
+            "kind: lane_follow, lane: 0, start: 50, speed: 10",
+            "kind: cut_in, from_lane: 0, to_lane: 1, speed: 9, time: 1",
+        ),
+        "objects.0.track.to_lane: lane 1 does not exist; the roundabout road starts with 1 lane (0 = leftmost)",
+    ),
     "yaml_syntax": (
         GOOD.replace("road: {type: highway, lanes: 3}", "road: {type: highway, lanes: 3"),
         "YAML syntax error at line",
@@ -113,3 +129,26 @@ def test_randomize_is_seeded_and_varies():
     assert len({m.weather for m in many}) > 1 and len({m.time_of_day for m in many}) > 1
     assert len({m.traffic.count for m in many}) > 1
     assert all(m.road == s.road and m.objects == s.objects for m in many)
+
+
+@pytest.mark.parametrize("road", ["highway", "merge", "roundabout", "intersection", "two_way"])
+def test_start_lanes_match_the_built_network(road):
+    """The load-time lane check counts lanes as the road builder lays them out."""
+    from m4world_env.traffic.roads import build_road
+
+    spec = scenario_from_dict({"name": "t", "road": {"type": road}, "ego": {"lane": 0}}).road
+    layout = build_road(spec)
+    frm, to = layout.ego_edge
+    assert spec.start_lanes == len(layout.network.graph[frm][to])
+
+
+def test_scenarios_check_cli_lists_good_files_and_refuses_bad_ones(tmp_path, capsys):
+    from m4world_env.cli import main
+
+    good, bad = tmp_path / "good.yaml", tmp_path / "bad.yaml"
+    good.write_text(GOOD)
+    bad.write_text(GOOD.replace("lane: 0, start: 50", "lane: 5, start: 50"))
+    assert main(["scenarios", "--check", str(good)]) == 0
+    assert "tiny" in capsys.readouterr().out
+    assert main(["scenarios", "--check", str(bad)]) == 2
+    assert f"{bad}: objects.0.track.lane: lane 5 does not exist" in capsys.readouterr().err

@@ -67,6 +67,11 @@ class HighwayRoad(_Strict):
     speed_limit: float = Field(30.0, gt=0)
     lane_width: float = Field(4.0, gt=2)
 
+    @property
+    def start_lanes(self) -> int:
+        """Lanes of the edge the ego and lane-placed objects start on (what ``lane`` fields index)."""
+        return self.lanes
+
 
 class MergeRoad(_Strict):
     """A highway with an on-ramp joining from the right (``merge-v0``)."""
@@ -81,6 +86,11 @@ class MergeRoad(_Strict):
     ramp_speed_limit: float = Field(20.0, gt=0)
     lane_width: float = Field(4.0, gt=2)
 
+    @property
+    def start_lanes(self) -> int:
+        """The main road before the ramp joins."""
+        return self.lanes
+
 
 class RoundaboutRoad(_Strict):
     """A four-arm roundabout, counter-clockwise (right-hand traffic)."""
@@ -93,6 +103,11 @@ class RoundaboutRoad(_Strict):
     speed_limit: float = Field(12.0, gt=0)
     lane_width: float = Field(4.0, gt=2)
 
+    @property
+    def start_lanes(self) -> int:
+        """The south approach is one lane (``lanes`` counts the ring's)."""
+        return 1
+
 
 class IntersectionRoad(_Strict):
     """A four-arm unsignalized crossing, one lane per direction, with turning lanes."""
@@ -102,6 +117,11 @@ class IntersectionRoad(_Strict):
     turn_radius: float = Field(10.0, ge=4, description="radius of the right-turn lanes, m")
     speed_limit: float = Field(12.0, gt=0)
     lane_width: float = Field(4.0, gt=2)
+
+    @property
+    def start_lanes(self) -> int:
+        """One lane per direction: the south arm's incoming lane."""
+        return 1
 
 
 class TwoWayRoad(_Strict):
@@ -113,6 +133,11 @@ class TwoWayRoad(_Strict):
     length: float = Field(1000.0, gt=50)
     speed_limit: float = Field(20.0, gt=0)
     lane_width: float = Field(4.0, gt=2)
+
+    @property
+    def start_lanes(self) -> int:
+        """The ego's direction (oncoming lanes are not lane-addressable)."""
+        return self.lanes
 
 
 Road = Annotated[HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, Field(discriminator="type")]
@@ -347,9 +372,35 @@ def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: <root>: a scenario must be a mapping, got {type(data).__name__}")
     try:
-        return Scenario.model_validate(data)
+        scenario = Scenario.model_validate(data)
     except ValidationError as err:
         raise ScenarioError(_format_validation_error(source, err, data)) from None
+    _check_lanes(scenario, source)
+    return scenario
+
+
+def _lane_fields(scenario: Scenario) -> list[tuple[str, int]]:
+    """(YAML path, lane id) of every field that indexes a lane of the road's start edge."""
+    fields = [("ego.lane", scenario.ego.lane)]
+    for i, obj in enumerate(scenario.objects):
+        for name in ("lane", "from_lane", "to_lane"):
+            lane = getattr(obj.track, name, None)
+            if lane is not None:
+                fields.append((f"objects.{i}.track.{name}", lane))
+    return fields
+
+
+def _check_lanes(scenario: Scenario, source: str) -> None:
+    """Lane ids must exist on the start edge (caught at load, naming the file, not at reset)."""
+    n = scenario.road.start_lanes
+    errors = [
+        f"{source}: {path}: lane {lane} does not exist; the {scenario.road.type} road starts with {n} "
+        f"lane{'s' if n > 1 else ''} (0 = leftmost)"
+        for path, lane in _lane_fields(scenario)
+        if lane >= n
+    ]
+    if errors:
+        raise ScenarioError("\n".join(errors))
 
 
 def _resolve(name_or_path: str | Path) -> Path:

@@ -98,9 +98,6 @@ class TrafficBridge:
     def _make_ego(self):
         s, net = self.scenario, self.layout.network
         frm, to = self.layout.ego_edge
-        n = len(net.graph[frm][to])
-        if s.ego.lane >= n:
-            raise ScenarioError(f"{s.name}: ego.lane: lane {s.ego.lane} does not exist, the start road has {n} lanes")
         lane = net.get_lane((frm, to, s.ego.lane))
         pos, heading = lane.position(s.ego.longitudinal, 0.0), lane.heading_at(s.ego.longitudinal)
         if self.action_type == "continuous":
