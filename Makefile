@@ -14,7 +14,7 @@ $(PY):
 
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q $(TORCH_PIN)
-	$(PY) -m pip install -q -e ".[dev,text,lora,rl]"
+	$(PY) -m pip install -q -e ".[dev,text,lora,rl,video]"
 	touch $(STAMP)
 
 install: $(STAMP)

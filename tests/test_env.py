@@ -188,6 +188,23 @@ def test_render_mosaic():
     assert img.shape[0] > 32 and img.shape[1] > 56 * 3
 
 
+def test_record_video_wrapper_writes_the_mosaic_at_policy_frequency(tmp_path):
+    pytest.importorskip("moviepy")  # the `video` extra
+    import imageio.v3 as iio
+    from gymnasium.wrappers import RecordVideo
+
+    env = RecordVideo(make(render_mode="rgb_array"), str(tmp_path / "videos"), episode_trigger=lambda e: True)
+    env.reset(seed=0)
+    for _ in range(6):
+        env.step(np.zeros(2, np.float32))
+    frame = env.render()
+    env.close()
+    (video,) = (tmp_path / "videos").glob("*.mp4")
+    frames = iio.imread(video)
+    assert frames.shape[0] == 7 and frames.shape[1:3] == frame.shape[:2]  # the reset frame + one per step
+    assert iio.immeta(video)["fps"] == env.unwrapped.scenario.policy_frequency
+
+
 def test_object_manipulation_reflected_next_step():
     env = M4WorldEnv("empty_highway", config={**SMALL, "observation_keys": ["cameras", "state"]})
     obs0, _ = env.reset(seed=0)
