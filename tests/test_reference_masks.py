@@ -97,7 +97,9 @@ def test_object_completion_masks_exactly_the_projected_box_in_every_frame():
 
 
 @pytest.mark.parametrize("margin", [0, 2])
-def test_object_region_covers_exactly_the_simulators_projected_boxes(margin):
+def test_object_region_covers_exactly_the_projected_boxes_latent_cells(margin):
+    """Cameras: the latent cells of the box's pixel extent (hand-checked in test_sim_cameras's
+    test_box_extent_hand_worked) grown by the margin; the simulator's crops use the same extent."""
     cfg = get_preset("default")  # 64x112 views: boxes are small relative to the latent cells
     frame = _frame_with_hard_objects(cfg)
     sim = ProceduralSimulator()

@@ -46,6 +46,36 @@ def test_point_projects_to_hand_computed_pixel():
     assert depth_back[0] < 0 and np.isnan(uv_back).all()
 
 
+def _forward_camera():
+    """Looks along LiDAR +x from the origin: camera x = -y_lidar, y = -z_lidar, z = x_lidar."""
+    from world_model.sensors import CameraSpec
+
+    K = np.array([[100.0, 0.0, 50.0], [0.0, 100.0, 40.0], [0.0, 0.0, 1.0]])
+    R = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera -> LiDAR
+    return CameraSpec("test", K, R, np.zeros(3), width=100, height=80)
+
+
+def _aabb(x, y, z):
+    """(8, 3) corners of the axis-aligned box spanning the (lo, hi) ranges x, y, z."""
+    return np.array([(a, b, c) for a in x for b in y for c in z], dtype=float)
+
+
+def test_box_extent_hand_worked():
+    """u = 100 * (-y) / x + 50, v = 100 * (-z) / x + 40, worked out by hand per case."""
+    cam = _forward_camera()
+    # 10-12 m ahead, 2 m wide, 1 m tall: the near face bounds it, u in [40, 60], v in [35, 45].
+    assert cam.box_extent(_aabb((10, 12), (-1, 1), (-0.5, 0.5)), near=0.5) == (40, 35, 60, 45)
+    # Off-centre and fractional (floor/ceil): u in [50 - 300/8, 50 - 200/9] = [12.5, 27.8] (the
+    # far face bounds the right side), v in [40 - 30/8, 40] = [36.25, 40].
+    assert cam.box_extent(_aabb((8, 9), (2, 3), (0, 0.3)), near=0.5) == (12, 36, 28, 40)
+    # Straddling the camera: edges are clipped at x = near = 1, where the box spans u in [-50, 150]
+    # and v in [-10, 90]; clipped to the 100 x 80 image.
+    assert cam.box_extent(_aabb((-2, 4), (-1, 1), (-0.5, 0.5)), near=1.0) == (0, 0, 100, 80)
+    # Behind the camera, or in front but outside the image: no extent.
+    assert cam.box_extent(_aabb((-6, -4), (-1, 1), (-0.5, 0.5)), near=0.5) is None
+    assert cam.box_extent(_aabb((5, 6), (20, 22), (-0.5, 0.5)), near=0.5) is None
+
+
 def test_object_in_left_lane_appears_left_in_front_and_not_in_back():
     sim = ProceduralSimulator()
     empty = sim.render_cameras(frame())

@@ -12,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from world_model.geometry import BOX_EDGES
+
 # nuScenes ring order; the default rig uses it.
 DEFAULT_CAMERA_NAMES = ("FRONT_LEFT", "FRONT", "FRONT_RIGHT", "BACK_RIGHT", "BACK", "BACK_LEFT")
 # Yaw of each camera's optical axis in the LiDAR frame, degrees (counter-clockwise = to the left).
@@ -50,6 +52,27 @@ class CameraSpec:
         """Yaw of the optical axis in the LiDAR frame, radians."""
         forward = self.R[:, 2]
         return math.atan2(forward[1], forward[0])
+
+    def box_extent(self, corners: np.ndarray, near: float) -> tuple[int, int, int, int] | None:
+        """Pixel extent ``(x0, y0, x1, y1)`` of a 3-D box given by its (8, 3) LiDAR-frame corners:
+        end-exclusive (``img[y0:y1, x0:x1]``), clipped to the image; edges crossing the plane
+        ``z_cam = near`` are clipped there first (a box beside the camera still has a finite
+        extent). None when no part of the box is in front of the near plane or in the image.
+        Occlusion is not considered."""
+        pc = (corners - self.t) @ self.R  # LiDAR -> camera (R maps camera -> LiDAR)
+        pts = [pc[i] for i in range(8) if pc[i, 2] >= near]
+        for a, b in BOX_EDGES:
+            za, zb = pc[a, 2], pc[b, 2]
+            if (za >= near) != (zb >= near):
+                pts.append(pc[a] + (near - za) / (zb - za) * (pc[b] - pc[a]))
+        if not pts:
+            return None
+        q = np.array(pts)
+        u = self.K[0, 0] * q[:, 0] / q[:, 2] + self.K[0, 2]
+        v = self.K[1, 1] * q[:, 1] / q[:, 2] + self.K[1, 2]
+        x0, x1 = max(0, math.floor(u.min())), min(self.width, math.ceil(u.max()))
+        y0, y1 = max(0, math.floor(v.min())), min(self.height, math.ceil(v.max()))
+        return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
 
     def to_dict(self) -> dict:
         return {

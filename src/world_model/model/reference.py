@@ -115,26 +115,6 @@ def _cells(lo: float, hi: float, size: int, down: int) -> slice:
     return slice(a, max(a, b))
 
 
-def camera_box_pixels(frame: SceneFrame, corners: np.ndarray, view: int, near: float) -> tuple | None:
-    """Pixel extent ``(x0, y0, x1, y1)`` (end-exclusive, clipped) of (8, 3) LiDAR-frame box corners
-    in camera ``view``; edges crossing the near plane are clipped there. None when not in view."""
-    cam = frame.rig.cameras[view]
-    pc = (corners - cam.t) @ cam.R  # LiDAR -> camera (R is camera -> LiDAR)
-    pts = [pc[i] for i in range(8) if pc[i, 2] >= near]
-    for a, b in BOX_EDGES:
-        za, zb = pc[a, 2], pc[b, 2]
-        if (za >= near) != (zb >= near):
-            pts.append(pc[a] + (near - za) / (zb - za) * (pc[b] - pc[a]))
-    if not pts:
-        return None
-    q = np.array(pts)
-    u = cam.K[0, 0] * q[:, 0] / q[:, 2] + cam.K[0, 2]
-    v = cam.K[1, 1] * q[:, 1] / q[:, 2] + cam.K[1, 2]
-    x0, x1 = max(0, math.floor(u.min())), min(cam.width, math.ceil(u.max()))
-    y0, y1 = max(0, math.floor(v.min())), min(cam.height, math.ceil(v.max()))
-    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
-
-
 def _lidar_box_region(corners: np.ndarray, cfg: ModelConfig, samples: int, margin: int) -> np.ndarray:
     """(h, w) bool latent cells of the LiDAR view that the box's azimuth/elevation span touches.
 
@@ -172,7 +152,7 @@ def _lidar_box_region(corners: np.ndarray, cfg: ModelConfig, samples: int, margi
 def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: ReferenceConfig) -> np.ndarray:
     """(V, h, w) bool: latent cells covered by object ``track_id``'s projected 3D box in each view.
 
-    Cameras: every latent cell intersecting the box's pixel extent (:func:`camera_box_pixels`).
+    Cameras: every latent cell intersecting the box's pixel extent (:meth:`CameraSpec.box_extent`).
     LiDAR: the cells of the range-map view spanned by the box's azimuth/elevation. Both extents
     grow by ``rcfg.margin_px`` view pixels first (0 = exactly the projected box).
     """
@@ -184,7 +164,7 @@ def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: Refe
     d = cfg.vae.downsample
     out = np.zeros((cfg.sensors.num_views, h, w), bool)
     for v in range(cfg.sensors.num_cameras):
-        box = camera_box_pixels(frame, corners, v, rcfg.near_plane_m)
+        box = frame.rig.cameras[v].box_extent(corners, rcfg.near_plane_m)
         if box is not None:
             x0, y0, x1, y1 = box
             m = rcfg.margin_px

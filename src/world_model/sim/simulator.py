@@ -15,7 +15,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-from world_model.geometry import BOX_EDGES
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, CameraRig, LidarSpec
@@ -223,25 +222,12 @@ class ProceduralSimulator:
         """
         cam = self._camera(frame, view)
         _, spec, _ = self._specs(frame)
-        near = self.config.near_plane_m
-        out = {}
         corners = self._object_poses(frame, spec).corners
+        out = {}
         for obj, cs in zip(frame.objects, corners, strict=True):
-            pc = (cs - cam.t) @ cam.R
-            pts = [pc[i] for i in range(8) if pc[i, 2] >= near]
-            for a, b in BOX_EDGES:
-                za, zb = pc[a, 2], pc[b, 2]
-                if (za >= near) != (zb >= near):
-                    pts.append(pc[a] + (near - za) / (zb - za) * (pc[b] - pc[a]))
-            if not pts:
-                continue
-            q = np.array(pts)
-            u = cam.K[0, 0] * q[:, 0] / q[:, 2] + cam.K[0, 2]
-            v = cam.K[1, 1] * q[:, 1] / q[:, 2] + cam.K[1, 2]
-            x0, x1 = max(0, math.floor(u.min())), min(cam.width, math.ceil(u.max()))
-            y0, y1 = max(0, math.floor(v.min())), min(cam.height, math.ceil(v.max()))
-            if x1 > x0 and y1 > y0:
-                out[obj.track_id] = (x0, y0, x1, y1)
+            box = cam.box_extent(cs, self.config.near_plane_m)
+            if box is not None:
+                out[obj.track_id] = box
         return out
 
     def visible_pixels(self, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:

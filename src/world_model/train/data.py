@@ -17,7 +17,7 @@ from world_model.data.clips import clip_fingerprint
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder
-from world_model.model.reference import ReferenceConfig, camera_box_pixels
+from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.scene import SceneFrame
@@ -60,7 +60,7 @@ def object_pixel_weights(frame: SceneFrame, view: int, height: int, width: int, 
         return out
     corners = frame.object_corners_lidar()
     for o in range(len(frame.objects)):
-        box = camera_box_pixels(frame, corners[o], view, NEAR_PLANE_M)
+        box = frame.rig.cameras[view].box_extent(corners[o], NEAR_PLANE_M)
         if box is not None:
             x0, y0, x1, y1 = box
             out[y0:y1, x0:x1] = 1.0 + extra
