@@ -65,7 +65,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def _cmd_record(args: argparse.Namespace) -> int:
     from m4world_env.recorder import RecordConfig, record
     from m4world_env.scenario import list_scenarios
+    from world_model.model.config import get_preset
 
+    sensors = get_preset(args.preset).sensors  # the clips must match the model that trains on them
     scenarios = list_scenarios() if args.scenario == ["all"] else args.scenario
     cfg = RecordConfig(
         scenarios=scenarios,
@@ -74,8 +76,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
         seed=args.seed,
         randomize=not args.no_randomize,
         duration=args.duration,
-        height=args.height,
-        width=args.width,
+        height=args.height or sensors.height,
+        width=args.width or sensors.width,
+        lidar=sensors.lidar,
+        bev=sensors.bev,
         exclude_categories=tuple(args.exclude_category or ()),
     )
     names = record(cfg)
@@ -326,8 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True)
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--duration", type=float, default=None, help="override the scenarios' duration (s)")
-    r.add_argument("--height", type=int, default=64)
-    r.add_argument("--width", type=int, default=112)
+    r.add_argument("--preset", default="default", help="model preset whose sensors (views, LiDAR, BEV) the clips match")
+    r.add_argument("--height", type=_positive_int, default=None, help="camera height (default: the preset's)")
+    r.add_argument("--width", type=_positive_int, default=None, help="camera width (default: the preset's)")
     r.add_argument("--no-randomize", action="store_true", help="record the scenarios exactly as written")
     r.add_argument("--exclude-category", action="append", help="drop scripted objects of this category")
     r.set_defaults(func=_cmd_record)

@@ -1,0 +1,60 @@
+"""Training on what `m4world record` writes (not the synthetic fixture dataset), and a teacher run
+killed mid-way that resumes from its last checkpoint."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from m4world_env.cli import main
+from world_model.data import list_clips, read_clip
+from world_model.model import get_preset
+from world_model.train import load_latest, train_stage
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    out = tmp_path_factory.mktemp("recorded")
+    args = ["record", "--preset", "tiny", "--scenario", "merge_cut_in", "roundabout_fog", "--duration", "0.8"]
+    assert main([*args, "--out", str(out)]) == 0
+    return out
+
+
+def test_record_preset_matches_the_model_sensors(recorded):
+    sensors = get_preset("tiny").sensors
+    clip = read_clip(recorded, list_clips(recorded)[0])
+    assert clip.cameras.shape[1:] == (sensors.num_cameras, sensors.height, sensors.width, 3)
+    assert clip.lidar.shape[1:] == (sensors.lidar.beams, sensors.lidar.azimuth)
+    assert clip.bev.shape[1:] == sensors.bev.shape
+
+
+def test_vae_and_teacher_train_on_recorded_clips_and_a_killed_teacher_resumes(recorded, tmp_path, capsys):
+    run = tmp_path / "run"
+    base = ["train", "--preset", "tiny", "--data", str(recorded), "--run", str(run), "--no-progress"]
+    assert main([*base, "--stage", "vae", "--steps", "2"]) == 0
+    assert json.loads(capsys.readouterr().out)["step"] == 2
+    # The teacher, as a separate process, killed once it has checkpointed twice.
+    cmd = [sys.executable, "-m", "world_model.train", "--stage", "teacher", "--data", str(recorded)]
+    cmd += ["--run", str(run), "--preset", "tiny", "--steps", "100000", "--ckpt-every", "2", "--no-progress"]
+    proc = subprocess.Popen(
+        cmd, env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    latest = run / "teacher" / "checkpoints" / "latest.json"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
+        assert proc.poll() is None, "the teacher run exited on its own"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    ck = load_latest(run / "teacher" / "checkpoints")
+    assert ck is not None and ck.step >= 4
+    out = train_stage("teacher", recorded, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
+    assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
+    assert (run / "teacher" / "model.safetensors").exists()
