@@ -188,21 +188,40 @@ def test_render_mosaic():
     assert img.shape[0] > 32 and img.shape[1] > 56 * 3
 
 
-def test_record_video_wrapper_writes_the_mosaic_at_policy_frequency(tmp_path):
+def test_rgb_array_list_renders_every_sensor_frame_once():
+    single, every = make(render_mode="rgb_array"), make(render_mode="rgb_array_list")
+    assert every.metadata["render_fps"] == 10 and single.metadata["render_fps"] == 5  # sensor vs policy rate
+    single.reset(seed=0)
+    every.reset(seed=0)
+    assert len(every.render()) == 1 and every.render() == []  # the reset frame, then nothing new
+    for _ in range(2):
+        single.step(np.zeros(2, np.float32))
+        every.step(np.zeros(2, np.float32))
+    frames = every.render()
+    assert len(frames) == 4 and np.array_equal(frames[-1], single.render())
+    assert not np.array_equal(frames[-2], frames[-1])
+
+
+@pytest.mark.parametrize("render_mode", ["rgb_array", "rgb_array_list"])
+def test_record_video_writes_the_mosaic_at_the_render_rate(tmp_path, render_mode):
+    """gymnasium's RecordVideo on rgb_array: one frame per step at the policy frequency; ours on
+    rgb_array_list: every sensor frame at the sensor frequency."""
     pytest.importorskip("moviepy")  # the `video` extra
     import imageio.v3 as iio
-    from gymnasium.wrappers import RecordVideo
 
-    env = RecordVideo(make(render_mode="rgb_array"), str(tmp_path / "videos"), episode_trigger=lambda e: True)
+    from m4world_env.wrappers import RecordVideo
+
+    wrapper = gym.wrappers.RecordVideo if render_mode == "rgb_array" else RecordVideo
+    env = wrapper(make(render_mode=render_mode), str(tmp_path / "videos"), episode_trigger=lambda e: True)
     env.reset(seed=0)
     for _ in range(6):
         env.step(np.zeros(2, np.float32))
-    frame = env.render()
     env.close()
     (video,) = (tmp_path / "videos").glob("*.mp4")
     frames = iio.imread(video)
-    assert frames.shape[0] == 7 and frames.shape[1:3] == frame.shape[:2]  # the reset frame + one per step
-    assert iio.immeta(video)["fps"] == env.unwrapped.scenario.policy_frequency
+    per_step = env.unwrapped.scenario.frames_per_step if render_mode == "rgb_array_list" else 1
+    assert frames.shape[0] == 1 + 6 * per_step  # the reset frame, then each step's
+    assert iio.immeta(video)["fps"] == env.metadata["render_fps"]
 
 
 def test_object_manipulation_reflected_next_step():

@@ -43,6 +43,20 @@ def test_world_model_same_seed_same_observations(tiny_bundle):
     assert not np.array_equal(a[-1]["cameras"], c[-1]["cameras"])
 
 
+def test_rgb_array_list_decodes_and_renders_every_generated_frame(active_bundle):
+    """Each step's chunk has two frames: both are decoded and rendered, the newest as in rgb_array."""
+    every = M4WorldEnv("merge_cut_in", "world_model", str(active_bundle), "rgb_array_list", KEYS)
+    single = M4WorldEnv("merge_cut_in", "world_model", str(active_bundle), "rgb_array", KEYS)
+    every.reset(seed=1)
+    single.reset(seed=1)
+    assert np.array_equal(every.render()[0], single.render())
+    for env in (every, single):
+        env.step(np.array([0.3, 0.0], np.float32))
+    older, newest = every.render()
+    assert np.abs(newest.astype(int) - single.render()).max() <= 1  # decoded in a batch of 2 vs 1
+    assert not np.array_equal(older, newest)
+
+
 LIDAR_ATOL_M = 0.01  # batched vs batch-of-one LiDAR: measured ~3e-5 m apart
 
 

@@ -78,15 +78,21 @@ class ProceduralBackend:
 
 
 def make_backend(
-    backend: str, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig
+    backend: str,
+    checkpoint: str | None,
+    num_rollouts: int,
+    with_bev: bool,
+    config: EnvConfig,
+    every_frame: bool = False,
 ) -> SensorBackend:
-    """The backend for ``num_rollouts`` rollouts (1 for a single env, N for the vector env)."""
+    """The backend for ``num_rollouts`` rollouts (1 for a single env, N for the vector env);
+    ``every_frame``: observe every frame of a chunk, not only the newest (``rgb_array_list``)."""
     if backend == "procedural":
         if checkpoint is not None:
             raise InvalidOptionError("checkpoint is only used by backend='world_model'")
-        return ProceduralBackend(with_bev=with_bev, num_rollouts=num_rollouts)
+        return ProceduralBackend(with_bev=with_bev, every_frame=every_frame, num_rollouts=num_rollouts)
     if backend == "world_model":
-        return WorldModelBackend(checkpoint, num_rollouts, with_bev, config)
+        return WorldModelBackend(checkpoint, num_rollouts, with_bev, config, every_frame)
     raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
@@ -99,7 +105,9 @@ class WorldModelBackend:
     The BEV observation, when asked for, is the map raster the model is conditioned on.
     """
 
-    def __init__(self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig) -> None:
+    def __init__(
+        self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig, every_frame: bool = False
+    ) -> None:
         from world_model.heap import retain_freed_memory
         from world_model.runtime import RolloutBatch, load_world_model
 
@@ -129,7 +137,7 @@ class WorldModelBackend:
             raise InvalidOptionError(f"config.model: {e}") from e
         if mc.compile:
             self.wm.student.compile_blocks()
-        self.rollouts = RolloutBatch(self.wm, num_rollouts)
+        self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame)
         self.rig = self.wm.rig
         self.with_bev = with_bev
         self._images: dict[str, np.ndarray] = {}
@@ -168,7 +176,7 @@ class WorldModelBackend:
             if chunk is not None:
                 self.rollouts.crops[i] = self._crops(chunk[-1])
         outs = self.rollouts.step(chunks)
-        return [
-            None if out is None else [self._with_bev(o, chunk[-1]) for o in out]
+        return [  # observations are of the chunk's last len(out) frames (all of them with every_frame)
+            None if out is None else [self._with_bev(o, f) for o, f in zip(out, chunk[-len(out) :], strict=True)]
             for out, chunk in zip(outs, chunks, strict=True)
         ]

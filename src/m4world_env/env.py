@@ -55,7 +55,9 @@ def state_from_frame(frame: SceneFrame, n_objects: int) -> np.ndarray:
 class M4WorldEnv(gym.Env):
     """The M4World driving env. See the README for options; ``config`` keys in :class:`EnvConfig`."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    # rgb_array: the newest frame's mosaic (render_fps = policy frequency, one per step);
+    # rgb_array_list: every sensor frame's mosaic since the last render() (render_fps = sensor frequency).
+    metadata = {"render_modes": ["rgb_array", "rgb_array_list"], "render_fps": 10}
 
     def __init__(
         self,
@@ -80,7 +82,12 @@ class M4WorldEnv(gym.Env):
         self.render_mode = render_mode
         self.backend_name = backend
         self.backend: SensorBackend = shared_backend or make_backend(
-            backend, checkpoint, num_rollouts=1, with_bev=self.needs_bev, config=self.cfg
+            backend,
+            checkpoint,
+            num_rollouts=1,
+            with_bev=self.needs_bev,
+            config=self.cfg,
+            every_frame=render_mode == "rgb_array_list",
         )
         self.backend_index = backend_index
         if self.scenario.adapters and hasattr(self.backend, "apply_adapters"):
@@ -104,11 +111,14 @@ class M4WorldEnv(gym.Env):
         self.bridge = TrafficBridge(
             self.scenario, action_type=self.cfg.action_type, rig=self.rig, lidar=self.lidar_spec, bev=self.bev_spec
         )
-        self.metadata = {**self.metadata, "render_fps": self.scenario.policy_frequency}
+        every_frame = render_mode == "rgb_array_list"
+        fps = self.scenario.sensor_frequency if every_frame else self.scenario.policy_frequency
+        self.metadata = {**self.metadata, "render_fps": fps}
         self.action_space = self._make_action_space()
         self.observation_space = self._make_observation_space()
         self._frame: SceneFrame | None = None
         self._obs: Observation | None = None
+        self._unrendered: list[tuple[SceneFrame, Observation]] = []  # rgb_array_list's frames to come
         self._needs_reset = True
         self._metrics: EpisodeMetrics | None = None
 
@@ -158,6 +168,7 @@ class M4WorldEnv(gym.Env):
         self._frame = self.bridge.reset(seed=bridge_seed)
         model_seed = int(self.np_random.integers(0, 2**31 - 1))
         self._obs = self.backend.reset(self.backend_index, self._frame, options, model_seed)
+        self._unrendered = [(self._frame, self._obs)] if self.render_mode == "rgb_array_list" else []
         self._metrics = EpisodeMetrics(
             dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.scenario.road.speed_limit
         )
@@ -191,6 +202,8 @@ class M4WorldEnv(gym.Env):
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""
         previous = self._frame
         self._frame, self._obs = frames[-1], observations[-1]
+        if self.render_mode == "rgb_array_list":
+            self._unrendered += zip(frames, observations, strict=True)
         for fr in frames:
             self._metrics.add_frame(fr)
         terms = self._reward_terms(previous, frames)
@@ -202,7 +215,9 @@ class M4WorldEnv(gym.Env):
         self._needs_reset = terminated or truncated
         return self._observation(), reward, terminated, truncated, self._info(terms)
 
-    def render(self) -> np.ndarray | None:
+    def render(self) -> np.ndarray | list[np.ndarray] | None:
+        """The mosaic (all views, LiDAR, BEV) of the newest sensor frame; with
+        ``render_mode="rgb_array_list"`` the mosaics of every sensor frame since the last call."""
         if self.render_mode is None:
             gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array' to gym.make")
             return None
@@ -210,6 +225,9 @@ class M4WorldEnv(gym.Env):
 
         if self._obs is None:
             raise ResetNeeded("call env.reset() before env.render()")
+        if self.render_mode == "rgb_array_list":
+            frames, self._unrendered = self._unrendered, []
+            return [mosaic(obs, frame) for frame, obs in frames]
         return mosaic(self._obs, self._frame)
 
     # -- interactive object manipulation (the paper's "M"anipulation) --

@@ -45,7 +45,14 @@ class M4WorldVectorEnv(VectorEnv):
             raise InvalidOptionError(f"num_envs must be >= 1, got {num_envs}")
         cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
         needs_bev = "bev" in cfg.observation_keys or render_mode is not None
-        self.backend = make_backend(backend, checkpoint, num_rollouts=num_envs, with_bev=needs_bev, config=cfg)
+        self.backend = make_backend(
+            backend,
+            checkpoint,
+            num_rollouts=num_envs,
+            with_bev=needs_bev,
+            config=cfg,
+            every_frame=render_mode == "rgb_array_list",
+        )
         # One scenario object for all sub-envs (loaded once); each sub-env has its own traffic.
         scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.envs = [

@@ -1,4 +1,5 @@
-"""Observation wrappers for RL libraries (Stable-Baselines3's ``MultiInputPolicy`` in particular).
+"""Wrappers: observations for RL libraries (Stable-Baselines3's ``MultiInputPolicy`` in particular),
+and :class:`RecordVideo` with every sensor frame.
 
 SB3 treats a uint8 (H, W, C) Box as an image and a float Box as a vector. The env's native
 ``cameras`` (V, H, W, 3) and ``lidar`` (beams, 1024) are neither, so :class:`SB3Observations`
@@ -50,3 +51,18 @@ class SB3Observations(gym.ObservationWrapper):
         if "state" in obs:
             out["state"] = obs["state"].reshape(-1)
         return out
+
+
+class RecordVideo(gym.wrappers.RecordVideo):
+    """gymnasium's ``RecordVideo`` keeping every frame ``render()`` returns: with
+    ``render_mode="rgb_array_list"`` a step's video gets each of its sensor frames (at the env's
+    ``render_fps`` = sensor frequency), where gymnasium's own keeps the last one of each step.
+    Needs moviepy (the ``video`` extra), like gymnasium's."""
+
+    def _capture_frame(self) -> None:
+        if self.env.render_mode != "rgb_array_list":
+            super()._capture_frame()
+            return
+        frames = self.env.render()
+        self.render_history += frames
+        self.recorded_frames += frames
