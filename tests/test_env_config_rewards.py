@@ -61,12 +61,13 @@ def test_reward_terms_and_normalization():
     assert math.isclose(combine_reward(mid, cfg), (1.0 + 0.4 * 0.5) / 1.5)
 
 
-def _frame(ego_speed, obj_x, obj_speed, obj_y=0.0):
-    obj = SceneObject("v", "car", Box3D((obj_x, obj_y, 0.8), (4.0, 2.0, 1.6), 0.0), velocity=(obj_speed, 0.0))
+def _frame(ego_speed, obj_x, obj_speed, obj_y=0.0, yaw_rate=0.0, obj_velocity=None):
+    velocity = obj_velocity if obj_velocity is not None else (obj_speed, 0.0)
+    obj = SceneObject("v", "car", Box3D((obj_x, obj_y, 0.8), (4.0, 2.0, 1.6), 0.0), velocity=velocity)
     return SceneFrame(
         time=0,
         frame_index=0,
-        ego=EgoState(0.0, 0.0, 0.0, speed=ego_speed, size=(4.0, 2.0, 1.6)),
+        ego=EgoState(0.0, 0.0, 0.0, speed=ego_speed, size=(4.0, 2.0, 1.6), yaw_rate=yaw_rate),
         objects=(obj,),
         map=MapGeometry(),
     )
@@ -78,6 +79,22 @@ def test_time_to_collision():
     assert time_to_collision(_frame(10.0, 24.0, 20.0)) == math.inf  # opening
     assert time_to_collision(_frame(20.0, 24.0, 10.0, obj_y=4.0)) == math.inf  # other lane
     assert time_to_collision(_frame(20.0, -24.0, 0.0)) == math.inf  # behind
+
+
+@pytest.mark.parametrize("turn", [1.0, -1.0])
+def test_time_to_collision_follows_the_turning_path(turn):
+    """Ego at 10 m/s turning at 0.5 rad/s: a circle of radius 20 m about (0, 20 turn)."""
+    r, phi = 20.0, 1.0  # a stopped car 1 rad (20 m of arc) along the path
+    x, y = r * math.sin(phi), turn * r * (1 - math.cos(phi))
+    on_path = _frame(10.0, x, 0.0, obj_y=y, yaw_rate=0.5 * turn)
+    assert math.isclose(time_to_collision(on_path), (r * phi - 2 - 2) / 10.0)  # gap along the arc / closing
+    # Without the turn the same car is 9 m aside (no TTC); a car straight ahead is off the turning path.
+    assert time_to_collision(_frame(10.0, x, 0.0, obj_y=y)) == math.inf
+    assert time_to_collision(_frame(10.0, 15.0, 0.0, yaw_rate=0.5 * turn)) == math.inf
+    # A car driving along the path ahead at 6 m/s (velocity tangent to the circle there) closes at 4 m/s.
+    tangent = (math.cos(phi), turn * math.sin(phi))
+    moving = _frame(10.0, x, 0.0, obj_y=y, yaw_rate=0.5 * turn, obj_velocity=(6 * tangent[0], 6 * tangent[1]))
+    assert math.isclose(time_to_collision(moving), (r * phi - 4) / 4.0)
 
 
 def test_episode_metrics_pdms():

@@ -32,10 +32,13 @@ COMFORT_BOUNDS = {
 }
 
 
-def time_to_collision(frame: SceneFrame, lateral_margin: float = 0.3) -> float:
+def time_to_collision(frame: SceneFrame, lateral_margin: float = 0.3, min_turn_radius_m: float = 2.0) -> float:
     """Time until the ego reaches the nearest object ahead in its corridor, at current speeds.
 
-    Objects count when their footprint overlaps the ego's width (+ margin) in the ego frame.
+    The corridor follows the ego's current path: a straight line, or, while it turns, the arc of
+    radius ``speed / yaw_rate`` (so a car in the lane beside a curve, or oncoming in the next lane
+    while the ego turns away, is not "ahead"). Objects count when their footprint overlaps the
+    ego's width (+ margin) across the path; distance and closing speed are measured along it.
     Returns ``inf`` when nothing is ahead or the gap is opening.
     """
     ego = frame.ego
@@ -43,6 +46,22 @@ def time_to_collision(frame: SceneFrame, lateral_margin: float = 0.3) -> float:
         return float("inf")
     centers = np.array([o.box.center[:2] for o in frame.objects])
     rel = world_to_ego_xy(centers, np.array([ego.x, ego.y]), ego.yaw)
+    c, s = np.cos(ego.yaw), np.sin(ego.yaw)
+    vel = np.array([o.velocity for o in frame.objects], dtype=float)
+    vel = np.stack([vel[:, 0] * c + vel[:, 1] * s, -vel[:, 0] * s + vel[:, 1] * c], axis=1)  # ego frame
+    radius = ego.speed / ego.yaw_rate if abs(ego.yaw_rate) > 1e-6 else np.inf
+    if abs(radius) < min_turn_radius_m or abs(radius) > 1e4:
+        along, across, obj_speed = rel[:, 0], rel[:, 1], vel[:, 0]  # straight path
+    else:
+        # Turning about (0, radius) in the ego frame (left turns: radius > 0). The point's angle
+        # about that centre, from the ego's, in the direction of travel, gives the arc length.
+        turn = np.sign(radius)
+        to_point = rel - np.array([0.0, radius])
+        angle = np.arctan2(to_point[:, 0], -turn * to_point[:, 1])
+        dist = np.hypot(to_point[:, 0], to_point[:, 1])
+        along, across = angle * abs(radius), dist - abs(radius)
+        tangent = turn * np.stack([-to_point[:, 1], to_point[:, 0]], axis=1) / np.maximum(dist, 1e-9)[:, None]
+        obj_speed = (vel * tangent).sum(axis=1)
     half_widths = np.array(
         [
             0.5 * max(o.box.size[0], o.box.size[1]) if o.category in ("pedestrian", "cone") else 0.5 * o.box.size[1]
@@ -50,13 +69,11 @@ def time_to_collision(frame: SceneFrame, lateral_margin: float = 0.3) -> float:
         ]
     )
     half_lengths = np.array([0.5 * o.box.size[0] for o in frame.objects])
-    in_corridor = np.abs(rel[:, 1]) < half_widths + 0.5 * ego.size[1] + lateral_margin
-    gap = rel[:, 0] - half_lengths - 0.5 * ego.size[0]
-    ahead = in_corridor & (rel[:, 0] > 0)
+    in_corridor = np.abs(across) < half_widths + 0.5 * ego.size[1] + lateral_margin
+    gap = along - half_lengths - 0.5 * ego.size[0]
+    ahead = in_corridor & (along > 0)
     if not ahead.any():
         return float("inf")
-    c, s = np.cos(ego.yaw), np.sin(ego.yaw)
-    obj_speed = np.array([o.velocity[0] * c + o.velocity[1] * s for o in frame.objects])
     closing = ego.speed - obj_speed
     ttc = np.where(ahead & (closing > 1e-3), np.maximum(gap, 0.0) / np.maximum(closing, 1e-3), np.inf)
     return float(ttc.min())
