@@ -155,7 +155,9 @@ class M4WorldEnv(gym.Env):
 
     # -- gymnasium API --
 
-    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         super().reset(seed=seed)
         # Until this reset succeeds the env holds no valid episode: a failed reset (e.g. a bad
         # reference image) leaves it asking for another reset rather than half-reset.
@@ -176,7 +178,7 @@ class M4WorldEnv(gym.Env):
         self._needs_reset = False
         return self._observation(), self._info({})
 
-    def step(self, action: Any):
+    def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         frames = self.advance(action)
         (observations,) = self.backend.step([frames])
         return self.finish_step(frames, observations)
@@ -198,7 +200,9 @@ class M4WorldEnv(gym.Env):
         self._require_episode()
         return self.bridge.step(action)  # parses the action (ActionError) before touching any state
 
-    def finish_step(self, frames: list[SceneFrame], observations: list[Observation]):
+    def finish_step(
+        self, frames: list[SceneFrame], observations: list[Observation]
+    ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""
         previous = self._frame
         self._frame, self._obs = frames[-1], observations[-1]

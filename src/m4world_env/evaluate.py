@@ -17,17 +17,20 @@ import inspect
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from m4world_env.scenario import load_scenario
 
+if TYPE_CHECKING:
+    import gymnasium as gym
+
 Policy = Callable[[dict, dict], Any]
 AGGREGATED = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "return", "distance_m")
 
 
-def _builtin_policy(name: str, env) -> Policy:
+def _builtin_policy(name: str, env: gym.Env) -> Policy:
     from m4world_env import policies
 
     base = env.unwrapped
@@ -47,7 +50,7 @@ def _builtin_policy(name: str, env) -> Policy:
 BUILTIN_POLICIES = ("random", "lane_keeping", "idm")
 
 
-def make_policy(spec: str, env) -> Policy:
+def make_policy(spec: str, env: gym.Env) -> Policy:
     """Build a policy for ``env`` from a built-in name or a ``module:attr`` spec."""
     if spec in BUILTIN_POLICIES:
         return _builtin_policy(spec, env)
@@ -69,7 +72,7 @@ def make_policy(spec: str, env) -> Policy:
     return obj(env) if len(positional) == 1 else obj
 
 
-def run_episode(env, policy: Policy | str, seed: int, max_steps: int | None = None) -> dict[str, float]:
+def run_episode(env: gym.Env, policy: Policy | str, seed: int, max_steps: int | None = None) -> dict[str, float]:
     """One episode; returns the env's final ``episode_metrics`` plus the seed.
 
     A built-in policy name is instantiated after the reset (its state is per episode and its seed

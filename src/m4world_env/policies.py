@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
@@ -24,6 +25,9 @@ from highway_env.vehicle.controller import ControlledVehicle
 from m4world_env.traffic import TrafficBridge
 from m4world_env.traffic.actions import META_INDEX
 from m4world_env.traffic.fastmath import clip, heading_at, local_xy, not_zero, wrap
+
+if TYPE_CHECKING:
+    from highway_env.vehicle.kinematics import Vehicle
 
 
 def bridge_of(state: object) -> TrafficBridge:
@@ -109,7 +113,7 @@ class IDMAutopilot:
         self._last_change = -math.inf
         self._road = RoadFollower()
 
-    def _idm(self, v, front, desired: float) -> float:
+    def _idm(self, v: Vehicle | None, front: Vehicle | None, desired: float) -> float:
         """IDM acceleration of ``v`` (a highway-env vehicle) behind ``front`` (or free road)."""
         c = self.config
         if v is None:

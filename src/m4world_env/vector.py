@@ -73,7 +73,9 @@ class M4WorldVectorEnv(VectorEnv):
     def camera_names(self) -> tuple[str, ...]:
         return self.envs[0].camera_names
 
-    def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
+    def reset(
+        self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         if seed is None or isinstance(seed, int | np.integer):
             seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
         else:
@@ -89,7 +91,7 @@ class M4WorldVectorEnv(VectorEnv):
             infos = self._add_info(infos, info, i)
         return self._stack([obs for obs, _ in results]), infos
 
-    def step(self, actions: Any):
+    def step(self, actions: Any) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         actions = self._split_actions(actions)
         for i, env in enumerate(self.envs):  # all checked first: a bad action leaves every sub-env as it was
             if not self._autoreset[i]:

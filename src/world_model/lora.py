@@ -34,10 +34,14 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 from safetensors.torch import load_file, save_file
 from torch import nn
+
+if TYPE_CHECKING:
+    import peft  # optional dependency (the 'lora' extra)
 
 FORMAT = "m4world-lora"
 VERSION = 1
@@ -69,7 +73,7 @@ class LoraConfig:
         """The same adapter at another rank, its update scale (alpha / rank) kept."""
         return replace(self, rank=rank, alpha=self.alpha / self.rank * rank)
 
-    def peft_config(self):  # noqa: ANN201 - peft.LoraConfig
+    def peft_config(self) -> peft.LoraConfig:
         import peft
 
         pattern = rf"{self.scope}\.(?:.*\.)?(?:{'|'.join(map(re.escape, self.target_modules))})"

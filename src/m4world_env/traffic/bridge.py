@@ -26,8 +26,9 @@ from m4world_env.traffic.actions import (
     meta_action,
 )
 from m4world_env.traffic.mapgeom import MapSamplingConfig, extract_map
+from m4world_env.traffic.objects import ScriptedObject
 from m4world_env.traffic.roads import build_road
-from m4world_env.traffic.sim import EgoMetaVehicle, EgoVehicle, FastRoad, size_object
+from m4world_env.traffic.sim import EgoMetaVehicle, EgoVehicle, FastRoad, TrafficVehicle, size_object
 from world_model.scene import CATEGORY_SIZES, Box3D, EgoState, MapGeometry, SceneFrame, SceneObject
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
 
@@ -84,7 +85,7 @@ class TrafficBridge:
             self._map = extract_map(self.layout, self.config.map_sampling)
         self.ego_vehicle = self._make_ego()
         self.road.vehicles.append(self.ego_vehicle)
-        self._ids: dict[str, object] = {}
+        self._ids: dict[str, TrafficVehicle | ScriptedObject] = {}
         for spec in s.objects:
             self._add(population.make_scripted(self.road, self.layout, spec, s.name))
         for v in population.spawn_traffic(self.road, self.layout, s, self._traffic_rng, self.config.population):
@@ -95,7 +96,7 @@ class TrafficBridge:
         self.road.invalidate()
         return self._frame()
 
-    def _make_ego(self):
+    def _make_ego(self) -> EgoVehicle | EgoMetaVehicle:
         s, net = self.scenario, self.layout.network
         frm, to = self.layout.ego_edge
         lane = net.get_lane((frm, to, s.ego.lane))
@@ -116,7 +117,7 @@ class TrafficBridge:
         size_object(ego, *CATEGORY_SIZES[self.config.ego_category][:2])
         return ego
 
-    def _add(self, obj) -> None:
+    def _add(self, obj: TrafficVehicle | ScriptedObject) -> None:
         if obj.track_id in self._ids:
             raise ScenarioError(f"object id {obj.track_id!r} is already in use")
         self._ids[obj.track_id] = obj
@@ -234,7 +235,7 @@ class TrafficBridge:
                 out.append(o)
         return out
 
-    def _scene_object(self, o) -> SceneObject:
+    def _scene_object(self, o: TrafficVehicle | ScriptedObject) -> SceneObject:
         a = o.appearance
         h = a.size[2]
         heading, speed = float(o.heading), float(o.speed)
@@ -313,7 +314,7 @@ class TrafficBridge:
     def object_ids(self) -> list[str]:
         return list(self._ids)
 
-    def _get(self, track_id: str):
+    def _get(self, track_id: str) -> TrafficVehicle | ScriptedObject:
         self._require_reset()
         if track_id not in self._ids:
             raise population.UnknownObjectError(f"no object {track_id!r}; known ids: {sorted(self._ids)}")

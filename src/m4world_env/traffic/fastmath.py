@@ -9,9 +9,14 @@ with the same formulas and constants, so the decisions are highway-env's; ``act`
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 from highway_env.road.lane import AbstractLane, CircularLane, SineLane, StraightLane
 from highway_env.vehicle.kinematics import Vehicle
+
+if TYPE_CHECKING:
+    from highway_env.road.road import LaneIndex
+    from highway_env.vehicle.objects import RoadObject
 
 
 def not_zero(x: float, eps: float = 1e-2) -> float:
@@ -67,7 +72,7 @@ def heading_at(lane: AbstractLane, s: float) -> float:
 class FastControlMixin:
     """ControlledVehicle/RoadObject leaf methods in scalar math (same formulas)."""
 
-    def lane_distance_to(self, other, lane: AbstractLane | None = None) -> float:
+    def lane_distance_to(self, other: RoadObject | None, lane: AbstractLane | None = None) -> float:
         if not other:
             return math.nan
         lane = lane or self.lane
@@ -84,7 +89,7 @@ class FastControlMixin:
                 np_random=self.road.np_random,
             )
 
-    def steering_control(self, target_lane_index) -> float:
+    def steering_control(self, target_lane_index: LaneIndex) -> float:
         lane = self.road.network.get_lane(target_lane_index)
         s, r = local_xy(lane, *self.position)
         future_heading = heading_at(lane, s + self.speed * self.TAU_PURSUIT)
@@ -119,7 +124,7 @@ class FastIDMMixin(FastControlMixin):
         self.timer += dt  # IDMVehicle.step
         super().step(dt)
 
-    def act(self, action=None) -> None:
+    def act(self, action: dict | str | None = None) -> None:
         """IDMVehicle.act: MOBIL lane choice, lateral control, IDM on current and target lane."""
         if self.crashed:
             return
@@ -136,7 +141,12 @@ class FastIDMMixin(FastControlMixin):
             acc = min(acc, self.acceleration(ego_vehicle=self, front_vehicle=front, rear_vehicle=rear))
         self.action = {"steering": steering, "acceleration": clip(acc, -self.ACC_MAX, self.ACC_MAX)}
 
-    def acceleration(self, ego_vehicle=None, front_vehicle=None, rear_vehicle=None) -> float:
+    def acceleration(
+        self,
+        ego_vehicle: RoadObject | None = None,
+        front_vehicle: RoadObject | None = None,
+        rear_vehicle: RoadObject | None = None,
+    ) -> float:
         if not ego_vehicle or not isinstance(ego_vehicle, Vehicle):
             return 0
         target = getattr(ego_vehicle, "target_speed", 0)
@@ -148,7 +158,9 @@ class FastIDMMixin(FastControlMixin):
             acc -= self.COMFORT_ACC_MAX * (self.desired_gap(ego_vehicle, front_vehicle) / not_zero(d)) ** 2
         return acc
 
-    def desired_gap(self, ego_vehicle, front_vehicle=None, projected: bool = True) -> float:
+    def desired_gap(
+        self, ego_vehicle: Vehicle, front_vehicle: RoadObject | None = None, projected: bool = True
+    ) -> float:
         ab = -self.COMFORT_ACC_MAX * self.COMFORT_ACC_MIN
         if projected:  # (v_ego - v_front) . direction_ego
             dv = ego_vehicle.speed - front_vehicle.speed * math.cos(front_vehicle.heading - ego_vehicle.heading)

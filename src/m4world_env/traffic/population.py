@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from highway_env.road.road import Road
@@ -20,6 +21,10 @@ from m4world_env.traffic.objects import (
 from m4world_env.traffic.roads import RoadLayout
 from m4world_env.traffic.sim import TrafficVehicle, lane_coordinates, size_object
 from world_model.scene import CATEGORY_SIZES, NAMED_COLORS
+
+if TYPE_CHECKING:
+    from highway_env.road.lane import AbstractLane
+    from highway_env.vehicle.kinematics import Vehicle
 
 EDITABLE = ("category", "color", "description", "image", "size", "speed", "track")
 
@@ -106,7 +111,7 @@ def spawn_traffic(
     return out
 
 
-def _free(road: Road, lane, x: float, length: float, clearance: float) -> bool:
+def _free(road: Road, lane: AbstractLane, x: float, length: float, clearance: float) -> bool:
     ents = [*road.vehicles, *road.objects]
     if not ents:
         return True
@@ -116,12 +121,12 @@ def _free(road: Road, lane, x: float, length: float, clearance: float) -> bool:
     return not np.any((np.abs(r) < lane.width_at(0)) & (np.abs(s - x) < half))
 
 
-def _dress(obj, track_id: str, look: Appearance, scripted: bool) -> None:
+def _dress(obj: TrafficVehicle | ScriptedObject, track_id: str, look: Appearance, scripted: bool) -> None:
     obj.track_id, obj.appearance, obj.scripted = track_id, look, scripted
     size_object(obj, *look.size[:2])
 
 
-def make_scripted(road: Road, layout: RoadLayout, spec: ObjectSpec, source: str):
+def make_scripted(road: Road, layout: RoadLayout, spec: ObjectSpec, source: str) -> TrafficVehicle | ScriptedObject:
     """A scripted object: an IDM vehicle for ``lane_follow`` with mode idm, else a ScriptedObject."""
     from m4world_env.traffic.objects import spec_appearance
 
@@ -155,7 +160,7 @@ def parse_spec(spec: object, source: str) -> ObjectSpec:
         raise ScenarioError(_format_validation_error(source, err, spec)) from None
 
 
-def departed(road: Road, ego, cfg: PopulationConfig) -> list:
+def departed(road: Road, ego: Vehicle, cfg: PopulationConfig) -> list:
     """IDM vehicles that drove past the end of a terminal lane (they would leave the map)."""
     out = []
     for v in road.vehicles:
@@ -169,7 +174,9 @@ def departed(road: Road, ego, cfg: PopulationConfig) -> list:
     return out
 
 
-def edit(road: Road, layout: RoadLayout, obj, changes: dict) -> object:
+def edit(
+    road: Road, layout: RoadLayout, obj: TrafficVehicle | ScriptedObject, changes: dict
+) -> TrafficVehicle | ScriptedObject:
     """Apply ``changes`` to ``obj``; returns the object to keep (a new one if the track changed)."""
     bad = sorted(set(changes) - set(EDITABLE))
     if bad:

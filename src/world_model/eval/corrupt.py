@@ -3,11 +3,13 @@ sound evaluation must score below the Oracle. All take and return uint8 (..., H,
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import cv2
 import numpy as np
 
 
-def _per_image(images: np.ndarray, fn) -> np.ndarray:
+def _per_image(images: np.ndarray, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
     if images.dtype != np.uint8 or images.ndim < 3 or images.shape[-1] != 3:
         raise ValueError(f"images must be uint8 (..., H, W, 3), got {images.dtype} {images.shape}")
     flat = images.reshape(-1, *images.shape[-3:])

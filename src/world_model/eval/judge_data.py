@@ -78,7 +78,18 @@ class JudgeData:
     scene_clip: list[int] = field(default_factory=list)
     clip_names: list[str] = field(default_factory=list)
 
-    def add_crop(self, image, category, color, track, frame, view, clip, reference, description) -> None:
+    def add_crop(
+        self,
+        image: np.ndarray,
+        category: int,
+        color: int,
+        track: int,
+        frame: int,
+        view: int,
+        clip: int,
+        reference: bool,
+        description: str,
+    ) -> None:
         self.crops.append(image)
         self.category.append(category)
         self.color.append(color)

@@ -487,7 +487,11 @@ def quality_bars(report: dict, model: str = "student") -> list[str]:
         return "not measured" if ok is None else ("met" if ok else "missed")
 
     def add(
-        bar: str, judge: Callable[[dict], tuple[str, bool | None]] | None, measured: str = "", ok=None, capped=True
+        bar: str,
+        judge: Callable[[dict], tuple[str, bool | None]] | None,
+        measured: str = "",
+        ok: bool | None = None,
+        capped: bool = True,
     ) -> None:
         top = ""
         if judge is not None:

@@ -39,7 +39,7 @@ import torch
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
 from world_model.model.text import TextEncoder
-from world_model.scene import EgoState, SceneFrame
+from world_model.scene import EgoState, SceneFrame, SceneObject
 from world_model.sensors import CameraRig
 
 
@@ -71,7 +71,7 @@ def camera_condition(rig: CameraRig) -> np.ndarray:
     return mats
 
 
-def object_text(obj) -> str:  # noqa: ANN001 - SceneObject
+def object_text(obj: SceneObject) -> str:
     if obj.description.strip():
         return obj.description.strip()
     if obj.color_name:

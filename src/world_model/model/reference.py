@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import torch
@@ -38,6 +39,7 @@ from world_model.model.config import ModelConfig, SamplerConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import euler_sample
 from world_model.model.sampler import GuidedVelocity, latents_to_observations
+from world_model.model.tokens import ControlTokens
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
@@ -232,10 +234,10 @@ class _WithReference:
     def __init__(self, model: MultiViewDiT, extra: torch.Tensor) -> None:
         self.model, self.extra, self.cfg = model, extra, model.cfg
 
-    def tokenize(self, cond: Conditions):  # noqa: ANN201 - ControlTokens
+    def tokenize(self, cond: Conditions) -> ControlTokens:
         return self.model.tokenize(cond)
 
-    def __call__(self, x: torch.Tensor, t: torch.Tensor, tokens, **kw) -> torch.Tensor:  # noqa: ANN001
+    def __call__(self, x: torch.Tensor, t: torch.Tensor, tokens: ControlTokens, **kw: Any) -> torch.Tensor:
         extra = self.extra.repeat(x.shape[0] // self.extra.shape[0], 1, 1, 1, 1, 1)
         return self.model(torch.cat([x, extra.to(x.dtype)], dim=3), t, tokens, **kw)
 

@@ -10,10 +10,14 @@ from __future__ import annotations
 import hashlib
 import os
 from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from world_model.model.config import TextConfig
+
+if TYPE_CHECKING:
+    from sentence_transformers import SentenceTransformer  # optional dependency (the 'text' extra)
 
 
 class TextEncoder(ABC):
@@ -62,7 +66,7 @@ class MiniLMTextEncoder(TextEncoder):
         super().__init__()
         self._model = None
 
-    def _load(self):  # noqa: ANN202 - sentence_transformers is an optional dependency
+    def _load(self) -> SentenceTransformer:
         if self._model is None:
             os.environ.setdefault("HF_HUB_OFFLINE", "1")
             try:

@@ -44,7 +44,9 @@ def lidar_rays(spec: LidarSpec) -> LidarRays:
     )
 
 
-def _candidate_bands(poses: ObjectPoses, spec: LidarSpec, rays: LidarRays, margin: int):
+def _candidate_bands(
+    poses: ObjectPoses, spec: LidarSpec, rays: LidarRays, margin: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per object: ray origin in the box frame, half size, yaw cos/sin, first row, rows, first col, cols."""
     centre, half = poses.centre, poses.half
     c, s = poses.cos, poses.sin

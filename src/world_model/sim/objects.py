@@ -11,6 +11,7 @@ than a few pixels are drawn as one flat rectangle (an impostor). Everything up t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -41,7 +42,14 @@ class DrawPlan:
         return slice(int(self.view_start[v]), int(self.view_start[v + 1]))
 
 
-def paint(image: np.ndarray, plan: DrawPlan, v: int, antialias: bool, shift: int, value=None) -> None:
+def paint(
+    image: np.ndarray,
+    plan: DrawPlan,
+    v: int,
+    antialias: bool,
+    shift: int,
+    value: Callable[[int], float | tuple[float, ...]] | None = None,
+) -> None:
     """Paint view ``v``'s polygons onto ``image`` (H, W[, C]) with their colours, or with ``value(obj)``."""
     sl = plan.view(v)
     line = cv2.LINE_AA if antialias else cv2.LINE_8

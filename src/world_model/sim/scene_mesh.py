@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 
 from world_model.scene import SceneFrame
 from world_model.sim.lighting import emissive_table, role_albedos
@@ -106,7 +107,7 @@ def build_scene_mesh(frame: SceneFrame) -> SceneMesh:
     sep = np.where(i_low, 0.5 * (pick(hi_i) + pick(lo_j)), 0.5 * (pick(lo_i) + pick(hi_j)))
     separable = np.take_along_axis(gap, take, -1)[..., 0] >= -SEPARATION_TOLERANCE_M
 
-    def cat(xs: list, shape: tuple, dtype=np.float64) -> np.ndarray:
+    def cat(xs: list, shape: tuple, dtype: npt.DTypeLike = np.float64) -> np.ndarray:
         return np.concatenate(xs) if xs else np.zeros(shape, dtype=dtype)
 
     return SceneMesh(

@@ -17,7 +17,7 @@ import numpy as np
 
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
-from world_model.sensors import BevSpec, CameraRig, LidarSpec
+from world_model.sensors import BevSpec, CameraRig, CameraSpec, LidarSpec
 from world_model.sim import ground, lidar, objects, precipitation
 from world_model.sim.config import SimConfig
 from world_model.sim.lighting import SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD, lighting_for
@@ -184,7 +184,7 @@ class ProceduralSimulator:
 
     # -- geometry helpers -------------------------------------------------------------------
 
-    def _camera(self, frame: SceneFrame | None, view: int):
+    def _camera(self, frame: SceneFrame | None, view: int) -> CameraSpec:
         if frame is None:
             if self.rig is None:
                 raise ValueError("project(None, ...) needs a simulator built with a rig")

@@ -16,6 +16,7 @@ of what the model must learn. Load the export with :func:`~world_model.train.loa
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict
 from pathlib import Path
 
@@ -35,13 +36,14 @@ from world_model.model.reference import (
     task_mask,
 )
 from world_model.model.text import make_text_encoder
+from world_model.model.vae import SensorVAE
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
 from world_model.train.stages import EXPORT, load_teacher, load_vae
 from world_model.train.trainer import TrainConfig, Trainer
 
 
-def run_vae(run_dir: Path, cfg: ModelConfig, stage: str):  # noqa: ANN201 - SensorVAE
+def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str]:
     """The run's VAE export, checked against ``cfg``; actionable errors otherwise."""
     path = run_dir / "vae" / EXPORT
     if not path.with_suffix(".safetensors").exists():
@@ -53,7 +55,11 @@ def run_vae(run_dir: Path, cfg: ModelConfig, stage: str):  # noqa: ANN201 - Sens
 
 
 def sample_windows(
-    windows: LatentWindows, rng: np.random.Generator, batch: int, frames: int | None = None, clips=None
+    windows: LatentWindows,
+    rng: np.random.Generator,
+    batch: int,
+    frames: int | None = None,
+    clips: Sequence[int] | None = None,
 ) -> tuple[torch.Tensor, Conditions, list[tuple[int, int, int]]]:
     """Like ``LatentWindows.sample`` but also returns each window's (clip, start, frames).
 

@@ -126,7 +126,9 @@ def _max_chunks(windows: LatentWindows, cfg: ModelConfig, scfg: StudentConfig) -
     return k
 
 
-def _sample(windows: LatentWindows, rng: np.random.Generator, batch: int, frames: int):
+def _sample(
+    windows: LatentWindows, rng: np.random.Generator, batch: int, frames: int
+) -> tuple[torch.Tensor, Conditions]:
     """x0 (B, frames, ...) and conditions of random windows (ego relative to each window's start)."""
     lengths = [c.num_frames for c in windows.clips]
     eligible = [i for i, n in enumerate(lengths) if n >= frames]
@@ -139,7 +141,7 @@ def _noise(shape: tuple[int, ...], tr: Trainer) -> torch.Tensor:
     return torch.randn(shape, generator=tr.gen)
 
 
-def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, scfg: StudentConfig, stage: str):
+def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, scfg: StudentConfig, stage: str) -> None:
     meta = {"stage": stage, "step": trainer.step, "model_config": cfg.to_dict(), "student_config": scfg.to_dict()}
     export_weights(stage_dir / EXPORT, state, meta)
 
@@ -147,7 +149,15 @@ def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, sc
 # -- tf / ode ------------------------------------------------------------------------------------
 
 
-def _tf_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
+def _tf_stage(
+    windows: LatentWindows,
+    run_dir: Path,
+    stage_dir: Path,
+    cfg: ModelConfig,
+    scfg: StudentConfig,
+    tcfg: TrainConfig,
+    progress: bool,
+) -> dict:
     teacher = _load_same(run_dir / "teacher" / EXPORT, "teacher", cfg)
     model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
     del teacher
@@ -167,7 +177,15 @@ def _tf_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
     return summary
 
 
-def _ode_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
+def _ode_stage(
+    windows: LatentWindows,
+    run_dir: Path,
+    stage_dir: Path,
+    cfg: ModelConfig,
+    scfg: StudentConfig,
+    tcfg: TrainConfig,
+    progress: bool,
+) -> dict:
     tf_path = run_dir / "tf" / EXPORT
     ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()))
     student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
@@ -219,7 +237,9 @@ def _pair(run_dir: Path, init_stage: str, cfg: ModelConfig) -> tuple[_Pair, Mult
     return _Pair(generator.train().requires_grad_(True), critic.train().requires_grad_(True)), real
 
 
-def _export_pair(stage_dir, trainer, pair, cfg, scfg, stage) -> None:
+def _export_pair(
+    stage_dir: Path, trainer: Trainer, pair: _Pair, cfg: ModelConfig, scfg: StudentConfig, stage: str
+) -> None:
     ema = trainer.ema.model_state(pair)
     gen = {k.removeprefix("generator."): v for k, v in ema.items() if k.startswith("generator.")}
     _export(stage_dir, trainer, gen, pair.generator.cfg, scfg, stage)
@@ -239,7 +259,15 @@ def _denoising_loss(
     return teacher_forcing_loss(model, x0, cond, t, _noise((b, *model.cfg.latent_shape(c)), tr), scfg.prefix_frames)
 
 
-def _dmd_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
+def _dmd_stage(
+    windows: LatentWindows,
+    run_dir: Path,
+    stage_dir: Path,
+    cfg: ModelConfig,
+    scfg: StudentConfig,
+    tcfg: TrainConfig,
+    progress: bool,
+) -> dict:
     pair, real = _pair(run_dir, "ode", cfg)
     guidance = real_score_guidance(real, scfg)
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "dmd", "model_config": cfg.to_dict()}, progress)
@@ -288,7 +316,15 @@ def _long_conditions(windows: LatentWindows, clips: list[int], start: int, frame
     return Conditions.collate(items)
 
 
-def _long_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress) -> dict:
+def _long_stage(
+    windows: LatentWindows,
+    run_dir: Path,
+    stage_dir: Path,
+    cfg: ModelConfig,
+    scfg: StudentConfig,
+    tcfg: TrainConfig,
+    progress: bool,
+) -> dict:
     pair, real = _pair(run_dir, "dmd", cfg)
     guidance = real_score_guidance(real, scfg)
     trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
