@@ -68,7 +68,7 @@ def soak(backend: str, steps: int, sample_every: int, checkpoint: str | None, sc
     }
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--procedural-steps", type=int, default=10_000)
@@ -77,7 +77,7 @@ def main() -> int:
     ap.add_argument("--scenario", default="highway_sunny_day")
     ap.add_argument("--sample-every", type=int, default=100)
     ap.add_argument("--max-growth", type=float, default=0.05)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         checkpoint = args.checkpoint or str(save_untrained_bundle(Path(tmp) / "tiny_bundle"))
         runs = []

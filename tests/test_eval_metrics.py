@@ -7,6 +7,7 @@ import pytest
 
 from world_model.eval.metrics import (
     JumpSums,
+    SsimConfig,
     chamfer_distance,
     chunk_jumps,
     clip_window_features,
@@ -51,6 +52,119 @@ def test_ssim_drops_with_noise_and_shift():
     s_noisy, s_shift = ssim(noisy, x)[0], ssim(shifted, x)[0]
     assert s_noisy < 0.9 and s_shift < 0.9
     assert psnr(noisy, x)[0] < 25
+
+
+def test_psnr_of_a_constant_difference_is_20_log10_of_range_over_d():
+    """Images differing by d at every pixel and channel: MSE = d^2, so PSNR = 10 log10(255^2 / d^2)
+    = 20 log10(255 / d); one value per image of a batch (..., H, W, C); 1/d^2 scaling for data_range."""
+    ds = np.array([[1, 5, 17], [50, 85, 255]])
+    target = np.zeros((*ds.shape, 8, 12, 3), dtype=np.uint8)
+    generated = (target + ds[..., None, None, None]).astype(np.uint8)
+    got = psnr(generated, target)
+    assert got.shape == ds.shape
+    np.testing.assert_allclose(got, 20 * np.log10(255.0 / ds), rtol=0, atol=1e-12)
+    assert got[1, 2] == 0.0 and got[0, 0] == pytest.approx(48.1308036, abs=1e-6)  # 20 log10(255)
+    np.testing.assert_allclose(psnr(target, generated), got, rtol=0, atol=0)  # symmetric
+    # Half the pixels off by d, the rest equal: MSE = d^2 / 2, i.e. +10 log10(2) dB.
+    half = target[0, 1].copy()
+    half[:4] = 5
+    assert psnr(half, target[0, 1]) == pytest.approx(20 * math.log10(255 / 5) + 10 * math.log10(2), abs=1e-12)
+    # Float images in [0, 1] off by 0.1: 20 log10(1 / 0.1) = 20 dB with data_range=1.
+    f = np.full((4, 4, 3), 0.3)
+    assert psnr(f + 0.1, f, data_range=1.0) == pytest.approx(20.0, abs=1e-9)
+
+
+def _ssim_luminance(a, b, c1=(0.01 * 255) ** 2):
+    return (2 * a * b + c1) / (a * a + b * b + c1)
+
+
+def test_ssim_of_constant_images_is_the_luminance_term():
+    """SSIM map (Wang et al. 2004) = (2 mx my + C1)(2 sxy + C2) / ((mx^2 + my^2 + C1)(sxx + syy + C2)),
+    with C1 = (0.01 L)^2 = 6.5025, C2 = (0.03 L)^2, L = 255, statistics under the normalized Gaussian
+    window. For constant grey images x = a, y = b (luma = the grey value: BT.601 weights sum to 1) the
+    window means are a and b at every pixel, borders included (reflected constant), and all variances
+    and the covariance are 0, so the contrast-structure factor is C2 / C2 = 1 and SSIM is exactly
+    (2 a b + C1) / (a^2 + b^2 + C1) everywhere, e.g. a = 100, b = 150: 30006.5025 / 32506.5025."""
+    pairs = [(100, 150), (0, 255), (10, 20), (200, 201), (0, 1), (128, 128)]
+    x = np.stack([np.full((24, 40, 3), a, dtype=np.uint8) for a, _ in pairs])
+    y = np.stack([np.full((24, 40, 3), b, dtype=np.uint8) for _, b in pairs])
+    want = np.array([_ssim_luminance(float(a), float(b)) for a, b in pairs])
+    assert want[0] == pytest.approx(30006.5025 / 32506.5025, abs=1e-15)
+    assert want[1] == pytest.approx(6.5025 / (255**2 + 6.5025), abs=1e-15)  # black vs white: ~1e-4
+    np.testing.assert_allclose(ssim(x, y), want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(ssim(y, x), want, rtol=0, atol=1e-9)
+
+
+def test_ssim_with_a_one_pixel_window_is_the_per_pixel_luminance_term():
+    """With a 1x1 window each pixel is its own window: mx = x, my = y, variances and covariance 0,
+    so the SSIM map is (2 x y + C1) / (x^2 + y^2 + C1) per pixel (on luma) and SSIM is its mean: the
+    contrast change y = 128 + (x - 128) / 2 of a grey ramp x then has a hand-computable value."""
+    ramp = np.tile(np.linspace(0, 255, 64).round().astype(np.uint8)[None, :, None], (8, 1, 3))
+    low_contrast = (128 + (ramp.astype(np.int64) - 128) // 2).astype(np.uint8)
+    x, y = ramp[..., 0].astype(np.float64), low_contrast[..., 0].astype(np.float64)
+    want = np.mean(_ssim_luminance(x, y))
+    got = ssim(low_contrast, ramp, SsimConfig(window=1))
+    assert got == pytest.approx(want, abs=1e-12) and 0.5 < want < 0.99
+    # Colour: on luma 0.299 R + 0.587 G + 0.114 B.
+    rgb = np.random.default_rng(4).integers(0, 256, size=(2, 6, 9, 3)).astype(np.uint8)
+    luma = rgb.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    want = np.mean(_ssim_luminance(luma[0], luma[1]))
+    assert ssim(rgb[0], rgb[1], SsimConfig(window=1)) == pytest.approx(want, abs=1e-12)
+
+
+def _reference_ssim(x, y, sigma=1.5, radius=5, k1=0.01, k2=0.03, L=255.0):
+    """Straight from the definition: an explicitly normalized 11x11 Gaussian window, the image padded
+    by mirroring with the edge repeated (OpenCV's BORDER_REFLECT), window sums taken directly."""
+    u = np.arange(-radius, radius + 1)
+    w1 = np.exp(-(u**2) / (2 * sigma**2))
+    w = np.outer(w1, w1) / np.outer(w1, w1).sum()
+
+    def blur(img):
+        views = np.lib.stride_tricks.sliding_window_view(np.pad(img, radius, mode="symmetric"), w.shape)
+        return np.einsum("ijkl,kl->ij", views, w)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    c1, c2 = (k1 * L) ** 2, (k2 * L) ** 2
+    return np.mean((2 * mx * my + c1) * (2 * sxy + c2) / ((mx**2 + my**2 + c1) * (sxx + syy + c2)))
+
+
+def _grey_cases():
+    rng = np.random.default_rng(7)
+    x = np.clip(rng.normal(128, 40, size=(40, 56)), 0, 255).round()
+    yy, xx = np.mgrid[0:40, 0:56]
+    ramp = (255 * xx / 55).round()
+    return [
+        (x, np.clip(x + rng.normal(0, 20, x.shape), 0, 255).round()),  # noise
+        (x, (128 + (x - 128) * 0.5).round()),  # contrast halved
+        (ramp, (0.6 * ramp).round()),  # brightness-scaled ramp
+        (ramp, np.clip(ramp + 30 * np.sin(yy / 3.0), 0, 255).round()),  # structure change
+    ]
+
+
+def _rgb(grey):
+    return np.repeat(grey.astype(np.uint8)[..., None], 3, axis=-1)
+
+
+def test_ssim_matches_a_direct_reference_implementation():
+    """Windowed cases (noise, contrast halved, brightness-scaled ramp, structure change) against
+    _reference_ssim, an independent computation of the same definition (grey images: luma = value)."""
+    for x, y in _grey_cases():
+        want = _reference_ssim(x, y)
+        assert ssim(_rgb(y), _rgb(x)) == pytest.approx(want, abs=1e-9)
+        assert want < 0.999
+
+
+def test_ssim_matches_scikit_image():
+    """scikit-image's Gaussian-weighted SSIM (Wang et al.: sigma 1.5, truncate 3.5 -> 11 taps,
+    population covariances, K1 0.01, K2 0.03) on grey images; its full map's mean over all pixels
+    (its own mean crops the 5-pixel border, ours does not)."""
+    metrics = pytest.importorskip("skimage.metrics")
+    for x, y in _grey_cases():
+        _, full = metrics.structural_similarity(
+            y, x, data_range=255.0, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, full=True
+        )
+        assert ssim(_rgb(y), _rgb(x)) == pytest.approx(float(np.mean(full)), abs=1e-9)
 
 
 def test_frechet_of_gaussians_matches_closed_form():
