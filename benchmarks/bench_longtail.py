@@ -50,7 +50,7 @@ from world_model.data import Clip, iter_clips
 from world_model.lora import apply_adapters, remove_adapters
 from world_model.model.conditions import Conditions, build_condition_arrays
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.reference import ReferenceConfig, ReferenceGenerator, camera_box_pixels
+from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
@@ -94,7 +94,7 @@ def rare_views(clips: Sequence[Clip], category: str, max_views: int, near: float
                 if obj.category != category:
                     continue
                 for v in range(fr.rig.num_views):
-                    box = camera_box_pixels(fr, corners[o], v, near)
+                    box = fr.rig.cameras[v].box_extent(corners[o], near)
                     if box is not None and (best is None or _area(box) > _area(best[1])):
                         best = (v, box, obj.track_id)
             if best is not None:
@@ -132,7 +132,7 @@ def blank_object(frame, cameras: np.ndarray, track: str, margin: int, near: floa
     out = np.array(cameras, copy=True)
     corners = frame.object_corners_lidar()[[o.track_id for o in frame.objects].index(track)]
     for v in range(out.shape[0]):
-        box = camera_box_pixels(frame, corners, v, near)
+        box = frame.rig.cameras[v].box_extent(corners, near)
         if box is None:
             continue
         h, w = out.shape[1:3]
@@ -290,7 +290,7 @@ def ordinary_frames(clips: Sequence[Clip], count: int, near: float) -> list[Rare
         best = None
         for o in range(len(fr.objects)):
             for v in range(fr.rig.num_views):
-                box = camera_box_pixels(fr, corners[o], v, near)
+                box = fr.rig.cameras[v].box_extent(corners[o], near)
                 if box is not None and (best is None or _area(box) > _area(best[2])):
                     best = (v, o, box)
         if best is not None:

@@ -31,7 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_longtail import _crop, rare_views  # noqa: E402
 
 from world_model.data import Clip, iter_clips  # noqa: E402
-from world_model.model.reference import ReferenceConfig, camera_box_pixels  # noqa: E402
+from world_model.model.reference import ReferenceConfig  # noqa: E402
 from world_model.model.vae import SensorVAE, cameras_to_images, images_to_cameras  # noqa: E402
 
 NEAR = ReferenceConfig().near_plane_m
@@ -67,7 +67,7 @@ def object_crops(clips: Sequence[Clip], frames: int, min_box_px: int) -> list[tu
         corners = fr.object_corners_lidar()
         for o, obj in enumerate(fr.objects):
             for v in range(fr.rig.num_views):
-                box = camera_box_pixels(fr, corners[o], v, NEAR)
+                box = fr.rig.cameras[v].box_extent(corners[o], NEAR)
                 if box is not None and (box[2] - box[0]) * (box[3] - box[1]) >= min_box_px:
                     out.append((ci, f, v, box, obj.category))
     return out
