@@ -80,6 +80,7 @@ class M4WorldEnv(gym.Env):
         self.cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.render_mode = render_mode
+        every_frame = render_mode == "rgb_array_list"  # the backend then observes each frame of a chunk
         self.backend_name = backend
         self.backend: SensorBackend = shared_backend or make_backend(
             backend,
@@ -87,7 +88,7 @@ class M4WorldEnv(gym.Env):
             num_rollouts=1,
             with_bev=self.needs_bev,
             config=self.cfg,
-            every_frame=render_mode == "rgb_array_list",
+            every_frame=every_frame,
         )
         self.backend_index = backend_index
         if self.scenario.adapters and hasattr(self.backend, "apply_adapters"):
@@ -111,7 +112,6 @@ class M4WorldEnv(gym.Env):
         self.bridge = TrafficBridge(
             self.scenario, action_type=self.cfg.action_type, rig=self.rig, lidar=self.lidar_spec, bev=self.bev_spec
         )
-        every_frame = render_mode == "rgb_array_list"
         fps = self.scenario.sensor_frequency if every_frame else self.scenario.policy_frequency
         self.metadata = {**self.metadata, "render_fps": fps}
         self.action_space = self._make_action_space()
