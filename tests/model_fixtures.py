@@ -115,3 +115,27 @@ def perturbed(module, seed: int = 0, scale: float = 0.2):
         for p in module.parameters():
             p.add_(scale * torch.randn(p.shape, generator=gen))
     return module.eval()
+
+
+def kill_after_checkpoint(train_args: list[str], checkpoints: Path, step: int = 4, timeout_s: float = 120.0) -> None:
+    """Run ``python -m world_model.train *train_args`` in its own process and SIGKILL it once
+    ``checkpoints/latest.json`` has reached ``step`` (or after ``timeout_s``): a run killed mid-way."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    cmd = [sys.executable, "-m", "world_model.train", *train_args]
+    env = {**os.environ, "PYTHONPATH": str(src)}
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    latest = checkpoints / "latest.json"
+    deadline = time.time() + timeout_s
+    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= step):
+        if proc.poll() is not None:
+            raise AssertionError(f"the training run exited on its own (status {proc.returncode}): {cmd}")
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()

@@ -1,11 +1,6 @@
 """``--stage lora``: rare/ordinary clip selection, 50/50 balanced sampling, frozen base, export, kill/resume."""
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -13,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_conditions
+from tests.model_fixtures import kill_after_checkpoint, make_frames, make_sensors, perturbed, tiny_conditions
 from world_model.data import write_clip
 from world_model.lora import apply_adapters, base_fingerprint, loaded_adapters, read_adapter, remove_adapters
 from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
@@ -24,7 +19,6 @@ from world_model.train.data import LatentWindows
 from world_model.train.lora_stage import BalancedSampler, select_clips
 from world_model.train.stages import EXPORT
 
-SRC = Path(__file__).resolve().parents[1] / "src"
 CFG = get_preset("tiny")
 CASE = "tree_truck"
 
@@ -271,18 +265,11 @@ def test_lora_stage_errors_are_actionable(data, tmp_path):
 def test_killed_lora_run_resumes_from_last_checkpoint(data, tmp_path):
     base, rare = data
     run = make_run(tmp_path / "run")
-    cmd = [sys.executable, "-m", "world_model.train", "--stage", "lora", "--case", CASE, "--data", str(base)]
-    cmd += ["--case-data", str(rare), "--run", str(run), "--preset", "tiny", "--steps", "100000"]
-    cmd += ["--ckpt-every", "2", "--no-progress"]
-    proc = subprocess.Popen(
-        cmd, env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
-    )
+    args = ["--stage", "lora", "--case", CASE, "--data", str(base), "--case-data", str(rare), "--run", str(run)]
     latest = run / "lora" / CASE / "checkpoints" / "latest.json"
-    deadline = time.time() + 120
-    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    kill_after_checkpoint(
+        [*args, "--preset", "tiny", "--steps", "100000", "--ckpt-every", "2", "--no-progress"], latest.parent
+    )
     ck = load_latest(latest.parent)
     assert ck is not None and ck.step >= 4
     out = train_lora(data, run, ck.step + 2, ckpt_every=2)

@@ -1,18 +1,12 @@
 """``--stage reference`` end to end on tiny data: task mix, export, exact resume, survives a kill."""
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from tests.model_fixtures import make_dataset, perturbed, tiny_conditions
+from tests.model_fixtures import kill_after_checkpoint, make_dataset, perturbed, tiny_conditions
 from world_model.model import MultiViewDiT, SensorVAE, get_preset
 from world_model.model.reference import TASKS, ReferenceConfig, ReferenceGenerator, reference_channels
 from world_model.train import load_latest, load_teacher, load_vae, train_stage
@@ -20,7 +14,6 @@ from world_model.train.checkpoint import export_weights
 from world_model.train.reference_stage import reference_batch
 from world_model.train.stages import EXPORT
 
-SRC = Path(__file__).resolve().parents[1] / "src"
 CFG = get_preset("tiny")
 
 
@@ -88,16 +81,9 @@ def test_reference_stage_needs_the_teacher(dataset, tmp_path):
 
 def test_killed_reference_run_resumes_from_last_checkpoint(dataset, tmp_path):
     run = make_run(tmp_path / "run")
-    cmd = [sys.executable, "-m", "world_model.train", "--stage", "reference", "--data", str(dataset)]
-    cmd += ["--run", str(run), "--preset", "tiny", "--steps", "100000", "--ckpt-every", "2", "--no-progress"]
-    env = {**os.environ, "PYTHONPATH": str(SRC)}
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    latest = run / "reference" / "checkpoints" / "latest.json"
-    deadline = time.time() + 120
-    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    args = ["--stage", "reference", "--data", str(dataset), "--run", str(run), "--preset", "tiny"]
+    checkpoints = run / "reference" / "checkpoints"
+    kill_after_checkpoint([*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], checkpoints)
     ck = load_latest(run / "reference" / "checkpoints")
     assert ck is not None and ck.step >= 4
     out = train_stage("reference", dataset, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)

@@ -2,21 +2,14 @@
 killed mid-way that resumes from its last checkpoint."""
 
 import json
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
 
 from m4world_env.cli import main
+from tests.model_fixtures import kill_after_checkpoint
 from world_model.data import list_clips, read_clip
 from world_model.model import get_preset
 from world_model.train import load_latest, train_stage
-
-SRC = Path(__file__).resolve().parents[1] / "src"
 
 
 @pytest.fixture(scope="module")
@@ -41,18 +34,10 @@ def test_vae_and_teacher_train_on_recorded_clips_and_a_killed_teacher_resumes(re
     assert main([*base, "--stage", "vae", "--steps", "2"]) == 0
     assert json.loads(capsys.readouterr().out)["step"] == 2
     # The teacher, as a separate process, killed once it has checkpointed twice.
-    cmd = [sys.executable, "-m", "world_model.train", "--stage", "teacher", "--data", str(recorded)]
-    cmd += ["--run", str(run), "--preset", "tiny", "--steps", "100000", "--ckpt-every", "2", "--no-progress"]
-    proc = subprocess.Popen(
-        cmd, env={**os.environ, "PYTHONPATH": str(SRC)}, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    args = ["--stage", "teacher", "--data", str(recorded), "--run", str(run), "--preset", "tiny"]
+    kill_after_checkpoint(
+        [*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], run / "teacher" / "checkpoints"
     )
-    latest = run / "teacher" / "checkpoints" / "latest.json"
-    deadline = time.time() + 120
-    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
-        assert proc.poll() is None, "the teacher run exited on its own"
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
     ck = load_latest(run / "teacher" / "checkpoints")
     assert ck is not None and ck.step >= 4
     out = train_stage("teacher", recorded, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)

@@ -2,18 +2,12 @@
 
 import json
 import math
-import os
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load_file
 
-from tests.model_fixtures import make_dataset
+from tests.model_fixtures import kill_after_checkpoint, make_dataset
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
 from world_model.train import (
@@ -26,8 +20,6 @@ from world_model.train import (
     train_stage,
 )
 from world_model.train.checkpoint import save_checkpoint
-
-SRC = Path(__file__).resolve().parents[1] / "src"
 
 
 @pytest.fixture(scope="module")
@@ -77,32 +69,10 @@ def test_resume_gives_the_same_state_as_uninterrupted(dataset, tmp_path):
 
 def test_killed_run_resumes_from_last_checkpoint(dataset, tmp_path):
     run = tmp_path / "run"
-    cmd = [
-        sys.executable,
-        "-m",
-        "world_model.train",
-        "--stage",
-        "vae",
-        "--data",
-        str(dataset),
-        "--run",
-        str(run),
-        "--preset",
-        "tiny",
-        "--steps",
-        "100000",
-        "--ckpt-every",
-        "2",
-        "--no-progress",
-    ]
-    env = {**os.environ, "PYTHONPATH": str(SRC)}
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    latest = run / "vae" / "checkpoints" / "latest.json"
-    deadline = time.time() + 60
-    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= 4):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    args = ["--stage", "vae", "--data", str(dataset), "--run", str(run), "--preset", "tiny"]
+    kill_after_checkpoint(
+        [*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], run / "vae" / "checkpoints", timeout_s=60
+    )
     ck = load_latest(run / "vae" / "checkpoints")
     assert ck is not None and ck.step >= 4
     out = train_stage("vae", dataset, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
