@@ -308,7 +308,7 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from world_model.student_flags import LORA_BASE_HELP, add_lora_flags, add_student_flags
+    from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_flags
 
     p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
     sub = p.add_subparsers(dest="command", required=True)
@@ -416,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--lr", type=float, default=None)
     t.add_argument("--seed", type=int, default=0)
     t.add_argument("--no-progress", action="store_true")
-    t.add_argument("--base", default=None, help=LORA_BASE_HELP)
+    t.add_argument("--base", default=None, help=BASE_HELP)
     t.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
     t.add_argument("--case-data", default=None, help="lora: dataset of the rare-case clips")
     add_lora_flags(t)

@@ -1,8 +1,11 @@
 """CLI: train one stage of the world model.
 
 ``python -m world_model.train --stage STAGE --data DIR --run RUN --preset tiny|default [--steps N]``
-with STAGE one of vae, teacher, tf, ode, dmd, long, reference, lora (for long: ``--long-frames N``,
-``--long-skip-chunks K``).
+with STAGE one of vae, teacher, tf, ode, dmd, long, compress, reference, lora (for long and compress:
+``--long-frames N``, ``--long-skip-chunks K``).
+
+``--stage compress [--base BUNDLE_OR_STUDENT] [--student-depth D] [--context-frames W]`` distills a
+trained student (default RUN/long/model) into RUN/compress/ on its own rollouts.
 
 ``--stage lora --case NAME [--case-data DIR] [--base PATH] [--lora-box-weight W]`` trains one long-tail
 adapter into RUN/lora/NAME/.
@@ -18,7 +21,7 @@ import sys
 
 from world_model.model.config import PRESETS, get_preset
 from world_model.student_flags import (
-    LORA_BASE_HELP,
+    BASE_HELP,
     add_lora_flags,
     add_student_flags,
     apply_heap_flag,
@@ -44,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
     p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
     p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
-    p.add_argument("--base", default=None, help=LORA_BASE_HELP)
+    p.add_argument("--base", default=None, help=BASE_HELP)
     add_lora_flags(p)
     add_student_flags(p, long_frames=True)
     a = p.parse_args(argv)

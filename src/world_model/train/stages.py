@@ -40,7 +40,8 @@ from world_model.train.data import (
 )
 from world_model.train.trainer import TrainConfig, Trainer
 
-STAGES = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference", "lora")  # tf..long: student_stages.py
+# tf..compress: student_stages.py
+STAGES = ("vae", "teacher", "tf", "ode", "dmd", "long", "compress", "reference", "lora")
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
 
 # Per stage: (batch size, learning rate, checkpoint period). Batch sizes are CPU-sized.
@@ -53,6 +54,7 @@ STAGE_DEFAULTS = {
     "ode": (4, 5e-4, 20),  # a step runs a 20-step guided ODE: checkpoint often
     "dmd": (2, 1e-4, 10),  # each step = 1 + critic_updates self-rollouts
     "long": (2, 5e-5, 10),
+    "compress": (2, 2e-4, 10),  # each step rolls two students out together
 }
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
 # Stages whose steps cost far more than a teacher step get their own default per preset. Sized for
@@ -263,7 +265,9 @@ def train_stage(
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
     ``config`` overrides the preset's config (it must then stay the same across resumes);
-    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
+    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``, ``compress``);
+    ``compress``'s ``base`` is its source student (default ``run_dir/long/model``; a bundle or an
+    exported student: :func:`world_model.train.compress_stage.load_source`).
     ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
     dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
     (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
@@ -276,6 +280,8 @@ def train_stage(
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
     if stage != "lora" and lora_box_weight:
         raise ValueError(f"--lora-box-weight is a setting of --stage lora, not of {stage!r}")
+    if stage not in ("lora", "compress") and base is not None:
+        raise ValueError(f"--base is a setting of --stage lora and --stage compress, not of {stage!r}")
     if stage != "lora" and lora_rank is not None:
         raise ValueError(f"--lora-rank is a setting of --stage lora, not of {stage!r}")
     check_dtype(dtype)
@@ -307,7 +313,7 @@ def train_stage(
         from world_model.train.student_stages import run_student_stage  # it imports this module
 
         with precision:
-            out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student)
+            out = run_student_stage(stage, data_dir, stage_dir, cfg, tcfg, progress, student, base)
         return {"stage": stage, "stage_dir": str(stage_dir), **out}
     with precision:
         out = run(data_dir, stage_dir, cfg, tcfg, progress)

@@ -65,7 +65,7 @@ from world_model.train.data import LatentWindows, cached_latents, file_digest, l
 from world_model.train.stages import EXPORT, load_teacher, load_vae
 from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedError
 
-STUDENT_STAGES = ("tf", "ode", "dmd", "long")
+STUDENT_STAGES = ("tf", "ode", "dmd", "long", "compress")  # compress: compress_stage.py
 PREDECESSOR = {"tf": "teacher", "ode": "tf", "dmd": "ode", "long": "dmd"}
 CRITIC = "critic"  # RUN/dmd/critic.safetensors + critic.json
 
@@ -395,12 +395,21 @@ def run_student_stage(
     tcfg: TrainConfig,
     progress: bool,
     student: StudentConfig | None = None,
+    base: str | Path | None = None,
 ) -> dict:
-    """Dispatch one student stage (called by :func:`world_model.train.stages.train_stage`)."""
+    """Dispatch one student stage (called by :func:`world_model.train.stages.train_stage`).
+    ``base``: ``compress`` only, its source student (:func:`compress_stage.load_source`)."""
     if stage not in STUDENT_STAGES:
         raise ValueError(f"unknown student stage {stage!r}; choose one of {STUDENT_STAGES}")
     scfg = student or StudentConfig()
     run_dir = stage_dir.parent
+    if stage == "compress":
+        from world_model.train.compress_stage import compress_stage, load_source
+
+        source = load_source(base, run_dir)  # a bundle source first brings its VAE into the run
+        windows = _windows(data_dir, run_dir, cfg)
+        torch.manual_seed(tcfg.seed)
+        return compress_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress, source)
     _need(run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
     windows = _windows(data_dir, run_dir, cfg)
     torch.manual_seed(tcfg.seed)
