@@ -139,3 +139,18 @@ def kill_after_checkpoint(train_args: list[str], checkpoints: Path, step: int = 
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
+
+
+def train_cli(*args: str) -> dict:
+    """``python -m world_model.train *args --preset tiny --no-progress`` in a subprocess; its summary."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    src = Path(__file__).resolve().parents[1] / "src"
+    env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "world_model.train", *args, "--preset", "tiny", "--no-progress"]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout)

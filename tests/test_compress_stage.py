@@ -1,10 +1,6 @@
 """The ``compress`` stage: a smaller/faster student distilled on-policy from a trained one."""
 
 import json
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -17,9 +13,8 @@ from world_model.runtime import load_world_model
 from world_model.student import StreamingEngine
 from world_model.train import train_stage
 
-from .model_fixtures import make_dataset, perturbed, tiny_conditions
+from .model_fixtures import make_dataset, perturbed, tiny_conditions, train_cli
 
-SRC = Path(__file__).resolve().parents[1] / "src"
 STEP = {"batch_size": 1, "progress": False}
 
 
@@ -29,14 +24,6 @@ def _depth(blocks: int):
 
     cfg = get_preset("tiny")
     return replace(cfg, dit=replace(cfg.dit, student_depth=blocks))
-
-
-def _cli(*args: str) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(SRC), "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "world_model.train", *args, "--preset", "tiny", "--no-progress"]
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout)
 
 
 @pytest.fixture(scope="module")
@@ -68,9 +55,9 @@ def test_compress_from_a_bundle_from_the_cli_resumes_and_exports_a_bundle_the_en
     run = tmp_path / "run"
     common = ["--stage", "compress", "--base", str(bundle), "--data", str(data), "--run", str(run)]
     common += ["--student-depth", "1", "--context-frames", "3", "--long-frames", "5", "--batch-size", "1"]
-    out = _cli(*common, "--steps", "2", "--ckpt-every", "1")
+    out = train_cli(*common, "--steps", "2", "--ckpt-every", "1")
     assert out["step"] == 2 and out["resumed_from"] is None and out["source"].endswith("student.safetensors")
-    again = _cli(*common, "--steps", "3", "--ckpt-every", "1")
+    again = train_cli(*common, "--steps", "3", "--ckpt-every", "1")
     assert again["resumed_from"] == 2 and again["step"] == 3
     # The bundle's VAE and reference model now belong to the run, byte for byte the same weights.
     manifest = json.loads((bundle / "manifest.json").read_text())

@@ -1,10 +1,6 @@
 """Student stages tf -> ode -> dmd -> long end to end from the CLI on a tiny dataset, resume, errors."""
 
-import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -15,17 +11,7 @@ from world_model.student import StreamingEngine
 from world_model.train import train_stage
 from world_model.train.student_stages import load_student, reflected_index
 
-from .model_fixtures import make_dataset, tiny_conditions
-
-SRC = Path(__file__).resolve().parents[1] / "src"
-
-
-def _cli(*args: str) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(SRC), "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "world_model.train", *args, "--preset", "tiny", "--no-progress"]
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr[-2000:]
-    return json.loads(out.stdout)
+from .model_fixtures import make_dataset, tiny_conditions, train_cli
 
 
 @pytest.fixture(scope="module")
@@ -43,10 +29,10 @@ def test_student_stages_end_to_end_from_the_cli_and_resume(run):
     common = ["--data", str(data), "--run", str(rundir)]
     for stage in ("tf", "ode", "dmd", "long"):
         extra = ["--long-frames", "4"] if stage == "long" else []
-        out = _cli("--stage", stage, *common, "--steps", "2", "--ckpt-every", "1", "--batch-size", "1", *extra)
+        out = train_cli("--stage", stage, *common, "--steps", "2", "--ckpt-every", "1", "--batch-size", "1", *extra)
         assert out["step"] == 2 and out["resumed_from"] is None, out
         assert (rundir / stage / "model.safetensors").exists() and (rundir / stage / "model.json").exists()
-        again = _cli("--stage", stage, *common, "--steps", "3", "--ckpt-every", "1", "--batch-size", "1", *extra)
+        again = train_cli("--stage", stage, *common, "--steps", "3", "--ckpt-every", "1", "--batch-size", "1", *extra)
         assert again["resumed_from"] == 2 and again["step"] == 3
         assert all(torch.isfinite(torch.tensor(again["final_loss"])).reshape(-1))
     assert (rundir / "dmd" / "critic.safetensors").exists()
@@ -216,15 +202,15 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
 def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypatch):
     from m4world_env.cli import main as m4world
     from world_model import student_flags
-    from world_model.train import __main__ as train_cli
+    from world_model.train import __main__ as train_module
     from world_model.train import stages
 
     calls = []
     monkeypatch.setattr(student_flags, "retain_freed_memory", lambda: calls.append(1))
     monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: {})
-    monkeypatch.setattr(train_cli, "train_stage", lambda *a, **kw: {})
+    monkeypatch.setattr(train_module, "train_stage", lambda *a, **kw: {})
     args = ["--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
-    for main in (lambda a: m4world(["train", *a]), train_cli.main):
+    for main in (lambda a: m4world(["train", *a]), train_module.main):
         calls.clear()
         assert main(args) == 0 and calls == [1]
         calls.clear()

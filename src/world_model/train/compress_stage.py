@@ -139,7 +139,7 @@ def compress_stage(
     source: CompressSource,
 ) -> dict:
     """Train ``RUN/compress`` (see the module docstring) on rollouts started from ``windows``' clips."""
-    from world_model.train.student_stages import _export, _long_conditions, reflected_index
+    from world_model.train.student_stages import _export, _long_conditions, rollout_starts
 
     scfg_src = source.scfg
     if (scfg_src.prefix_frames, scfg_src.denoising_steps, scfg_src.timestep_shift) != (
@@ -167,11 +167,7 @@ def compress_stage(
     state: dict = {"clips": None}
 
     def start(tr: Trainer) -> None:
-        clips = [int(i) for i in tr.rng.integers(len(windows.clips), size=tcfg.batch_size)]
-        first = torch.stack(
-            [windows.latents[ci][[reflected_index(i, windows.clips[ci].num_frames) for i in range(p)]] for ci in clips]
-        ).float()
-        cond = _long_conditions(windows, clips, 0, p, 0)
+        clips, first, cond = rollout_starts(windows, tr.rng, tcfg.batch_size, p)
         mine.start(first, cond)
         theirs.start(first, cond)
         state["clips"] = clips

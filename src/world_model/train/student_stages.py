@@ -316,6 +316,18 @@ def _long_conditions(windows: LatentWindows, clips: list[int], start: int, frame
     return Conditions.collate(items)
 
 
+def rollout_starts(
+    windows: LatentWindows, rng: np.random.Generator, batch: int, prefix: int
+) -> tuple[list[int], torch.Tensor, Conditions]:
+    """A fresh long rollout per row: random clips, their first ``prefix`` latents (B, prefix, ...)
+    and those frames' conditions (ego relative to rollout frame 0)."""
+    clips = [int(i) for i in rng.integers(len(windows.clips), size=batch)]
+    first = torch.stack(
+        [windows.latents[ci][[reflected_index(i, windows.clips[ci].num_frames) for i in range(prefix)]] for ci in clips]
+    ).float()
+    return clips, first, _long_conditions(windows, clips, 0, prefix, 0)
+
+
 def _long_stage(
     windows: LatentWindows,
     run_dir: Path,
@@ -336,11 +348,8 @@ def _long_stage(
     state: dict = {"clips": None}
 
     def start(tr: Trainer) -> None:
-        clips = [int(i) for i in tr.rng.integers(len(windows.clips), size=tcfg.batch_size)]
-        first = torch.stack(
-            [windows.latents[ci][[reflected_index(i, windows.clips[ci].num_frames) for i in range(p)]] for ci in clips]
-        ).float()
-        engine.start(first, _long_conditions(windows, clips, 0, p, 0))
+        clips, first, cond = rollout_starts(windows, tr.rng, tcfg.batch_size, p)
+        engine.start(first, cond)
         state["clips"] = clips
 
     def generate(cond: Conditions, grad: bool, exit_step: int | None) -> torch.Tensor:
