@@ -148,6 +148,19 @@ def test_compress_refuses_a_wrong_source_or_run_by_name(source, tmp_path):
         )
     with pytest.raises(ValueError, match="--base is a setting of --stage lora and --stage compress"):
         train_stage("tf", data, tmp_path / "t", preset="tiny", steps=1, base=bundle, **STEP)
+    from world_model.student import StudentConfig
+
+    with pytest.raises(ValueError, match="keep the source's prefix frames and denoising schedule"):
+        train_stage(
+            "compress",
+            data,
+            tmp_path / "s",
+            preset="tiny",
+            steps=1,
+            base=bundle,
+            student=StudentConfig(denoising_steps=(1000, 500)),
+            **STEP,
+        )
     other = tmp_path / "other"  # a run whose VAE is not the bundle's
     torch.manual_seed(1)
     from world_model.train.checkpoint import export_weights

@@ -57,7 +57,9 @@ def critic_loss(critic: VelocityFn, samples: torch.Tensor, t: torch.Tensor, nois
 
 
 def ode_regression_loss(x0_pred: torch.Tensor, x0_target: torch.Tensor) -> torch.Tensor:
-    """Causal ODE initialization: mean squared error of G(x_t, t) to the trajectory's endpoint."""
+    """Mean squared error of the student's x0-prediction G(x_t, t) to a detached target: the ODE
+    trajectory's endpoint (causal ODE initialization), or another student's x0-prediction at the
+    same x_t (the ``compress`` stage)."""
     return (x0_pred.float() - x0_target.detach().float()).pow(2).mean()
 
 
