@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -47,6 +48,9 @@ from world_model.train.data import LatentWindows
 from world_model.train.stages import EXPORT, load_vae
 from world_model.train.trainer import TrainConfig, Trainer
 
+if TYPE_CHECKING:
+    from world_model.runtime import WorldModel
+
 SOURCE_STAGE = "long"  # the default source: the run's own finished student
 
 
@@ -59,12 +63,10 @@ class CompressSource:
     file: Path
 
 
-def _adopt_bundle_parts(bundle: Path, run_dir: Path) -> None:
-    """Write the bundle's VAE (and reference model) as ``RUN/vae`` (``RUN/reference``) when missing;
-    refuse a run whose VAE is another one (its latents would not be the source's)."""
-    from world_model.runtime import load_world_model
-
-    wm = load_world_model(bundle, dtype="float32")
+def _adopt_bundle_parts(wm: WorldModel, run_dir: Path) -> None:
+    """Write the loaded bundle's VAE (and reference model) as ``RUN/vae`` (``RUN/reference``) when
+    missing; refuse a run whose VAE is another one (its latents would not be the source's)."""
+    bundle = wm.path
     vae_path = run_dir / "vae" / EXPORT
     if vae_path.with_suffix(".safetensors").exists():
         mine = load_vae(vae_path).state_dict()
@@ -80,7 +82,7 @@ def _adopt_bundle_parts(bundle: Path, run_dir: Path) -> None:
     ref_path = run_dir / "reference" / EXPORT
     if wm.reference is not None and not ref_path.with_suffix(".safetensors").exists():
         meta = {"stage": "reference", "model_config": wm.reference.cfg.to_dict(), "source": str(bundle)}
-        export_weights(ref_path, wm.reference.float().state_dict(), meta)
+        export_weights(ref_path, wm.reference.state_dict(), meta)  # float32: loaded so
 
 
 def load_source(base: str | Path | None, run_dir: Path) -> CompressSource:
@@ -97,8 +99,8 @@ def load_source(base: str | Path | None, run_dir: Path) -> CompressSource:
             raise ValueError(f"--stage compress distills a student; {base} is the bundle's {component} model")
         from world_model.runtime import load_world_model
 
-        _adopt_bundle_parts(bundle, run_dir)
         wm = load_world_model(bundle, dtype="float32")
+        _adopt_bundle_parts(wm, run_dir)
         model, scfg, file = wm.student, wm.student_cfg, bundle / "student.safetensors"
     else:
         path = Path(base).with_suffix("") if base else run_dir / SOURCE_STAGE / EXPORT
