@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -85,6 +86,55 @@ def test_a_copy_of_the_source_matches_it_exactly_and_a_shallower_student_does_no
         "compress", data, tmp_path / "shallow", preset="tiny", steps=1, base=bundle, config=_depth(1), **STEP
     )
     assert shallow["final_loss"] > 1e-4, shallow
+
+
+def test_object_weights_cover_exactly_the_boxes_of_the_conditioned_frames(source):
+    """The weights of rollout frames past a clip's end follow the played-back-and-forth frames the
+    conditions come from, 1 + w inside any object's exact projected box, 1 elsewhere."""
+    from world_model.model.reference import ReferenceConfig, object_region
+    from world_model.train.compress_stage import load_source, object_weights
+    from world_model.train.student_stages import _windows, reflected_index
+
+    data, bundle = source
+    cfg = get_preset("tiny")
+    run = data.parent / "weights_run"
+    load_source(bundle, run)  # the bundle's VAE, so the windows encode in its latents
+    windows = _windows(data, run, cfg)
+    clips, start, frames = [0, 1], 3, 4  # clip 1 has 5 frames: rollout frames 5, 6 are its 3, 2
+    w = object_weights(windows, clips, start, frames, 4.0)
+    assert w.shape == (2, frames, cfg.sensors.num_views, 1, *cfg.latent_hw)
+    assert set(w.unique().tolist()) == {1.0, 5.0}
+    rcfg = ReferenceConfig(margin_px=0)
+    for row, ci in enumerate(clips):
+        clip = windows.clips[ci]
+        for f in range(frames):
+            scene = clip.frames[reflected_index(start + f, clip.num_frames)]
+            region = np.zeros(w.shape[2:3] + w.shape[4:], bool)
+            for o in scene.objects:
+                region |= object_region(scene, o.track_id, cfg, rcfg)
+            assert torch.equal(w[row, f, :, 0] > 1.0, torch.from_numpy(region)), (row, f)
+
+
+def test_the_object_weight_changes_the_loss_but_not_a_copys_zero(source, tmp_path):
+    from world_model.student import StudentConfig
+
+    data, bundle = source
+    weighted = StudentConfig(compress_object_weight=20.0)
+    same = train_stage(
+        "compress", data, tmp_path / "same", preset="tiny", steps=1, base=bundle, student=weighted, **STEP
+    )
+    assert same["final_loss"] < 1e-10, same
+    runs = {
+        name: train_stage(
+            "compress", data, tmp_path / name, preset="tiny", steps=1, base=bundle, config=_depth(1), student=s, **STEP
+        )["final_loss"]
+        for name, s in (("plain", StudentConfig()), ("weighted", weighted))
+    }
+    assert abs(runs["weighted"] - runs["plain"]) > 1e-3 * runs["plain"], runs
+    with pytest.raises(ValueError, match="compress_object_weight must be a finite number >= 0"):
+        StudentConfig(compress_object_weight=-1.0)
+    with pytest.raises(ValueError, match="--compress-object-weight is a setting of --stage compress"):
+        train_stage("tf", data, tmp_path / "t", preset="tiny", steps=1, student=weighted, **STEP)
 
 
 def _gap(student: MultiViewDiT, scfg, source) -> float:

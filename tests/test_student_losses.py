@@ -284,3 +284,16 @@ def test_ode_trajectory_is_the_samplers_euler_integration():
     for i in range(5):
         x = x + (grid[i + 1] - grid[i]) * velocity(x, grid[i].expand(5))
     assert torch.allclose(points[1], x, atol=1e-6)
+
+
+def test_weighted_ode_regression_is_the_weighted_mean_and_all_ones_the_plain_one():
+    gen = torch.Generator().manual_seed(0)
+    pred, target = torch.randn(2, 3, 4, generator=gen), torch.randn(2, 3, 4, generator=gen)
+    sq = (pred - target).pow(2)
+    assert torch.allclose(ode_regression_loss(pred, target, torch.ones(2, 3, 1)), ode_regression_loss(pred, target))
+    w = torch.rand(2, 3, 1, generator=gen) * 5
+    expected = (sq * w).sum() / (w.expand_as(sq)).sum()
+    assert torch.allclose(ode_regression_loss(pred, target, w), expected)
+    only_first = torch.zeros(2, 3, 1)
+    only_first[0, 0] = 1.0
+    assert torch.allclose(ode_regression_loss(pred, target, only_first), sq[0, 0].mean())

@@ -108,6 +108,13 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="dmd and long stages: normalize the DMD gradient per sample (default, the paper) or per "
         "sample and view (the LiDAR view's gradient not scaled by the cameras' errors)",
     )
+    p.add_argument(
+        "--compress-object-weight",
+        type=float,
+        default=None,
+        help="compress stage: extra loss weight on the latent cells inside objects' projected boxes "
+        "(1 + W there; default 0: the plain mean)",
+    )
 
 
 def student_config(args: argparse.Namespace) -> StudentConfig | None:
@@ -115,7 +122,14 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
     defaults), else the defaults with the given fields replaced."""
     from world_model.student.config import StudentConfig
 
-    names = ("long_frames", "long_skip_chunks", "denoise_loss_prob", "dmd_guidance_scale", "dmd_norm")
+    names = (
+        "long_frames",
+        "long_skip_chunks",
+        "denoise_loss_prob",
+        "dmd_guidance_scale",
+        "dmd_norm",
+        "compress_object_weight",
+    )
     given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None
 

@@ -75,7 +75,11 @@ def flow_matching_loss(
     ``weights`` (broadcastable to ``x0``, non-negative): the weighted mean sum(w e) / sum(w) instead,
     e.g. more weight inside a rare object's box (the LoRA stage); all ones = the plain mean."""
     v = velocity_fn(interpolate(x0, noise, t), t)
-    err = (v.float() - velocity_target(x0, noise).float()).pow(2)
+    return weighted_mean((v.float() - velocity_target(x0, noise).float()).pow(2), weights)
+
+
+def weighted_mean(err: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """The mean of ``err``; with ``weights`` (broadcastable to it, non-negative) sum(w e) / sum(w)."""
     if weights is None:
         return err.mean()
     w = weights.float().expand_as(err)

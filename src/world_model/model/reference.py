@@ -175,12 +175,15 @@ def object_region(frame: SceneFrame, track_id: str, cfg: ModelConfig, rcfg: Refe
     return out
 
 
-def category_region(frames: Sequence[SceneFrame], category: str, cfg: ModelConfig, rcfg: ReferenceConfig) -> np.ndarray:
-    """(T, V, h, w) bool: per frame, the union of :func:`object_region` over the objects of ``category``."""
+def category_region(
+    frames: Sequence[SceneFrame], category: str | None, cfg: ModelConfig, rcfg: ReferenceConfig
+) -> np.ndarray:
+    """(T, V, h, w) bool: per frame, the union of :func:`object_region` over the objects of
+    ``category`` (None: over every object)."""
     out = np.zeros((len(frames), cfg.sensors.num_views, *cfg.latent_hw), bool)
     for f, fr in enumerate(frames):
         for o in fr.objects:
-            if o.category == category:
+            if category is None or o.category == category:
                 out[f] |= object_region(fr, o.track_id, cfg, rcfg)
     return out
 

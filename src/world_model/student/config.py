@@ -16,6 +16,7 @@ chunk is ``clip.chunk_frames`` frames.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -65,6 +66,12 @@ class StudentConfig:
     # late frames where the drift it should correct happens.
     long_skip_chunks: int = 0
 
+    # -- compress (train/compress_stage.py) --
+    # Extra weight of the output-matching loss on the latent cells inside any object's projected
+    # 3-D box (1 + w there, 1 elsewhere): objects cover a few percent of the cells, so a plain mean
+    # lets a compressed student trade them for the background. 0 = the plain mean.
+    compress_object_weight: float = 0.0
+
     def __post_init__(self) -> None:
         steps = self.denoising_steps
         if (
@@ -99,6 +106,8 @@ class StudentConfig:
             raise ValueError(f"denoise_loss_prob must be in [0, 1], got {self.denoise_loss_prob}")
         if self.dmd_guidance_scale is not None and not self.dmd_guidance_scale > 0.0:
             raise ValueError(f"dmd_guidance_scale must be > 0 (1 = no guidance), got {self.dmd_guidance_scale}")
+        if not (math.isfinite(self.compress_object_weight) and self.compress_object_weight >= 0.0):
+            raise ValueError(f"compress_object_weight must be a finite number >= 0, got {self.compress_object_weight}")
         if self.dmd_norm not in ("sample", "view"):
             raise ValueError(f"dmd_norm must be 'sample' or 'view', got {self.dmd_norm!r}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:

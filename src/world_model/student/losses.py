@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from world_model.model.flow import VelocityFn, euler_integrate, flow_matching_loss, shift_time
+from world_model.model.flow import VelocityFn, euler_integrate, flow_matching_loss, shift_time, weighted_mean
 
 NORM_EPS = 1e-6  # keeps the per-sample DMD normalization finite when the teacher is exact
 
@@ -56,11 +56,14 @@ def critic_loss(critic: VelocityFn, samples: torch.Tensor, t: torch.Tensor, nois
     return flow_matching_loss(critic, samples.detach(), t, noise)
 
 
-def ode_regression_loss(x0_pred: torch.Tensor, x0_target: torch.Tensor) -> torch.Tensor:
+def ode_regression_loss(
+    x0_pred: torch.Tensor, x0_target: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Mean squared error of the student's x0-prediction G(x_t, t) to a detached target: the ODE
     trajectory's endpoint (causal ODE initialization), or another student's x0-prediction at the
-    same x_t (the ``compress`` stage)."""
-    return (x0_pred.float() - x0_target.detach().float()).pow(2).mean()
+    same x_t (the ``compress`` stage). ``weights`` (broadcastable, non-negative): the weighted mean
+    instead (:func:`weighted_mean`; the ``compress`` stage's object weight)."""
+    return weighted_mean((x0_pred.float() - x0_target.detach().float()).pow(2), weights)
 
 
 def ode_grid(teacher_steps: int, shift: float, student_times: torch.Tensor) -> torch.Tensor:

@@ -15,7 +15,10 @@ of every trained chunk; the compressed student's clean chunk is then committed t
 source's through :meth:`StreamingEngine.commit`, its teacher-forcing entry), so the source always
 judges the history the compressed student actually generated, the way the env will run it. The
 target is a deterministic function of the same input noise, so regressing on it keeps the source's
-detail instead of averaging over its samples.
+detail instead of averaging over its samples. With ``StudentConfig.compress_object_weight`` w > 0
+the mean is weighted 1 + w on the latent cells inside any object's projected 3-D box in the
+frames' recorded layout (the controls the students are conditioned on), since vehicles cover a few
+percent of the cells and a plain mean lets the compressed student drop them.
 
 Rollouts continue across steps as in ``long`` (``StudentConfig.long_frames`` frames, then a fresh
 start from data; ``long_clip_chunks`` trained chunks per step, ``long_skip_chunks`` untrained
@@ -34,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import torch
 
 from world_model.model.conditions import Conditions
@@ -114,20 +118,37 @@ def load_source(base: str | Path | None, run_dir: Path) -> CompressSource:
     return CompressSource(model.float().eval().requires_grad_(False), scfg, file)
 
 
-def matched(x0_fn: X0Fn, target_fn: X0Fn, losses: list[torch.Tensor]) -> X0Fn:
+def matched(x0_fn: X0Fn, target_fn: X0Fn, losses: list[torch.Tensor], weights: torch.Tensor | None = None) -> X0Fn:
     """``x0_fn`` as the sampler sees it (its prediction, detached: the rollout stays the student's
     own), appending at each call the regression loss onto ``target_fn``'s prediction at the same
-    (x_t, t) to ``losses``."""
+    (x_t, t) to ``losses`` (weighted by ``weights`` (B, T, V, 1, h, w) when given)."""
 
     def fn(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
             target = target_fn(x, t)
         with torch.enable_grad():
             pred = x0_fn(x, t)
-        losses.append(ode_regression_loss(pred, target))
+        losses.append(ode_regression_loss(pred, target, weights))
         return pred.detach()
 
     return fn
+
+
+def object_weights(windows: LatentWindows, clips: list[int], start: int, frames: int, weight: float) -> torch.Tensor:
+    """(B, frames, V, 1, h, w) loss weights of rollout frames [start, start + frames) per row (the
+    clips played back and forth as their conditions are): 1 + ``weight`` on the latent cells inside
+    any object's exact projected box, 1 elsewhere."""
+    from world_model.model.reference import ReferenceConfig, category_region
+    from world_model.train.student_stages import reflected_index
+
+    rcfg = ReferenceConfig(margin_px=0)
+    rows = []
+    for ci in clips:
+        clip = windows.clips[ci]
+        scene = [clip.frames[reflected_index(i, clip.num_frames)] for i in range(start, start + frames)]
+        rows.append(category_region(scene, None, windows.cfg, rcfg))
+    region = torch.from_numpy(np.stack(rows))[:, :, :, None]
+    return torch.where(region, 1.0 + weight, 1.0)
 
 
 def compress_stage(
@@ -182,7 +203,10 @@ def compress_stage(
                 x0 = mine.step(controls)
         else:
             target_fn = theirs.chunk_x0_fn(controls)
-            x0 = mine.step(controls, grad=True, through=lambda fn: matched(fn, target_fn, losses))
+            weights = None
+            if scfg.compress_object_weight:
+                weights = object_weights(windows, state["clips"], mine.position, c, scfg.compress_object_weight)
+            x0 = mine.step(controls, grad=True, through=lambda fn: matched(fn, target_fn, losses, weights))
         theirs.commit(x0.detach(), controls)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:

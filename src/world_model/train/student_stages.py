@@ -411,6 +411,8 @@ def run_student_stage(
     if stage not in STUDENT_STAGES:
         raise ValueError(f"unknown student stage {stage!r}; choose one of {STUDENT_STAGES}")
     scfg = student or StudentConfig()
+    if stage != "compress" and scfg.compress_object_weight:
+        raise ValueError(f"--compress-object-weight is a setting of --stage compress, not of {stage!r}")
     run_dir = stage_dir.parent
     if stage == "compress":
         from world_model.train.compress_stage import compress_stage, load_source
