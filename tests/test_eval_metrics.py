@@ -18,6 +18,8 @@ from world_model.eval.metrics import (
     lidar_points,
     lidar_range_mae,
     long_horizon_ratio,
+    masked_psnr,
+    masked_range_mae,
     per_second_curve,
     psnr,
     ssim,
@@ -252,3 +254,26 @@ def test_chunk_jumps_split_changes_at_pass_starts():
     assert JumpSums().ratio() is None and chunk_jumps(np.zeros((4, 2)), [2]).ratio() is None  # frozen
     with pytest.raises(ValueError, match="pass starts must be frames 1..7"):
         chunk_jumps(frames, [0])
+
+
+def test_masked_psnr_and_range_mae_score_only_the_masked_pixels():
+    gt = _images(1)
+    gen = gt.copy()
+    mask = np.zeros(gt.shape[:-1], bool)
+    mask[0, 4:8, 10:20] = True
+    gen[~mask] = 0  # outside the mask: anything
+    assert masked_psnr(gen, gt, mask) == math.inf
+    gen[mask] = np.clip(gt[mask].astype(int) + 5, 0, 255)
+    d = (gen[mask].astype(float) - gt[mask]).ravel()
+    assert masked_psnr(gen, gt, mask) == pytest.approx(10 * math.log10(255**2 / np.mean(d * d)))
+    assert masked_psnr(gen, gt, np.zeros_like(mask)) is None
+    with pytest.raises(ValueError, match="mask must be"):
+        masked_psnr(gen, gt, mask[0])
+    r = np.full((4, 64), 20.0, np.float32)
+    lm = np.zeros((4, 64), bool)
+    lm[1, 3:7] = True
+    far = r + np.where(lm, 3.0, 100.0).astype(np.float32)
+    assert masked_range_mae(far, r, lm) == pytest.approx(3.0)
+    assert masked_range_mae(far, r, np.zeros_like(lm)) is None
+    with pytest.raises(ValueError, match="mask must be"):
+        masked_range_mae(far, r, lm[:2])

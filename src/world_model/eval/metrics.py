@@ -52,6 +52,19 @@ def psnr(generated: np.ndarray, target: np.ndarray, data_range: float = 255.0) -
         return 10.0 * np.log10(data_range**2 / mse)
 
 
+def masked_psnr(generated: np.ndarray, target: np.ndarray, mask: np.ndarray, data_range: float = 255.0) -> float | None:
+    """PSNR in dB over the pixels where ``mask`` (..., H, W) is True, pooled across images
+    (..., H, W, C); None when the mask is empty, ``inf`` where those pixels are identical."""
+    _check_pair(generated, target, "masked_psnr")
+    if mask.shape != generated.shape[:-1]:
+        raise ValueError(f"mask must be {generated.shape[:-1]} (the images without channels), got {mask.shape}")
+    if not mask.any():
+        return None
+    diff = generated[mask].astype(np.float64) - target[mask].astype(np.float64)
+    mse = float(np.mean(diff * diff))
+    return float("inf") if mse == 0.0 else float(10.0 * np.log10(data_range**2 / mse))
+
+
 def _luma(img: np.ndarray) -> np.ndarray:
     """(H, W, 3) RGB -> (H, W) float64 luma (ITU-R BT.601 weights)."""
     return img.astype(np.float64) @ np.array([0.299, 0.587, 0.114])
@@ -165,6 +178,18 @@ def lidar_range_mae(generated: np.ndarray, target: np.ndarray, spec: LidarSpec |
     if not hit.any():
         raise ValueError("the ground truth has no LiDAR returns: range MAE is undefined")
     return float(np.mean(np.abs(g[hit] - t[hit])))
+
+
+def masked_range_mae(generated: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float | None:
+    """Mean absolute range error (m) over the rays where ``mask`` (beams, azimuth) is True, e.g. the
+    ground truth's object returns; None when the mask is empty."""
+    _check_pair(generated, target, "masked_range_mae")
+    if mask.shape != generated.shape:
+        raise ValueError(f"mask must be {generated.shape} (the range map), got {mask.shape}")
+    if not mask.any():
+        return None
+    g, t = np.asarray(generated, dtype=np.float64), np.asarray(target, dtype=np.float64)
+    return float(np.mean(np.abs(g[mask] - t[mask])))
 
 
 def lidar_points(ranges: np.ndarray, spec: LidarSpec | None = None) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from collections.abc import Callable, Hashable
+from dataclasses import replace
 from typing import Any
 
 import cv2
@@ -229,6 +230,19 @@ class ProceduralSimulator:
             if box is not None:
                 out[obj.track_id] = box
         return out
+
+    def object_masks(self, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:
+        """Where ``frame``'s objects are seen: camera pixels (V, H, W) bool of the visible objects
+        (after occlusion, as :meth:`visible_pixels`) and LiDAR rays (beams, azimuth) bool whose
+        return is an object's (the range map differs from the road-only one)."""
+        rig, spec, _ = self._specs(frame)
+        plan = self._plan(frame, rig, spec)
+        ids = np.zeros((rig.num_views, *rig.resolution), dtype=np.int32)
+        for v in range(rig.num_views):
+            objects.paint(ids[v], plan, v, False, self.config.subpixel_bits, value=lambda o: o + 1)
+        rays = self._lidar_rays.get(id(spec), (spec,), lambda: lidar.lidar_rays(spec))
+        ground = lidar.cast(object_poses(replace(frame, objects=()), spec.mount_height), spec, rays, 0)
+        return ids > 0, self.render_lidar(frame) != ground
 
     def visible_pixels(self, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:
         """Per view and object: (visible pixels after occlusion, pixels of the unoccluded silhouette),
