@@ -272,7 +272,9 @@ def score_row(
             chamfers += [chamfer_distance(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec,
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
-        obj_psnrs, obj_maes = object_scores(gen, clip, sim, config, (obj_psnrs, obj_maes))
+        clip_obj_psnrs, clip_obj_maes = object_scores(gen, clip, sim, config)
+        obj_psnrs += clip_obj_psnrs
+        obj_maes += clip_obj_maes
         if gen.pass_starts:
             clip_jump_sums.append(clip_jumps(gen, clip))
             clip_jump_scores.append({"clip": clip.name, **chunk_jump_scores(clip_jump_sums[-1])})
@@ -320,14 +322,15 @@ def score_row(
 
 
 def object_scores(
-    gen: Generated, clip: Clip, sim: ProceduralSimulator, config: ReportConfig, into: tuple[list[float], list[float]]
+    gen: Generated, clip: Clip, sim: ProceduralSimulator, config: ReportConfig
 ) -> tuple[list[float], list[float]]:
-    """Does the row keep the recording's objects? Appends to ``into`` = (PSNR lists, MAE lists) the
-    PSNR over the pixels where the recording's objects are visible (every ``frame_stride``-th
-    frame with one in view) and the range MAE over its object returns (every ``lidar_stride``-th
-    frame); a row that drops its vehicles for road scores low on both though the whole frame barely
+    """Does the row keep the recording's objects? Per scored frame of one clip: the PSNR over the
+    pixels where the recording's objects are visible (every ``frame_stride``-th frame with one in
+    view) and the range MAE over its object returns (every ``lidar_stride``-th frame with any). A
+    row that paints road where the vehicles were scores low on both though the whole frame barely
     changes (objects cover ~3 % of the pixels and ~4 % of the rays)."""
-    psnrs, maes = into
+    psnrs: list[float] = []
+    maes: list[float] = []
     cams = np.asarray(clip.cameras)
     for f in range(clip.num_frames):
         on_cams, on_lidar = f % config.frame_stride == 0, gen.lidar is not None and f % config.lidar_stride == 0
