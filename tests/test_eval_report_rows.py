@@ -44,7 +44,15 @@ def test_report_with_geometry_only_and_teacher_rows(tiny_bundle, tmp_path):
     cmd = ["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]
     assert main([*cmd, "--baseline", str(baseline), "--teacher", str(teacher)]) == 0
     rows = json.loads((out / "report.json").read_text())["rows"]
-    assert list(rows) == ["oracle", "autoencoder", "geometry_only", "student", "student_no_refresh", "teacher"]
+    assert list(rows) == [
+        "oracle",
+        "autoencoder",
+        "road_only",
+        "geometry_only",
+        "student",
+        "student_no_refresh",
+        "teacher",
+    ]
     n = rows["oracle"]["answers"]
     assert all(r["answers"] == n for r in rows.values())  # every row answered the same questions
     # The teacher's independent 3-frame windows: a jump into each window start, scored against the recording.

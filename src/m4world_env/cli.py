@@ -90,7 +90,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
-    from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, write_report
+    from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, road_only_row, write_report
     from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
     from world_model.heap import retain_freed_memory
     from world_model.runtime import load_world_model
@@ -118,6 +118,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
     vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
     ids["autoencoder"] = f"autoencoder,vae={vae},dtype={wm.dtype}"  # cameras decode in the DiTs' dtype
+    rows["road_only"], ids["road_only"] = road_only_row, "road_only"  # the floor of the object scores
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
         rows["geometry_only"] = world_model_row(load(args.baseline), seed=args.seed)
         ids["geometry_only"] = student_id(args.baseline)
@@ -350,7 +351,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--report",
         action="store_true",
         help="score the world model against the procedural ground truth on an evaluation set "
-        "(the paper's Tables 1-2: oracle, autoencoder, [geometry-only], student, refresh-off ablation, [teacher])",
+        "(the paper's Tables 1-2: oracle, autoencoder, road-only (no objects), [geometry-only], student, "
+        "refresh-off ablation, [teacher])",
     )
     e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
     e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")

@@ -14,7 +14,7 @@ import logging
 import time
 from collections import defaultdict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +77,15 @@ class ReportConfig:
 def oracle_row(clip: Clip) -> Generated:
     """The ground truth itself: the upper bound of every judge score, Fréchet 0."""
     return Generated(cameras=np.asarray(clip.cameras), lidar=np.asarray(clip.lidar, dtype=np.float32))
+
+
+def road_only_row(clip: Clip) -> Generated:
+    """The recording re-rendered without its objects (the procedural simulator, same frames): the
+    floor of the object scores (``object_psnr_db``, ``lidar_object_mae_m``, existence). A model
+    whose object scores are no better than this does not keep the recording's objects."""
+    sim = ProceduralSimulator()
+    obs = [sim.render(replace(frame, objects=()), with_bev=False) for frame in clip.frames]
+    return Generated(np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs]).astype(np.float32))
 
 
 @dataclass
