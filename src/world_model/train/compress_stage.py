@@ -139,13 +139,13 @@ def object_weights(windows: LatentWindows, clips: list[int], start: int, frames:
     clips played back and forth as their conditions are): 1 + ``weight`` on the latent cells inside
     any object's exact projected box, 1 elsewhere."""
     from world_model.model.reference import ReferenceConfig, category_region
-    from world_model.train.student_stages import reflected_index
+    from world_model.train.student_stages import rollout_frame_indices
 
     rcfg = ReferenceConfig(margin_px=0)
     rows = []
     for ci in clips:
         clip = windows.clips[ci]
-        scene = [clip.frames[reflected_index(i, clip.num_frames)] for i in range(start, start + frames)]
+        scene = [clip.frames[i] for i in rollout_frame_indices(clip.num_frames, start, frames)]
         rows.append(category_region(scene, None, windows.cfg, rcfg))
     region = torch.from_numpy(np.stack(rows))[:, :, :, None]
     return torch.where(region, 1.0 + weight, 1.0)

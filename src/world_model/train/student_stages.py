@@ -303,12 +303,18 @@ def reflected_index(i: int, length: int) -> int:
     return m if m < length else 2 * length - 2 - m
 
 
+def rollout_frame_indices(num_frames: int, start: int, frames: int) -> list[int]:
+    """The clip frames behind rollout frames [start, start + frames) of a clip of ``num_frames``
+    frames played back and forth (:func:`reflected_index`)."""
+    return [reflected_index(i, num_frames) for i in range(start, start + frames)]
+
+
 def _long_conditions(windows: LatentWindows, clips: list[int], start: int, frames: int, anchor: int) -> Conditions:
     """Conditions of rollout frames [start, start + frames) per row, ego relative to rollout frame ``anchor``."""
     items = []
     for ci in clips:
         clip, arr = windows.clips[ci], windows.arrays[ci]
-        idx = [reflected_index(i, clip.num_frames) for i in range(start, start + frames)]
+        idx = rollout_frame_indices(clip.num_frames, start, frames)
         first = clip.frames[reflected_index(anchor, clip.num_frames)].ego
         ego = np.stack([clip.frames[i].ego_pose_condition(first) for i in idx]).astype(np.float32)
         fields = {k: getattr(arr, k)[idx] for k in arr.TIME_FIELDS}
@@ -323,7 +329,7 @@ def rollout_starts(
     and those frames' conditions (ego relative to rollout frame 0)."""
     clips = [int(i) for i in rng.integers(len(windows.clips), size=batch)]
     first = torch.stack(
-        [windows.latents[ci][[reflected_index(i, windows.clips[ci].num_frames) for i in range(prefix)]] for ci in clips]
+        [windows.latents[ci][rollout_frame_indices(windows.clips[ci].num_frames, 0, prefix)] for ci in clips]
     ).float()
     return clips, first, _long_conditions(windows, clips, 0, prefix, 0)
 
