@@ -74,9 +74,10 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
     world-model backend), ``default-heap`` (``retain_heap`` off: glibc's allocator as is) and/or
     ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)
-    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``),
-    and ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two checkpoints
-    compared within one run's rounds)."""
+    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``;
+    the env's default is the last two) or ``refresh=all`` (``refresh_steps=None``: every step, the
+    paper's), and ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two
+    checkpoints compared within one run's rounds)."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -97,6 +98,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             checkpoint = q.removeprefix("checkpoint=")
             if not checkpoint:
                 raise SystemExit(f"checkpoint=BUNDLE needs a bundle folder, got {backend!r}")
+        elif q == "refresh=all":
+            model["refresh_steps"] = None
         elif q.startswith("refresh="):
             try:
                 model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
@@ -105,7 +108,7 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh, "
-                "refresh=K[,K...] or checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
@@ -230,7 +233,8 @@ def main() -> None:
         default=["procedural"],
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
         "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
-        "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps), "
+        "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
+        "default: the last two denoising steps) or refresh=all (every step), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
         "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",
     )

@@ -34,11 +34,26 @@ def test_unknown_option_names_key_and_suggests():
         {"model": {"refresh_steps": [0.5]}},
         {"model": {"refresh_steps": 0}},
         {"model": {"refresh_steps": [0], "context_refresh": False}},
+        {"model": {"refresh_steps": [-1], "context_refresh": False}},
     ],
 )
 def test_invalid_values_rejected(bad):
     with pytest.raises(InvalidOptionError):
         EnvConfig.from_dict(bad)
+
+
+def test_refresh_steps_resolve_against_the_denoising_steps():
+    def resolved(**model) -> tuple[int, ...] | None:
+        return EnvConfig.from_dict({"model": model}).model.resolved_refresh_steps()
+
+    assert resolved() == (2, 3)  # default: the last two of 4
+    assert resolved(denoising_steps=6) == (4, 5)
+    assert resolved(denoising_steps=1) == (0,)  # clamped at the first
+    assert resolved(refresh_steps=None) is None  # every step
+    assert resolved(refresh_steps=[3, -4, 0]) == (0, 3)  # -4 of 4 is step 0: each step once, in order
+    assert resolved(refresh_steps=[9]) == (9,)  # past the last: the student's config refuses it
+    assert resolved(context_refresh=False) is None
+    assert resolved(context_refresh=False, refresh_steps=None) is None
 
 
 def test_reward_terms_and_normalization():

@@ -297,19 +297,26 @@ def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
 
 
 def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
-    def episode(model: dict) -> list[np.ndarray]:
+    def episode(model: dict, want: tuple[int, ...] | None) -> list[np.ndarray]:
         env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
         perturbed(env.backend.wm.student)  # the untrained student's zero output ignores its context
         obs, _ = env.reset(seed=0)
         frames = [obs["lidar"]] + [env.step(np.zeros(2, np.float32))[0]["lidar"] for _ in range(3)]
-        want = model.get("refresh_steps")
-        assert env.backend.wm.student_cfg.refresh_steps == (None if want is None else tuple(want))
+        assert env.backend.wm.student_cfg.refresh_steps == want
         env.close()
         return frames
 
-    every, first = episode({}), episode({"refresh_steps": [0]})
+    # The default refreshes at the last two of the 4 denoising steps; None at every step.
+    default, every = episode({}, (2, 3)), episode({"refresh_steps": None}, None)
+    np.testing.assert_array_equal(default, episode({"refresh_steps": [-2, -1]}, (2, 3)))
+    first = episode({"refresh_steps": [0]}, (0,))
     np.testing.assert_array_equal(every[0], first[0])  # the reset frame does not involve the student
-    assert any(not np.array_equal(a, b) for a, b in zip(every[1:], first[1:], strict=True))
+    for other in (every, first):
+        assert any(not np.array_equal(a, b) for a, b in zip(default[1:], other[1:], strict=True))
+    # Negative indices count from the last of denoising_steps: here the last two of 2 are both.
+    episode({"refresh_steps": [-2, -1], "denoising_steps": 2}, (0, 1))
+    episode({"denoising_steps": 1}, (0,))  # the default clamps at the first step
+    episode({"context_refresh": False}, None)  # the default is ignored without refresh
     beyond = {"model": {"refresh_steps": [4]}}  # the student takes 4 steps: 0 to 3
     with pytest.raises(InvalidOptionError, match="refresh_steps"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=beyond)

@@ -131,7 +131,7 @@ class WorldModelBackend:
                 self.wm.student_cfg,
                 denoising_steps=steps,
                 context_refresh=mc.context_refresh,
-                refresh_steps=mc.refresh_steps,
+                refresh_steps=mc.resolved_refresh_steps(),
             )
         except ValueError as e:  # e.g. refresh_steps beyond the denoising steps
             raise InvalidOptionError(f"config.model: {e}") from e

@@ -19,6 +19,7 @@ from world_model.precision import DTYPES
 ACTION_TYPES = ("continuous", "discrete_meta")
 OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
 BACKENDS = ("procedural", "world_model")
+DEFAULT_REFRESH_STEPS = (-2, -1)  # ModelBackendConfig.refresh_steps: the last two denoising steps
 
 
 class UnknownOptionError(KeyError):
@@ -52,11 +53,14 @@ class ModelBackendConfig:
 
     denoising_steps: int = 4
     context_refresh: bool = True
-    # With context_refresh: the denoising steps (0 = the first of denoising_steps) that refresh the
-    # context frame; the others attend to the cache's copy. None: every step (the paper's §4.2).
-    # [2, 3] (the last two of 4 steps) scored like every step on the shipped checkpoint for 12 frame
-    # passes a chunk instead of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only").
-    refresh_steps: tuple[int, ...] | None = None
+    # With context_refresh: the denoising steps that refresh the context frame; the others attend to
+    # the cache's copy. 0 = the first of denoising_steps; negative indices count from the last
+    # (-1 = the last), clamped at the first. None: every step (the paper's §4.2). The default, the
+    # last two, scored like every step on the shipped checkpoint for 12 frame passes a chunk instead
+    # of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only"). Left at this default, it
+    # is ignored when context_refresh is False.
+    refresh_steps: tuple[int, ...] | None = DEFAULT_REFRESH_STEPS
+
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
     # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
@@ -69,6 +73,16 @@ class ModelBackendConfig:
     # mallopt, process-wide): eager steps stop page-faulting their activations, ~1.3x faster
     # forwards. False leaves the allocator as the host process set it.
     retain_heap: bool = True
+
+    def resolved_refresh_steps(self) -> tuple[int, ...] | None:
+        """``refresh_steps`` as increasing indices into the ``denoising_steps`` steps (negative ones
+        counted from the last, clamped at 0), or None: refresh at every step, or no refresh at all
+        when ``context_refresh`` is off. Indices past the last step are left for
+        :class:`world_model.student.StudentConfig` to refuse."""
+        if not self.context_refresh or self.refresh_steps is None:
+            return None
+        n = self.denoising_steps
+        return tuple(sorted({max(n + k, 0) if k < 0 else k for k in self.refresh_steps}))
 
 
 @dataclass
@@ -106,8 +120,11 @@ class EnvConfig:
                     "config.model.refresh_steps must be a list of denoising-step indices or None, "
                     f"got {m.refresh_steps!r}"
                 )
-            if not m.context_refresh:
-                raise InvalidOptionError("config.model.refresh_steps needs config.model.context_refresh=True")
+            if not m.context_refresh and steps != DEFAULT_REFRESH_STEPS:
+                raise InvalidOptionError(
+                    "config.model.refresh_steps needs config.model.context_refresh=True (leave it out, "
+                    "or set it to None, to run without refresh)"
+                )
             m.refresh_steps = steps
         if self.model.dtype not in DTYPES:
             raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
