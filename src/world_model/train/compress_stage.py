@@ -41,7 +41,6 @@ import numpy as np
 import torch
 
 from world_model.model.conditions import Conditions
-from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine, X0Fn
@@ -50,10 +49,11 @@ from world_model.student.losses import ode_regression_loss
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
 from world_model.train.stages import EXPORT, load_vae
-from world_model.train.trainer import TrainConfig, Trainer
+from world_model.train.trainer import Trainer
 
 if TYPE_CHECKING:
     from world_model.runtime import WorldModel
+    from world_model.train.student_stages import StageRun
 
 SOURCE_STAGE = "long"  # the default source: the run's own finished student
 
@@ -151,18 +151,11 @@ def object_weights(windows: LatentWindows, clips: list[int], start: int, frames:
     return torch.where(region, 1.0 + weight, 1.0)
 
 
-def compress_stage(
-    windows: LatentWindows,
-    run_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    scfg: StudentConfig,
-    tcfg: TrainConfig,
-    progress: bool,
-    source: CompressSource,
-) -> dict:
-    """Train ``RUN/compress`` (see the module docstring) on rollouts started from ``windows``' clips."""
+def compress_stage(run: StageRun, source: CompressSource) -> dict:
+    """Train ``RUN/compress`` (see the module docstring) on rollouts started from ``run.windows``' clips."""
     from world_model.train.student_stages import _export, _long_conditions, rollout_starts
+
+    windows, _, stage_dir, cfg, scfg, tcfg = run.unpacked()
 
     scfg_src = source.scfg
     if (scfg_src.prefix_frames, scfg_src.denoising_steps, scfg_src.timestep_shift) != (
@@ -181,8 +174,7 @@ def compress_stage(
             f"VAE or controls, not {cfg.name!r}'s: pass the same --preset"
         )
     student = student_from_teacher(source.model, cfg.for_student()).train().requires_grad_(True)
-    meta = {"stage": "compress", "model_config": cfg.to_dict(), "source": str(source.file)}
-    trainer = Trainer(stage_dir, student, tcfg, meta, progress)
+    trainer = run.trainer(student, "compress", source=str(source.file))
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
     mine = StreamingEngine(student, scfg, trainer.gen)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -68,6 +68,27 @@ from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedErro
 STUDENT_STAGES = ("tf", "ode", "dmd", "long", "compress")  # compress: compress_stage.py
 PREDECESSOR = {"tf": "teacher", "ode": "tf", "dmd": "ode", "long": "dmd"}
 CRITIC = "critic"  # RUN/dmd/critic.safetensors + critic.json
+
+
+@dataclass(frozen=True)
+class StageRun:
+    """What a student stage works with: its data, the run's folders and its configs."""
+
+    windows: LatentWindows
+    run_dir: Path  # RUN/: the earlier stages' exports
+    stage_dir: Path  # RUN/<stage>/: this stage's checkpoints and export
+    cfg: ModelConfig
+    scfg: StudentConfig
+    tcfg: TrainConfig
+    progress: bool
+
+    def unpacked(self) -> tuple[LatentWindows, Path, Path, ModelConfig, StudentConfig, TrainConfig]:
+        return self.windows, self.run_dir, self.stage_dir, self.cfg, self.scfg, self.tcfg
+
+    def trainer(self, model: nn.Module, stage: str, **meta: object) -> Trainer:
+        """The stage's :class:`Trainer` (checkpoints in ``stage_dir``, metadata naming the stage)."""
+        info = {"stage": stage, "model_config": self.cfg.to_dict(), **meta}
+        return Trainer(self.stage_dir, model, self.tcfg, info, self.progress)
 
 
 def load_student(path: str | Path) -> tuple[MultiViewDiT, StudentConfig]:
@@ -149,19 +170,12 @@ def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, sc
 # -- tf / ode ------------------------------------------------------------------------------------
 
 
-def _tf_stage(
-    windows: LatentWindows,
-    run_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    scfg: StudentConfig,
-    tcfg: TrainConfig,
-    progress: bool,
-) -> dict:
+def _tf_stage(run: StageRun) -> dict:
+    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
     teacher = _load_same(run_dir / "teacher" / EXPORT, "teacher", cfg)
     model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
     del teacher
-    trainer = Trainer(stage_dir, model, tcfg, {"stage": "tf", "model_config": cfg.to_dict()}, progress)
+    trainer = run.trainer(model, "tf")
     c, kmax = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
@@ -177,19 +191,12 @@ def _tf_stage(
     return summary
 
 
-def _ode_stage(
-    windows: LatentWindows,
-    run_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    scfg: StudentConfig,
-    tcfg: TrainConfig,
-    progress: bool,
-) -> dict:
+def _ode_stage(run: StageRun) -> dict:
+    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
     tf_path = run_dir / "tf" / EXPORT
     ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()))
     student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
-    trainer = Trainer(stage_dir, student, tcfg, {"stage": "ode", "model_config": cfg.to_dict()}, progress)
+    trainer = run.trainer(student, "ode")
     c, kmax, times = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg), scfg.times()
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
@@ -259,18 +266,11 @@ def _denoising_loss(
     return teacher_forcing_loss(model, x0, cond, t, _noise((b, *model.cfg.latent_shape(c)), tr), scfg.prefix_frames)
 
 
-def _dmd_stage(
-    windows: LatentWindows,
-    run_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    scfg: StudentConfig,
-    tcfg: TrainConfig,
-    progress: bool,
-) -> dict:
+def _dmd_stage(run: StageRun) -> dict:
+    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
     pair, real = _pair(run_dir, "ode", cfg)
     guidance = real_score_guidance(real, scfg)
-    trainer = Trainer(stage_dir, pair, tcfg, {"stage": "dmd", "model_config": cfg.to_dict()}, progress)
+    trainer = run.trainer(pair, "dmd")
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     chunks = _max_chunks(windows, cfg, scfg)
     engine = StreamingEngine(pair.generator, scfg, trainer.gen)
@@ -334,18 +334,11 @@ def rollout_starts(
     return clips, first, _long_conditions(windows, clips, 0, prefix, 0)
 
 
-def _long_stage(
-    windows: LatentWindows,
-    run_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    scfg: StudentConfig,
-    tcfg: TrainConfig,
-    progress: bool,
-) -> dict:
+def _long_stage(run: StageRun) -> dict:
+    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
     pair, real = _pair(run_dir, "dmd", cfg)
     guidance = real_score_guidance(real, scfg)
-    trainer = Trainer(stage_dir, pair, tcfg, {"stage": "long", "model_config": cfg.to_dict()}, progress)
+    trainer = run.trainer(pair, "long")
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
     skip_frames = scfg.long_skip_chunks * c
@@ -426,9 +419,9 @@ def run_student_stage(
         source = load_source(base, run_dir)  # a bundle source first brings its VAE into the run
         windows = _windows(data_dir, run_dir, cfg)
         torch.manual_seed(tcfg.seed)
-        return compress_stage(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress, source)
+        return compress_stage(StageRun(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress), source)
     _need(run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
     windows = _windows(data_dir, run_dir, cfg)
     torch.manual_seed(tcfg.seed)
-    run = {"tf": _tf_stage, "ode": _ode_stage, "dmd": _dmd_stage, "long": _long_stage}[stage]
-    return run(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress)
+    stage_fn = {"tf": _tf_stage, "ode": _ode_stage, "dmd": _dmd_stage, "long": _long_stage}[stage]
+    return stage_fn(StageRun(windows, run_dir, stage_dir, cfg, scfg, tcfg, progress))
