@@ -60,7 +60,6 @@ class ModelBackendConfig:
     # of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only"). Left at this default, it
     # is ignored when context_refresh is False.
     refresh_steps: tuple[int, ...] | None = DEFAULT_REFRESH_STEPS
-
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
     # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
