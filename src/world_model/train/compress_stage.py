@@ -155,7 +155,7 @@ def compress_stage(run: StageRun, source: CompressSource) -> dict:
     """Train ``RUN/compress`` (see the module docstring) on rollouts started from ``run.windows``' clips."""
     from world_model.train.student_stages import _export, _long_conditions, rollout_starts
 
-    windows, _, stage_dir, cfg, scfg, tcfg = run.unpacked()
+    windows, stage_dir, cfg, scfg, tcfg = run.windows, run.stage_dir, run.cfg, run.scfg, run.tcfg
 
     scfg_src = source.scfg
     if (scfg_src.prefix_frames, scfg_src.denoising_steps, scfg_src.timestep_shift) != (

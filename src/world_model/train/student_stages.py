@@ -82,9 +82,6 @@ class StageRun:
     tcfg: TrainConfig
     progress: bool
 
-    def unpacked(self) -> tuple[LatentWindows, Path, Path, ModelConfig, StudentConfig, TrainConfig]:
-        return self.windows, self.run_dir, self.stage_dir, self.cfg, self.scfg, self.tcfg
-
     def trainer(self, model: nn.Module, stage: str, **meta: object) -> Trainer:
         """The stage's :class:`Trainer` (checkpoints in ``stage_dir``, metadata naming the stage)."""
         info = {"stage": stage, "model_config": self.cfg.to_dict(), **meta}
@@ -171,7 +168,8 @@ def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, sc
 
 
 def _tf_stage(run: StageRun) -> dict:
-    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
+    windows, run_dir, stage_dir = run.windows, run.run_dir, run.stage_dir
+    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
     teacher = _load_same(run_dir / "teacher" / EXPORT, "teacher", cfg)
     model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
     del teacher
@@ -192,7 +190,8 @@ def _tf_stage(run: StageRun) -> dict:
 
 
 def _ode_stage(run: StageRun) -> dict:
-    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
+    windows, run_dir, stage_dir = run.windows, run.run_dir, run.stage_dir
+    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
     tf_path = run_dir / "tf" / EXPORT
     ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()))
     student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
@@ -267,7 +266,8 @@ def _denoising_loss(
 
 
 def _dmd_stage(run: StageRun) -> dict:
-    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
+    windows, run_dir, stage_dir = run.windows, run.run_dir, run.stage_dir
+    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
     pair, real = _pair(run_dir, "ode", cfg)
     guidance = real_score_guidance(real, scfg)
     trainer = run.trainer(pair, "dmd")
@@ -335,7 +335,8 @@ def rollout_starts(
 
 
 def _long_stage(run: StageRun) -> dict:
-    windows, run_dir, stage_dir, cfg, scfg, tcfg = run.unpacked()
+    windows, run_dir, stage_dir = run.windows, run.run_dir, run.stage_dir
+    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
     pair, real = _pair(run_dir, "dmd", cfg)
     guidance = real_score_guidance(real, scfg)
     trainer = run.trainer(pair, "long")
