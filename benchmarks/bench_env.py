@@ -76,7 +76,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)
     or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``;
     the env's default is the last two) or ``refresh=all`` (``refresh_steps=None``: every step, the
-    paper's), and ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two
+    paper's), ``sink=N`` (``sink_frames``: the first N frames kept in context beside the window), and
+    ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two
     checkpoints compared within one run's rounds)."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
@@ -105,10 +106,15 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
                 model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
             except ValueError:
                 raise SystemExit(f"refresh=K[,K...] takes denoising-step indices, got {q!r} in {backend!r}") from None
+        elif q.startswith("sink="):
+            try:
+                model["sink_frames"] = int(q.removeprefix("sink="))
+            except ValueError:
+                raise SystemExit(f"sink=N takes a number of frames, got {q!r} in {backend!r}") from None
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh, "
-                "refresh=K[,K...], refresh=all or checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all, sink=N or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
@@ -234,7 +240,7 @@ def main() -> None:
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
         "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
-        "default: the last two denoising steps) or refresh=all (every step), "
+        "default: the last two denoising steps) or refresh=all (every step), sink=N (config.model.sink_frames), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
         "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",
     )

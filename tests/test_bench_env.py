@@ -57,6 +57,10 @@ def test_world_model_qualifiers_become_model_options():
     assert every["model"] == {"refresh_steps": None} and EnvConfig.from_dict(every).model.refresh_steps is None
     with pytest.raises(SystemExit, match="refresh=K"):
         bench_env._make_kwargs("world_model:refresh-first", None)
+    sink = bench_env._make_kwargs("world_model:sink=1", None)["config"]
+    assert sink["model"] == {"sink_frames": 1} and EnvConfig.from_dict(sink).model.sink_frames == 1
+    with pytest.raises(SystemExit, match="sink=N"):
+        bench_env._make_kwargs("world_model:sink=first", None)
     # a backend's own bundle overrides --checkpoint, so two checkpoints share one run's rounds
     kw = bench_env._make_kwargs("world_model:checkpoint=runs/x/bundle", checkpoint="other")
     assert kw["checkpoint"] == "runs/x/bundle" and "model" not in kw["config"]

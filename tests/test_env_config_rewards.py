@@ -35,6 +35,10 @@ def test_unknown_option_names_key_and_suggests():
         {"model": {"refresh_steps": 0}},
         {"model": {"refresh_steps": [0], "context_refresh": False}},
         {"model": {"refresh_steps": [-1], "context_refresh": False}},
+        {"model": {"sink_frames": -1}},
+        {"model": {"sink_frames": 1.5}},
+        {"model": {"sink_frames": True}},
+        {"model": {"sink_frames": "1"}},
     ],
 )
 def test_invalid_values_rejected(bad):

@@ -8,7 +8,7 @@ from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 
 import m4world_env  # noqa: F401
-from m4world_env.config import InvalidOptionError
+from m4world_env.config import DEFAULT_SINK_FRAMES, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import CheckpointError, CheckpointNotFoundError
 
@@ -320,6 +320,29 @@ def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
     beyond = {"model": {"refresh_steps": [4]}}  # the student takes 4 steps: 0 to 3
     with pytest.raises(InvalidOptionError, match="refresh_steps"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=beyond)
+
+
+def test_sink_frames_option_keeps_the_first_frame_in_context(tiny_bundle):
+    def episode(model: dict) -> tuple[list[np.ndarray], list[int], int]:
+        """LiDAR of the reset and of 4 steps, the index of the frame each shows, the student's window."""
+        env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
+        assert env.backend.wm.student_cfg.sink_frames == model.get("sink_frames", DEFAULT_SINK_FRAMES)
+        perturbed(env.backend.wm.student)
+        engine = env.backend.rollouts.engine
+        frames, index = [env.reset(seed=0)[0]["lidar"]], [0]
+        for _ in range(4):
+            frames.append(env.step(np.zeros(2, np.float32))[0]["lidar"])
+            index.append(engine.position - 1)
+        env.close()
+        return frames, index, env.backend.wm.cfg.clip.context_frames
+
+    (plain, index, window), (sink, *_) = episode({"sink_frames": 0}), episode({"sink_frames": 1})
+    np.testing.assert_array_equal(sink, episode({})[0])  # one sink frame is the default
+    # While the first frame is still in the rolling window the sink adds nothing; once it has left
+    # (frames after the window's first `window`), the sink keeps it in context and they change.
+    assert index[0] < window < index[-1]
+    for f, a, b in zip(index, plain, sink, strict=True):
+        assert np.array_equal(a, b) == (f <= window), f
 
 
 @pytest.mark.parametrize("retain", [True, False])

@@ -72,3 +72,6 @@ def test_student_rows_stream_with_the_refresh_they_are_named_for(tiny_bundle):
     scfg = world_model_row(no_refresh, refresh_steps=(0,)).wm.student_cfg
     assert scfg.context_refresh and scfg.refresh_steps == (0,)
     assert world_model_row(wm).wm.student_cfg.refresh_steps is None  # the bundle's own: every step
+    assert world_model_row(wm).wm.student_cfg.sink_frames == 0  # the bundle's own: no sink
+    sink = world_model_row(wm, refresh_steps=(2, 3), sink_frames=1).wm.student_cfg
+    assert sink.sink_frames == 1 and sink.refresh_steps == (2, 3)

@@ -91,6 +91,14 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     for bad, says in (("9", "refresh_steps must be increasing step indices in [0, 3]"), ("first", "--refresh-steps")):
         assert main([*args, "--refresh-steps", bad]) == 2
         assert says in capsys.readouterr().err
+    # Rows with an attention sink: with the bundle's own refresh and with each --refresh-steps row.
+    assert main([*args, "--refresh-steps", "0", "--sink-frames", "1"]) == 0
+    rows = json.loads((out / "report.json").read_text())["rows"]
+    assert {"student_sink_1", "student_refresh_0_sink_1"} <= set(rows)
+    sink_keys = {json.loads((out / "rows" / f"{r}.json").read_text())["key"] for r in rows if "sink" in r}
+    assert len(sink_keys) == 2 and not sink_keys & keys
+    assert main([*args, "--sink-frames", "0"]) == 2
+    assert "--sink-frames takes a number of frames >= 1" in capsys.readouterr().err
 
 
 def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
@@ -145,7 +153,14 @@ def test_report_row_with_lora_adapters(tmp_path, capsys):
     args = ["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]
     assert main([*args, "--adapters", str(tmp_path / "van")]) == 0
     rows = json.loads((out / "report.json").read_text())["rows"]
-    assert set(rows) == {"oracle", "autoencoder", "road_only", "student", "student_no_refresh", "student_adapted"}
+    assert set(rows) == {
+        "oracle",
+        "autoencoder",
+        "road_only",
+        "student",
+        "student_no_refresh",
+        "student_adapted",
+    }
     assert rows["student_adapted"]["table1"]["psnr_db"] != rows["student"]["table1"]["psnr_db"]
 
     def key(row: str) -> str:

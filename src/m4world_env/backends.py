@@ -132,6 +132,7 @@ class WorldModelBackend:
                 denoising_steps=steps,
                 context_refresh=mc.context_refresh,
                 refresh_steps=mc.resolved_refresh_steps(),
+                sink_frames=int(mc.sink_frames),
             )
         except ValueError as e:  # e.g. refresh_steps beyond the denoising steps
             raise InvalidOptionError(f"config.model: {e}") from e

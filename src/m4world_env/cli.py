@@ -130,6 +130,13 @@ def _cmd_report(args: argparse.Namespace) -> int:
         name = "student_refresh_" + "_".join(map(str, steps))
         rows[name] = world_model_row(wm, seed=args.seed, refresh_steps=steps)
         ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps}"
+    for sinks in args.sink_frames:  # each with the bundle's own refresh and with every --refresh-steps row
+        if sinks < 1:
+            raise ValueError(f"--sink-frames takes a number of frames >= 1, got {sinks}")
+        for steps in (None, *refresh_rows):
+            name = "student" + ("_refresh_" + "_".join(map(str, steps)) if steps else "") + f"_sink_{sinks}"
+            rows[name] = world_model_row(wm, seed=args.seed, refresh_steps=steps, sink_frames=sinks)
+            ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps},sink_frames={sinks}"
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
         from world_model.lora import META, WEIGHTS
 
@@ -393,6 +400,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="--report: an extra student row refreshing the context frame at these denoising steps only "
         "(0 = the first; config model.refresh_steps), e.g. --refresh-steps 0 --refresh-steps 3 for two rows, "
         "student_refresh_0 and student_refresh_3",
+    )
+    e.add_argument(
+        "--sink-frames",
+        action="append",
+        type=int,
+        default=[],
+        metavar="N",
+        help="--report: extra student rows keeping each rollout's first N frames in context beside the "
+        "window (config model.sink_frames): student_sink_N, and student_refresh_K_sink_N for each "
+        "--refresh-steps row",
     )
     e.set_defaults(func=_cmd_eval)
 

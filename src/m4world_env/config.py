@@ -20,6 +20,7 @@ ACTION_TYPES = ("continuous", "discrete_meta")
 OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
 BACKENDS = ("procedural", "world_model")
 DEFAULT_REFRESH_STEPS = (-2, -1)  # ModelBackendConfig.refresh_steps: the last two denoising steps
+DEFAULT_SINK_FRAMES = 1  # ModelBackendConfig.sink_frames
 
 
 class UnknownOptionError(KeyError):
@@ -60,6 +61,12 @@ class ModelBackendConfig:
     # of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only"). Left at this default, it
     # is ignored when context_refresh is False.
     refresh_steps: tuple[int, ...] | None = DEFAULT_REFRESH_STEPS
+    # The first frames of an episode kept in the student's context for the whole episode, beside
+    # its rolling window (an attention sink, StreamingLLM / Deep Forcing, cited in the paper's §2).
+    # The student was trained with the window alone (0), but one sink frame keeps the shipped
+    # checkpoint's 60 s LiDAR from coming apart and improves every camera and LiDAR score of the
+    # evaluation report (docs/MODEL_CARD.md, "An attention sink").
+    sink_frames: int = DEFAULT_SINK_FRAMES
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
     # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
@@ -125,6 +132,8 @@ class EnvConfig:
                     "or set it to None, to run without refresh)"
                 )
             m.refresh_steps = steps
+        if isinstance(m.sink_frames, bool) or not isinstance(m.sink_frames, numbers.Integral) or m.sink_frames < 0:
+            raise InvalidOptionError(f"config.model.sink_frames must be an integer >= 0, got {m.sink_frames!r}")
         if self.model.dtype not in DTYPES:
             raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
 

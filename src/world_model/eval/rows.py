@@ -28,12 +28,14 @@ def world_model_row(
     context_refresh: bool | None = None,
     batch: int = 8,
     refresh_steps: tuple[int, ...] | None = None,
+    sink_frames: int | None = None,
 ) -> StudentRow:
     """A row generating each clip with ``wm``'s student (see :class:`StudentRow`).
 
     ``anchor_first_frame``: start from the clip's true first frame (all views, §6 task (a)) instead
     of sampling it from the controls. ``context_refresh`` overrides the bundle's setting (ablation);
-    ``refresh_steps`` limits the refresh to those denoising steps (``StudentConfig.refresh_steps``).
+    ``refresh_steps`` limits the refresh to those denoising steps (``StudentConfig.refresh_steps``);
+    ``sink_frames`` keeps each rollout's first frames in context (``StudentConfig.sink_frames``).
     """
     if context_refresh is not None:
         steps = wm.student_cfg.refresh_steps if context_refresh else None
@@ -41,6 +43,8 @@ def world_model_row(
     if refresh_steps is not None:
         scfg = replace(wm.student_cfg, context_refresh=True, refresh_steps=tuple(refresh_steps))
         wm = replace(wm, student_cfg=scfg)
+    if sink_frames is not None:
+        wm = replace(wm, student_cfg=replace(wm.student_cfg, sink_frames=sink_frames))
     return StudentRow(wm, seed, anchor_first_frame, batch)
 
 
