@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from world_model.eval.metrics import (
+    ChangeSums,
     JumpSums,
     SsimConfig,
     chamfer_distance,
@@ -15,11 +16,13 @@ from world_model.eval.metrics import (
     frechet_features,
     frechet_judge_clip,
     frechet_judge_frame,
+    lagged_change,
     lidar_points,
     lidar_range_mae,
     long_horizon_ratio,
     masked_psnr,
     masked_range_mae,
+    motion_ratio,
     per_second_curve,
     psnr,
     ssim,
@@ -254,6 +257,24 @@ def test_chunk_jumps_split_changes_at_pass_starts():
     assert JumpSums().ratio() is None and chunk_jumps(np.zeros((4, 2)), [2]).ratio() is None  # frozen
     with pytest.raises(ValueError, match="pass starts must be frames 1..7"):
         chunk_jumps(frames, [0])
+
+
+def test_lagged_change_and_motion_ratio_against_hand_worked_values():
+    frames = np.array([0.0, 1.0, 3.0, 6.0])[:, None] + np.zeros((4, 5))  # a stream speeding up
+    assert lagged_change(frames, 1) == ChangeSums(1.0 + 2.0 + 3.0, 3)
+    assert lagged_change(frames, 2) == ChangeSums(3.0 + 5.0, 2)
+    assert lagged_change(frames, 4) == ChangeSums(0.0, 0)  # no pair that far apart
+    frozen = lagged_change(np.repeat(frames[:1], 4, axis=0), 1)
+    assert frozen == ChangeSums(0.0, 3)
+    recording = lagged_change(frames, 1)
+    assert motion_ratio(recording, recording) == 1.0
+    assert motion_ratio(frozen, recording) == 0.0
+    assert motion_ratio(lagged_change(2 * frames, 1), recording) == pytest.approx(2.0)  # twice the change
+    pooled = recording + lagged_change(np.arange(3.0)[:, None], 1)  # clips pool by adding sums
+    assert pooled == ChangeSums(8.0, 5) and pooled.mean() == pytest.approx(1.6)
+    assert motion_ratio(ChangeSums(), recording) is None and motion_ratio(recording, frozen) is None
+    with pytest.raises(ValueError, match="lag must be >= 1"):
+        lagged_change(frames, 0)
 
 
 def test_masked_psnr_and_range_mae_score_only_the_masked_pixels():

@@ -168,6 +168,26 @@ def test_object_scores_see_a_row_that_drops_the_objects(clips, judge):
     assert "object_psnr_db" in format_markdown(report)
 
 
+def test_motion_scores_tell_a_frozen_row_from_the_recording(clips, judge):
+    """The recording moves exactly as much as itself; its first frame held still does not move at
+    all, whatever its errors; a row halfway between the two moves half as much."""
+    from world_model.eval.report import first_frame_row
+
+    def halfway(clip):  # every frame averaged with the first: half of every change
+        cams, lid = np.asarray(clip.cameras, np.float64), np.asarray(clip.lidar, np.float64)
+        return Generated(np.rint((cams + cams[:1]) / 2).astype(np.uint8), ((lid + lid[:1]) / 2).astype(np.float32))
+
+    cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=3, chamfer_max_points=2048, motion_lag_s=0.5)
+    rows = {"oracle": oracle_row, "first_frame": first_frame_row, "halfway": halfway}
+    report = evaluate_rows(rows, clips, judge=judge, config=cfg)
+    t1 = {k: r["table1"] for k, r in report["rows"].items()}
+    assert t1["oracle"]["motion_cameras"] == 1.0 and t1["oracle"]["motion_lidar"] == 1.0
+    assert t1["first_frame"]["motion_cameras"] == 0.0 and t1["first_frame"]["motion_lidar"] == 0.0
+    assert t1["halfway"]["motion_lidar"] == pytest.approx(0.5, rel=1e-5)
+    assert t1["halfway"]["motion_cameras"] == pytest.approx(0.5, abs=0.05)  # rounded to uint8
+    assert "motion_cameras" in format_markdown(report)
+
+
 def test_simulator_object_masks_are_the_visible_object_pixels_and_returns(clips):
     from dataclasses import replace
 

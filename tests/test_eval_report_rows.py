@@ -48,6 +48,7 @@ def test_report_with_geometry_only_and_teacher_rows(tiny_bundle, tmp_path):
         "oracle",
         "autoencoder",
         "road_only",
+        "first_frame",
         "geometry_only",
         "student",
         "student_no_refresh",

@@ -37,7 +37,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
         == 0
     )
     report = json.loads((out / "report.json").read_text())
-    assert set(report["rows"]) == {"oracle", "autoencoder", "road_only", "student", "student_no_refresh"}
+    assert set(report["rows"]) == {"oracle", "autoencoder", "road_only", "first_frame", "student", "student_no_refresh"}
     oracle, student = report["rows"]["oracle"]["table1"], report["rows"]["student"]["table1"]
     assert oracle["psnr_db"] > student["psnr_db"]  # an untrained model is far from the ground truth
     assert student["lidar_range_mae_m"] > oracle["lidar_range_mae_m"] == 0.0
@@ -50,7 +50,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert "| visual_fidelity ≥ geometry_only + 0.30 | " in printed and "not measured" in printed  # no baseline
     # Each finished row is kept: a rerun (e.g. adding a --baseline row) reuses them, same numbers.
     kept = sorted(p.stem for p in (out / "rows").iterdir())
-    assert kept == ["autoencoder", "oracle", "road_only", "student", "student_no_refresh"]
+    assert kept == ["autoencoder", "first_frame", "oracle", "road_only", "student", "student_no_refresh"]
     stamp = (out / "rows" / "student.json").stat().st_mtime_ns
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
     assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp
@@ -157,6 +157,7 @@ def test_report_row_with_lora_adapters(tmp_path, capsys):
         "oracle",
         "autoencoder",
         "road_only",
+        "first_frame",
         "student",
         "student_no_refresh",
         "student_adapted",

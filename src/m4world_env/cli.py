@@ -90,7 +90,14 @@ def _cmd_record(args: argparse.Namespace) -> int:
 def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
-    from world_model.eval.report import evaluate_rows, format_markdown, oracle_row, road_only_row, write_report
+    from world_model.eval.report import (
+        evaluate_rows,
+        first_frame_row,
+        format_markdown,
+        oracle_row,
+        road_only_row,
+        write_report,
+    )
     from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
     from world_model.heap import retain_freed_memory
     from world_model.runtime import load_world_model
@@ -119,6 +126,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
     ids["autoencoder"] = f"autoencoder,vae={vae},dtype={wm.dtype}"  # cameras decode in the DiTs' dtype
     rows["road_only"], ids["road_only"] = road_only_row, "road_only"  # the floor of the object scores
+    rows["first_frame"], ids["first_frame"] = first_frame_row, "first_frame"  # the floor of the motion scores
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
         rows["geometry_only"] = world_model_row(load(args.baseline), seed=args.seed)
         ids["geometry_only"] = student_id(args.baseline)

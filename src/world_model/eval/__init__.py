@@ -4,7 +4,7 @@
 * :mod:`~world_model.eval.judge`: the :class:`JudgeBackend` question interface and the default
   CNN backend (:func:`load_default_judge`); :mod:`~world_model.eval.train_judge` trains it.
 * :mod:`~world_model.eval.metrics`: PSNR, SSIM, judge-feature Fréchet distances, LiDAR errors,
-  long-horizon curves, inter-chunk jumps.
+  long-horizon curves, inter-chunk jumps, motion.
 * :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2.
 """
 
@@ -16,8 +16,10 @@ from world_model.eval.metrics import (
     frechet_distance,
     frechet_judge_clip,
     frechet_judge_frame,
+    lagged_change,
     lidar_range_mae,
     long_horizon_ratio,
+    motion_ratio,
     per_second_curve,
     psnr,
     ssim,
@@ -41,10 +43,12 @@ __all__ = [
     "frechet_judge_clip",
     "frechet_judge_frame",
     "group_by_track_time",
+    "lagged_change",
     "lidar_range_mae",
     "load_default_judge",
     "load_judge",
     "long_horizon_ratio",
+    "motion_ratio",
     "oracle_row",
     "per_second_curve",
     "psnr",

@@ -273,6 +273,40 @@ def chunk_jumps(frames: np.ndarray, starts: Sequence[int]) -> JumpSums:
     )
 
 
+@dataclass
+class ChangeSums:
+    """Summed changes between frames a fixed lag apart (:func:`lagged_change`); sums, so clips pool
+    by adding."""
+
+    total: float = 0.0
+    pairs: int = 0
+
+    def __add__(self, other: ChangeSums) -> ChangeSums:
+        return ChangeSums(self.total + other.total, self.pairs + other.pairs)
+
+    def mean(self) -> float | None:
+        return self.total / self.pairs if self.pairs else None
+
+
+def lagged_change(frames: np.ndarray, lag: int) -> ChangeSums:
+    """How much a stream moves: the mean absolute difference between frame t and frame t - ``lag``
+    of ``frames`` (T, ...), summed over t >= ``lag``. A stream stuck on one frame sums to 0."""
+    if lag < 1:
+        raise ValueError(f"lag must be >= 1 frame, got {lag}")
+    pairs = range(lag, len(frames))
+    return ChangeSums(
+        float(sum(np.abs(frames[t].astype(np.float64) - frames[t - lag]).mean() for t in pairs)), len(pairs)
+    )
+
+
+def motion_ratio(generated: ChangeSums, recording: ChangeSums) -> float | None:
+    """Mean lagged change of a generated stream over the recording's: 1 = it moves as much as the
+    recording, 0 = frozen, above 1 = more change (drift, flicker). None without pairs or when the
+    recording never changes."""
+    gen, rec = generated.mean(), recording.mean()
+    return None if gen is None or not rec else gen / rec
+
+
 # ---------------------------------------------------------------------------------- long horizon
 
 

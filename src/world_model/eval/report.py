@@ -16,6 +16,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -24,15 +25,18 @@ from world_model.data.clips import clip_fingerprint, write_json_atomic
 from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_by_track_time
 from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
 from world_model.eval.metrics import (
+    ChangeSums,
     JumpSums,
     chamfer_distance,
     chunk_jumps,
     clip_window_features,
     frechet_features,
+    lagged_change,
     lidar_range_mae,
     long_horizon_ratio,
     masked_psnr,
     masked_range_mae,
+    motion_ratio,
     per_second_curve,
     psnr,
     ssim,
@@ -42,8 +46,8 @@ from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
 # Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: chunk
-# jumps; 5: per-clip chunk jumps; 6: object-region PSNR and LiDAR MAE).
-REPORT_VERSION = 6
+# jumps; 5: per-clip chunk jumps; 6: object-region PSNR and LiDAR MAE; 7: motion).
+REPORT_VERSION = 7
 
 
 @dataclass
@@ -60,6 +64,7 @@ class Generated:
 
 
 RowFn = Callable[[Clip], Generated]
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -72,6 +77,7 @@ class ReportConfig:
     chamfer_max_points: int = 8192
     psnr_cap_db: float = 100.0  # identical frames (PSNR inf) count as this when averaged
     long_window_s: int = 10  # long-horizon ratio: last vs first window, seconds
+    motion_lag_s: float = 1.0  # motion scores: change between frames this far apart, seconds
 
 
 def oracle_row(clip: Clip) -> Generated:
@@ -86,6 +92,17 @@ def road_only_row(clip: Clip) -> Generated:
     sim = ProceduralSimulator()
     obs = [sim.render(replace(frame, objects=()), with_bev=False) for frame in clip.frames]
     return Generated(np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs]).astype(np.float32))
+
+
+def first_frame_row(clip: Clip) -> Generated:
+    """The recording's first frame held for the whole clip: the floor of the motion scores (0) and
+    what a rollout stuck on its start would score elsewhere. On a straight road its errors are low
+    (the scene barely changes), so a model is only shown to follow the recording where it beats
+    this row, not by low errors alone."""
+    n = clip.num_frames
+    return Generated(
+        np.repeat(np.asarray(clip.cameras[:1]), n, axis=0), np.repeat(np.asarray(clip.lidar[:1], np.float32), n, axis=0)
+    )
 
 
 @dataclass
@@ -254,6 +271,7 @@ def score_row(
     long_curves = []
     clip_jump_sums: list[dict[str, dict[str, JumpSums]]] = []  # per clip: sensor -> generated / recording
     clip_jump_scores = []
+    motion_sums: dict[str, dict[str, ChangeSums]] = defaultdict(lambda: defaultdict(ChangeSums))  # pooled
     # A row may generate every clip at once (batched rollouts): then all of them up front.
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
     for ci, clip in enumerate(clips):
@@ -284,12 +302,17 @@ def score_row(
         clip_obj_psnrs, clip_obj_maes = object_scores(gen, clip, sim, config)
         obj_psnrs += clip_obj_psnrs
         obj_maes += clip_obj_maes
+        clip_motion = motion_sums_of(gen, clip, config)
+        for sensor, sides in clip_motion.items():
+            for side, sums in sides.items():
+                motion_sums[sensor][side] += sums
         if gen.pass_starts:
             clip_jump_sums.append(clip_jumps(gen, clip))
             clip_jump_scores.append({"clip": clip.name, **chunk_jump_scores(clip_jump_sums[-1])})
         if clip.num_frames / clip.fps >= 2 * config.long_window_s:
             long_curves.append(long_horizon(clip, per_frame, lidar_mae, feats[-1] if features else None,
                                             gt_feats[ci] if features else None, config))  # fmt: skip
+            long_curves[-1] |= motion_scores(clip_motion)
     table1 = {
         "frechet_judge_frame": None,
         "frechet_judge_clip": None,
@@ -319,6 +342,7 @@ def score_row(
         for sensor, sides in (clip_jump_sums[0] if clip_jump_sums else {}).items()
     }
     table1.update(chunk_jump_scores(jumps))
+    table1.update(motion_scores(motion_sums))
     return {
         "table1": table1,
         "chunk_jumps": {k: {side: v.ratio() for side, v in sides.items()} for k, sides in jumps.items()},
@@ -353,17 +377,45 @@ def object_scores(
     return psnrs, maes
 
 
+def per_sensor(gen: Generated, clip: Clip, score: Callable[[np.ndarray], T]) -> dict[str, dict[str, T]]:
+    """``score`` of the row's stream and of the recording's, per sensor the row generates:
+    {sensor: {"generated": ..., "recording": ...}}."""
+    streams = {"cameras": (gen.cameras, clip.cameras)}
+    if gen.lidar is not None:
+        streams["lidar"] = (gen.lidar, clip.lidar)
+    return {
+        sensor: {"generated": score(generated), "recording": score(np.asarray(recorded))}
+        for sensor, (generated, recorded) in streams.items()
+    }
+
+
+def motion_sums_of(gen: Generated, clip: Clip, config: ReportConfig) -> dict[str, dict[str, ChangeSums]]:
+    """One clip's :func:`metrics.lagged_change` sums over ``motion_lag_s``, per sensor, for the
+    generated stream and for the recording."""
+    lag = max(1, round(config.motion_lag_s * clip.fps))
+    return per_sensor(gen, clip, lambda frames: lagged_change(frames, lag))
+
+
+def motion_scores(sums: dict[str, dict[str, ChangeSums]]) -> dict[str, float | None]:
+    """Table 1's motion scores: per sensor, how much the row's frames change over ``motion_lag_s``
+    relative to the recording at the same frames (:func:`metrics.motion_ratio` of
+    :func:`motion_sums_of`, one clip's or pooled over clips). 1 = moves as much as the recording;
+    near 0 = stuck on its first frames, which the error scores cannot tell from a stable rollout
+    on a straight road (see :func:`first_frame_row`); above 1 = more change than the recording
+    (drift or flicker). The recordings' LiDAR changes only where objects move or the road bends
+    (a road without objects does not change on a straight road), so ``motion_lidar`` mostly
+    measures how far a row's LiDAR wanders."""
+    out: dict[str, float | None] = {"motion_cameras": None, "motion_lidar": None}
+    for sensor, sides in sums.items():
+        out[f"motion_{sensor}"] = motion_ratio(sides["generated"], sides["recording"])
+    return out
+
+
 def clip_jumps(gen: Generated, clip: Clip) -> dict[str, dict[str, JumpSums]]:
     """One clip's frame-to-frame changes at and between ``gen``'s pass starts, per sensor, for the
     generated stream and for the recording at the same frames."""
     starts = gen.pass_starts or ()
-    pairs = {"cameras": (gen.cameras, clip.cameras)}
-    if gen.lidar is not None:
-        pairs["lidar"] = (gen.lidar, clip.lidar)
-    return {
-        sensor: {"generated": chunk_jumps(generated, starts), "recording": chunk_jumps(np.asarray(recorded), starts)}
-        for sensor, (generated, recorded) in pairs.items()
-    }
+    return per_sensor(gen, clip, lambda frames: chunk_jumps(frames, starts))
 
 
 def chunk_jump_scores(jumps: dict[str, dict[str, JumpSums]]) -> dict[str, float | None]:
@@ -434,6 +486,8 @@ def format_markdown(report: dict) -> str:
         "lidar_object_mae_m",
         "chunk_jump_cameras",
         "chunk_jump_lidar",
+        "motion_cameras",
+        "motion_lidar",
     ]
     lines = ["### Table 1: generation quality (judge-feature Fréchet distances, not Inception FID/FVD)", ""]
     lines += ["| row | " + " | ".join(t1) + " |", "|---" * (len(t1) + 1) + "|"]
@@ -449,7 +503,7 @@ def format_markdown(report: dict) -> str:
         w = report.get("config", {}).get("long_window_s", "?")
         lines += ["", f"### Long horizon: last {w} s vs first {w} s of each long clip", ""]
         cols = ["seconds", "ratio_last_first", "frechet_judge_frame_first", "frechet_judge_frame_last",
-                "frechet_ratio_last_first"]  # fmt: skip
+                "frechet_ratio_last_first", "motion_cameras", "motion_lidar"]  # fmt: skip
         lines += ["| row | clip | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
         for row, c in long_rows:
             lines.append(f"| {row} | {c['clip']} | " + " | ".join(_fmt(c.get(k)) for k in cols) + " |")
