@@ -1,0 +1,35 @@
+"""benchmarks/action_response.py end to end, small: the procedural backend's response to braking
+is the ground truth (response 1), a world-model backend (the untrained tiny bundle) is scored
+against it, and bad arguments are refused."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from action_response import main  # noqa: E402
+
+
+def test_braking_moves_the_ground_truth_and_each_backend_is_scored_against_it(tiny_bundle, tmp_path):
+    out = tmp_path / "response.json"
+    args = ["--out", str(out), "--steps", "4", "--checkpoint", str(tiny_bundle)]
+    assert main([*args, "--backend", "procedural", "world_model:sink=0"]) == 0
+    result = json.loads(out.read_text())
+    truth, model = result["backends"]["procedural"], result["backends"]["world_model:sink=0"]
+    assert truth["steps"] == model["steps"] == 4
+    # Same seed, same scene at reset; braking leaves the held-speed run behind from the first step.
+    assert truth["per_step"]["cameras"][0] == 0.0 and truth["per_step"]["lidar"][0] == 0.0
+    assert all(d > 0 for d in truth["per_step"]["cameras"][1:]) and truth["median_lidar"] > 0
+    assert truth["response_cameras"] == 1.0 and truth["response_lidar"] == 1.0
+    # The world model's two runs draw the same noise: identical at reset, only the action differs.
+    assert model["per_step"]["cameras"][0] == 0.0 and model["per_step"]["lidar"][0] == 0.0
+    assert model["response_cameras"] >= 0 and model["response_lidar"] >= 0
+
+
+def test_bad_arguments_are_refused(tmp_path):
+    with pytest.raises(SystemExit, match="comma-separated numbers"):
+        main(["--out", str(tmp_path / "r.json"), "--actions", "0,0", "brake"])
+    with pytest.raises(SystemExit):  # argparse: no ground truth to divide by
+        main(["--out", str(tmp_path / "r.json"), "--backend", "world_model"])
