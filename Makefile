@@ -26,7 +26,7 @@ test: install
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 lint: install
-	$(VENV)/bin/ruff check src tests benchmarks examples
+	$(VENV)/bin/ruff check world_model m4world_env tests benchmarks examples
 
 bench: install
 	$(VENV)/bin/m4world bench --out out/bench

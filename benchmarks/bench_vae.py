@@ -12,7 +12,7 @@ reports, on frames it never trained on:
 - ``case_yes``: the same question for the long-tail category ``--case`` on the rare-object views
   of ``--case-data`` (``bench_longtail.rare_views``), with ``case_yes_truth``.
 
-    python benchmarks/bench_vae.py --vae src/world_model/checkpoints/default --vae runs/v2/vae/model \
+    python benchmarks/bench_vae.py --vae world_model/checkpoints/default --vae runs/v2/vae/model \
         --ordinary-data data/ordinary --case-data data/rare_eval --out out/bench_vae
 """
 

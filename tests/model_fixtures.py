@@ -127,7 +127,7 @@ def kill_after_checkpoint(train_args: list[str], checkpoints: Path, step: int = 
     import sys
     import time
 
-    src = Path(__file__).resolve().parents[1] / "src"
+    src = Path(__file__).resolve().parents[1]
     cmd = [sys.executable, "-m", "world_model.train", *train_args]
     env = {**os.environ, "PYTHONPATH": str(src)}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -148,7 +148,7 @@ def train_cli(*args: str) -> dict:
     import subprocess
     import sys
 
-    src = Path(__file__).resolve().parents[1] / "src"
+    src = Path(__file__).resolve().parents[1]
     env = {**os.environ, "PYTHONPATH": str(src), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "world_model.train", *args, "--preset", "tiny", "--no-progress"]
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)

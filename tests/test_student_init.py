@@ -20,7 +20,7 @@ from world_model.train.student_stages import load_student
 
 from .model_fixtures import make_dataset, perturbed, tiny_conditions
 
-SRC = Path(__file__).resolve().parents[1] / "src"
+SRC = Path(__file__).resolve().parents[1]
 
 
 def _cfg(depth: int, student_depth: int | None):

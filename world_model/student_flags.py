@@ -20,7 +20,7 @@ if TYPE_CHECKING:
 BASE_HELP = (  # --base of `m4world train`: lora and compress
     "lora: the model to adapt (default RUN/teacher/model): an exported DiT (e.g. RUN/long/model or "
     "RUN/reference/model), or a checkpoint bundle, whose student is adapted in the bundle's own VAE latents "
-    "(e.g. the shipped src/world_model/checkpoints/default: no training run needed; "
+    "(e.g. the shipped world_model/checkpoints/default: no training run needed; "
     "BUNDLE/reference.safetensors for its reference model); "
     "compress: the trained student to distill (default RUN/long/model): an exported student or a bundle "
     "(its student; its VAE and reference model are written into the run)"

@@ -283,7 +283,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
 
-    root = Path(__file__).resolve().parents[2] / "benchmarks"
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
     if not root.is_dir():
         raise FileNotFoundError(f"benchmarks/ not found next to the package ({root}); run from a source checkout")
     out = Path(args.out)
