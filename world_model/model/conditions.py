@@ -20,6 +20,9 @@ obj_has_text       (T, O) bool           a text description exists
 obj_has_image      (T, O) bool           a reference crop exists
 text, text_mask    (L, Dt), (L,) bool    prompt tokens, padding masked
 view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR overlaps all
+layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent resolution
+                                         (:mod:`world_model.model.layout`); Cl =
+                                         ``layout.channels``, 0 when disabled
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -38,6 +41,7 @@ import torch
 
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
+from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject
 from world_model.sensors import CameraRig
@@ -96,6 +100,7 @@ class ConditionArrays:
     text: np.ndarray
     text_mask: np.ndarray
     view_adjacency: np.ndarray
+    layout: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -107,6 +112,7 @@ class ConditionArrays:
         "obj_mask",
         "obj_has_text",
         "obj_has_image",
+        "layout",
     )
 
     @property
@@ -176,6 +182,12 @@ def build_condition_arrays(
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
                 has_img[f, [i for i, _ in pairs]] = True
 
+    h, w = cfg.latent_hw
+    if cfg.layout.enabled:
+        layout = layout_sequence(frames, bev, cfg.sensors.lidar, (h, w), cfg.layout.supersample)
+    else:
+        layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
+
     tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
@@ -194,6 +206,7 @@ def build_condition_arrays(
         text=text,
         text_mask=text_mask,
         view_adjacency=view_adjacency(rig),
+        layout=layout,
     )
 
 
@@ -216,6 +229,7 @@ class Conditions:
     text: torch.Tensor
     text_mask: torch.Tensor
     view_adjacency: torch.Tensor
+    layout: torch.Tensor
     drop: torch.Tensor
 
     @property
