@@ -27,6 +27,7 @@ from world_model.data.clips import write_json_atomic
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
 from world_model.sim import ProceduralSimulator
+from world_model.sim.reference_crops import ReferenceCrops
 
 
 @dataclass
@@ -121,8 +122,9 @@ def content_settings(cfg: RecordConfig) -> dict:
 
 def record_episode(
     scenario: Scenario, seed: int, cfg: RecordConfig, sim: ProceduralSimulator | None = None
-) -> tuple[list[SceneFrame], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Run one episode and render every sensor frame. Returns frames, cameras, lidar, bev, crops."""
+) -> tuple[list[SceneFrame], np.ndarray, np.ndarray, np.ndarray, ReferenceCrops]:
+    """Run one episode and render every sensor frame. Returns frames, cameras, lidar, bev and the
+    objects' reference crops (with the frame each was cut at)."""
     rng = np.random.default_rng(seed)
     if cfg.randomize:
         scenario = randomize_scenario(scenario, rng)
@@ -138,19 +140,14 @@ def record_episode(
         frames.extend(bridge.step(policy(bridge)))
     sim = sim or ProceduralSimulator()
     cams, lidars, bevs = [], [], []
-    best_crops: dict[str, np.ndarray] = {}
-    for i, fr in enumerate(frames):
+    crops = ReferenceCrops(sim)  # the objects' "image descriptions", cut as the world-model env cuts them
+    for fr in frames:
         obs = sim.render(fr, with_bev=True)
         cams.append(obs.cameras)
         lidars.append(obs.lidar)
         bevs.append(obs.bev)
-        # Reference crops (the objects' "image descriptions"): keep each track's largest view.
-        if i % max(1, len(frames) // 8) == 0:
-            for tid, crop in sim.object_crops(fr, obs.cameras).items():
-                old = best_crops.get(tid)
-                if old is None or crop.shape[0] * crop.shape[1] > old.shape[0] * old.shape[1]:
-                    best_crops[tid] = crop
-    return frames, np.stack(cams), np.stack(lidars), np.stack(bevs), best_crops
+        crops.update(fr, obs.cameras)
+    return frames, np.stack(cams), np.stack(lidars), np.stack(bevs), crops
 
 
 def record(cfg: RecordConfig, progress: bool = True) -> list[str]:
@@ -181,8 +178,13 @@ def record(cfg: RecordConfig, progress: bool = True) -> list[str]:
             cams,
             lidar,
             bev,
-            crops=crops,
-            extra_meta={"seed": seed, "randomized": cfg.randomize, "base_scenario": sc.name},
+            crops=crops.crops,
+            extra_meta={
+                "seed": seed,
+                "randomized": cfg.randomize,
+                "base_scenario": sc.name,
+                "crop_since": crops.since,
+            },
         )
         bar.set_postfix_str(f"{name}: {len(frames)} frames")
     return names

@@ -33,7 +33,7 @@ name, because colour is the fine-grained attribute scenarios set most often.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -130,13 +130,16 @@ def build_condition_arrays(
     cfg: ModelConfig,
     text_encoder: TextEncoder,
     image_encoder: ImageDescriptionEncoder | None = None,
-    crops: dict[str, np.ndarray] | None = None,
+    crops: Mapping[str, np.ndarray] | None = None,
     first_ego: EgoState | None = None,
+    crop_since: Mapping[str, int] | None = None,
 ) -> ConditionArrays:
     """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
 
     ``first_ego`` is the rollout's first ego state (default: ``frames[0].ego``). Without an
-    ``image_encoder`` every object's image description counts as missing.
+    ``image_encoder`` every object's image description counts as missing. ``crop_since``: the frame
+    index from which each track's crop exists (:class:`world_model.sim.reference_crops.ReferenceCrops`);
+    a track absent from it has its crop at every frame.
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -149,7 +152,7 @@ def build_condition_arrays(
     if rig.num_views != cfg.sensors.num_cameras:
         raise ValueError(f"frames carry {rig.num_views} cameras but the model has {cfg.sensors.num_cameras}")
     o_max, dt, di = cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
-    crops = crops or {}
+    crops, since = crops or {}, crop_since or {}
     first = first_ego or frames[0].ego
 
     corners = np.zeros((t, o_max, 8, 3), np.float32)
@@ -176,7 +179,11 @@ def build_condition_arrays(
             txt[f, idx] = text_encoder.pooled([descs[i] for i in idx])
             has_txt[f, idx] = True
         if image_encoder is not None:
-            pairs = [(i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)]
+            ready = [since.get(o.track_id, fr.frame_index) <= fr.frame_index for o in objs]
+            pairs = [
+                (i, o.image if o.image is not None else crops.get(o.track_id) if ok else None)
+                for i, (o, ok) in enumerate(zip(objs, ready, strict=True))
+            ]
             pairs = [(i, c) for i, c in pairs if c is not None]
             if pairs:
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
