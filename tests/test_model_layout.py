@@ -197,3 +197,16 @@ def test_reference_model_keeps_the_teachers_layout_columns_and_samples_a_first_f
     lat, obs = gen.first_frame(cond, steps=2, seed=3)
     moved, _ = gen.first_frame(replace(cond, layout=cond.layout.roll(1, dims=-1)), steps=2, seed=3)
     assert lat.shape == (2, 1, *cfg.latent_shape(1)[1:]) and not torch.equal(lat, moved)
+
+
+def test_layout_training_flag_switches_the_stage_config():
+    import argparse
+
+    from world_model.student_flags import add_student_flags, stage_config
+
+    p = argparse.ArgumentParser()
+    add_student_flags(p)
+    preset = get_preset("tiny")
+    assert stage_config(p.parse_args(["--layout"]), preset).layout.channels == len(LAYOUT_CHANNELS)
+    assert stage_config(p.parse_args(["--no-layout"]), preset).layout.channels == 0
+    assert stage_config(p.parse_args([]), preset).layout == preset.layout
