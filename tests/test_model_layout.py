@@ -210,3 +210,18 @@ def test_layout_training_flag_switches_the_stage_config():
     assert stage_config(p.parse_args(["--layout"]), preset).layout.channels == len(LAYOUT_CHANNELS)
     assert stage_config(p.parse_args(["--no-layout"]), preset).layout.channels == 0
     assert stage_config(p.parse_args([]), preset).layout == preset.layout
+
+
+def test_the_shipped_checkpoint_loads_unchanged_with_layout_off():
+    from world_model.bundle import load_bundle_files
+
+    files = load_bundle_files(None)
+    cfg = ModelConfig.from_dict(files.model_config)
+    assert cfg.layout.channels == 0 and "layout" not in files.model_config  # written before layout existed
+    student = MultiViewDiT(cfg)
+    student.load_state_dict(files.tensors["student"])  # strict: the patch embedding's width is unchanged
+    cond = tiny_conditions(cfg, 1)
+    assert cond.layout.shape[3] == 0
+    with torch.no_grad():
+        v = student(torch.zeros(1, *cfg.latent_shape(1)), torch.full((1,), 0.5), cond)
+    assert v.shape == (1, *cfg.latent_shape(1)) and torch.isfinite(v).all()
