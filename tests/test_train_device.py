@@ -91,10 +91,10 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _train(data: Path, run: Path, stage: str, nproc: int) -> dict:
+def _train(data: Path, run: Path, stage: str, nproc: int, steps: int) -> dict:
     """``--stage STAGE`` through the training CLI, under ``torchrun --nproc-per-node nproc`` when > 1."""
     args = ["--stage", stage, "--data", str(data), "--run", str(run), "--preset", "tiny", "--no-progress"]
-    args += ["--steps", "3", "--batch-size", "4", "--ckpt-every", "1", "--device", "cpu"]
+    args += ["--steps", str(steps), "--batch-size", "4", "--ckpt-every", "1", "--device", "cpu"]
     launch = [sys.executable, "-m", "world_model.train"]
     if nproc > 1:
         launch = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(nproc)]
@@ -105,16 +105,32 @@ def _train(data: Path, run: Path, stage: str, nproc: int) -> dict:
     return json.loads(done.stdout[done.stdout.index("{") :])
 
 
-@pytest.mark.parametrize("stage", ["teacher"])
-def test_two_gloo_processes_train_as_one_process_at_the_same_global_batch(vae_run, tmp_path, stage):
+@pytest.fixture(scope="module")
+def chain_run(vae_run, tmp_path_factory):
+    """The run of ``vae_run`` trained one step further through teacher, tf and ode (in a copy).
+    tf and ode train like the teacher here (a shard of each drawn tensor); dmd adds rollouts and
+    the critic's own updates."""
     data, vae = vae_run
+    run = tmp_path_factory.mktemp("chain") / "run"
+    shutil.copytree(vae, run)
+    for stage in ("teacher", "tf", "ode"):
+        train_stage(stage, data, run, preset="tiny", steps=1, batch_size=2, progress=False, device="cpu")
+    return data, run
+
+
+@pytest.mark.parametrize("stage, steps", [("teacher", 3), ("dmd", 2)])
+def test_two_gloo_processes_train_as_one_process_at_the_same_global_batch(chain_run, tmp_path, stage, steps):
+    """Each rank trains its half of the global batch and averages gradients: the same losses and
+    weights as one process (dmd: critic and generator updates, rollouts split over the ranks)."""
+    data, prepared = chain_run
     runs = {}
     for nproc in (1, 2):
         run = tmp_path / f"n{nproc}"
-        shutil.copytree(vae, run)
-        runs[nproc] = (run, _train(data, run, stage, nproc))
+        shutil.copytree(prepared, run)
+        shutil.rmtree(run / stage, ignore_errors=True)
+        runs[nproc] = (run, _train(data, run, stage, nproc, steps))
     (one, s1), (two, s2) = runs[1], runs[2]
-    assert s1["step"] == s2["step"] == 3
+    assert s1["step"] == s2["step"] == steps
     assert s2["final_loss"] == pytest.approx(s1["final_loss"], rel=1e-5)
     ck1, ck2 = load_latest(one / stage / "checkpoints"), load_latest(two / stage / "checkpoints")
     assert ck2.meta["loss"] == pytest.approx(ck1.meta["loss"], rel=1e-5)
@@ -123,8 +139,5 @@ def test_two_gloo_processes_train_as_one_process_at_the_same_global_batch(vae_ru
     e1, e2 = load_file(str(one / stage / "model.safetensors")), load_file(str(two / stage / "model.safetensors"))
     assert e1.keys() == e2.keys() and all(torch.allclose(e1[k], e2[k], atol=1e-5) for k in e1)
     # rank 0 alone writes: one progress file, one set of checkpoints
-    assert sorted(p.name for p in (two / stage / "checkpoints").iterdir()) == [
-        "latest.json",
-        "step_00000002",
-        "step_00000003",
-    ]
+    kept = sorted(p.name for p in (two / stage / "checkpoints").iterdir())
+    assert kept == ["latest.json", f"step_{steps - 1:08d}", f"step_{steps:08d}"]

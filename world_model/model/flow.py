@@ -47,7 +47,7 @@ def sample_timesteps(
         t = torch.sigmoid(cfg.logit_mean + cfg.logit_std * torch.randn(shape, generator=generator, device=on))
     else:
         raise ValueError(f"unknown timestep_dist {cfg.timestep_dist!r}; use 'uniform' or 'logit_normal'")
-    return shift_time(t, cfg.shift).to(device)
+    return shift_time(t, cfg.shift).to(on)
 
 
 def interpolate(x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -19,7 +19,6 @@ from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.student.config import StudentConfig
-from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
 
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
@@ -68,11 +67,6 @@ def require_export(path: Path, stage: str) -> Path:
     if not path.with_suffix(".safetensors").exists():
         raise FileNotFoundError(f"{path}.safetensors is missing; run --stage {stage} with the same --run first")
     return path
-
-
-def export_model(stage_dir: Path, state: dict[str, torch.Tensor], meta: dict, name: str = EXPORT) -> None:
-    """Write a stage's final weights as ``stage_dir/<name>.safetensors`` + ``.json`` (atomically)."""
-    export_weights(stage_dir / name, state, meta)
 
 
 def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str]:

@@ -207,6 +207,9 @@ def train_stage(
     else:
         run_root = Path(run_dir)
         stage_dir = run_root / stage
+    if place.is_main:  # writes the stage's config; the other ranks then check theirs against it
+        _stage_config(stage_dir, spec, preset, config)
+    place.barrier()
     cfg = _stage_config(stage_dir, spec, preset, config)
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
     place.local_rows(tcfg.batch_size)  # an uneven shard is refused before any training
@@ -215,4 +218,5 @@ def train_stage(
     )
     with dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, place.device)):
         out = spec.train(run, **options)
+    place.barrier()  # rank 0's export is written before any rank starts the stage that reads it
     return {"stage": stage, "stage_dir": str(stage_dir), **out}
