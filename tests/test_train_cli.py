@@ -34,4 +34,4 @@ def test_a_leading_double_dash_from_torchrun_is_dropped(tmp_path, capsys):
     from world_model.train.cli import main
 
     assert main(["--", "--stage", "vae", "--data", str(tmp_path), "--run", str(tmp_path / "r"), "--device", "cpu"]) == 2
-    assert "has no complete clips" in capsys.readouterr().err  # parsed and run: the error is the data's
+    assert "is not an m4world dataset" in capsys.readouterr().err  # parsed and run: the error is the data's

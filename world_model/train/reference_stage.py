@@ -34,7 +34,7 @@ from world_model.model.reference import (
 )
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows, file_digest
-from world_model.train.exports import EXPORT, load_teacher, open_run_latents
+from world_model.train.exports import EXPORT, load_teacher
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 
@@ -80,7 +80,7 @@ def reference_stage(run: StageRun, rcfg: ReferenceConfig | None = None) -> dict:
         raise FileNotFoundError(
             f"--stage reference starts from the teacher at {teacher_path}.safetensors; run --stage teacher first"
         )
-    windows = open_run_latents(run.data_dir, run.run_dir, cfg, "reference")
+    windows = run.latents("reference")
     teacher = load_teacher(teacher_path)
     if teacher.cfg.teacher_settings() != cfg.teacher_settings():
         raise ValueError(

@@ -11,7 +11,9 @@ from torch import nn
 
 from world_model.model.config import ModelConfig
 from world_model.student.config import StudentConfig
+from world_model.train.data import LatentWindows
 from world_model.train.device import TrainPlace
+from world_model.train.exports import open_run_latents
 from world_model.train.trainer import TrainConfig, Trainer
 
 
@@ -38,6 +40,16 @@ class StageRun:
         return Trainer(
             self.stage_dir, model, self.tcfg, info, self.progress, resume_keys, self.place, self.compile_model
         )
+
+    def latents(self, stage: str) -> LatentWindows:
+        """The dataset in the run's latents (:func:`open_run_latents`); under ``torchrun`` rank 0
+        encodes the clips missing from the cache first, and the other ranks then read them."""
+        if not self.place.is_main:
+            self.place.barrier()
+        windows = open_run_latents(self.data_dir, self.run_dir, self.cfg, stage)
+        if self.place.is_main:
+            self.place.barrier()
+        return windows
 
     @property
     def device(self) -> torch.device:

@@ -60,7 +60,7 @@ from world_model.student.training import (
 )
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
-from world_model.train.exports import CRITIC, EXPORT, load_teacher, open_run_latents, require_export
+from world_model.train.exports import CRITIC, EXPORT, load_teacher, require_export
 from world_model.train.rollouts import rollout_conditions, rollout_starts
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer, TrainingDivergedError
@@ -324,6 +324,6 @@ STUDENT_STAGE_FNS = {"tf": _tf_stage, "ode": _ode_stage, "dmd": _dmd_stage, "lon
 def student_stage(stage: str, run: StageRun) -> dict:
     """Train (or resume) student stage ``stage`` (tf, ode, dmd, long) of ``run`` (module docstring)."""
     require_export(run.run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
-    windows = open_run_latents(run.data_dir, run.run_dir, run.cfg, stage)
+    windows = run.latents(stage)
     torch.manual_seed(run.tcfg.seed)
     return STUDENT_STAGE_FNS[stage](run, windows)

@@ -12,7 +12,7 @@ import torch
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.train.checkpoint import export_weights
-from world_model.train.exports import EXPORT, open_run_latents
+from world_model.train.exports import EXPORT
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 
@@ -20,7 +20,7 @@ from world_model.train.trainer import Trainer
 def teacher_stage(run: StageRun) -> dict:
     """Train (or resume) ``RUN/teacher`` (module docstring)."""
     cfg, tcfg = run.cfg, run.tcfg
-    windows = open_run_latents(run.data_dir, run.run_dir, cfg, "teacher")
+    windows = run.latents("teacher")
     torch.manual_seed(tcfg.seed)
     model = MultiViewDiT(cfg)
     trainer = run.trainer(model, "teacher")
