@@ -36,22 +36,29 @@ MIB = 1 << 20
 
 @dataclass(frozen=True)
 class RecipeScale:
-    """What one scale records and trains: preset, clips and (steps, global batch) per stage."""
+    """What one scale records and trains: preset, clips and (steps, global batch) per stage.
+
+    Every scenario is recorded ``episodes`` times under each of ``seeds`` consecutive base seeds: one
+    ``m4world record`` process per (scenario, seed), so more processes than scenarios keep every core
+    busy, and the clips do not depend on how many processes run at once."""
 
     preset: str
-    episodes: int  # clips per scenario
+    episodes: int  # clips per scenario and seed
+    seeds: int
     duration_s: float | None  # None: the scenarios' own durations
     stages: dict[str, tuple[int, int]] = field(default_factory=dict)
 
 
 SCALES = {
-    # One H100/H200 in 9 minutes. A teacher step takes 0.11 s at batch 4 and at batch 64 alike (the
-    # default preset is kernel-launch bound there), so each stage runs at the largest batch that
-    # keeps its steps launch-bound, and the steps fill the budget: about 1 min recording on 16
-    # cores, 1 min vae, 2.5 min teacher, 1 min tf, 3 min for ode, dmd, long and reference together.
+    # One H100/H200 in 9 minutes. 216 clips as the shipped checkpoint's dataset: recording runs at
+    # about 60 frames/s per core (default preset), so 18 processes on 16 cores take 1.5-2 min. A
+    # teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is kernel-launch
+    # bound there), so each stage runs at a large batch and the steps fill what is left: about
+    # 1 min vae, 2.5 min teacher, 1 min tf, 2 min for ode, dmd, long and reference together.
     "gpu": RecipeScale(
         preset="default",
-        episodes=24,
+        episodes=12,
+        seeds=2,
         duration_s=None,
         stages={
             "vae": (1200, 64),
@@ -67,6 +74,7 @@ SCALES = {
     "dry": RecipeScale(
         preset="tiny",
         episodes=1,
+        seeds=1,
         duration_s=0.6,
         stages={stage: (2, 2) for stage in CHAIN},
     ),
@@ -82,18 +90,19 @@ def recipe_config(preset: str):  # noqa: ANN201 - a ModelConfig
 
 
 def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
-    """Record ``scale.episodes`` clips of every scenario into ``out`` with ``workers`` processes;
-    returns the number of clips. One ``m4world record`` per scenario: the clips of a scenario
-    depend only on its name and the seed, so they equal a single serial call's."""
+    """Record the scale's clips of every scenario into ``out`` with ``workers`` processes at once
+    (:class:`RecipeScale`); returns the number of clips in ``out``. A clip depends only on its
+    scenario, base seed and episode, so the data is the same whatever ``workers`` is."""
     from m4world_env.scenario import list_scenarios
 
-    # `m4world record --workers N` parallelizes inside one call; these per-scenario processes are
-    # the fan-out that works with every `m4world record`.
+    # `m4world record --workers N` parallelizes inside one call; these processes per (scenario, seed)
+    # are the fan-out that works with every `m4world record`.
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
 
-    def one(scenario: str) -> None:
+    def one(job: tuple[str, int]) -> None:
+        scenario, base_seed = job
         cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", scenario, "--out", str(out)]
-        cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(seed)]
+        cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
         if scale.duration_s is not None:
             cmd += ["--duration", str(scale.duration_s)]
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -101,7 +110,7 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
             raise RuntimeError(f"recording {scenario} failed:\n{done.stderr[-2000:]}")
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        list(pool.map(one, list_scenarios()))
+        list(pool.map(one, [(s, seed + k) for s in list_scenarios() for k in range(scale.seeds)]))
     return sum(1 for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
