@@ -38,13 +38,16 @@ MIB = 1 << 20
 class RecipeScale:
     """What one scale records and trains: preset, clips and (steps, global batch) per stage.
 
-    Every scenario is recorded ``episodes`` times under each of ``seeds`` consecutive base seeds: one
-    ``m4world record`` process per (scenario, seed), so more processes than scenarios keep every core
-    busy, and the clips do not depend on how many processes run at once."""
+    Every scenario is recorded ``episodes`` times under each of ``seeds`` consecutive base seeds, by
+    one ``m4world record`` process per seed and group of ``scenarios_per_process`` scenarios: one
+    scenario each gives more processes than scenarios, which keeps every core busy; a few short
+    clips are quicker in one process (each process spends seconds starting). The clips do not
+    depend on how many processes run at once."""
 
     preset: str
     episodes: int  # clips per scenario and seed
     seeds: int
+    scenarios_per_process: int
     duration_s: float | None  # None: the scenarios' own durations
     stages: dict[str, tuple[int, int]] = field(default_factory=dict)
 
@@ -59,6 +62,7 @@ SCALES = {
         preset="default",
         episodes=12,
         seeds=2,
+        scenarios_per_process=1,
         duration_s=None,
         stages={
             "vae": (1200, 64),
@@ -75,6 +79,7 @@ SCALES = {
         preset="tiny",
         episodes=1,
         seeds=1,
+        scenarios_per_process=9,
         duration_s=0.6,
         stages={stage: (2, 2) for stage in CHAIN},
     ),
@@ -99,18 +104,20 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
     # are the fan-out that works with every `m4world record`.
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
 
-    def one(job: tuple[str, int]) -> None:
-        scenario, base_seed = job
-        cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", scenario, "--out", str(out)]
+    def one(job: tuple[list[str], int]) -> None:
+        scenarios, base_seed = job
+        cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(out)]
         cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
         if scale.duration_s is not None:
             cmd += ["--duration", str(scale.duration_s)]
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
         if done.returncode != 0:
-            raise RuntimeError(f"recording {scenario} failed:\n{done.stderr[-2000:]}")
+            raise RuntimeError(f"recording {', '.join(scenarios)} failed:\n{done.stderr[-2000:]}")
 
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
-        list(pool.map(one, [(s, seed + k) for s in list_scenarios() for k in range(scale.seeds)]))
+        names, n = list_scenarios(), scale.scenarios_per_process
+        groups = [names[i : i + n] for i in range(0, len(names), n)]
+        list(pool.map(one, [(g, seed + k) for g in groups for k in range(scale.seeds)]))
     return sum(1 for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
 
 
