@@ -8,6 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gymnasium as gym
+
+import m4world_env  # noqa: F401  (registers M4World-v0)
 from world_model.train.recipe import CHAIN, join_files
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,3 +36,9 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
     for file in (out / "bundle").rglob("*"):
         if file.is_file():
             assert (tmp_path / "joined" / file.relative_to(out / "bundle")).read_bytes() == file.read_bytes()
+    env = gym.make("M4World-v0", backend="world_model", checkpoint=str(tmp_path / "joined"))
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs["cameras"].shape[0] == manifest["model_config"]["sensors"]["num_cameras"]
+    assert manifest["model_config"]["text"]["encoder"] == "hash"  # no download on the GPU machine
+    env.close()
