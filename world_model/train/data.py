@@ -53,18 +53,31 @@ class FrameBatch(NamedTuple):
     weights: torch.Tensor
 
 
-def object_pixel_weights(frame: SceneFrame, view: int, height: int, width: int, extra: float) -> np.ndarray:
-    """(H, W) float32 loss weights of camera ``view``: 1 everywhere, ``1 + extra`` inside the
-    projected 3-D box of every object in view (where small objects live, which plain L1 ignores)."""
-    out = np.ones((height, width), np.float32)
-    if extra == 0.0 or not frame.objects:
-        return out
+def object_boxes(frame: SceneFrame, view: int) -> list[tuple[int, int, int, int]]:
+    """Pixel boxes (x0, y0, x1, y1) of camera ``view`` covering each object's projected 3-D box."""
+    if not frame.objects:
+        return []
     corners = frame.object_corners_lidar()
-    for o in range(len(frame.objects)):
-        box = frame.rig.cameras[view].box_extent(corners[o], NEAR_PLANE_M)
-        if box is not None:
-            x0, y0, x1, y1 = box
-            out[y0:y1, x0:x1] = 1.0 + extra
+    boxes = (frame.rig.cameras[view].box_extent(corners[o], NEAR_PLANE_M) for o in range(len(frame.objects)))
+    return [tuple(box) for box in boxes if box is not None]
+
+
+def object_pixel_weights(
+    frame: SceneFrame,
+    view: int,
+    height: int,
+    width: int,
+    extra: float,
+    boxes: list[tuple[int, int, int, int]] | None = None,
+) -> np.ndarray:
+    """(H, W) float32 loss weights of camera ``view``: 1 everywhere, ``1 + extra`` inside the
+    projected 3-D box of every object in view (where small objects live, which plain L1 ignores).
+    ``boxes``: the view's :func:`object_boxes` when already known."""
+    out = np.ones((height, width), np.float32)
+    if extra == 0.0:
+        return out
+    for x0, y0, x1, y1 in object_boxes(frame, view) if boxes is None else boxes:
+        out[y0:y1, x0:x1] = 1.0 + extra
     return out
 
 
@@ -73,6 +86,9 @@ class FrameSampler:
 
     def __init__(self, clips: list[Clip], cfg: ModelConfig) -> None:
         self.clips, self.cfg = clips, cfg
+        # (clip, frame, view) -> object boxes: projecting every object is the costly part of a batch,
+        # and a few hundred steps revisit the same frames many times
+        self._boxes: dict[tuple[int, int, int], list[tuple[int, int, int, int]]] = {}
 
     def image(self, clip: int, frame: int, view: int) -> torch.Tensor:
         c = self.clips[clip]
@@ -85,7 +101,10 @@ class FrameSampler:
         s = self.cfg.sensors
         extra = 0.0 if view == s.lidar_view else self.cfg.vae.object_loss_weight
         fr = self.clips[clip].frames[frame]
-        return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra))[None]
+        key = (clip, frame, view)
+        if extra and key not in self._boxes:
+            self._boxes[key] = object_boxes(fr, view)
+        return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra, self._boxes.get(key)))[None]
 
     def sample(self, rng: np.random.Generator, batch: int) -> FrameBatch:
         """``batch`` random images of random clips, frames and views (cameras or the LiDAR map)."""
