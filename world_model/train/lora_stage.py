@@ -138,6 +138,22 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
     return LoraBase(model, vae, digest, file, file_sha256)
 
 
+def lora_options(
+    case: str | None = None,
+    case_data: str | Path | None = None,
+    case_clips: list[str] | None = None,
+    base: str | Path | None = None,
+    lora_box_weight: float = 0.0,
+    lora_rank: int | None = None,
+) -> dict:
+    """The keyword arguments of :func:`lora_stage` from the stage's options, checked before anything
+    is written (the adapter's name, box weight and rank)."""
+    lora = LoraConfig() if lora_rank is None else LoraConfig().with_rank(lora_rank)
+    scfg = LoraStageConfig(box_weight=lora_box_weight, lora=lora)
+    lora_stage_dir(".", case)
+    return {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base, "scfg": scfg}
+
+
 def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
     """``run_dir/lora/<case>``; the case names the adapter."""
     from world_model.lora import _check_name

@@ -25,7 +25,7 @@ from world_model.model.config import ModelConfig, get_preset
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.student.config import StudentConfig
 from world_model.train.device import TrainPlace, resolve_device
-from world_model.train.lora_stage import LORA_STEPS, LoraStageConfig, lora_stage, lora_stage_dir
+from world_model.train.lora_stage import LORA_STEPS, lora_options, lora_stage, lora_stage_dir
 from world_model.train.reference_stage import reference_stage
 from world_model.train.run import StageRun
 from world_model.train.student_stages import student_stage
@@ -39,8 +39,10 @@ class Stage:
     """One stage of the registry: how it trains, its defaults and the options it owns.
 
     ``options``: the keyword arguments of :func:`train_stage` (and so the CLI flags) that only this
-    stage reads; any other stage refuses those that change a model by name. ``config_sections``: the config sections its
-    weights depend on (None: the whole config; ``"teacher"``: :meth:`ModelConfig.teacher_settings`).
+    stage reads; any other stage refuses those that change a model by name. ``setup`` turns them
+    into the keyword arguments of ``train`` (checked before anything is written) and ``directory``
+    places the stage in the run (default ``RUN/<name>``). ``config_sections``: the config sections
+    its weights depend on (None: the whole config; ``"teacher"``: :meth:`ModelConfig.teacher_settings`).
     """
 
     name: str
@@ -49,8 +51,11 @@ class Stage:
     lr: float
     ckpt_every: int
     options: tuple[str, ...] = ()
+    setup: Callable[..., dict] | None = None  # (**options) -> keyword arguments of train
+    directory: Callable[[Path, dict], Path] | None = None  # (RUN, options) -> the stage's directory
     config_sections: tuple[str, ...] | str | None = None
-    steps: dict[str, int] | None = None  # preset -> default steps, where a step costs far more than a teacher's
+    # Default steps where a step costs far more than a teacher's: per preset, or one count for all.
+    steps: dict[str, int] | int | None = None
 
 
 # Sized for the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step
@@ -74,6 +79,9 @@ REGISTRY: dict[str, Stage] = {
             1e-3,
             50,
             ("case", "case_data", "case_clips", "base", "lora_box_weight", "lora_rank"),
+            setup=lora_options,
+            directory=lambda run, options: lora_stage_dir(run, options["case"]),
+            steps=LORA_STEPS,
         ),
     )
 }
@@ -124,7 +132,11 @@ def _train_config(
     seed: int,
 ) -> TrainConfig:
     spec = REGISTRY[stage]
-    preset_steps = (spec.steps or {}).get(cfg.name, DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"]))
+    preset_steps = DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"])
+    if isinstance(spec.steps, int):
+        preset_steps = spec.steps
+    elif spec.steps:
+        preset_steps = spec.steps.get(cfg.name, preset_steps)
     n = steps if steps is not None else preset_steps
     if n < 1:
         raise ValueError(f"steps must be >= 1, got {n}")
@@ -194,19 +206,12 @@ def train_stage(
     _check_options(stage, {"base": base, "lora_box_weight": lora_box_weight, "lora_rank": lora_rank})
     check_dtype(dtype)
     place = place or TrainPlace(resolve_device(device))
-    options: dict[str, object] = {}
-    if stage == "lora":
-        from world_model.lora import LoraConfig
-
-        lora = LoraConfig() if lora_rank is None else LoraConfig().with_rank(lora_rank)
-        scfg = LoraStageConfig(box_weight=lora_box_weight, lora=lora)  # bad settings refused before any write
-        stage_dir = lora_stage_dir(run_dir, case)
-        steps = LORA_STEPS if steps is None else steps
-        options = {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base, "scfg": scfg}
-        run_root = Path(run_dir)
-    else:
-        run_root = Path(run_dir)
-        stage_dir = run_root / stage
+    given = {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base}
+    given |= {"lora_box_weight": lora_box_weight, "lora_rank": lora_rank}
+    options = {name: given[name] for name in spec.options}
+    kwargs = spec.setup(**options) if spec.setup else {}
+    run_root = Path(run_dir)
+    stage_dir = spec.directory(run_root, options) if spec.directory else run_root / stage
     if place.is_main:  # writes the stage's config; the other ranks then check theirs against it
         _stage_config(stage_dir, spec, preset, config)
     place.barrier()
@@ -217,6 +222,6 @@ def train_stage(
         Path(data_dir), run_root, stage_dir, cfg, tcfg, place, progress, student or StudentConfig(), compile_model
     )
     with dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, place.device)):
-        out = spec.train(run, **options)
+        out = spec.train(run, **kwargs)
     place.barrier()  # rank 0's export is written before any rank starts the stage that reads it
     return {"stage": stage, "stage_dir": str(stage_dir), **out}
