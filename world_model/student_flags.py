@@ -25,7 +25,7 @@ BASE_HELP = (  # --base of the training CLI: lora
 )
 
 
-def add_lora_flags(p: argparse.ArgumentParser) -> None:
+def add_lora_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """The LoRA stage's objective flags (``--stage lora``)."""
     p.add_argument(
         "--lora-box-weight",
@@ -43,7 +43,7 @@ def add_lora_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
-def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:
+def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long_frames: bool = False) -> None:
     """Add the student flags (and ``--long-frames`` when asked) to ``p``; every default is None,
     meaning "the preset's" or "the stage's"."""
     p.add_argument(

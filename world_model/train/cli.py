@@ -50,12 +50,14 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "rank takes cuda:LOCAL_RANK",
     )
     p.add_argument("--compile", action="store_true", help="torch.compile the trained networks")
-    p.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
-    p.add_argument("--case-data", default=None, help="lora: dataset of rare-case clips (default: from --data)")
-    p.add_argument("--case-clips", default=None, help="lora: comma-separated rare clip names (overrides the category)")
-    p.add_argument("--base", default=None, help=BASE_HELP)
-    add_lora_flags(p)
-    add_student_flags(p, long_frames=True)
+    model = p.add_argument_group("model and student stages (tf, ode, dmd, long)")
+    add_student_flags(model, long_frames=True)
+    lora = p.add_argument_group("--stage lora")
+    lora.add_argument("--case", default=None, help="adapter name = rare object category (e.g. tree_truck)")
+    lora.add_argument("--case-data", default=None, help="dataset of rare-case clips (default: from --data)")
+    lora.add_argument("--case-clips", default=None, help="comma-separated rare clip names (overrides the category)")
+    lora.add_argument("--base", default=None, help=BASE_HELP)
+    add_lora_flags(lora)
 
 
 def build_parser(prog: str = "python -m world_model.train") -> argparse.ArgumentParser:
