@@ -141,3 +141,13 @@ def test_two_gloo_processes_train_as_one_process_at_the_same_global_batch(chain_
     # rank 0 alone writes: one progress file, one set of checkpoints
     kept = sorted(p.name for p in (two / stage / "checkpoints").iterdir())
     assert kept == ["latest.json", f"step_{steps - 1:08d}", f"step_{steps:08d}"]
+
+
+def test_condition_dropout_masks_live_on_the_conditions_device():
+    """Training's guided ODE targets (ode stage) and DMD's real score drop conditions of batches
+    already on the training device; the mask must be created there (the meta device stands in for a GPU)."""
+    from tests.model_fixtures import tiny_conditions
+
+    cond = tiny_conditions(get_preset("tiny"), 2, batch=2).to("meta")
+    assert cond.with_drop(True).drop.device.type == "meta"
+    assert Conditions.cat([cond, cond.with_drop(True)]).drop.shape == (4,)
