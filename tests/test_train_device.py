@@ -92,13 +92,16 @@ def _free_port() -> int:
 
 
 def _train(data: Path, run: Path, stage: str, nproc: int, steps: int) -> dict:
-    """``--stage STAGE`` through the training CLI, under ``torchrun --nproc-per-node nproc`` when > 1."""
+    """``--stage STAGE``: in this process when ``nproc`` is 1, else through the training CLI under
+    ``torchrun --nproc-per-node nproc``."""
+    if nproc == 1:
+        return train_stage(
+            stage, data, run, preset="tiny", steps=steps, batch_size=4, ckpt_every=1, progress=False, device="cpu"
+        )
     args = ["--stage", stage, "--data", str(data), "--run", str(run), "--preset", "tiny", "--no-progress"]
     args += ["--steps", str(steps), "--batch-size", "4", "--ckpt-every", "1", "--device", "cpu"]
-    launch = [sys.executable, "-m", "world_model.train"]
-    if nproc > 1:
-        launch = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(nproc)]
-        launch += ["--master-port", str(_free_port()), "-m", "world_model.train", "--"]
+    launch = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(nproc)]
+    launch += ["--master-port", str(_free_port()), "-m", "world_model.train", "--"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     done = subprocess.run([*launch, *args], capture_output=True, text=True, env=env, timeout=120, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
