@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(f"no clips in {args.evalset}")
     generators = {"reference": wm.first_frames}
     if args.teacher:
-        from world_model.train.stages import load_teacher
+        from world_model.train.exports import load_teacher
 
         generators["teacher"] = ReferenceGenerator(load_teacher(args.teacher), wm.vae)
     base = wm.cfg.sampler

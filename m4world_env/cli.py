@@ -1,4 +1,4 @@
-"""The ``m4world`` command line: demo, record, eval, scenarios (train and bench join as they land)."""
+"""The ``m4world`` command line: demo, record, eval, train, export, bench, scenarios."""
 
 from __future__ import annotations
 
@@ -159,7 +159,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
     if args.teacher:
         from world_model.precision import dit_precision
-        from world_model.train.stages import load_teacher
+        from world_model.train.exports import load_teacher
 
         with dit_precision(wm.cfg.dit.autocast_bf16):  # the teacher in the student's precision
             teacher_model = load_teacher(args.teacher)
@@ -229,52 +229,6 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     return 0
 
 
-PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # `m4world train --all`
-
-
-def _cmd_train(args: argparse.Namespace) -> int:
-    import json
-
-    from world_model.model.config import get_preset
-    from world_model.student_flags import apply_heap_flag, stage_config, student_config
-    from world_model.train.stages import STAGES, train_stage
-
-    if args.all == (args.stage is not None):
-        raise ValueError(f"give exactly one of --stage (one of {STAGES}) or --all")
-    apply_heap_flag(args)
-    preset = get_preset(args.preset, geometry_only=args.geometry_only)
-    config = stage_config(args, preset)
-    # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
-    # rerunning the same command after an interruption loses nothing.
-    for stage in PIPELINE if args.all else (args.stage,):
-        summary = train_stage(
-            stage,
-            args.data,
-            args.run,
-            preset=args.preset,
-            config=config,
-            steps=None if args.all else args.steps,
-            batch_size=args.batch_size,
-            lr=args.lr,
-            seed=args.seed,
-            progress=not args.no_progress,
-            case=args.case,
-            case_data=args.case_data,
-            base=args.base,
-            lora_box_weight=args.lora_box_weight,
-            lora_rank=args.lora_rank,
-            student=student_config(args),
-            dtype=args.dtype,
-        )
-        summary.pop("losses", None)
-        print(json.dumps(summary, indent=1, default=float))
-    if args.all:
-        from world_model.bundle import export_bundle
-
-        print(f"bundle: {export_bundle(args.run, Path(args.run) / 'bundle')}")
-    return 0
-
-
 def _cmd_export(args: argparse.Namespace) -> int:
     from world_model.bundle import export_bundle
 
@@ -327,8 +281,6 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_flags
-
     p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -437,33 +389,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.set_defaults(func=_cmd_eval)
 
-    t = sub.add_parser("train", help="train world-model stages (resumable: rerun the same command)")
-    t.add_argument(
-        "--stage", default=None, help="one stage (vae, teacher, ...); see --help of python -m world_model.train"
+    from world_model.train.cli import DESCRIPTION, EPILOG, add_train_arguments, run_train
+
+    t = sub.add_parser(
+        "train",
+        help="train world-model stages (resumable: rerun the same command)",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    t.add_argument(
-        "--all", action="store_true", help="vae → teacher → tf → ode → dmd → long → reference, then a bundle"
-    )
-    t.add_argument("--data", default="data/train", help="dataset directory (m4world record output)")
-    t.add_argument("--run", default="runs/default", help="run directory; each stage writes RUN/<stage>/")
-    t.add_argument("--preset", default="default")
-    t.add_argument(
-        "--geometry-only",
-        action="store_true",
-        help="the evaluation's baseline: object tokens without image/text descriptions (use its own --run; "
-        "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
-    )
-    add_student_flags(t)
-    t.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
-    t.add_argument("--batch-size", type=int, default=None)
-    t.add_argument("--lr", type=float, default=None)
-    t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--no-progress", action="store_true")
-    t.add_argument("--base", default=None, help=BASE_HELP)
-    t.add_argument("--case", default=None, help="lora: adapter name = rare object category (e.g. tree_truck)")
-    t.add_argument("--case-data", default=None, help="lora: dataset of the rare-case clips")
-    add_lora_flags(t)
-    t.set_defaults(func=_cmd_train)
+    add_train_arguments(t)
+    t.set_defaults(func=run_train)
 
     x = sub.add_parser("export", help="collect a training run's stage exports into a checkpoint bundle")
     x.add_argument("--run", required=True)

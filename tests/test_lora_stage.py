@@ -16,8 +16,8 @@ from world_model.model.reference import ReferenceConfig, object_region
 from world_model.train import load_latest, load_teacher, train_stage
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
+from world_model.train.exports import EXPORT
 from world_model.train.lora_stage import BalancedSampler, select_clips
-from world_model.train.stages import EXPORT
 
 CFG = get_preset("tiny")
 CASE = "tree_truck"

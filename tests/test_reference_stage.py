@@ -11,8 +11,8 @@ from world_model.model import MultiViewDiT, SensorVAE, get_preset
 from world_model.model.reference import TASKS, ReferenceConfig, ReferenceGenerator, reference_channels
 from world_model.train import load_latest, load_teacher, load_vae, train_stage
 from world_model.train.checkpoint import export_weights
+from world_model.train.exports import EXPORT
 from world_model.train.reference_stage import reference_batch
-from world_model.train.stages import EXPORT
 
 CFG = get_preset("tiny")
 

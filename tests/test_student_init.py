@@ -16,7 +16,7 @@ from world_model.model.reference import reference_model_config
 from world_model.runtime import load_world_model
 from world_model.student.init import nearest, student_from_teacher, teacher_blocks
 from world_model.train import train_stage
-from world_model.train.student_stages import load_student
+from world_model.train.exports import load_student
 
 from .model_fixtures import make_dataset, perturbed, tiny_conditions
 

@@ -9,7 +9,8 @@ import torch
 from world_model.model import get_preset
 from world_model.student import StreamingEngine
 from world_model.train import train_stage
-from world_model.train.student_stages import load_student, reflected_index
+from world_model.train.exports import load_student
+from world_model.train.rollouts import reflected_index
 
 from .model_fixtures import make_dataset, tiny_conditions, train_cli
 
@@ -155,10 +156,10 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append((kw["student"], kw["dtype"])) or {})
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
     flags = ["--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]
-    flags += ["--dmd-norm", "view", "--dtype", "float32"]
+    flags += ["--dtype", "float32"]
     assert m4world([*args, *flags]) == 0
     assert m4world(args) == 0
-    want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5, dmd_norm="view")
+    want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5)
     assert seen == [(want, "float32"), (None, "auto")]  # None: the stage's defaults
 
 
@@ -188,15 +189,9 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
         expected = dmd_loss(video, predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t))
         got = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided)
         guided = dmd_generator_loss(real, critic, video, cond, t, noise)
-        per_view = dmd_generator_loss(real, critic, video, cond, t, noise, guidance=unguided, dmd_norm="view")
-        x0_fake, x0_real = predict_x0(xt, critic(xt, t, cond), t), predict_x0(xt, real(xt, t, cond), t)
     assert torch.allclose(got, expected, atol=1e-6) and not torch.allclose(guided, expected, atol=1e-6)
-    assert torch.allclose(per_view, dmd_loss(video, x0_fake, x0_real, group_dim=2), atol=1e-6)
-    assert not torch.allclose(per_view, expected, atol=1e-6)
     with pytest.raises(ValueError, match="dmd_guidance_scale must be > 0"):
         StudentConfig(dmd_guidance_scale=0.0)
-    with pytest.raises(ValueError, match="dmd_norm"):
-        StudentConfig(dmd_norm="batch")
 
 
 def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypatch):
@@ -208,7 +203,6 @@ def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypat
     calls = []
     monkeypatch.setattr(student_flags, "retain_freed_memory", lambda: calls.append(1))
     monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: {})
-    monkeypatch.setattr(train_module, "train_stage", lambda *a, **kw: {})
     args = ["--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
     for main in (lambda a: m4world(["train", *a]), train_module.main):
         calls.clear()

@@ -7,7 +7,7 @@ Layout::
                                sha256, bytes, stage, and ``model_config`` where the component's
                                differs (the reference model: wider input, teacher depth)
       vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
-      student.safetensors      the causal few-step student (stage ``compress``, else ``long``, ``dmd``)
+      student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       adapters/                optional LoRA adapters (``lora`` stage output)
 
@@ -39,7 +39,7 @@ DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
     "vae": ("vae",),
-    "student": ("compress", "long", "dmd", "ode"),  # compress: distilled from long, when run
+    "student": ("long", "dmd", "ode"),
     "reference": ("reference",),
 }
 REQUIRED = ("vae", "student")

@@ -1,5 +1,5 @@
-"""The train CLIs' shared flags (the student's, the DiTs' precision, the allocator), used by ``m4world train``
-and ``python -m world_model.train``.
+"""The training CLI's model flags (the student's, the DiTs' precision, the allocator), used by
+:mod:`world_model.train.cli`.
 
 Import-light (no torch) so that building the ``m4world`` parser stays fast.
 """
@@ -17,17 +17,15 @@ if TYPE_CHECKING:
     from world_model.student.config import StudentConfig
 
 
-BASE_HELP = (  # --base of `m4world train`: lora and compress
+BASE_HELP = (  # --base of the training CLI: lora
     "lora: the model to adapt (default RUN/teacher/model): an exported DiT (e.g. RUN/long/model or "
     "RUN/reference/model), or a checkpoint bundle, whose student is adapted in the bundle's own VAE latents "
     "(e.g. the shipped world_model/checkpoints/default: no training run needed; "
-    "BUNDLE/reference.safetensors for its reference model); "
-    "compress: the trained student to distill (default RUN/long/model): an exported student or a bundle "
-    "(its student; its VAE and reference model are written into the run)"
+    "BUNDLE/reference.safetensors for its reference model)"
 )
 
 
-def add_lora_flags(p: argparse.ArgumentParser) -> None:
+def add_lora_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """The LoRA stage's objective flags (``--stage lora``)."""
     p.add_argument(
         "--lora-box-weight",
@@ -45,7 +43,7 @@ def add_lora_flags(p: argparse.ArgumentParser) -> None:
     )
 
 
-def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> None:
+def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long_frames: bool = False) -> None:
     """Add the student flags (and ``--long-frames`` when asked) to ``p``; every default is None,
     meaning "the preset's" or "the stage's"."""
     p.add_argument(
@@ -109,20 +107,6 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="dmd and long stages: guidance scale of the DMD real score, camera CFG and LiDAR APG alike "
         "(default: the teacher's sampler scales; 1 = unguided)",
     )
-    p.add_argument(
-        "--dmd-norm",
-        choices=("sample", "view"),
-        default=None,
-        help="dmd and long stages: normalize the DMD gradient per sample (default, the paper) or per "
-        "sample and view (the LiDAR view's gradient not scaled by the cameras' errors)",
-    )
-    p.add_argument(
-        "--compress-object-weight",
-        type=float,
-        default=None,
-        help="compress stage: extra loss weight on the latent cells inside objects' projected boxes "
-        "(1 + W there; default 0: the plain mean)",
-    )
 
 
 def student_config(args: argparse.Namespace) -> StudentConfig | None:
@@ -135,8 +119,6 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
         "long_skip_chunks",
         "denoise_loss_prob",
         "dmd_guidance_scale",
-        "dmd_norm",
-        "compress_object_weight",
     )
     given = {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
     return StudentConfig(**given) if given else None

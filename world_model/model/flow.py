@@ -38,14 +38,16 @@ def shift_time(t: torch.Tensor, shift: float) -> torch.Tensor:
 def sample_timesteps(
     shape: tuple[int, ...], cfg: FlowConfig, generator: torch.Generator | None = None, device: str = "cpu"
 ) -> torch.Tensor:
-    """Training times in (0, 1) of ``shape`` from ``cfg.timestep_dist``."""
+    """Training times in (0, 1) of ``shape`` from ``cfg.timestep_dist``, drawn on the generator's
+    device (``device`` without a generator)."""
+    on = generator.device if generator is not None else device
     if cfg.timestep_dist == "uniform":
-        t = torch.rand(shape, generator=generator)
+        t = torch.rand(shape, generator=generator, device=on)
     elif cfg.timestep_dist == "logit_normal":
-        t = torch.sigmoid(cfg.logit_mean + cfg.logit_std * torch.randn(shape, generator=generator))
+        t = torch.sigmoid(cfg.logit_mean + cfg.logit_std * torch.randn(shape, generator=generator, device=on))
     else:
         raise ValueError(f"unknown timestep_dist {cfg.timestep_dist!r}; use 'uniform' or 'logit_normal'")
-    return shift_time(t, cfg.shift).to(device)
+    return shift_time(t, cfg.shift).to(on)
 
 
 def interpolate(x0: torch.Tensor, noise: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -16,7 +16,6 @@ chunk is ``clip.chunk_frames`` frames.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,9 +52,6 @@ class StudentConfig:
     # Guidance scale of the DMD real score (camera CFG and LiDAR APG alike); None keeps the teacher's
     # sampler scales. DMD's reverse KL seeks modes, and guidance sharpens the modes it seeks.
     dmd_guidance_scale: float | None = None
-    # DMD gradient normalization: "sample" (the paper: one mean |x - D_real| per sample) or "view"
-    # (one per sample and view, so the LiDAR view's gradient is not scaled by the cameras' errors).
-    dmd_norm: str = "sample"
 
     # -- long-video tuning (LongLive) --
     long_frames: int = 600  # length of one self-rollout before it restarts from data
@@ -65,12 +61,6 @@ class StudentConfig:
     # ever sees a rollout's first frames (20 steps x 2 chunks x 2 frames = 80 of 600), never the
     # late frames where the drift it should correct happens.
     long_skip_chunks: int = 0
-
-    # -- compress (train/compress_stage.py) --
-    # Extra weight of the output-matching loss on the latent cells inside any object's projected
-    # 3-D box (1 + w there, 1 elsewhere): objects cover a few percent of the cells, so a plain mean
-    # lets a compressed student trade them for the background. 0 = the plain mean.
-    compress_object_weight: float = 0.0
 
     def __post_init__(self) -> None:
         steps = self.denoising_steps
@@ -106,10 +96,6 @@ class StudentConfig:
             raise ValueError(f"denoise_loss_prob must be in [0, 1], got {self.denoise_loss_prob}")
         if self.dmd_guidance_scale is not None and not self.dmd_guidance_scale > 0.0:
             raise ValueError(f"dmd_guidance_scale must be > 0 (1 = no guidance), got {self.dmd_guidance_scale}")
-        if not (math.isfinite(self.compress_object_weight) and self.compress_object_weight >= 0.0):
-            raise ValueError(f"compress_object_weight must be a finite number >= 0, got {self.compress_object_weight}")
-        if self.dmd_norm not in ("sample", "view"):
-            raise ValueError(f"dmd_norm must be 'sample' or 'view', got {self.dmd_norm!r}")
         if not 0.0 < self.dmd_min_t < self.dmd_max_t < 1.0:
             raise ValueError(f"need 0 < dmd_min_t < dmd_max_t < 1, got {self.dmd_min_t}, {self.dmd_max_t}")
 

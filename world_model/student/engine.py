@@ -315,14 +315,11 @@ class StreamingEngine:
         *,
         exit_step: int | None = None,
         grad: bool = False,
-        through: Callable[[X0Fn], X0Fn] | None = None,
     ) -> torch.Tensor:
         """Generate the next chunk (B, chunk_frames, V, C, h, w) for the chunk's ``controls``.
 
         ``exit_step``/``grad``: Self-Forcing training (see :func:`few_step_sample`); the returned
         latents then carry the exit step's graph, while the cache is written from a detached copy.
-        ``through`` wraps the chunk's x0-prediction before the sampler calls it (the ``compress``
-        stage compares it with another student's at every denoising step).
         """
         if self.last is None:
             raise RuntimeError("call start() before step()")
@@ -341,8 +338,6 @@ class StreamingEngine:
             raise ValueError(f"noise must be {shape}, got {tuple(noise.shape)}")
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
             x0_fn, tokens = self._chunk(controls)
-        if through is not None:
-            x0_fn = through(x0_fn)
         x0 = few_step_sample(x0_fn, noise.to(dev), self.times, self.scfg.renoise, exit_step, grad, self.gen)
         self.commit(x0.detach(), controls, tokens)
         return x0

@@ -24,29 +24,17 @@ from world_model.model.flow import VelocityFn, euler_integrate, flow_matching_lo
 NORM_EPS = 1e-6  # keeps the per-sample DMD normalization finite when the teacher is exact
 
 
-def _norm_dims(x: torch.Tensor, group_dim: int | None) -> tuple[int, ...]:
-    """Dims the DMD normalizer averages over: all but the batch (and ``group_dim``)."""
-    return tuple(d for d in range(1, x.ndim) if d != group_dim)
-
-
-def dmd_gradient(
-    x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor, group_dim: int | None = None
-) -> torch.Tensor:
-    """Normalized DMD gradient (B, ...) from the critic's and teacher's x0-predictions at x_t.
-
-    ``group_dim``: normalize each index of that dim on its own (e.g. the view axis of a
-    (B, T, V, ...) clip, so the one LiDAR view's gradient is not scaled by six cameras' errors);
-    default one normalizer per sample (the paper)."""
+def dmd_gradient(x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor) -> torch.Tensor:
+    """Normalized DMD gradient (B, ...) from the critic's and teacher's x0-predictions at x_t:
+    one normalizer per sample (the paper)."""
     diff = (x0_fake - x0_real).double()
-    norm = (x - x0_real).double().abs().mean(dim=_norm_dims(x, group_dim), keepdim=True).clamp_min(NORM_EPS)
+    norm = (x - x0_real).double().abs().mean(dim=tuple(range(1, x.ndim)), keepdim=True).clamp_min(NORM_EPS)
     return torch.nan_to_num(diff / norm).to(x.dtype)
 
 
-def dmd_loss(
-    x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor, group_dim: int | None = None
-) -> torch.Tensor:
+def dmd_loss(x: torch.Tensor, x0_fake: torch.Tensor, x0_real: torch.Tensor) -> torch.Tensor:
     """``0.5 * mean((x - sg[x - g])^2)``: gradient g (see module docstring) flows into x only."""
-    g = dmd_gradient(x.detach(), x0_fake.detach(), x0_real.detach(), group_dim)
+    g = dmd_gradient(x.detach(), x0_fake.detach(), x0_real.detach())
     target = x.detach().double() - g.double()
     return 0.5 * (x.double() - target).pow(2).mean().float()
 
@@ -60,9 +48,8 @@ def ode_regression_loss(
     x0_pred: torch.Tensor, x0_target: torch.Tensor, weights: torch.Tensor | None = None
 ) -> torch.Tensor:
     """Mean squared error of the student's x0-prediction G(x_t, t) to a detached target: the ODE
-    trajectory's endpoint (causal ODE initialization), or another student's x0-prediction at the
-    same x_t (the ``compress`` stage). ``weights`` (broadcastable, non-negative): the weighted mean
-    instead (:func:`weighted_mean`; the ``compress`` stage's object weight)."""
+    trajectory's endpoint (causal ODE initialization). ``weights`` (broadcastable, non-negative): the
+    weighted mean instead (:func:`weighted_mean`)."""
     return weighted_mean((x0_pred.float() - x0_target.detach().float()).pow(2), weights)
 
 

@@ -120,7 +120,9 @@ def self_forcing_rollout(
 
 def dmd_times(batch: int, scfg: StudentConfig, generator: torch.Generator | None) -> torch.Tensor:
     """(B,) DMD noise times, uniform in [dmd_min_t, dmd_max_t]."""
-    return scfg.dmd_min_t + (scfg.dmd_max_t - scfg.dmd_min_t) * torch.rand(batch, generator=generator)
+    return scfg.dmd_min_t + (scfg.dmd_max_t - scfg.dmd_min_t) * torch.rand(
+        batch, generator=generator, device=generator.device if generator is not None else None
+    )
 
 
 def real_score_guidance(real: MultiViewDiT, scfg: StudentConfig) -> SamplerConfig:
@@ -140,18 +142,16 @@ def dmd_generator_loss(
     noise: torch.Tensor,
     skip: int = 0,
     guidance: SamplerConfig | None = None,
-    dmd_norm: str = "sample",
 ) -> torch.Tensor:
     """DMD loss of a generated clip (B, T, ...): real score = the frozen bidirectional teacher with
     guidance (``guidance``'s scales, default the teacher's sampler), fake score = the critic, both as
     x0-predictions at x_t = interpolate(video, noise, t). Frames before ``skip`` (clean conditioning
-    frames, not generated) are scored but not trained. ``dmd_norm`` (``StudentConfig.dmd_norm``):
-    "view" gives each view (dim 2) its own DMD normalizer, "sample" one per sample."""
+    frames, not generated) are scored but not trained."""
     with torch.no_grad():
         xt = interpolate(video.detach(), noise, t)
         x0_real = predict_x0(xt, GuidedVelocity(real, cond, guidance)(xt, t), t)
         x0_fake = predict_x0(xt, critic(xt, t, cond), t)
-    return dmd_loss(video[:, skip:], x0_fake[:, skip:], x0_real[:, skip:], 2 if dmd_norm == "view" else None)
+    return dmd_loss(video[:, skip:], x0_fake[:, skip:], x0_real[:, skip:])
 
 
 def critic_flow_loss(

@@ -1,10 +1,29 @@
-"""Training stages of the world model (``vae``, ``teacher``), checkpoints and EMA."""
+"""Training of the world model: the stages (vae, teacher, tf, ode, dmd, long, reference, lora),
+their checkpoints, exports and EMA. The command line: ``python -m world_model.train`` (= ``m4world train``).
 
-from world_model.train.checkpoint import load_latest, save_checkpoint
-from world_model.train.ema import EMA
-from world_model.train.stages import STAGES, load_teacher, load_vae, train_stage
-from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedError
+The names below load on first use, so that the command line's parser
+(:mod:`world_model.train.cli`) builds without importing torch.
+"""
 
+from __future__ import annotations
+
+from importlib import import_module
+from typing import TYPE_CHECKING
+
+_EXPORTS = {
+    "EMA": "world_model.train.ema",
+    "STAGES": "world_model.train.stages",
+    "TrainConfig": "world_model.train.trainer",
+    "Trainer": "world_model.train.trainer",
+    "TrainingDivergedError": "world_model.train.trainer",
+    "load_latest": "world_model.train.checkpoint",
+    "load_student": "world_model.train.exports",
+    "load_teacher": "world_model.train.exports",
+    "load_vae": "world_model.train.exports",
+    "open_run_latents": "world_model.train.exports",
+    "save_checkpoint": "world_model.train.checkpoint",
+    "train_stage": "world_model.train.stages",
+}
 __all__ = [
     "EMA",
     "STAGES",
@@ -12,8 +31,23 @@ __all__ = [
     "Trainer",
     "TrainingDivergedError",
     "load_latest",
+    "load_student",
     "load_teacher",
     "load_vae",
+    "open_run_latents",
     "save_checkpoint",
     "train_stage",
 ]
+
+if TYPE_CHECKING:
+    from world_model.train.checkpoint import load_latest, save_checkpoint
+    from world_model.train.ema import EMA
+    from world_model.train.exports import load_student, load_teacher, load_vae, open_run_latents
+    from world_model.train.stages import STAGES, train_stage
+    from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedError
+
+
+def __getattr__(name: str) -> object:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'world_model.train' has no attribute {name!r}")
+    return getattr(import_module(_EXPORTS[name]), name)

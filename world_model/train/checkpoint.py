@@ -99,7 +99,7 @@ def load_latest(root: str | Path) -> Checkpoint | None:
     if not path.is_dir():
         raise FileNotFoundError(f"{pointer} points to {path}, which is missing; delete {pointer} to restart")
     tensors = {p.stem: load_file(str(p)) for p in sorted(path.glob("*.safetensors"))}
-    train_state = torch.load(path / "train_state.pt", weights_only=True)
+    train_state = torch.load(path / "train_state.pt", map_location="cpu", weights_only=True)
     meta = json.loads((path / "meta.json").read_text())
     return Checkpoint(step=int(info["step"]), path=path, tensors=tensors, train_state=train_state, meta=meta)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -14,6 +14,7 @@ from safetensors.torch import load_file, save_file
 
 from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
+from world_model.geometry import wrap_angle
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder
@@ -52,18 +53,31 @@ class FrameBatch(NamedTuple):
     weights: torch.Tensor
 
 
-def object_pixel_weights(frame: SceneFrame, view: int, height: int, width: int, extra: float) -> np.ndarray:
-    """(H, W) float32 loss weights of camera ``view``: 1 everywhere, ``1 + extra`` inside the
-    projected 3-D box of every object in view (where small objects live, which plain L1 ignores)."""
-    out = np.ones((height, width), np.float32)
-    if extra == 0.0 or not frame.objects:
-        return out
+def object_boxes(frame: SceneFrame, view: int) -> list[tuple[int, int, int, int]]:
+    """Pixel boxes (x0, y0, x1, y1) of camera ``view`` covering each object's projected 3-D box."""
+    if not frame.objects:
+        return []
     corners = frame.object_corners_lidar()
-    for o in range(len(frame.objects)):
-        box = frame.rig.cameras[view].box_extent(corners[o], NEAR_PLANE_M)
-        if box is not None:
-            x0, y0, x1, y1 = box
-            out[y0:y1, x0:x1] = 1.0 + extra
+    boxes = (frame.rig.cameras[view].box_extent(corners[o], NEAR_PLANE_M) for o in range(len(frame.objects)))
+    return [tuple(box) for box in boxes if box is not None]
+
+
+def object_pixel_weights(
+    frame: SceneFrame,
+    view: int,
+    height: int,
+    width: int,
+    extra: float,
+    boxes: list[tuple[int, int, int, int]] | None = None,
+) -> np.ndarray:
+    """(H, W) float32 loss weights of camera ``view``: 1 everywhere, ``1 + extra`` inside the
+    projected 3-D box of every object in view (where small objects live, which plain L1 ignores).
+    ``boxes``: the view's :func:`object_boxes` when already known."""
+    out = np.ones((height, width), np.float32)
+    if extra == 0.0:
+        return out
+    for x0, y0, x1, y1 in object_boxes(frame, view) if boxes is None else boxes:
+        out[y0:y1, x0:x1] = 1.0 + extra
     return out
 
 
@@ -72,6 +86,9 @@ class FrameSampler:
 
     def __init__(self, clips: list[Clip], cfg: ModelConfig) -> None:
         self.clips, self.cfg = clips, cfg
+        # (clip, frame, view) -> object boxes: projecting every object is the costly part of a batch,
+        # and a few hundred steps revisit the same frames many times
+        self._boxes: dict[tuple[int, int, int], list[tuple[int, int, int, int]]] = {}
 
     def image(self, clip: int, frame: int, view: int) -> torch.Tensor:
         c = self.clips[clip]
@@ -84,7 +101,10 @@ class FrameSampler:
         s = self.cfg.sensors
         extra = 0.0 if view == s.lidar_view else self.cfg.vae.object_loss_weight
         fr = self.clips[clip].frames[frame]
-        return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra))[None]
+        key = (clip, frame, view)
+        if extra and key not in self._boxes:
+            self._boxes[key] = object_boxes(fr, view)
+        return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra, self._boxes.get(key)))[None]
 
     def sample(self, rng: np.random.Generator, batch: int) -> FrameBatch:
         """``batch`` random images of random clips, frames and views (cameras or the LiDAR map)."""
@@ -148,7 +168,11 @@ def _write_latents(path: Path, lat: torch.Tensor, vae_digest: str, clip_key: str
 
 
 class LatentWindows:
-    """Windows of cached latents with their conditions, at mixed lengths (``clip.train_frames``)."""
+    """Windows of cached latents with their conditions, at mixed lengths (``clip.train_frames``).
+
+    Every clip's latents and time-varying conditions are concatenated once into flat arrays, so a
+    batch of windows is one index gather per field (:meth:`gather`), not a Python loop per sample.
+    """
 
     def __init__(
         self,
@@ -165,6 +189,14 @@ class LatentWindows:
             )
             for c in clips
         ]
+        self.lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
+        self.flat_latents = torch.cat([lat.float() for lat in latents])  # (sum T, V, C, h, w)
+        self.flat_time = {k: np.concatenate([getattr(a, k) for a in self.arrays]) for k in ConditionArrays.TIME_FIELDS}
+        static = [f.name for f in fields(ConditionArrays) if f.name not in ConditionArrays.TIME_FIELDS]
+        self.per_clip = {k: np.stack([getattr(a, k) for a in self.arrays]) for k in static}
+        # (sum T, 3): x, y, yaw of every frame's ego, for the ego condition relative to a window's start
+        self.ego_pose = np.array([[f.ego.x, f.ego.y, f.ego.yaw] for c in clips for f in c.frames], dtype=np.float64)
 
     def window(self, clip: int, start: int, frames: int) -> tuple[torch.Tensor, ConditionArrays]:
         c, stop = self.clips[clip], start + frames
@@ -174,15 +206,61 @@ class LatentWindows:
         ego = np.stack([fr.ego_pose_condition(first) for fr in c.frames[start:stop]]).astype(np.float32)
         return self.latents[clip][start:stop], replace(arr, ego=ego)
 
-    def sample(self, rng: np.random.Generator, batch: int) -> tuple[torch.Tensor, Conditions]:
-        """x0 (B, T, V, C, h, w) and conditions; T drawn from ``clip.train_frames`` per batch."""
-        lengths = [c.num_frames for c in self.clips]
-        t = int(rng.choice(self.cfg.clip.train_frames))
-        eligible = [i for i, n in enumerate(lengths) if n >= t]
-        if not eligible:  # every clip is shorter: use the longest available length
-            t = max(lengths)
-            eligible = [i for i, n in enumerate(lengths) if n == t]
+    def gather(self, clips: np.ndarray, frame_index: np.ndarray, anchor: np.ndarray) -> tuple[torch.Tensor, Conditions]:
+        """x0 (B, T, V, C, h, w) float32 and conditions of frames ``frame_index`` (B, T) of ``clips``
+        (B,), each row's ego relative to its frame ``anchor`` (B,) (:meth:`SceneFrame.ego_pose_condition`)."""
+        clips = np.asarray(clips, dtype=np.int64)
+        flat = self.offsets[clips][:, None] + np.asarray(frame_index, dtype=np.int64)
+        x0 = self.flat_latents[torch.from_numpy(flat)]
+        kw = {k: torch.from_numpy(v[flat]) for k, v in self.flat_time.items()}
+        kw.update({k: torch.from_numpy(v[clips]) for k, v in self.per_clip.items()})
+        kw["ego"] = torch.from_numpy(relative_ego(self.ego_pose[flat], self.ego_pose[self.offsets[clips] + anchor]))
+        kw["bev"] = kw["bev"].float()
+        return x0, Conditions(**kw, drop=torch.zeros(len(clips), dtype=torch.bool))
+
+    def windows(self, clips: np.ndarray, starts: np.ndarray, frames: int) -> tuple[torch.Tensor, Conditions]:
+        """Windows [start, start + frames) of ``clips``, ego relative to each window's first frame."""
+        starts = np.asarray(starts, dtype=np.int64)
+        return self.gather(clips, starts[:, None] + np.arange(frames), starts)
+
+    def draw(
+        self, rng: np.random.Generator, batch: int, frames: int | None = None, pool: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Random windows: (clips (B,), starts (B,), frames). ``frames`` fixes the length (default: drawn
+        from ``clip.train_frames``; when every clip is shorter, the longest length available); ``pool``
+        restricts the clips (default all)."""
+        pool = np.arange(len(self.clips)) if pool is None else np.asarray(pool, dtype=np.int64)
+        lengths = self.lengths[pool]
+        t = int(rng.choice(self.cfg.clip.train_frames)) if frames is None else frames
+        eligible = pool[lengths >= t]
+        if len(eligible) == 0:  # every clip is shorter: use the longest available length
+            t = int(lengths.max())
+            eligible = pool[lengths == t]
         picks = rng.choice(eligible, size=batch)
-        items = [self.window(int(ci), int(rng.integers(lengths[ci] - t + 1)), t) for ci in picks]
-        x0 = torch.stack([x for x, _ in items]).float()
-        return x0, Conditions.collate([a for _, a in items])
+        starts = rng.integers(self.lengths[picks] - t + 1)
+        return picks, starts, t
+
+    def sample(
+        self, rng: np.random.Generator, batch: int, frames: int | None = None
+    ) -> tuple[torch.Tensor, Conditions]:
+        """x0 (B, T, V, C, h, w) and conditions of random windows (:meth:`draw`)."""
+        picks, starts, t = self.draw(rng, batch, frames)
+        return self.windows(picks, starts, t)
+
+
+def relative_ego(poses: np.ndarray, first: np.ndarray) -> np.ndarray:
+    """The paper's ego condition ``[R_t; t_t^T]`` (..., 4, 3) of poses (..., T, 3) = (x, y, yaw)
+    relative to ``first`` (..., 3): :meth:`SceneFrame.ego_pose_condition`, vectorized."""
+    yaw0 = first[..., None, 2]
+    rel_yaw = wrap_angle(poses[..., 2] - yaw0)
+    c0, s0 = np.cos(yaw0), np.sin(yaw0)
+    dx, dy = poses[..., 0] - first[..., None, 0], poses[..., 1] - first[..., None, 1]
+    c, s = np.cos(rel_yaw), np.sin(rel_yaw)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    rows = [
+        np.stack([c, -s, zero], -1),
+        np.stack([s, c, zero], -1),
+        np.stack([zero, zero, one], -1),
+        np.stack([c0 * dx + s0 * dy, -s0 * dx + c0 * dy, zero], -1),
+    ]
+    return np.stack(rows, -2).astype(np.float32)

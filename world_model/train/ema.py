@@ -17,8 +17,10 @@ class EMA:
     @torch.no_grad()
     def update(self, model: nn.Module) -> None:
         d = min(self.decay, (1 + self.updates) / (10 + self.updates))
-        for k, p in model.named_parameters():
-            self.shadow[k].mul_(d).add_(p.detach().float(), alpha=1 - d)
+        params = dict(model.named_parameters())
+        shadows = list(self.shadow.values())
+        torch._foreach_mul_(shadows, d)
+        torch._foreach_add_(shadows, [params[k].detach().float() for k in self.shadow], alpha=1 - d)
         self.updates += 1
 
     def state_dict(self) -> dict[str, torch.Tensor]:
@@ -28,7 +30,7 @@ class EMA:
         missing = set(self.shadow) - set(state)
         if missing:
             raise KeyError(f"EMA state lacks {sorted(missing)[:3]}...")
-        self.shadow = {k: state[k].clone().float() for k in self.shadow}
+        self.shadow = {k: state[k].to(v.device, torch.float32, copy=True) for k, v in self.shadow.items()}
         self.updates = updates
 
     def model_state(self, model: nn.Module) -> dict[str, torch.Tensor]:

@@ -52,14 +52,12 @@ from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
-from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import TASKS, ReferenceConfig, category_region, reference_input, task_mask
-from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
-from world_model.train.data import LatentWindows, cached_latents, latent_cache_dir, load_clips
-from world_model.train.reference_stage import run_vae
-from world_model.train.stages import EXPORT, load_teacher
-from world_model.train.trainer import TrainConfig, Trainer
+from world_model.train.data import LatentWindows, load_clips
+from world_model.train.exports import EXPORT, latent_windows, load_teacher, run_vae
+from world_model.train.run import StageRun
+from world_model.train.trainer import Trainer
 
 LORA_STEPS = 300  # "a few hundred iterations" (§5), whatever the preset
 
@@ -140,6 +138,22 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
     return LoraBase(model, vae, digest, file, file_sha256)
 
 
+def lora_options(
+    case: str | None = None,
+    case_data: str | Path | None = None,
+    case_clips: list[str] | None = None,
+    base: str | Path | None = None,
+    lora_box_weight: float = 0.0,
+    lora_rank: int | None = None,
+) -> dict:
+    """The keyword arguments of :func:`lora_stage` from the stage's options, checked before anything
+    is written (the adapter's name, box weight and rank)."""
+    lora = LoraConfig() if lora_rank is None else LoraConfig().with_rank(lora_rank)
+    scfg = LoraStageConfig(box_weight=lora_box_weight, lora=lora)
+    lora_stage_dir(".", case)
+    return {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base, "scfg": scfg}
+
+
 def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
     """``run_dir/lora/<case>``; the case names the adapter."""
     from world_model.lora import _check_name
@@ -207,12 +221,12 @@ class BalancedSampler:
         t = int(rng.choice(self.windows.cfg.clip.train_frames))
         spans, is_rare = self.draw(rng, batch, t)
         t = min([t, *(self.windows.clips[ci].num_frames - s for ci, s in spans)])
-        items = [self.windows.window(ci, s, t) for ci, s in spans]
-        x0 = torch.stack([x for x, _ in items]).float()
+        clips, starts = np.array([ci for ci, _ in spans]), np.array([s for _, s in spans])
+        x0, cond = self.windows.windows(clips, starts, t)
         weights = None
         if box_weight > 0.0:
             weights = torch.stack([self.box_weights(ci, s, t, box_weight) for ci, s in spans])
-        return LoraBatch(x0, Conditions.collate([a for _, a in items]), is_rare, weights, spans)
+        return LoraBatch(x0, cond, is_rare, weights, spans)
 
     def rare_region(self, clip: int, start: int, frames: int, rcfg: ReferenceConfig) -> np.ndarray:
         """(T, V, h, w) bool: the latent cells of the rare category's objects in one window."""
@@ -261,11 +275,7 @@ def select_clips(
 
 
 def lora_stage(
-    data_dir: Path,
-    stage_dir: Path,
-    cfg: ModelConfig,
-    tcfg: TrainConfig,
-    progress: bool,
+    run: StageRun,
     *,
     case: str,
     case_data: str | Path | None = None,
@@ -275,12 +285,11 @@ def lora_stage(
 ) -> dict:
     """Train (or resume) adapter ``case`` on top of the frozen ``base`` (module docstring)."""
     scfg = scfg or LoraStageConfig()
-    run_dir = stage_dir.parent.parent
+    cfg, tcfg, run_dir, stage_dir = run.cfg, run.tcfg, run.run_dir, run.stage_dir
     lb = load_lora_base(base, run_dir, cfg)
     model, vae, digest = lb.model, lb.vae, lb.vae_digest
-    clips, rare, ordinary = select_clips(data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
-    latents = [cached_latents(c, vae, latent_cache_dir(run_dir), digest) for c in clips]
-    windows = LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
+    clips, rare, ordinary = select_clips(run.data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
+    windows = latent_windows(clips, vae, digest, run_dir, cfg)
     sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
 
     extra_channels = model.cfg.dit.in_channels_extra
@@ -289,7 +298,6 @@ def lora_stage(
     add_adapter(model, case, scfg.lora)
     model.train()
     meta = {
-        "stage": "lora",
         "case": case,
         "base_sha256": fingerprint,
         "box_weight": scfg.box_weight,
@@ -302,7 +310,7 @@ def lora_stage(
     # rank (the adapter's shapes) and the objective (checkpoints from before reference-model bases
     # learned the completion task read as controls-only).
     resume_keys = {"box_weight": 0.0, "base_sha256": None, "lora_rank": LoraConfig.rank, "reference_tasks": False}
-    trainer = Trainer(stage_dir, model, tcfg, meta, progress, resume_keys=resume_keys)
+    trainer = run.trainer(model, "lora", resume_keys, **meta)
     rcfg = ReferenceConfig()
     drawn = {"rare": 0, "ordinary": 0}
 
@@ -312,16 +320,19 @@ def lora_stage(
         drawn["rare"] += int(is_rare.sum())
         drawn["ordinary"] += int((~is_rare).sum())
         b = x0.shape[0]
-        cond = batch.cond.with_drop(torch.rand(b, generator=tr.gen) < cfg.flow.cond_drop_prob)
-        t = sample_timesteps((b,), cfg.flow, tr.gen)
-        noise = torch.randn(x0.shape, generator=tr.gen)
+        cond = tr.shard(batch.cond).with_drop(tr.shard(tr.rand(b) < cfg.flow.cond_drop_prob))
+        t = tr.shard(sample_timesteps((b,), cfg.flow, tr.gen))
+        noise = tr.shard(tr.randn(*x0.shape))
+        weights = None if batch.weights is None else tr.shard(batch.weights)
         if extra_channels:  # a reference model: completion of the rare objects / the task mix
-            extra = reference_input(x0, sampler.reference_masks(tr.rng, batch, rcfg))
+            extra = tr.shard(reference_input(x0, sampler.reference_masks(tr.rng, batch, rcfg)))
+            x0 = tr.shard(x0)
             loss = flow_matching_loss(
-                lambda xt, tt: model(torch.cat([xt, extra], dim=3), tt, cond), x0, t, noise, batch.weights
+                lambda xt, tt: model(torch.cat([xt, extra], dim=3), tt, cond), x0, t, noise, weights
             )
         else:
-            loss = flow_matching_loss(lambda xt, tt: model(xt, tt, cond), x0, t, noise, batch.weights)
+            x0 = tr.shard(x0)
+            loss = flow_matching_loss(lambda xt, tt: model(xt, tt, cond), x0, t, noise, weights)
         return loss, b * x0.shape[1]
 
     summary = trainer.run(step, f"lora:{case}")

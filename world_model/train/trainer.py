@@ -5,8 +5,13 @@ Progress goes to a tqdm bar and, for background jobs without a terminal, to
 every ``PROGRESS_PERIOD_S`` seconds and at every checkpoint: ``cat`` it to follow a run.
 
 Determinism: all randomness of a stage (data sampling, noise, timesteps, condition dropout) comes
-from one ``numpy.random.Generator`` and one ``torch.Generator`` owned by the :class:`Trainer`;
-both are checkpointed, so a run killed and restarted continues exactly as if uninterrupted.
+from one ``numpy.random.Generator`` and one ``torch.Generator`` (on the training device) owned by
+the :class:`Trainer`; both are checkpointed, so a run killed and restarted continues exactly as if
+uninterrupted. Checkpoints hold CPU tensors and load onto any device; a run resumed on another
+kind of device re-seeds its torch generator (a device's generator state cannot move to another).
+
+Under ``torchrun`` every rank runs the same loop (:mod:`world_model.train.device`): gradients are
+averaged over the ranks before each optimizer step, and rank 0 alone writes.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -24,8 +30,10 @@ from tqdm import tqdm
 
 from world_model.data.clips import write_json_atomic
 from world_model.train.checkpoint import load_latest, save_checkpoint
+from world_model.train.device import TrainPlace
 from world_model.train.ema import EMA
 
+T = TypeVar("T")
 PROGRESS_PERIOD_S = 30.0
 LOSS_WINDOW = 50  # steps in the progress file's running-mean loss
 
@@ -61,24 +69,47 @@ class Trainer:
         meta: dict,
         progress: bool = True,
         resume_keys: dict[str, object] | None = None,
+        place: TrainPlace | None = None,
+        compile_model: bool = False,
     ):
         """``resume_keys``: entries of ``meta`` a resumed run must share with its checkpoint (a
         setting that changes the objective mid-run), else :meth:`resume` raises ``ValueError``; each
-        maps to the value meant by a checkpoint written before the entry existed."""
+        maps to the value meant by a checkpoint written before the entry existed. ``place``: the
+        device and rank (default: one process on the CPU); the model moves there. ``compile_model``:
+        ``torch.compile`` the model's forward (each trained network of a container module)."""
         self.resume_keys = dict(resume_keys or {})
+        self.place = place or TrainPlace(torch.device("cpu"))
         self.dir = Path(stage_dir)
         self.ckpt_dir = self.dir / "checkpoints"
-        self.model = model
+        self.model = model.to(self.place.device)
+        if compile_model:
+            own_forward = type(model).forward is not nn.Module.forward
+            for m in [model] if own_forward else list(model.children()):
+                m.compile()
         self.tcfg = tcfg
         self.meta = meta
-        self.progress = progress
+        self.progress = progress and self.place.is_main
         self.opt = torch.optim.AdamW(model.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
         self.ema = EMA(model, tcfg.ema_decay)
         self.rng = np.random.default_rng(tcfg.seed)
-        self.gen = torch.Generator().manual_seed(tcfg.seed)
+        self.gen = torch.Generator(device=self.place.device).manual_seed(tcfg.seed)
         self.step = 0
         self.last_loss = float("nan")
         self.resumed_from: int | None = None
+
+    # -- randomness of a step, on the training device --
+    def rand(self, *shape: int) -> torch.Tensor:
+        return torch.rand(shape, generator=self.gen, device=self.gen.device)
+
+    def randn(self, *shape: int) -> torch.Tensor:
+        return torch.randn(shape, generator=self.gen, device=self.gen.device)
+
+    def randint(self, high: int, *shape: int) -> torch.Tensor:
+        return torch.randint(high, shape, generator=self.gen, device=self.gen.device)
+
+    def shard(self, x: T) -> T:
+        """This rank's rows of a global batch ``x``, on the training device (:meth:`TrainPlace.shard`)."""
+        return self.place.shard(x)
 
     # -- state --
     def resume(self) -> bool:
@@ -94,31 +125,43 @@ class Trainer:
         self.model.load_state_dict(ck.tensors["model"])
         self.ema.load_state_dict(ck.tensors["ema"], ck.meta["ema_updates"])
         self.opt.load_state_dict(ck.train_state["optimizer"])
-        self.gen.set_state(ck.train_state["torch_rng"])
+        if ck.meta.get("torch_rng_device", "cpu") == self.place.device.type:
+            self.gen.set_state(ck.train_state["torch_rng"])
+        else:  # another kind of device's generator state: continue from a seed of its own
+            self.gen.manual_seed(self.tcfg.seed + ck.step)
         self.rng.bit_generator.state = ck.meta["numpy_rng"]
         self.step = ck.step
         self.last_loss = float(ck.meta.get("loss", float("nan")))
         self.resumed_from = ck.step
         return True
 
-    def save(self) -> Path:
+    def save(self) -> Path | None:
+        """Write a checkpoint (rank 0; the others wait for it) and return its path (None elsewhere)."""
+        if not self.place.is_main:
+            self.place.barrier()
+            return None
         meta = {
             **self.meta,
+            "torch_rng_device": self.place.device.type,
             "numpy_rng": self.rng.bit_generator.state,
             "ema_updates": self.ema.updates,
             "loss": self.last_loss,
             "train_config": asdict(self.tcfg),
         }
-        return save_checkpoint(
+        path = save_checkpoint(
             self.ckpt_dir,
             self.step,
             {"model": self.model.state_dict(), "ema": self.ema.state_dict()},
-            {"optimizer": self.opt.state_dict(), "torch_rng": self.gen.get_state()},
+            {"optimizer": _to_cpu(self.opt.state_dict()), "torch_rng": self.gen.get_state()},
             meta,
             keep=self.tcfg.keep_checkpoints,
         )
+        self.place.barrier()
+        return path
 
     def write_progress(self, desc: str, losses: list[float], rate_steps: float, rate_samples: float) -> None:
+        if not self.place.is_main:
+            return
         recent = losses[-LOSS_WINDOW:]
         left = self.tcfg.steps - self.step
         write_json_atomic(
@@ -160,7 +203,7 @@ class Trainer:
                 for group in self.opt.param_groups:
                     group["lr"] = self._lr()
                 loss, n = step_fn(self)
-                value = float(loss.detach())
+                value = self.place.mean(float(loss.detach()))
                 if not math.isfinite(value):
                     raise TrainingDivergedError(
                         f"{desc}: loss is {value} at step {self.step + 1}; the last good checkpoint "
@@ -169,6 +212,7 @@ class Trainer:
                     )
                 self.opt.zero_grad(set_to_none=True)
                 loss.backward()
+                self.place.average_gradients(self.model)
                 if self.tcfg.grad_clip > 0:
                     nn.utils.clip_grad_norm_(self.model.parameters(), self.tcfg.grad_clip)
                 self.opt.step()
@@ -176,7 +220,7 @@ class Trainer:
                 self.step += 1
                 self.last_loss = value
                 losses.append(value)
-                samples += n
+                samples += n * self.place.world_size
                 now = time.perf_counter()
                 rate = samples / max(now - t0, 1e-9)
                 bar.set_postfix(loss=f"{value:.4f}", samples_per_s=f"{rate:.1f}")
@@ -197,3 +241,14 @@ class Trainer:
             "samples_per_s": samples / elapsed if losses else 0.0,
             "final_loss": self.last_loss,
         }
+
+
+def _to_cpu(state: object) -> object:
+    """``state`` (nested dicts/lists of tensors) with every tensor copied to the CPU."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().cpu()
+    if isinstance(state, dict):
+        return {k: _to_cpu(v) for k, v in state.items()}
+    if isinstance(state, list | tuple):
+        return type(state)(_to_cpu(v) for v in state)
+    return state

@@ -1,0 +1,44 @@
+"""The GPU recipe's command, dry-run on the CPU: tiny preset, a few steps per stage, same code path."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+
+import m4world_env  # noqa: F401  (registers M4World-v0)
+from world_model.train.recipe import CHAIN, join_files
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bundle(tmp_path):
+    out = tmp_path / "recipe"
+    cmd = [sys.executable, "-m", "world_model.train.recipe", "--out", str(out), "--scale", "dry"]
+    cmd += ["--device", "cpu", "--workers", "2", "--no-progress", "--max-file-mib", "0.25"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((out / "recipe.json").read_text())
+    assert summary["clips"] == 9 and set(summary["final_loss"]) == set(CHAIN)
+    assert all(v == v for v in summary["final_loss"].values())  # finite, not NaN
+    manifest = json.loads((out / "bundle" / "manifest.json").read_text())
+    assert {"vae", "student", "reference"} <= set(manifest["components"])
+    assert manifest["components"]["student"]["stage"] == "long"
+    parts = [p for p in (out / "bundle_parts").rglob("*") if p.is_file()]
+    assert max(p.stat().st_size for p in parts) <= 0.25 * (1 << 20)
+    assert any(".part" in p.name for p in parts)  # the student is larger than 0.25 MiB: split
+    join_files(out / "bundle_parts", tmp_path / "joined")
+    for file in (out / "bundle").rglob("*"):
+        if file.is_file():
+            assert (tmp_path / "joined" / file.relative_to(out / "bundle")).read_bytes() == file.read_bytes()
+    env = gym.make("M4World-v0", backend="world_model", checkpoint=str(tmp_path / "joined"))
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(env.action_space.sample())
+    assert obs["cameras"].shape[0] == manifest["model_config"]["sensors"]["num_cameras"]
+    assert manifest["model_config"]["text"]["encoder"] == "hash"  # no download on the GPU machine
+    env.close()

@@ -1,0 +1,95 @@
+"""What the stages export and read back: the stage exports of a run, their loaders and checks, and
+the run's cached latents as :class:`~world_model.train.data.LatentWindows`.
+
+Each stage directory holds its final weights as ``model.safetensors`` + ``model.json`` (the
+config and metadata); the ``dmd`` and ``long`` stages also export their critic
+(``critic.safetensors`` + ``critic.json``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from world_model.model.config import ModelConfig
+from world_model.model.dit import MultiViewDiT
+from world_model.model.imagedesc import VaeCropEncoder
+from world_model.model.text import make_text_encoder
+from world_model.model.vae import SensorVAE
+from world_model.student.config import StudentConfig
+from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
+
+EXPORT = "model"  # model.safetensors + model.json in each stage directory
+CRITIC = "critic"  # RUN/dmd/critic.safetensors + critic.json
+
+
+def load_weights(path: Path) -> dict[str, torch.Tensor]:
+    """The tensors of ``<path>.safetensors`` on the CPU."""
+    from safetensors.torch import load_file
+
+    file = path.with_suffix(".safetensors")
+    if not file.exists():
+        raise FileNotFoundError(f"{file} does not exist; run the stage that exports it first")
+    return load_file(str(file))
+
+
+def _model_config(path: Path) -> ModelConfig:
+    return ModelConfig.from_dict(json.loads(path.with_suffix(".json").read_text())["model_config"])
+
+
+def load_vae(path: str | Path) -> SensorVAE:
+    """A VAE exported by the ``vae`` stage (``.../vae/model``, with or without suffix)."""
+    path = Path(path).with_suffix("")
+    vae = SensorVAE(_model_config(path))
+    vae.load_state_dict(load_weights(path))
+    return vae.eval()
+
+
+def load_teacher(path: str | Path) -> MultiViewDiT:
+    """A DiT exported by the ``teacher`` stage (or any stage exporting a DiT)."""
+    path = Path(path).with_suffix("")
+    model = MultiViewDiT(_model_config(path))
+    model.load_state_dict(load_weights(path))
+    return model.eval()
+
+
+def load_student(path: str | Path) -> tuple[MultiViewDiT, StudentConfig]:
+    """A student exported by ``tf``/``ode``/``dmd``/``long``, with its :class:`StudentConfig`."""
+    path = Path(path).with_suffix("")
+    meta = json.loads(path.with_suffix(".json").read_text())
+    return load_teacher(path), StudentConfig.from_dict(meta.get("student_config", {}))
+
+
+def require_export(path: Path, stage: str) -> Path:
+    """``path`` (a stage export without suffix) when its weights exist, else an error naming the stage to run."""
+    if not path.with_suffix(".safetensors").exists():
+        raise FileNotFoundError(f"{path}.safetensors is missing; run --stage {stage} with the same --run first")
+    return path
+
+
+def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str]:
+    """The run's VAE export, checked against ``cfg``, and its file digest (the latent cache's key)."""
+    path = run_dir / "vae" / EXPORT
+    if not path.with_suffix(".safetensors").exists():
+        raise FileNotFoundError(
+            f"--stage {stage} needs a trained VAE at {path}.safetensors; run --stage vae with the same --run first"
+        )
+    vae = load_vae(path)
+    if vae.cfg.vae.model_settings() != cfg.vae.model_settings() or vae.cfg.sensors != cfg.sensors:
+        raise ValueError(f"the VAE in {path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
+    return vae, file_digest(path.with_suffix(".safetensors"))
+
+
+def latent_windows(clips: list, vae: SensorVAE, vae_digest: str, run_dir: Path, cfg: ModelConfig) -> LatentWindows:
+    """``clips`` encoded by ``vae`` (through the run's latent cache) with their conditions."""
+    latents = [cached_latents(c, vae, latent_cache_dir(run_dir), vae_digest) for c in clips]
+    return LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
+
+
+def open_run_latents(data_dir: str | Path, run_dir: Path, cfg: ModelConfig, stage: str) -> LatentWindows:
+    """The dataset's clips in the run's VAE latents (encoded once, cached in the run) with their
+    conditions: what every stage after ``vae`` trains on."""
+    vae, digest = run_vae(run_dir, cfg, stage)
+    return latent_windows(load_clips(data_dir, cfg), vae, digest, run_dir, cfg)

@@ -1,0 +1,250 @@
+"""The GPU recipe: record training clips, train the whole chain and write a bundle, in one command.
+
+``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|dry]``
+
+1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
+2. trains vae -> teacher -> tf -> ode -> dmd -> long -> reference into ``OUT/run`` through
+   :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
+   scale's steps and batch size;
+3. writes the bundle (``OUT/bundle``) and a copy whose every file is at most ``--max-file-mib``
+   (``OUT/bundle_parts``: larger files split into ``NAME.partNNN`` with ``SHA256SUMS``; rejoin
+   with ``python -m world_model.train.recipe --join OUT/bundle_parts DEST``);
+4. writes ``OUT/recipe.json``: each phase's wall time, each stage's final loss.
+
+The text encoder is the dependency-free hash encoder: the GPU machine has no MiniLM weights.
+``--scale dry`` runs the very same command at the tiny preset and a few steps per stage (the
+CPU check, ``tests/test_gpu_recipe.py``). Rerunning resumes: recorded clips are skipped and each
+stage resumes from its last checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+CHAIN = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")
+MIB = 1 << 20
+
+
+@dataclass(frozen=True)
+class RecipeScale:
+    """What one scale records and trains: preset, clips and (steps, global batch) per stage.
+
+    Every scenario is recorded ``episodes`` times under each of ``seeds`` consecutive base seeds, by
+    one ``m4world record`` process per seed and group of ``scenarios_per_process`` scenarios: one
+    scenario each gives more processes than scenarios, which keeps every core busy; a few short
+    clips are quicker in one process (each process spends seconds starting). The clips do not
+    depend on how many processes run at once."""
+
+    preset: str
+    episodes: int  # clips per scenario and seed
+    seeds: int
+    scenarios_per_process: int
+    duration_s: float | None  # None: the scenarios' own durations
+    stages: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+
+SCALES = {
+    # One H100/H200 in 9 minutes. 216 clips as the shipped checkpoint's dataset: recording runs at
+    # about 60 frames/s per core (default preset), so 18 processes on 16 cores take 1.5-2 min. A
+    # teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is kernel-launch
+    # bound there), so each stage runs at a large batch and the steps fill what is left: about
+    # 1 min vae, 2.5 min teacher, 1 min tf, 2 min for ode, dmd, long and reference together.
+    "gpu": RecipeScale(
+        preset="default",
+        episodes=12,
+        seeds=2,
+        scenarios_per_process=1,
+        duration_s=None,
+        stages={
+            "vae": (1200, 64),
+            "teacher": (1400, 64),
+            "tf": (600, 32),
+            "ode": (100, 16),
+            "dmd": (60, 8),
+            "long": (20, 8),
+            "reference": (300, 32),
+        },
+    ),
+    # The same command on a CPU: every stage runs, a few steps each.
+    "dry": RecipeScale(
+        preset="tiny",
+        episodes=1,
+        seeds=1,
+        scenarios_per_process=9,
+        duration_s=0.6,
+        stages={stage: (2, 2) for stage in CHAIN},
+    ),
+}
+
+
+def recipe_config(preset: str):  # noqa: ANN201 - a ModelConfig
+    """The preset with the hash text encoder (no download) at the preset's text width."""
+    from world_model.model.config import get_preset
+
+    cfg = get_preset(preset)
+    return replace(cfg, text=replace(cfg.text, encoder="hash"))
+
+
+def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
+    """Record the scale's clips of every scenario into ``out`` with ``workers`` processes at once
+    (:class:`RecipeScale`); returns the number of clips in ``out``. A clip depends only on its
+    scenario, base seed and episode, so the data is the same whatever ``workers`` is."""
+    from m4world_env.scenario import list_scenarios
+
+    # `m4world record --workers N` parallelizes inside one call; these processes per (scenario, seed)
+    # are the fan-out that works with every `m4world record`.
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+    def one(job: tuple[list[str], int]) -> None:
+        scenarios, base_seed = job
+        cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(out)]
+        cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
+        if scale.duration_s is not None:
+            cmd += ["--duration", str(scale.duration_s)]
+        done = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if done.returncode != 0:
+            raise RuntimeError(f"recording {', '.join(scenarios)} failed:\n{done.stderr[-2000:]}")
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        names, n = list_scenarios(), scale.scenarios_per_process
+        groups = [names[i : i + n] for i in range(0, len(names), n)]
+        list(pool.map(one, [(g, seed + k) for g in groups for k in range(scale.seeds)]))
+    return sum(1 for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+
+def split_files(src: Path, dest: Path, max_bytes: int) -> list[Path]:
+    """Copy the files of ``src`` (recursively) to ``dest``, splitting any larger than ``max_bytes``
+    into ``NAME.partNNN``; ``dest/SHA256SUMS`` lists every original file. Returns the written files."""
+    import shutil
+
+    if dest.exists():
+        shutil.rmtree(dest)
+    written, sums = [], []
+    for file in sorted(p for p in src.rglob("*") if p.is_file()):
+        rel = file.relative_to(src)
+        target = dest / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        data = file.read_bytes()
+        sums.append(f"{hashlib.sha256(data).hexdigest()}  {rel.as_posix()}")
+        if len(data) <= max_bytes:
+            target.write_bytes(data)
+            written.append(target)
+            continue
+        for k in range(0, len(data), max_bytes):
+            part = target.with_name(f"{target.name}.part{k // max_bytes:03d}")
+            part.write_bytes(data[k : k + max_bytes])
+            written.append(part)
+    (dest / "SHA256SUMS").write_text("\n".join(sums) + "\n")
+    return written
+
+
+def join_files(src: Path, dest: Path) -> None:
+    """Undo :func:`split_files`: rebuild every file of ``src/SHA256SUMS`` under ``dest``, checked."""
+    for line in (src / "SHA256SUMS").read_text().splitlines():
+        digest, rel = line.split("  ", 1)
+        whole = src / rel
+        parts = [whole] if whole.exists() else sorted(whole.parent.glob(f"{whole.name}.part*"))
+        data = b"".join(p.read_bytes() for p in parts)
+        if hashlib.sha256(data).hexdigest() != digest:
+            raise ValueError(f"{rel}: the joined parts do not match SHA256SUMS; copy {src} again")
+        (dest / rel).parent.mkdir(parents=True, exist_ok=True)
+        (dest / rel).write_bytes(data)
+
+
+def run_recipe(
+    out: Path,
+    scale: str = "gpu",
+    device: str = "auto",
+    workers: int | None = None,
+    seed: int = 0,
+    max_file_mib: float = 16.0,
+    progress: bool = True,
+) -> dict:
+    """Record, train the chain and write the bundle into ``out`` (module docstring); the summary."""
+    if scale not in SCALES:
+        raise ValueError(f"--scale must be one of {', '.join(SCALES)}, got {scale!r}")
+    from world_model.bundle import export_bundle
+    from world_model.train.stages import train_stage
+
+    spec = SCALES[scale]
+    out.mkdir(parents=True, exist_ok=True)
+    data, run = out / "data", out / "run"
+    data.mkdir(exist_ok=True)
+    times, losses = {}, {}
+    t0 = time.perf_counter()
+    clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
+    times["record"] = time.perf_counter() - t0
+    config = recipe_config(spec.preset)
+    for stage in CHAIN:
+        steps, batch = spec.stages[stage]
+        t = time.perf_counter()
+        summary = train_stage(
+            stage,
+            data,
+            run,
+            spec.preset,
+            steps,
+            batch_size=batch,
+            seed=seed,
+            progress=progress,
+            config=config,
+            device=device,
+        )
+        times[stage], losses[stage] = time.perf_counter() - t, summary["final_loss"]
+    t = time.perf_counter()
+    bundle = export_bundle(run, out / "bundle")
+    parts = split_files(bundle, out / "bundle_parts", int(max_file_mib * MIB))
+    times["bundle"] = time.perf_counter() - t
+    summary = {
+        "scale": scale,
+        "preset": spec.preset,
+        "device": device,
+        "clips": clips,
+        "seconds": {k: round(v, 1) for k, v in times.items()},
+        "total_s": round(time.perf_counter() - t0, 1),
+        "final_loss": losses,
+        "bundle": str(bundle),
+        "largest_part_mib": round(max(p.stat().st_size for p in parts) / MIB, 2),
+    }
+    (out / "recipe.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m world_model.train.recipe", description=__doc__.splitlines()[0])
+    p.add_argument("--out", help="output folder: data/, run/, bundle/, bundle_parts/, recipe.json")
+    p.add_argument("--scale", default="gpu", choices=sorted(SCALES), help="gpu (one H100/H200) or dry (CPU check)")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    p.add_argument("--workers", type=int, default=None, help="recording processes (default: every core)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-file-mib", type=float, default=16.0, help="largest file of bundle_parts/")
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--join", nargs=2, metavar=("PARTS", "DEST"), help="rebuild a bundle from bundle_parts/")
+    a = p.parse_args(argv)
+    try:
+        if a.join:
+            join_files(Path(a.join[0]), Path(a.join[1]))
+            return 0
+        if not a.out:
+            raise ValueError("--out is required (the folder the recipe writes into)")
+        summary = run_recipe(
+            Path(a.out), a.scale, a.device, a.workers, a.seed, a.max_file_mib, progress=not a.no_progress
+        )
+    except (FileNotFoundError, ValueError, RuntimeError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
