@@ -12,7 +12,7 @@ where it is fast. Training stages resolve the same choice (``train_stage(dtype="
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from contextvars import ContextVar
 from typing import TYPE_CHECKING
 
@@ -81,3 +81,11 @@ def built_autocast_bf16(configured: bool) -> bool:
     """The bf16 autocast of a DiT constructed now whose config says ``configured``."""
     override = _built_bf16.get()
     return configured if override is None else override
+
+
+def bf16_autocast(device_type: str, enabled: bool) -> AbstractContextManager[None]:
+    """bf16 autocast on ``device_type`` when ``enabled``; a no-op context otherwise, so a model in
+    float32 runs on any device, also one without autocast support."""
+    import torch
+
+    return torch.autocast(device_type, dtype=torch.bfloat16) if enabled else nullcontext()

@@ -261,7 +261,8 @@ class RolloutBatch:
         return self.wm.cfg.clip.chunk_frames
 
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
-        """Batch noise, each row from its own rollout's generator."""
+        """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
+        model's device, so a seed gives the same rollout noise on every device."""
         return torch.stack([torch.randn(tuple(shape[1:]), generator=g) for g in self.gens])
 
     def reset_row(

@@ -249,7 +249,7 @@ class Conditions:
         return self.apply(lambda k, v: v[:, start:stop] if k in ConditionArrays.TIME_FIELDS else v)
 
     def with_drop(self, drop: torch.Tensor | bool) -> Conditions:
-        d = torch.as_tensor(drop, dtype=torch.bool).expand(self.batch_size).clone()
+        d = torch.as_tensor(drop, dtype=torch.bool, device=self.drop.device).expand(self.batch_size).clone()
         return replace(self, drop=d)
 
     @staticmethod

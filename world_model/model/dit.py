@@ -22,6 +22,7 @@ streaming engine;
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 
 import torch
@@ -40,7 +41,7 @@ from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.rope import rope_tables, rotation_tables
 from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
-from world_model.precision import built_autocast_bf16
+from world_model.precision import bf16_autocast, built_autocast_bf16
 
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
 
@@ -249,8 +250,8 @@ class MultiViewDiT(nn.Module):
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
-    def _autocast(self, device_type: str) -> torch.autocast:
-        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.autocast_bf16)
+    def _autocast(self, device_type: str) -> AbstractContextManager[None]:
+        return bf16_autocast(device_type, self.autocast_bf16)
 
     def compile_blocks(self, freeze: bool = False) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
@@ -349,8 +350,8 @@ class MultiViewDiT(nn.Module):
 
             temb = self.time_embed(t)  # (B, T, D)
             mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
-            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta)
-            cos, sin = rotation_tables(cos.to(x.device), sin.to(x.device), h.dtype)
+            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta, x.device)
+            cos, sin = rotation_tables(cos, sin, h.dtype)
             ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
             self_mask = None
             if blocks is not None and blocks.shape != (t_len,):

@@ -32,22 +32,12 @@ import torch
 from world_model.model.attention import KV
 from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.dit import MultiViewDiT
-from world_model.model.flow import interpolate, predict_x0
+from world_model.model.flow import NoiseSource, gaussian, interpolate, predict_x0
 from world_model.model.tokens import ControlTokens
 from world_model.student.cache import KVCache
 from world_model.student.config import StudentConfig, check_student, rollout_blocks
 
 X0Fn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (x_t, t) -> x0 prediction
-# A noise source: a torch.Generator, or a function shape -> standard normal tensor (e.g. one
-# generator per batch row, so a rollout's noise does not depend on the other rows of its batch).
-NoiseSource = torch.Generator | Callable[[tuple[int, ...]], torch.Tensor] | None
-
-
-def gaussian(shape: Sequence[int], source: NoiseSource) -> torch.Tensor:
-    """Standard normal noise of ``shape`` drawn from ``source``."""
-    if callable(source):
-        return source(tuple(shape))
-    return torch.randn(tuple(shape), generator=source)
 
 
 def few_step_sample(
@@ -78,7 +68,7 @@ def few_step_sample(
             return x0
         t_next = times[k + 1].expand(b).to(noise.device)
         if renoise == "fresh":
-            eps = gaussian(x.shape, generator).to(x.device)
+            eps = gaussian(x.shape, generator, x.device)
         else:  # the noise the current sample implies: deterministic, DDIM-like
             tb = t.reshape(b, *[1] * (x.ndim - 1))
             eps = (x - tb * x0) / (1.0 - tb)
@@ -206,20 +196,21 @@ class StreamingEngine:
                 "the recompute ablation restarts the whole batch with start()"
             )
         self._check_latents(first_latents, controls, "first_latents")
-        r = torch.as_tensor(list(rows), dtype=torch.long)
-        if len(r) != first_latents.shape[0] or len(set(r.tolist())) != len(r):
-            raise ValueError(f"rows {list(rows)} must be distinct, one per first_latents sample")
-        if len(r) and (int(r.min()) < 0 or int(r.max()) >= self.batch_size):
-            raise ValueError(f"rows must be in [0, {self.batch_size}), got {list(rows)}")
+        rows = [int(r) for r in rows]
+        if len(rows) != first_latents.shape[0] or len(set(rows)) != len(rows):
+            raise ValueError(f"rows {rows} must be distinct, one per first_latents sample")
+        if rows and (min(rows) < 0 or max(rows) >= self.batch_size):
+            raise ValueError(f"rows must be in [0, {self.batch_size}), got {rows}")
         f0 = first_latents.shape[1]
         if f0 > self.position:
             raise ValueError(f"{f0} first frames cannot precede frame position {self.position}")
         dev = self._device()
         x, controls = first_latents.to(dev).float(), controls.to(dev)
-        self.cache.restart_rows(r.tolist(), self._clean_kv(x, controls, self.position - f0), f0)
+        self.cache.restart_rows(rows, self._clean_kv(x, controls, self.position - f0), f0)
+        r = torch.as_tensor(rows, dtype=torch.long, device=dev)
         self.last = self.last.clone()
-        self.last[r.to(dev)] = x[:, -1:]
-        self.last_controls = set_rows(self.last_controls, r.to(dev), controls.frames(f0 - 1, f0))
+        self.last[r] = x[:, -1:]
+        self.last_controls = set_rows(self.last_controls, r, controls.frames(f0 - 1, f0))
 
     def snapshot(self) -> dict:
         """The rollout state, cheaply: the cache never modifies its tensors in place, so holding
@@ -336,7 +327,7 @@ class StreamingEngine:
         controls = controls.to(dev)
         shape = (self.batch_size, *self.cfg.latent_shape(c))
         if noise is None:
-            noise = gaussian(shape, self.gen)
+            noise = gaussian(shape, self.gen, dev)
         elif tuple(noise.shape) != shape:
             raise ValueError(f"noise must be {shape}, got {tuple(noise.shape)}")
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
