@@ -99,7 +99,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
         write_report,
     )
     from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
-    from world_model.heap import retain_freed_memory
     from world_model.runtime import load_world_model
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -111,7 +110,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
-    retain_freed_memory()  # as the env's backend does on CPU (world_model.heap)
     load = partial(load_world_model, dtype=args.dtype, context_frames=args.context_frames)
     wm = load(args.checkpoint)
     window = f",window={args.context_frames}" if args.context_frames else ""  # not the checkpoint's own
@@ -279,6 +277,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+DEVICE_BENCHMARKS = ("env", "model", "student")  # the benchmarks that take --device; the others time CPU work
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
@@ -301,6 +302,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     }
     for name in args.only or list(scripts):
         script, *extra = scripts[name]
+        if name in DEVICE_BENCHMARKS:
+            extra += ["--device", args.device]
         cmd = [sys.executable, str(root / script), *extra, "--out", str(out / f"bench_{name}.json")]
         print("$", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
@@ -459,6 +462,11 @@ def build_parser() -> argparse.ArgumentParser:
     benchmarks = ("render", "traffic", "env", "model", "student", "precision", "judge", "first_frame")
     b.add_argument("--only", nargs="+", choices=benchmarks)
     b.add_argument("--evalset", default="data/evalset", help="evaluation set (judge, first_frame)")
+    b.add_argument(
+        "--device",
+        default="cpu",
+        help=f"where the model benchmarks ({', '.join(DEVICE_BENCHMARKS)}) run: cpu, cuda[:N] or auto",
+    )
     b.set_defaults(func=_cmd_bench)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")

@@ -38,6 +38,26 @@ def cpu_has_native_bf16() -> bool:
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
 
 
+def resolve_device(name: str | torch.device) -> torch.device:
+    """A device option as torch sees it: "auto" (the first CUDA device when torch sees one, else
+    the CPU), "cpu", "cuda", "cuda:N", or any other device torch knows. Raises ``ValueError``
+    naming the option when torch does not know it or when the CUDA device asked for is missing."""
+    import torch
+
+    if str(name) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {name!r} ({e})") from e
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} asked for, but this torch build sees no CUDA device")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} asked for, but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    return device
+
+
 def bf16_is_fast(device: torch.device | str) -> bool:
     """Whether bf16 matrix products on ``device`` run at native speed (faster than float32)."""
     import torch

@@ -253,24 +253,18 @@ class MultiViewDiT(nn.Module):
     def _autocast(self, device_type: str) -> AbstractContextManager[None]:
         return bf16_autocast(device_type, self.autocast_bf16)
 
-    def compile_blocks(self, freeze: bool = False) -> None:
+    def compile_blocks(self) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
         modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
-        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time.
-
-        ``freeze`` (inductor's freezing; it only applies to graphs run without autograd): the weights
-        become constants of the compiled kernels, which lets oneDNN pre-pack them. On this 2-core CPU
-        it measured no faster than compiling alone (``benchmarks/bench_student.py --sections
-        compiled_vs_eager``), so it is off by default. A frozen weight is read when its graph
-        compiles: applying or removing a LoRA adapter swaps modules and so recompiles, but a weight
-        changed in place afterwards is not seen."""
+        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time. Applying or
+        removing a LoRA adapter swaps modules, so the blocks recompile."""
         import torch._dynamo
 
         # One graph per (block kind, chunk/context shape): a rollout's first chunks see shorter
         # contexts, so allow more graphs than dynamo's default before it falls back to eager.
         torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
         for block in self.blocks:
-            block.forward = torch.compile(block.forward, dynamic=False, options={"freezing": freeze})
+            block.forward = torch.compile(block.forward, dynamic=False)
 
     def tokenize(self, cond: Conditions) -> ControlTokens:
         """Control tokens for ``cond`` with every block's cross-attention keys/values; pass them to

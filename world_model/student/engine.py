@@ -35,7 +35,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import NoiseSource, gaussian, interpolate, predict_x0
 from world_model.model.tokens import ControlTokens
 from world_model.student.cache import KVCache
-from world_model.student.config import StudentConfig, check_student, rollout_blocks
+from world_model.student.config import StudentConfig, check_student
 
 X0Fn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (x_t, t) -> x0 prediction
 
@@ -112,17 +112,12 @@ class StreamingEngine:
         self.cfg = model.cfg
         self.scfg = student or StudentConfig()
         check_student(self.cfg, self.scfg)
-        if not self.scfg.kv_cache and self.scfg.sink_frames:
-            raise ValueError("the recompute ablation (kv_cache=False) supports no sink frames")
         self.gen = generator
         self.times = self.scfg.times()
         self.cache: KVCache | None = None
         self.position = 0  # RoPE frame index of the next frame (shared by all rows)
-        self.prefix = 0  # conditioning frames of the rollout (recompute ablation block layout)
         self.last: torch.Tensor | None = None  # (B, 1, V, C, h, w) last clean frame of each row
         self.last_controls: Conditions | None = None  # its controls (1 frame)
-        self.history: torch.Tensor | None = None  # recompute ablation: (B, <=W, V, C, h, w)
-        self.history_controls: Conditions | None = None
 
     # -- state --
     @property
@@ -175,26 +170,16 @@ class StreamingEngine:
         dev = self._device()
         x, controls = first_latents.to(dev).float(), controls.to(dev)
         b, f0 = x.shape[:2]
-        self.position, self.prefix = f0, f0
+        self.position = f0
         self.last, self.last_controls = x[:, -1:].clone(), controls.frames(f0 - 1, f0)
-        if self.scfg.kv_cache:
-            c = self.cfg
-            self.cache = KVCache(
-                b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, self.scfg.sink_frames
-            )
-            self.cache.append(self._clean_kv(x, controls, 0), f0)
-        else:
-            self.history, self.history_controls = x.clone(), controls
+        c = self.cfg
+        self.cache = KVCache(b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, self.scfg.sink_frames)
+        self.cache.append(self._clean_kv(x, controls, 0), f0)
 
     def start_rows(self, rows: Sequence[int], first_latents: torch.Tensor, controls: Conditions) -> None:
         """Restart rollouts ``rows`` from new first frames (R, F0, ...); the other rows continue."""
         if self.last is None:
             raise RuntimeError("start the batch with start() before restarting rows")
-        if not self.scfg.kv_cache:
-            raise ValueError(
-                "restarting single rows needs the KV cache (kv_cache=True); "
-                "the recompute ablation restarts the whole batch with start()"
-            )
         self._check_latents(first_latents, controls, "first_latents")
         rows = [int(r) for r in rows]
         if len(rows) != first_latents.shape[0] or len(set(rows)) != len(rows):
@@ -216,8 +201,7 @@ class StreamingEngine:
         """The rollout state, cheaply: the cache never modifies its tensors in place, so holding
         references is enough. :meth:`restore` rewinds to it (e.g. to draw extra samples from the
         same context for the DMD critic without advancing the rollout)."""
-        keys = ("position", "prefix", "last", "last_controls", "history", "history_controls")
-        state = {k: getattr(self, k) for k in keys}
+        state = {k: getattr(self, k) for k in ("position", "last", "last_controls")}
         if self.cache is not None:
             state["cache"] = (self.cache.layers, self.cache.count)
         return state
@@ -235,11 +219,10 @@ class StreamingEngine:
         ``StudentConfig.refresh_steps`` all rows share one time (the step is read from it)."""
         return self._chunk(controls)[0]
 
-    def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens | None]:
-        """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit (None: the
-        recompute ablation, which commits without a forward)."""
+    def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens]:
+        """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit."""
         m, c = self.model, self.cfg.clip.chunk_frames
-        if self.scfg.kv_cache and self.scfg.context_refresh:
+        if self.scfg.context_refresh:
             ctx, valid = self.cache.context(exclude_newest=True)
             tokens = m.tokenize(cat_frames(self.last_controls, controls))
 
@@ -260,21 +243,8 @@ class StreamingEngine:
             if self.scfg.refresh_steps is None:
                 return refreshed, chunk_tokens
             return self._partly_refreshed(refreshed, self._cached_fn(chunk_tokens)), chunk_tokens
-        if self.scfg.kv_cache:
-            tokens = m.tokenize(controls)
-            return self._cached_fn(tokens), tokens
-        hist, f = self.history, self.history.shape[1]
-        tokens = m.tokenize(cat_frames(self.history_controls, controls))
-        blocks = rollout_blocks(self.position - f, f + c, self.prefix, c)
-
-        def recompute(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            tt = torch.cat([torch.ones(x.shape[0], f, device=x.device), t[:, None].expand(-1, c)], dim=1)
-            v = m(torch.cat([hist, x], dim=1), tt, tokens, causal=True, frame_offset=self.position - f, blocks=blocks)[
-                :, f:
-            ]
-            return predict_x0(x, v, t)
-
-        return recompute, None
+        tokens = m.tokenize(controls)
+        return self._cached_fn(tokens), tokens
 
     def _cached_fn(self, tokens: ControlTokens) -> X0Fn:
         """x0-prediction of the next chunk attending to the whole cache (no context refresh)."""
@@ -346,16 +316,8 @@ class StreamingEngine:
         """
         c = latents.shape[1]
         latents, controls = latents.detach().float(), controls.to(latents.device)
-        if self.scfg.kv_cache:
-            ctx, valid = self.cache.context()
-            kv = self._clean_kv(latents, controls if tokens is None else tokens, self.position, ctx, valid)
-            self.cache.append(kv, c)
-        else:
-            w = self.cfg.clip.context_frames
-            hist = torch.cat([self.history, latents], dim=1)
-            hc = cat_frames(self.history_controls, controls)
-            keep = min(w, hist.shape[1])
-            self.history = hist[:, -keep:]
-            self.history_controls = hc.frames(hc.num_frames - keep, hc.num_frames)
+        ctx, valid = self.cache.context()
+        kv = self._clean_kv(latents, controls if tokens is None else tokens, self.position, ctx, valid)
+        self.cache.append(kv, c)
         self.position += c
         self.last, self.last_controls = latents[:, -1:], controls.frames(c - 1, c)
