@@ -82,7 +82,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         bev=sensors.bev,
         exclude_categories=tuple(args.exclude_category or ()),
     )
-    names = record(cfg)
+    names = record(cfg, workers=args.workers)
     print(f"{len(names)} clips in {args.out}")
     return 0
 
@@ -354,6 +354,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--width", type=_positive_int, default=None, help="camera width (default: the preset's)")
     r.add_argument("--no-randomize", action="store_true", help="record the scenarios exactly as written")
     r.add_argument("--exclude-category", action="append", help="drop scripted objects of this category")
+    r.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=1,
+        help="record clips in this many processes (each clip identical to a serial run's; e.g. the CPU count)",
+    )
     r.set_defaults(func=_cmd_record)
 
     e = sub.add_parser("eval", help="score a policy over scenarios (PDM-style)")
