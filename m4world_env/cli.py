@@ -310,6 +310,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_text_embeddings(args: argparse.Namespace) -> int:
+    from m4world_env.scenario import list_scenarios
+    from m4world_env.text_embeddings import precompute_text_embeddings
+
+    scenarios = list_scenarios() if args.scenario == ["all"] else args.scenario
+    path, prompts, pooled = precompute_text_embeddings(
+        scenarios, args.out, args.episodes, args.seed, args.steps, args.checkpoint
+    )
+    print(f"{prompts} prompts and {pooled} object texts in {path}; use it with M4WORLD_TEXT_EMBEDDINGS={path}")
+    return 0
+
+
 def _cmd_evalset(args: argparse.Namespace) -> int:
     from m4world_env.evalset import record_evalset
 
@@ -474,6 +486,18 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"where the model benchmarks ({', '.join(DEVICE_BENCHMARKS)}) run: cpu, cuda[:N] or auto",
     )
     b.set_defaults(func=_cmd_bench)
+
+    te = sub.add_parser(
+        "text-embeddings",
+        help="precompute the text embeddings of some episodes, for a machine without the text encoder",
+    )
+    te.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
+    te.add_argument("--episodes", type=_positive_int, default=1, help="seeds --seed .. --seed + episodes - 1")
+    te.add_argument("--seed", type=int, default=0)
+    te.add_argument("--steps", type=int, default=None, help="steps per episode (default: to its end)")
+    te.add_argument("--checkpoint", default=None, help="bundle whose text encoder to use (default: the shipped one)")
+    te.add_argument("--out", required=True, help="the .npz file to write")
+    te.set_defaults(func=_cmd_text_embeddings)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
     v.add_argument("--out", default="data/evalset")
