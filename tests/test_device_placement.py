@@ -115,3 +115,39 @@ def test_streaming_engine_start_step_restart_on_the_model_device():
         engine.start_rows([0], first[:1], cond.frames(0, 1).apply(lambda _, v: v[:1]))
         out = engine.step(cond.frames(1 + c, 1 + 2 * c))
     assert out.device == META and engine.cache.layers[0][0].device == META
+
+
+def test_the_env_and_a_vector_env_step_with_the_model_on_the_device(tiny_bundle):
+    import gymnasium as gym
+
+    import m4world_env  # noqa: F401 (registers M4World-v0)
+    from m4world_env.policies import ConstantSpeedLaneKeeping
+
+    kw = {"backend": "world_model", "checkpoint": str(tiny_bundle), "config": {"model": {"device": "meta"}}}
+    kw["config"]["model"]["dtype"] = "float32"
+    # Built outside the guard: modules are constructed on the host, then moved (load_world_model).
+    # (Not a scenario with LoRA adapters: matching one fingerprints the weights, data meta has not.)
+    env = gym.make("M4World-v0", scenario="merge_cut_in", **kw)
+    venv = gym.make_vec("M4World-v0", num_envs=2, vectorization_mode="vector_entry_point", **kw)
+    with OnDevice(META):
+        env.reset(seed=0)
+        for _ in range(2):
+            env.step(ConstantSpeedLaneKeeping()(env.unwrapped.bridge))
+        venv.reset(seed=0)
+        obs, *_ = venv.step(venv.action_space.sample())
+    assert env.unwrapped.backend.wm.student.patch_in.weight.device == META
+    assert obs["cameras"].shape[0] == 2
+
+
+def test_device_options_are_resolved_or_refused_by_name():
+    from m4world_env.config import InvalidOptionError
+    from m4world_env.env import M4WorldEnv
+    from world_model.precision import resolve_device
+
+    assert resolve_device("auto") == torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    assert resolve_device("cpu") == torch.device("cpu")
+    with pytest.raises(ValueError, match="device must be auto, cpu, cuda or cuda:N, got 'gpu0'"):
+        resolve_device("gpu0")
+    if not torch.cuda.is_available():
+        with pytest.raises(InvalidOptionError, match="config.model.device: device 'cuda:1' asked for, but this torch"):
+            M4WorldEnv(backend="world_model", config={"model": {"device": "cuda:1"}})
