@@ -165,12 +165,18 @@ def student_vs_teacher(student: MultiViewDiT, teacher: MultiViewDiT, envs: int, 
         "student_chunk_s": s,
     }
     gen = torch.Generator().manual_seed(0)
+    device = next(teacher.parameters()).device
+
+    def sample(cond: Conditions) -> None:
+        sample_latents(teacher, cond, gen)
+        synchronize(device)
+
     for name, frames in (
         ("in_context", cfg.clip.context_frames + cfg.clip.chunk_frames),
         ("alone", cfg.clip.chunk_frames),
     ):
         cond = synthetic_conditions(cfg, frames, envs)
-        t = statistics.median(timed(lambda cond=cond: sample_latents(teacher, cond, gen), max(1, repeats // 2), 0))
+        t = statistics.median(timed(lambda cond=cond: sample(cond), max(1, repeats // 2), 0))
         out[f"teacher_{name}_chunk_s"] = t
         out[f"teacher_{name}_over_student"] = t / s
     return out
