@@ -117,7 +117,9 @@ def _condition_arrays(clips: Sequence[Clip], views: Sequence[RareView], vae: Sen
         c = clips[rv.clip]
         fr = c.frames[rv.frame]
         bev = np.asarray(c.bev[rv.frame : rv.frame + 1])
-        arrays.append(build_condition_arrays([fr], bev, cfg, text, image, c.crops, first_ego=fr.ego))
+        arrays.append(
+            build_condition_arrays([fr], bev, cfg, text, image, c.crops, first_ego=fr.ego, crop_since=c.crop_since)
+        )
     return arrays
 
 

@@ -13,14 +13,12 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
 
-import cv2
-import numpy as np
-
 from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError
 from world_model.observation import Observation
 from world_model.precision import resolve_device
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
+from world_model.sim.reference_crops import ReferenceCrops
 from world_model.student.config import DIFFUSION_STEPS
 
 
@@ -103,6 +101,9 @@ class WorldModelBackend:
     user's images when ``options["reference"]`` is given) and seeds the student's KV cache; each
     ``step`` runs one batched causal chunk for every rollout and decodes the newest frame.
     The BEV observation, when asked for, is the map raster the model is conditioned on.
+    Objects' reference crops (image descriptions) are cut from the procedural simulator's views
+    by the rule the recorder uses (:class:`~world_model.sim.reference_crops.ReferenceCrops`), so
+    the model sees in the env the conditions it was trained on.
     """
 
     def __init__(
@@ -135,26 +136,14 @@ class WorldModelBackend:
         self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame)
         self.rig = self.wm.rig
         self.with_bev = with_bev
-        self._images: dict[str, np.ndarray] = {}
+        self._sim = ProceduralSimulator(
+            config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
+        )
+        self._crops = [ReferenceCrops(self._sim) for _ in range(num_rollouts)]
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
         """Load a scenario's LoRA adapters (§5): :meth:`world_model.runtime.WorldModel.apply_adapters`."""
         return self.wm.apply_adapters(names)
-
-    def _crops(self, frame: SceneFrame) -> dict[str, np.ndarray]:
-        """Reference crops (image descriptions) of objects whose scenario names an image file."""
-        out = {}
-        for obj in frame.objects:
-            if obj.image is not None:
-                out[obj.track_id] = obj.image
-            elif obj.image_path:
-                if obj.image_path not in self._images:
-                    img = cv2.imread(obj.image_path, cv2.IMREAD_COLOR)
-                    if img is None:
-                        raise FileNotFoundError(f"object {obj.track_id!r}: image {obj.image_path} cannot be read")
-                    self._images[obj.image_path] = img[..., ::-1].copy()
-                out[obj.track_id] = self._images[obj.image_path]
-        return out
 
     def _with_bev(self, obs: Observation, frame: SceneFrame) -> Observation:
         if self.with_bev:
@@ -163,13 +152,19 @@ class WorldModelBackend:
 
     def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:
         reference = (options or {}).get("reference")
-        obs = self.rollouts.reset_row(index, frame, seed, reference=reference, crops=self._crops(frame))
+        crops = self._crops[index] = ReferenceCrops(self._sim)
+        crops.update(frame)
+        obs = self.rollouts.reset_row(
+            index, frame, seed, reference=reference, crops=crops.crops, crop_since=crops.since
+        )
         return self._with_bev(obs, frame)
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
-        for i, chunk in enumerate(chunks):  # objects inserted or edited since reset may name images
+        for i, chunk in enumerate(chunks):  # crops of objects that came into view (or were inserted)
             if chunk is not None:
-                self.rollouts.crops[i] = self._crops(chunk[-1])
+                for frame in chunk:
+                    self._crops[i].update(frame)
+                self.rollouts.crops[i], self.rollouts.crop_since[i] = self._crops[i].crops, self._crops[i].since
         outs = self.rollouts.step(chunks)
         return [  # observations are of the chunk's last len(out) frames (all of them with every_frame)
             None if out is None else [self._with_bev(o, f) for o, f in zip(out, chunk[-len(out) :], strict=True)]

@@ -9,6 +9,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
 
 
@@ -81,6 +82,8 @@ def _cmd_record(args: argparse.Namespace) -> int:
         lidar=sensors.lidar,
         bev=sensors.bev,
         exclude_categories=tuple(args.exclude_category or ()),
+        action_type=args.action_type,
+        styles=tuple(args.styles),
     )
     names = record(cfg, workers=args.workers)
     print(f"{len(names)} clips in {args.out}")
@@ -366,6 +369,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--width", type=_positive_int, default=None, help="camera width (default: the preset's)")
     r.add_argument("--no-randomize", action="store_true", help="record the scenarios exactly as written")
     r.add_argument("--exclude-category", action="append", help="drop scripted objects of this category")
+    r.add_argument(
+        "--styles",
+        nargs="+",
+        default=["steady"],
+        help="ego driving styles (steady, speed_changes, lane_changes, weaving), cycled over the episodes "
+        "(seed s drives styles[s %% len(styles)])",
+    )
+    r.add_argument(
+        "--action-type",
+        default="discrete_meta",
+        choices=ACTION_TYPES,
+        help="the ego's action space; continuous brakes and accelerates beyond the meta-actions' target speeds",
+    )
     r.add_argument(
         "--workers",
         type=_positive_int,

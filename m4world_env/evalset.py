@@ -239,8 +239,14 @@ def _record_job(job: EvalJob, rec: RecordConfig, sim: ProceduralSimulator, confi
         seed += 1  # the episode ended early (a crash): a long clip must cover the whole duration
     else:
         raise RuntimeError(f"{job.name}: no crash-free episode in {config.max_attempts} seeds from {job.seed}")
-    meta = {"seed": seed, "randomized": True, "base_scenario": job.scenario.name, "evalset_kind": job.kind}
-    write_clip(rec.out, job.name, frames, cams, lidar, bev, crops=crops, extra_meta=meta)
+    meta = {
+        "seed": seed,
+        "randomized": True,
+        "base_scenario": job.scenario.name,
+        "evalset_kind": job.kind,
+        "crop_since": crops.since,
+    }
+    write_clip(rec.out, job.name, frames, cams, lidar, bev, crops=crops.crops, extra_meta=meta)
 
 
 def _config_dict(config: EvalsetConfig) -> dict:

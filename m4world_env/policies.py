@@ -7,7 +7,7 @@ the bridge's ``action_type``: a float32 ``[acceleration, steering]`` in [-1, 1] 
 ContinuousAction meaning: steering +1 turns right) or an int meta-action 0..4.
 
 * :class:`IDMAutopilot`: IDM speed control + MOBIL-style lane changes, with optional seeded
-  random lane/speed changes so that recorded data is varied.
+  random lane/speed changes so that recorded data is varied (:data:`DRIVING_STYLES`).
 * :class:`ConstantSpeedLaneKeeping`: holds a speed and the current lane.
 * :class:`RandomPolicy`: uniformly random actions (seeded).
 """
@@ -101,6 +101,37 @@ class AutopilotConfig:
     speed_fraction_range: tuple[float, float] = (0.6, 1.0)  # for the redraw
     speed_tolerance: float = 1.0  # m/s dead band before a discrete FASTER/SLOWER
     lane_change_cooldown_s: float = 2 * IDMVehicle.LANE_CHANGE_DELAY  # no new lane change before this
+
+
+# Ego driving styles for recorded data: the autopilot with seeded random manoeuvres, so that the
+# ego's actions have consequences in the sensors (the road ahead closing in under braking, the
+# scene sliding sideways in a lane change) for a world model to learn. The policy runs at the
+# scenario's policy frequency (5 Hz in the bundled scenarios): a probability of 0.08 per call is
+# a new desired speed every 2.5 s on average.
+DRIVING_STYLES: dict[str, AutopilotConfig] = {
+    # IDM speed keeping; MOBIL lane changes only where they pay off.
+    "steady": AutopilotConfig(),
+    # Brakes to as low as 20% of the limit and accelerates back to above it.
+    "speed_changes": AutopilotConfig(random_speed_change_prob=0.08, speed_fraction_range=(0.2, 1.1)),
+    # Frequent random lane changes, accepting gaps that make the new follower brake at up to
+    # 4 m/s^2 (the default 2 m/s^2 leaves almost no gap in the scenarios' randomized traffic).
+    "lane_changes": AutopilotConfig(random_lane_change_prob=0.15, max_braking_imposed=4.0),
+    # Changes lanes back and forth whenever a gap allows, with speed changes.
+    "weaving": AutopilotConfig(
+        random_lane_change_prob=0.5,
+        max_braking_imposed=4.0,
+        random_speed_change_prob=0.05,
+        speed_fraction_range=(0.5, 1.1),
+    ),
+}
+
+
+def driving_style(name: str) -> AutopilotConfig:
+    """The autopilot settings of style ``name`` (one of :data:`DRIVING_STYLES`)."""
+    try:
+        return DRIVING_STYLES[name]
+    except KeyError:
+        raise ValueError(f"unknown driving style {name!r}; choose from {sorted(DRIVING_STYLES)}") from None
 
 
 class IDMAutopilot:

@@ -1,8 +1,10 @@
 """Dataset recorder: scenarios → traffic bridge → procedural sensors → clips on disk.
 
 ``m4world record --scenario highway_sunny_day --episodes 8 --out data/train`` runs each scenario with an
-autopilot ego (lane and speed changes) and seeded randomization of traffic, colours, categories,
-weather and time, and writes one clip per episode in the format of :mod:`world_model.data.clips`.
+autopilot ego (lane and speed changes; ``--styles`` mixes driving styles that brake, accelerate,
+change lanes and weave: :data:`~m4world_env.policies.DRIVING_STYLES`) and seeded randomization of
+traffic, colours, categories, weather and time, and writes one clip per episode in the format of
+:mod:`world_model.data.clips`.
 Clip names are derived from (scenario, seed), so a killed recording restarts where it stopped:
 complete clips are skipped, a partial one is rewritten. The settings that shape a clip's content
 (resolution, sensors, duration, randomization, action type, excluded categories) are kept in the
@@ -27,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from m4world_env.policies import IDMAutopilot
+from m4world_env.policies import IDMAutopilot, driving_style
 from m4world_env.scenario import Scenario, list_scenarios, load_scenario, randomize_scenario
 from m4world_env.traffic import TrafficBridge
 from world_model.data import clip_exists, register_clip, write_clip
@@ -35,6 +37,9 @@ from world_model.data.clips import write_json_atomic
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
 from world_model.sim import ProceduralSimulator
+from world_model.sim.reference_crops import ReferenceCrops
+
+DEFAULT_STYLE = "steady"
 
 
 @dataclass
@@ -55,6 +60,19 @@ class RecordConfig:
     exclude_categories: tuple[
         str, ...
     ] = ()  # drop scripted objects of these categories (e.g. a base set without a rare case)
+    # Ego driving styles (policies.DRIVING_STYLES), cycled over the episodes: episode seed s drives
+    # with styles[s % len(styles)].
+    styles: tuple[str, ...] = (DEFAULT_STYLE,)
+
+    def __post_init__(self) -> None:
+        if not self.styles:
+            raise ValueError("RecordConfig.styles needs at least one driving style")
+        for name in self.styles:
+            driving_style(name)  # raises, naming the known styles
+
+    def style(self, seed: int) -> str:
+        """The driving style of the episode with ``seed``."""
+        return self.styles[seed % len(self.styles)]
 
 
 def exclude_categories(scenario: Scenario, categories: Sequence[str]) -> Scenario:
@@ -124,13 +142,14 @@ def content_settings(cfg: RecordConfig) -> dict:
         "bev": asdict(cfg.bev),
         "action_type": cfg.action_type,
         "exclude_categories": sorted(cfg.exclude_categories),
+        # Only a mix is written: datasets recorded before styles existed drove the default style.
+        **({"styles": list(cfg.styles)} if cfg.styles != (DEFAULT_STYLE,) else {}),
     }
 
 
-def record_episode(
-    scenario: Scenario, seed: int, cfg: RecordConfig, sim: ProceduralSimulator | None = None
-) -> tuple[list[SceneFrame], np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray]]:
-    """Run one episode and render every sensor frame. Returns frames, cameras, lidar, bev, crops."""
+def drive_episode(scenario: Scenario, seed: int, cfg: RecordConfig) -> list[SceneFrame]:
+    """The scene frames of one episode (traffic and ego, no sensors): the scenario randomized
+    with ``seed`` when ``cfg.randomize``, the ego driven in the episode's style."""
     rng = np.random.default_rng(seed)
     if cfg.randomize:
         scenario = randomize_scenario(scenario, rng)
@@ -141,24 +160,28 @@ def record_episode(
     rig = default_rig(width=cfg.width, height=cfg.height)
     bridge = TrafficBridge(scenario, action_type=cfg.action_type, rig=rig, lidar=cfg.lidar, bev=cfg.bev)
     frames = [bridge.reset(seed=seed)]
-    policy = IDMAutopilot(seed=seed)
+    policy = IDMAutopilot(driving_style(cfg.style(seed)), seed=seed)
     while not (bridge.truncated or bridge.crashed):
         frames.extend(bridge.step(policy(bridge)))
+    return frames
+
+
+def record_episode(
+    scenario: Scenario, seed: int, cfg: RecordConfig, sim: ProceduralSimulator | None = None
+) -> tuple[list[SceneFrame], np.ndarray, np.ndarray, np.ndarray, ReferenceCrops]:
+    """Run one episode and render every sensor frame. Returns frames, cameras, lidar, bev and the
+    objects' reference crops (with the frame each was cut at)."""
+    frames = drive_episode(scenario, seed, cfg)
     sim = sim or ProceduralSimulator()
     cams, lidars, bevs = [], [], []
-    best_crops: dict[str, np.ndarray] = {}
-    for i, fr in enumerate(frames):
+    crops = ReferenceCrops(sim)  # the objects' "image descriptions", cut as the world-model env cuts them
+    for fr in frames:
         obs = sim.render(fr, with_bev=True)
         cams.append(obs.cameras)
         lidars.append(obs.lidar)
         bevs.append(obs.bev)
-        # Reference crops (the objects' "image descriptions"): keep each track's largest view.
-        if i % max(1, len(frames) // 8) == 0:
-            for tid, crop in sim.object_crops(fr, obs.cameras).items():
-                old = best_crops.get(tid)
-                if old is None or crop.shape[0] * crop.shape[1] > old.shape[0] * old.shape[1]:
-                    best_crops[tid] = crop
-    return frames, np.stack(cams), np.stack(lidars), np.stack(bevs), best_crops
+        crops.update(fr, obs.cameras)
+    return frames, np.stack(cams), np.stack(lidars), np.stack(bevs), crops
 
 
 def record_clip(scenario: Scenario, seed: int, cfg: RecordConfig, sim: ProceduralSimulator | None = None) -> int:
@@ -172,8 +195,14 @@ def record_clip(scenario: Scenario, seed: int, cfg: RecordConfig, sim: Procedura
         cams,
         lidar,
         bev,
-        crops=crops,
-        extra_meta={"seed": seed, "randomized": cfg.randomize, "base_scenario": scenario.name},
+        crops=crops.crops,
+        extra_meta={
+            "seed": seed,
+            "randomized": cfg.randomize,
+            "base_scenario": scenario.name,
+            "crop_since": crops.since,
+            "ego_style": cfg.style(seed),
+        },
         register=False,
     )
     return len(frames)

@@ -90,14 +90,16 @@ def test_reference_generator_first_frames_references_and_completion_on_the_model
     assert len(obs) == 1
 
 
-def test_sampler_with_guidance_on_the_model_device():
+@pytest.mark.parametrize("layout", [False, True], ids=["tokens", "layout channels"])
+def test_sampler_with_guidance_on_the_model_device(layout):
+    cfg = replace(CFG, layout=replace(CFG.layout, enabled=layout))
     torch.manual_seed(0)
-    model, vae = _on_meta(MultiViewDiT(CFG)), _on_meta(SensorVAE(CFG))
-    assert CFG.sampler.camera_cfg_scale != 1.0  # the guided path: conditional + unconditional batch
-    cond = tiny_conditions(CFG, 2, batch=2)
+    model, vae = _on_meta(MultiViewDiT(cfg)), _on_meta(SensorVAE(cfg))
+    assert cfg.sampler.camera_cfg_scale != 1.0  # the guided path: conditional + unconditional batch
+    cond = tiny_conditions(cfg, 2, batch=2)
     with OnDevice(META):
-        lat = sample_latents(model, cond, torch.Generator().manual_seed(0), replace(CFG.sampler, steps=2))
-        obs = generate(model, vae, cond, torch.Generator().manual_seed(0), replace(CFG.sampler, steps=2))
+        lat = sample_latents(model, cond, torch.Generator().manual_seed(0), replace(cfg.sampler, steps=2))
+        obs = generate(model, vae, cond, torch.Generator().manual_seed(0), replace(cfg.sampler, steps=2))
     assert lat.device == META and len(obs) == 2 and len(obs[0]) == 2
 
 

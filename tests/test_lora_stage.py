@@ -305,7 +305,7 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     info, _ = read_adapter(Path(out["adapter_dir"]))
     wm = load_world_model(bundle)
     assert info.base_sha256 == base_fingerprint(wm.student)
-    assert info.meta["base_path"] == str(bundle / "student.safetensors")
+    assert info.meta["base_file"] == "student.safetensors"
     cached = sorted(p.name for p in (run / "teacher" / "latents").glob("*.safetensors"))
     assert "rare0.safetensors" in cached and "ordinary0.safetensors" in cached
     assert apply_adapters(wm.student, [CASE], search_dirs=[run / "lora"]) == [CASE]
@@ -317,7 +317,7 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     out = train_lora(data, tmp_path / "ref_run", 1, base=bundle / "reference.safetensors")
     info, _ = read_adapter(Path(out["adapter_dir"]))
     assert info.base_sha256 == base_fingerprint(wm.reference) and info.meta["train"]["reference_tasks"] is True
-    assert info.meta["base_path"] == str(bundle / "reference.safetensors")
+    assert info.meta["base_file"] == "reference.safetensors"
     wm.apply_adapters([out["adapter_dir"]])
     assert loaded_adapters(wm.reference) == [CASE]
 

@@ -157,3 +157,43 @@ def test_a_clip_written_but_not_registered_is_registered_when_resumed(tmp_path):
     (out / "dataset.json").write_text(json.dumps(index))
     assert main([*_record_args(out, "empty_highway", "merge_cut_in"), "--workers", "2"]) == 0
     assert list_clips(out) == names
+
+
+def _ego_track(style: str, seed: int, action_type: str = "continuous", duration: float = 20.0):
+    from m4world_env.recorder import RecordConfig, drive_episode
+    from m4world_env.scenario import load_scenario
+
+    cfg = RecordConfig(scenarios=["highway_sunny_day"], duration=duration, action_type=action_type, styles=(style,))
+    frames = drive_episode(load_scenario("highway_sunny_day"), seed, cfg)
+    speeds = np.array([f.ego.speed for f in frames])
+    lanes = [f.ego.lane_id for f in frames]
+    return frames, float(np.ptp(speeds)), sum(a != b for a, b in zip(lanes, lanes[1:], strict=False))
+
+
+def test_driving_styles_brake_accelerate_and_change_lanes_deterministically():
+    steady, steady_range, steady_changes = _ego_track("steady", 3)
+    _, speed_range, _ = _ego_track("speed_changes", 3)
+    weaving, _, weaving_changes = _ego_track("weaving", 3)
+    assert speed_range > steady_range + 3.0  # m/s: it brakes and speeds up again
+    assert weaving_changes >= steady_changes + 5  # back and forth between lanes
+    again, _, _ = _ego_track("weaving", 3)
+    assert [f.to_dict() for f in again] == [f.to_dict() for f in weaving]
+
+
+def test_record_cycles_styles_over_episodes_and_refuses_unknown_ones(tmp_path, capsys):
+    import pytest
+
+    from m4world_env.recorder import RecordConfig, content_settings
+
+    out = tmp_path / "mix"
+    styles = ["--styles", "steady", "weaving", "--action-type", "continuous", "--episodes", "2"]
+    assert main(_record_args(out, "empty_highway", extra=styles)) == 0
+    got = sorted(read_clip(out, n).meta["ego_style"] for n in list_clips(out))
+    assert got == ["steady", "weaving"]
+    assert main(_record_args(out, "empty_highway", extra=["--episodes", "2"])) == 2  # a mix is a content setting
+    assert "styles: recorded ['steady', 'weaving'], now None" in capsys.readouterr().err
+    assert "styles" not in content_settings(RecordConfig(scenarios=["x"]))  # datasets from before styles resume
+    assert main(_record_args(tmp_path / "bad", "empty_highway", extra=["--styles", "zigzag"])) == 2
+    assert "unknown driving style 'zigzag'" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="at least one driving style"):
+        RecordConfig(scenarios=["x"], styles=())

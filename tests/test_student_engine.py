@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from world_model.model import MultiViewDiT, get_preset
+from world_model.model.config import with_layout
 from world_model.model.flow import predict_x0
 from world_model.student import StreamingEngine, StudentConfig, few_step_sample, rollout_blocks
 
@@ -16,8 +17,8 @@ from .model_fixtures import perturbed, tiny_conditions
 TOL = 1e-4
 
 
-def _model(chunk: int, window: int, seed: int = 0) -> MultiViewDiT:
-    cfg = get_preset("tiny")
+def _model(chunk: int, window: int, seed: int = 0, layout: bool = False) -> MultiViewDiT:
+    cfg = with_layout(get_preset("tiny"), layout)
     cfg = dataclasses.replace(cfg, clip=dataclasses.replace(cfg.clip, chunk_frames=chunk, context_frames=window))
     torch.manual_seed(seed)
     return perturbed(MultiViewDiT(cfg), seed=seed)
@@ -59,9 +60,10 @@ def _reference_rollout(model, scfg, first, cond, noises):
 
 @pytest.mark.parametrize("refresh", [False, True, (0,), (1, 3)])  # (steps): refresh_steps
 @pytest.mark.parametrize("chunk", [1, 2])
-def test_cached_streaming_equals_full_recompute(refresh, chunk):
+@pytest.mark.parametrize("layout", [False, True])  # pixel-aligned layout: each frame's enters with it
+def test_cached_streaming_equals_full_recompute(refresh, chunk, layout):
     chunks, f0 = 3, 1
-    model = _model(chunk, window=f0 + chunks * chunk)  # window holds everything: nothing evicted
+    model = _model(chunk, window=f0 + chunks * chunk, layout=layout)  # window holds everything: nothing evicted
     steps = refresh if isinstance(refresh, tuple) else None
     scfg = StudentConfig(context_refresh=bool(refresh), refresh_steps=steps, renoise="ddim")
     total = f0 + chunks * chunk

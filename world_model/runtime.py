@@ -159,11 +159,18 @@ class WorldModel:
         return self._bev.render_bev(frame)
 
     def condition_arrays(
-        self, frames: Sequence[SceneFrame], first: SceneFrame, crops: Mapping[str, np.ndarray] | None = None
+        self,
+        frames: Sequence[SceneFrame],
+        first: SceneFrame,
+        crops: Mapping[str, np.ndarray] | None = None,
+        crop_since: Mapping[str, int] | None = None,
     ) -> ConditionArrays:
-        """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2)."""
+        """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2);
+        ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame)."""
         bev = np.stack([self.condition_bev(f) for f in frames])
-        return build_condition_arrays(frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego)
+        return build_condition_arrays(
+            frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego, crop_since=crop_since
+        )
 
     def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations."""
@@ -220,13 +227,14 @@ def load_world_model(
 
 
 def save_untrained_bundle(
-    out_dir: str | Path, preset: str = "tiny", seed: int = 0, geometry_only: bool = False
+    out_dir: str | Path, preset: str = "tiny", seed: int = 0, geometry_only: bool = False, layout: bool = False
 ) -> Path:
-    """A bundle of freshly initialized modules of ``preset``: exercises every code path of the
-    world-model backend (shapes, seeding, batching, memory) without training; outputs are noise."""
-    from world_model.model.config import get_preset
+    """A bundle of freshly initialized modules of ``preset`` (with pixel-aligned layout
+    conditioning when ``layout``): exercises every code path of the world-model backend (shapes,
+    seeding, batching, memory) without training; outputs are noise."""
+    from world_model.model.config import get_preset, with_layout
 
-    cfg = get_preset(preset, geometry_only=geometry_only)
+    cfg = with_layout(get_preset(preset, geometry_only=geometry_only), layout)
     student_cfg, ref_cfg = cfg.for_student(), reference_model_config(cfg)
     torch.manual_seed(seed)
     parts = {
@@ -250,7 +258,9 @@ class RolloutBatch:
         self.engine = StreamingEngine(wm.student, wm.student_cfg, generator=self._noise)
         self.gens: list[torch.Generator | None] = [None] * num_rollouts
         self.first: list[SceneFrame | None] = [None] * num_rollouts
+        # Per rollout: reference crops by track id, and the frame index each applies from.
         self.crops: list[dict[str, np.ndarray]] = [{} for _ in range(num_rollouts)]
+        self.crop_since: list[dict[str, int]] = [{} for _ in range(num_rollouts)]
         self.last_arrays: list[ConditionArrays | None] = [None] * num_rollouts
         self._pending: dict[int, tuple[torch.Tensor, ConditionArrays]] = {}
         # Wall seconds spent by step() building conditions (BEV raster, text, crops: outside the
@@ -273,12 +283,15 @@ class RolloutBatch:
         seed: int,
         reference: Mapping[str, np.ndarray] | None = None,
         crops: Mapping[str, np.ndarray] | None = None,
+        crop_since: Mapping[str, int] | None = None,
     ) -> Observation:
         """(Re)start rollout ``row`` at ``frame``: its first frame comes from the reference model,
-        anchored on ``reference`` images when given (§6), and seeds the student's cache."""
+        anchored on ``reference`` images when given (§6), and seeds the student's cache. ``crops``
+        and ``crop_since``: as :meth:`WorldModel.condition_arrays`; set ``self.crops[row]`` and
+        ``self.crop_since[row]`` between steps as new crops are cut."""
         self.gens[row] = torch.Generator().manual_seed(int(seed))
-        self.first[row], self.crops[row] = frame, dict(crops or {})
-        arrays = self.wm.condition_arrays([frame], frame, self.crops[row])
+        self.first[row], self.crops[row], self.crop_since[row] = frame, dict(crops or {}), dict(crop_since or {})
+        arrays = self.wm.condition_arrays([frame], frame, self.crops[row], self.crop_since[row])
         cond = Conditions.collate([arrays])
         with torch.no_grad():
             latents, obs = self.wm.first_frame(cond, frame, reference, seed=int(seed))
@@ -316,7 +329,7 @@ class RolloutBatch:
                 for i, chunk in enumerate(chunks):
                     if chunk is not None:
                         self.last_arrays[i] = self.wm.condition_arrays(
-                            chunk[k : k + self.chunk_frames], self.first[i], self.crops[i]
+                            chunk[k : k + self.chunk_frames], self.first[i], self.crops[i], self.crop_since[i]
                         )
                     # An idle row repeats its last controls: its output is thrown away.
                     arr = self.last_arrays[i]

@@ -78,6 +78,14 @@ def add_student_flags(p: argparse.ArgumentParser, long_frames: bool = False) -> 
         help="vae stage: extra L1 weight on camera pixels inside objects' boxes (default: the preset's "
         "vae.object_loss_weight; 0 = plain L1)",
     )
+    p.add_argument(
+        "--layout",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="pixel-aligned layout conditioning: the DiT also reads each view's rasterized road, lane "
+        "lines and object boxes as input channels (default: the preset's layout.enabled); every "
+        "stage of one run must agree",
+    )
     if long_frames:
         p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")
     p.add_argument(
@@ -135,11 +143,12 @@ def student_config(args: argparse.Namespace) -> StudentConfig | None:
 
 
 def stage_config(args: argparse.Namespace, preset: ModelConfig) -> ModelConfig:
-    """``preset`` with the config flags applied: student depth, context window, VAE object weight."""
-    from world_model.model.config import with_student_settings, with_vae_object_weight
+    """``preset`` with the config flags applied: student depth, context window, VAE object weight,
+    layout conditioning."""
+    from world_model.model.config import with_layout, with_student_settings, with_vae_object_weight
 
     cfg = with_student_settings(preset, args.student_depth, args.context_frames)
-    return with_vae_object_weight(cfg, args.vae_object_weight)
+    return with_layout(with_vae_object_weight(cfg, args.vae_object_weight), args.layout)
 
 
 def apply_heap_flag(args: argparse.Namespace) -> None:

@@ -6,7 +6,9 @@ Layout (format ``m4world-clips``, version 1)::
       dataset.json                 {"format", "version", "clips": [name, ...]}   (rewritten as clips land)
       <clip name>/
         meta.json                  scenario, seed, fps, num_frames, camera names, "static" (map,
-                                   prompt, rig, lidar spec, bev spec: SceneFrame.static_dict())
+                                   prompt, rig, lidar spec, bev spec: SceneFrame.static_dict()),
+                                   optional "crop_since": {track id: first frame index its crop
+                                   conditions} (absent: every frame)
         frames.jsonl               one SceneFrame per line, without the static parts
         cameras.npy                uint8   (T, V, H, W, 3), views in rig order
         lidar.npy                  float16 (T, beams, azimuth) metres; no return = 0.0
@@ -60,6 +62,11 @@ class Clip:
     @property
     def fps(self) -> float:
         return float(self.meta["fps"])
+
+    @property
+    def crop_since(self) -> dict[str, int]:
+        """Per track, the frame index from which its crop conditions the model (empty: all frames)."""
+        return {k: int(v) for k, v in self.meta.get("crop_since", {}).items()}
 
 
 def write_json_atomic(path: Path, obj: object) -> None:

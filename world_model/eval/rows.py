@@ -79,7 +79,13 @@ class StudentRow:
         obs = []
         for r, clip in enumerate(clips):
             reference = {"cameras": np.asarray(clip.cameras[0])} if self.anchor else None
-            obs.append([rollout.reset_row(r, clip.frames[0], self.seed, reference=reference, crops=clip.crops)])
+            obs.append(
+                [
+                    rollout.reset_row(
+                        r, clip.frames[0], self.seed, reference=reference, crops=clip.crops, crop_since=clip.crop_since
+                    )
+                ]
+            )
         rests = [list(clip.frames[1:]) for clip in clips]
         for k in range(0, max(len(rest) for rest in rests), chunk):
             chunks = []
@@ -138,7 +144,7 @@ def teacher_row(wm: WorldModel, teacher: MultiViewDiT, seed: int = 0, window: in
         gen = torch.Generator().manual_seed(seed)
         for start in range(0, len(frames), w):
             part = frames[start : start + w]
-            cond = Conditions.collate([wm.condition_arrays(part, part[0], clip.crops)])
+            cond = Conditions.collate([wm.condition_arrays(part, part[0], clip.crops, clip.crop_since)])
             obs += wm.decode(sample_latents(teacher, cond, gen))[0]
         cameras, lidar = np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs])
         return Generated(cameras=cameras, lidar=lidar, pass_starts=tuple(range(w, len(frames), w)))

@@ -242,7 +242,7 @@ def _train_judge(
         "train_config": _config_dict(config),
         "train_clips": len(train_items),
         "validation_clips": len(val_items),
-        "data_dirs": [str(r) for r in roots],
+        "data_dirs": [r.name for r in roots],  # folder names only: shipped metadata names no machine path
         "validation": validation,
         "train_seconds": round(time.time() - start, 1),
     }

@@ -20,6 +20,9 @@ obj_has_text       (T, O) bool           a text description exists
 obj_has_image      (T, O) bool           a reference crop exists
 text, text_mask    (L, Dt), (L,) bool    prompt tokens, padding masked
 view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR overlaps all
+layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent resolution
+                                         (:mod:`world_model.model.layout`); Cl =
+                                         ``layout.channels``, 0 when disabled
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -30,7 +33,7 @@ name, because colour is the fine-grained attribute scenarios set most often.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 
 import numpy as np
@@ -38,6 +41,7 @@ import torch
 
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
+from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject
 from world_model.sensors import CameraRig
@@ -110,6 +114,7 @@ class ConditionArrays:
     text: np.ndarray
     text_mask: np.ndarray
     view_adjacency: np.ndarray
+    layout: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -121,6 +126,7 @@ class ConditionArrays:
         "obj_mask",
         "obj_has_text",
         "obj_has_image",
+        "layout",
     )
 
     @property
@@ -138,13 +144,16 @@ def build_condition_arrays(
     cfg: ModelConfig,
     text_encoder: TextEncoder,
     image_encoder: ImageDescriptionEncoder | None = None,
-    crops: dict[str, np.ndarray] | None = None,
+    crops: Mapping[str, np.ndarray] | None = None,
     first_ego: EgoState | None = None,
+    crop_since: Mapping[str, int] | None = None,
 ) -> ConditionArrays:
     """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
 
     ``first_ego`` is the rollout's first ego state (default: ``frames[0].ego``). Without an
-    ``image_encoder`` every object's image description counts as missing.
+    ``image_encoder`` every object's image description counts as missing. ``crop_since``: the frame
+    index from which each track's crop exists (:class:`world_model.sim.reference_crops.ReferenceCrops`);
+    a track absent from it has its crop at every frame.
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -157,7 +166,7 @@ def build_condition_arrays(
     if rig.num_views != cfg.sensors.num_cameras:
         raise ValueError(f"frames carry {rig.num_views} cameras but the model has {cfg.sensors.num_cameras}")
     o_max, dt, di = cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
-    crops = crops or {}
+    crops, since = crops or {}, crop_since or {}
     first = first_ego or frames[0].ego
 
     corners = np.zeros((t, o_max, 8, 3), np.float32)
@@ -184,11 +193,21 @@ def build_condition_arrays(
             txt[f, idx] = text_encoder.pooled([descs[i] for i in idx])
             has_txt[f, idx] = True
         if image_encoder is not None:
-            pairs = [(i, o.image if o.image is not None else crops.get(o.track_id)) for i, o in enumerate(objs)]
+            ready = [since.get(o.track_id, fr.frame_index) <= fr.frame_index for o in objs]
+            pairs = [
+                (i, o.image if o.image is not None else crops.get(o.track_id) if ok else None)
+                for i, (o, ok) in enumerate(zip(objs, ready, strict=True))
+            ]
             pairs = [(i, c) for i, c in pairs if c is not None]
             if pairs:
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
                 has_img[f, [i for i, _ in pairs]] = True
+
+    h, w = cfg.latent_hw
+    if cfg.layout.enabled:
+        layout = layout_sequence(frames, bev, cfg.sensors.lidar, (h, w), cfg.layout.supersample)
+    else:
+        layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
     tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
@@ -208,6 +227,7 @@ def build_condition_arrays(
         text=text,
         text_mask=text_mask,
         view_adjacency=view_adjacency(rig),
+        layout=layout,
     )
 
 
@@ -230,6 +250,7 @@ class Conditions:
     text: torch.Tensor
     text_mask: torch.Tensor
     view_adjacency: torch.Tensor
+    layout: torch.Tensor
     drop: torch.Tensor
 
     @property

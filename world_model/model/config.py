@@ -18,6 +18,7 @@ import json
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+from world_model.model.layout import LAYOUT_CHANNELS
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
 
 
@@ -99,6 +100,21 @@ class ControlConfig:
 
 
 @dataclass(frozen=True)
+class LayoutConfig:
+    """Pixel-aligned layout conditioning (:mod:`world_model.model.layout`): per view, at the latent
+    resolution, the road, lane lines, road edges, each object's projected box by category group
+    and the nearness of the first hit, concatenated to the DiT's input channels beside the noisy
+    latent. The map and object tokens stay. Disabled: no extra channels (older checkpoints)."""
+
+    enabled: bool = False
+    supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
+
+    @property
+    def channels(self) -> int:
+        return len(LAYOUT_CHANNELS) if self.enabled else 0
+
+
+@dataclass(frozen=True)
 class DitConfig:
     """Multi-view + LiDAR diffusion transformer (§3.2)."""
 
@@ -175,6 +191,7 @@ class ModelConfig:
     flow: FlowConfig = field(default_factory=FlowConfig)
     sampler: SamplerConfig = field(default_factory=SamplerConfig)
     clip: ClipConfig = field(default_factory=ClipConfig)
+    layout: LayoutConfig = field(default_factory=LayoutConfig)
 
     def __post_init__(self) -> None:
         s, v, d, c = self.sensors, self.vae, self.dit, self.control
@@ -191,6 +208,8 @@ class ModelConfig:
             raise ValueError("dit.cross_view_every must be >= 1")
         if d.student_depth is not None and not 1 <= d.student_depth <= d.depth:
             raise ValueError(f"dit.student_depth must be in [1, dit.depth={d.depth}] or None, got {d.student_depth}")
+        if self.layout.supersample < 1:
+            raise ValueError(f"layout.supersample must be >= 1, got {self.layout.supersample}")
 
     def for_student(self) -> ModelConfig:
         """The causal student's config: ``dit.depth`` = ``dit.student_depth`` (idempotent)."""
@@ -284,6 +303,7 @@ class ModelConfig:
             flow=build(FlowConfig, d["flow"]),
             sampler=build(SamplerConfig, d["sampler"]),
             clip=build(ClipConfig, d["clip"]),
+            layout=build(LayoutConfig, d.get("layout", {})),
         )
 
 
@@ -335,6 +355,15 @@ def with_student_settings(
             raise ValueError(f"context_frames must be >= 1, got {context_frames}")
         cfg = replace(cfg, clip=replace(cfg.clip, context_frames=context_frames))
     return cfg
+
+
+def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
+    """``cfg`` with pixel-aligned layout conditioning switched on or off where given (None keeps
+    the preset's). It changes the DiT's input channels, so teacher, student and reference model
+    of one family must agree on it."""
+    if enabled is None:
+        return cfg
+    return replace(cfg, layout=replace(cfg.layout, enabled=bool(enabled)))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

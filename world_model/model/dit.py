@@ -16,7 +16,9 @@ into the batch: ``(B*V, T*N, D)``. Every block has
 
 Hooks: ``forward(..., kv_context=, frame_offset=, return_kv=, context_only_frames=)`` for a causal
 streaming engine;
-``DitConfig.in_channels_extra`` for reference conditioning (§6).
+``DitConfig.in_channels_extra`` for reference conditioning (§6). With ``LayoutConfig.enabled`` the
+per-view layout raster (:mod:`world_model.model.layout`, from the conditions) enters as input
+channels between the latent's and the reference's: ``[latent | layout | reference]``.
 """
 
 from __future__ import annotations
@@ -233,7 +235,7 @@ class MultiViewDiT(nn.Module):
         self.autocast_bf16 = built_autocast_bf16(cfg.dit.autocast_bf16)
         d, p, c = cfg.dit.dim, cfg.dit.patch, cfg.vae.latent_channels
         self.tokenizer = ControlTokenizer(cfg)
-        self.patch_in = nn.Linear((c + cfg.dit.in_channels_extra) * p * p, d)
+        self.patch_in = nn.Linear((c + cfg.layout.channels + cfg.dit.in_channels_extra) * p * p, d)
         self.view_type = nn.Parameter(torch.zeros(2, d))  # camera, LiDAR
         # Fixed 2-D sin-cos embedding of (row, col): RoPE alone is relative, and a view's layout
         # (sky on top, road below, LiDAR beams by elevation) is absolute. Frames get no absolute
@@ -319,6 +321,7 @@ class MultiViewDiT(nn.Module):
         self._check(x)
         cfg = self.cfg
         b, t_len, v = x.shape[:3]
+        c_lat = cfg.vae.latent_channels
         p, (th, tw) = cfg.dit.patch, cfg.token_hw
         n = th * tw
         if t.ndim == 1:
@@ -333,6 +336,8 @@ class MultiViewDiT(nn.Module):
             tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
             if tokens.frame.shape[1] != t_len:
                 raise ValueError(f"conditions have {tokens.frame.shape[1]} frames, latents {t_len}")
+            if cfg.layout.channels:
+                x = torch.cat([x[:, :, :, :c_lat], tokens.layout.to(x.dtype), x[:, :, :, c_lat:]], dim=3)
             cin = x.shape[3]
             h = x.permute(0, 2, 1, 3, 4, 5).reshape(b, v, t_len, cin, th, p, tw, p)
             h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)

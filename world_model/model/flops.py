@@ -18,7 +18,7 @@ def dit_forward_flops(
     is given ``MultiViewDiT.tokenize``'s tokens, which carry the cross-attention keys/values."""
     d, dc, p = cfg.dit.dim, cfg.control.dim, cfg.dit.patch
     v, n = cfg.sensors.num_views, cfg.tokens_per_frame
-    cin = (cfg.vae.latent_channels + cfg.dit.in_channels_extra) * p * p
+    cin = (cfg.vae.latent_channels + cfg.layout.channels + cfg.dit.in_channels_extra) * p * p
     cout = cfg.vae.latent_channels * p * p
     hidden = int(d * cfg.dit.mlp_ratio)
     tokens = batch * v * frames * n

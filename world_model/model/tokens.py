@@ -56,7 +56,9 @@ def frame_rows(x: torch.Tensor, batch: int, frames: int, start: int, stop: int) 
 @dataclass
 class ControlTokens:
     """text (B, L+1, D), text_mask (B, L+1); sensor (B, V, D); frame (B, T, Nf, D) with
-    Nf = 1 ego + map tokens + max_objects + 1 null, frame_mask (B, T, Nf); view_adjacency (B, V, V).
+    Nf = 1 ego + map tokens + max_objects + 1 null, frame_mask (B, T, Nf); view_adjacency (B, V, V);
+    layout (B, T, V, Cl, h, w): the pixel-aligned layout the DiT concatenates to its input (not a
+    token; it travels here so a forward given tokens has every control of its frames).
 
     ``cross_kv``: per DiT block, the keys/values its text and control cross-attentions compute
     from these tokens (``MultiViewDiT.tokenize`` fills it). They depend on the controls only, so
@@ -69,6 +71,7 @@ class ControlTokens:
     frame: torch.Tensor
     frame_mask: torch.Tensor
     view_adjacency: torch.Tensor
+    layout: torch.Tensor  # (B, T, V, LayoutConfig.channels, h, w), zero where the controls are dropped
     cross_kv: list[tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]] | None = None
 
     def frames(self, start: int, stop: int) -> ControlTokens:
@@ -80,7 +83,13 @@ class ControlTokens:
             return frame_rows(x, b, t, start, stop)
 
         kv = None if self.cross_kv is None else [(text, (rows(k), rows(v))) for text, (k, v) in self.cross_kv]
-        return replace(self, frame=self.frame[:, start:stop], frame_mask=self.frame_mask[:, start:stop], cross_kv=kv)
+        return replace(
+            self,
+            frame=self.frame[:, start:stop],
+            frame_mask=self.frame_mask[:, start:stop],
+            layout=self.layout[:, start:stop],
+            cross_kv=kv,
+        )
 
 
 class ControlTokenizer(nn.Module):
@@ -157,4 +166,5 @@ class ControlTokenizer(nn.Module):
         frame_mask = torch.cat([ones, cond.obj_mask, torch.zeros_like(ones[..., :1])], dim=2)
         frame_mask = frame_mask & keep[:, None, None]
         frame_mask[..., -1] = True
-        return ControlTokens(text, text_mask, sensor, frame, frame_mask, cond.view_adjacency)
+        layout = cond.layout * keep[:, None, None, None, None, None].to(cond.layout.dtype)
+        return ControlTokens(text, text_mask, sensor, frame, frame_mask, cond.view_adjacency, layout)

@@ -160,7 +160,9 @@ class LatentWindows:
     ) -> None:
         self.clips, self.latents, self.cfg = clips, latents, cfg
         self.arrays: list[ConditionArrays] = [
-            build_condition_arrays(c.frames, np.asarray(c.bev), cfg, text_encoder, image_encoder, c.crops)
+            build_condition_arrays(
+                c.frames, np.asarray(c.bev), cfg, text_encoder, image_encoder, c.crops, crop_since=c.crop_since
+            )
             for c in clips
         ]
 

@@ -335,7 +335,7 @@ def lora_stage(
         scfg.lora,
         fingerprint,
         {
-            "base_path": str(lb.file),
+            "base_file": lb.file.name,  # the base is identified by its hashes; a path would name this machine
             "base_file_sha256": lb.file_sha256,
             "model_config": model.cfg.to_dict(),
             "train": {

@@ -1,0 +1,100 @@
+"""Train/serve parity: the world-model env builds, for a scene, exactly the condition arrays that
+training builds from a recording of that scene (every field, reference crops and layout included)."""
+
+from dataclasses import fields
+
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils import seeding
+
+from m4world_env.env import M4WorldEnv
+from m4world_env.policies import IDMAutopilot
+from m4world_env.recorder import RecordConfig, record_episode
+from m4world_env.scenario import load_scenario
+from world_model.data import read_clip, write_clip
+from world_model.model.conditions import ConditionArrays
+from world_model.runtime import WorldModel, save_untrained_bundle
+from world_model.train.data import LatentWindows
+
+# A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).
+SCENARIO, ENV_SEED, DURATION_S = "highway_dense_rain_dusk", 1, 2.0
+
+
+@pytest.fixture(scope="module")
+def layout_bundle(tmp_path_factory):
+    """An untrained tiny bundle with pixel-aligned layout conditioning."""
+    return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny_layout", layout=True)
+
+
+def _env_rollout(checkpoint, scenario) -> tuple[list, list[ConditionArrays], WorldModel]:
+    """Drive the world-model env with the autopilot; return its frames and the arrays it built."""
+    env = M4WorldEnv(
+        scenario, backend="world_model", checkpoint=str(checkpoint), config={"action_type": "discrete_meta"}
+    )
+    wm = env.backend.wm
+    built: list[ConditionArrays] = []
+    original = wm.condition_arrays
+
+    def spy(*args, **kwargs):
+        built.append(original(*args, **kwargs))
+        return built[-1]
+
+    wm.condition_arrays = spy
+    env.reset(seed=ENV_SEED)
+    frames = [env._frame]
+    policy = IDMAutopilot(seed=_bridge_seed())
+    truncated = terminated = False
+    while not (truncated or terminated):
+        chunk = env.advance(policy(env))
+        (obs,) = env.backend.step([chunk])
+        _, _, terminated, truncated, _ = env.finish_step(chunk, obs)
+        frames.extend(chunk)
+    return frames, built, wm
+
+
+def _bridge_seed() -> int:
+    """The traffic seed ``env.reset(seed=ENV_SEED)`` draws (the recorder is given the same)."""
+    rng, _ = seeding.np_random(ENV_SEED)
+    return int(rng.integers(0, 2**31 - 1))
+
+
+@pytest.mark.parametrize("layout", [False, True])
+def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundle, tmp_path, layout):
+    checkpoint = layout_bundle if layout else tiny_bundle
+    scenario = load_scenario(SCENARIO).model_copy(update={"duration": DURATION_S})
+    env_frames, env_arrays, wm = _env_rollout(checkpoint, scenario)
+    cfg = wm.cfg
+    rec = RecordConfig(
+        scenarios=[scenario.name],
+        randomize=False,
+        height=cfg.sensors.height,
+        width=cfg.sensors.width,
+        lidar=cfg.sensors.lidar,
+        bev=cfg.sensors.bev,
+        action_type="discrete_meta",
+    )
+    frames, cams, lidar, bev, crops = record_episode(scenario, _bridge_seed(), rec)
+    assert [f.to_dict() for f in frames] == [f.to_dict() for f in env_frames]  # the same scene
+    assert 0 in crops.since.values() and max(crops.since.values()) > 0, "crops at reset and later are covered"
+    write_clip(tmp_path, "clip", frames, cams, lidar, bev, crops=crops.crops, extra_meta={"crop_since": crops.since})
+    clip = read_clip(tmp_path, "clip")
+
+    # The training data path (the encoders are pure functions of content, shared for brevity).
+    latents = [torch.zeros(cfg.latent_shape(clip.num_frames))]
+    windows = LatentWindows([clip], latents, cfg, wm.text, wm.image)
+    _, train = windows.window(0, 0, clip.num_frames)
+
+    # The env built the first frame's arrays at reset, then one chunk per step.
+    chunk = cfg.clip.chunk_frames
+    starts = [0] + list(range(1, clip.num_frames, chunk))
+    assert len(env_arrays) == len(starts)
+    for start, got in zip(starts, env_arrays, strict=True):
+        want = train.frames(start, start + got.num_frames)
+        for f in fields(ConditionArrays):
+            a, b = getattr(got, f.name), getattr(want, f.name)
+            assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), f"{f.name} differs at frame {start}"
+    has_image = np.concatenate([a.obj_has_image for a in env_arrays])
+    assert has_image[0].any()  # crops reached the conditions from the first frame
+    if layout:
+        assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
