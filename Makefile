@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 # CPU build of torch first: a plain `torch` requirement would pull several GB of CUDA wheels.
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo test lint bench gallery clean
+.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,41 @@ lint: install
 
 bench: install
 	$(VENV)/bin/m4world bench --out out/bench
+
+# GPU checks (docs/gpu.md): the CUDA tests and the GPU benchmarks, results under $(GPU_OUT). They run
+# with the machine's own python (GPU_PYTHON; no .venv needed). Without CUDA the check stops at once;
+# GPU_DEVICE=cpu with small GPU_ENVS, GPU_MODEL_PRESETS=tiny and GPU_CHECKPOINT dry-runs the same steps.
+GPU_PYTHON ?= python3
+GPU_DEVICE ?= cuda
+GPU_OUT ?= out/gpu-check
+GPU_ENVS ?= 1 8 64
+GPU_MODEL_PRESETS ?= default
+GPU_CHECKPOINT ?=
+# The checkpoint's MiniLM text embeddings for the checks' episodes (make gpu-check-prepare), used
+# when present: a GPU machine without the MiniLM weights reads them from here.
+GPU_TEXT_EMBEDDINGS ?= $(GPU_OUT)/text_embeddings.npz
+GPU_ENV = $(if $(wildcard $(GPU_TEXT_EMBEDDINGS)),M4WORLD_TEXT_EMBEDDINGS=$(GPU_TEXT_EMBEDDINGS))
+
+gpu-check:
+	@mkdir -p $(GPU_OUT)
+	@$(GPU_PYTHON) -c "import sys, torch; cuda = '$(GPU_DEVICE)'.startswith('cuda'); \
+	sys.exit(0 if not cuda or torch.cuda.is_available() else f'gpu-check: torch {torch.__version__} sees no CUDA device; \
+	dry-run the steps on the CPU with GPU_DEVICE=cpu (docs/gpu.md)')"
+	$(GPU_ENV) $(GPU_PYTHON) -m pytest -m cuda -q -rs tests --junitxml=$(GPU_OUT)/pytest.xml
+	for n in $(GPU_ENVS); do \
+	  $(GPU_ENV) $(GPU_PYTHON) benchmarks/bench_env.py --backend world_model --device $(GPU_DEVICE) --num-envs $$n \
+	    --rounds 1 --steps 40 $(if $(GPU_CHECKPOINT),--checkpoint $(GPU_CHECKPOINT)) --out $(GPU_OUT)/bench_env_$$n.json \
+	    || exit 1; \
+	done
+	$(GPU_PYTHON) benchmarks/bench_model.py --presets $(GPU_MODEL_PRESETS) --dtypes auto fp32 --repeats 10 \
+	  --device $(GPU_DEVICE) --out $(GPU_OUT)/bench_model.json
+	@echo "gpu-check: results in $(GPU_OUT)"
+
+# Here, where MiniLM is installed: the text embeddings of every episode gpu-check runs (the CUDA tests'
+# and bench_env's scenarios, seeds 0-63, lane keeping, 60 steps), to carry to the GPU machine.
+gpu-check-prepare: install
+	$(VENV)/bin/m4world text-embeddings --scenario highway_sunny_day tree_truck_highway --episodes 64 --steps 60 \
+	  --out $(GPU_TEXT_EMBEDDINGS)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -18,6 +18,8 @@ in a fresh process (``--no-isolate``: in this one), so the single-threaded proce
 shares its process with the world model's torch threads or an earlier round's envs.
 
     python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
+
+``--device`` runs the world-model backends there (``config.model.device``: cpu, cuda[:N], auto).
 """
 
 from __future__ import annotations
@@ -68,17 +70,17 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
     return totals, traffic
 
 
-def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False) -> dict:
+def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False, device: str = "cpu") -> dict:
     """gym.make keywords for a backend spec: ``procedural``, or ``world_model`` with optional
     ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
-    world-model backend), ``default-heap`` (``retain_heap`` off: glibc's allocator as is) and/or
-    ``no-refresh`` (``context_refresh`` off: the student's latent context refresh, §4.2, skipped)
-    or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising steps only, e.g. ``refresh=0``;
-    the env's default is the last two) or ``refresh=all`` (``refresh_steps=None``: every step, the
-    paper's), ``sink=N`` (``sink_frames``: the first N frames kept in context beside the window), and
-    ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two
-    checkpoints compared within one run's rounds)."""
+    world-model backend) and/or ``no-refresh`` (``context_refresh`` off: the student's latent context
+    refresh, §4.2, skipped) or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising
+    steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
+    (``refresh_steps=None``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
+    frames kept in context beside the window), and ``checkpoint=BUNDLE`` (this backend's bundle
+    instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
+    ``config.model.device`` of the world-model backends."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -86,13 +88,13 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             raise SystemExit(f"only the world_model backend takes qualifiers, got {backend!r}")
         return kw
     model = {"compile": True} if compile_model else {}
+    if device != "cpu":
+        model["device"] = device
     for q in qualifiers:
         if q in DTYPES:
             model["dtype"] = q
         elif q == "compile":
             model["compile"] = True
-        elif q == "default-heap":
-            model["retain_heap"] = False
         elif q == "no-refresh":
             model["context_refresh"] = False
         elif q.startswith("checkpoint="):
@@ -113,7 +115,7 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
                 raise SystemExit(f"sink=N takes a number of frames, got {q!r} in {backend!r}") from None
         else:
             raise SystemExit(
-                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, default-heap, no-refresh, "
+                f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
                 "refresh=K[,K...], refresh=all, sink=N or checkpoint=BUNDLE"
             )
     if checkpoint:
@@ -123,16 +125,19 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     return kw
 
 
-def peak_rss_one_env(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None) -> float:
+def peak_rss_one_env(
+    backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None, device: str = "cpu"
+) -> float:
     """Peak RSS (MB) of a fresh process that makes one env and steps it ``steps`` times."""
     cmd = [sys.executable, __file__, "--memory-probe", backend, "--scenario", scenario, "--steps", str(steps)]
-    cmd += ["--seed", str(seed), "--out", "-"] + (["--checkpoint", checkpoint] if checkpoint else [])
+    cmd += ["--seed", str(seed), "--device", device, "--out", "-"]
+    cmd += ["--checkpoint", checkpoint] if checkpoint else []
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return float(out.strip().splitlines()[-1])
 
 
-def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None) -> None:
-    env = gym.make("M4World-v0", scenario=scenario, **_make_kwargs(backend, checkpoint))
+def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None, device: str) -> None:
+    env = gym.make("M4World-v0", scenario=scenario, **_make_kwargs(backend, checkpoint, device=device))
     _time_single(env, steps, seed)
     print(own_peak_rss_mb())
 
@@ -156,10 +161,11 @@ def bench_backend(
     checkpoint: str | None = None,
     compile_model: bool = False,
     warmup: int = 2,
+    device: str = "cpu",
 ) -> dict:
     """One backend: ``steps`` timed single-env steps and ``steps / num_envs`` (at least 10) timed
     vector steps, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles)."""
-    kw = _make_kwargs(backend, checkpoint, compile_model)
+    kw = _make_kwargs(backend, checkpoint, compile_model, device)
     single = gym.make("M4World-v0", scenario=scenario, **kw)
     totals, traffic = _time_single(single, steps, seed, warmup)
     single.close()
@@ -220,6 +226,7 @@ def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, w
     world model's torch threads and imports, earlier rounds' envs) while it is timed."""
     cmd = [sys.executable, __file__, "--backend-probe", backend, "--scenario", args.scenario, "--steps", str(steps)]
     cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--warmup", str(warmup), "--out", "-"]
+    cmd += ["--device", args.device]
     cmd += (["--checkpoint", args.checkpoint] if args.checkpoint else []) + (["--compile"] if args.compile else [])
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
     return json.loads(out.strip().splitlines()[-1])
@@ -238,7 +245,7 @@ def main() -> None:
         nargs="+",
         default=["procedural"],
         help="procedural, world_model, or world_model:QUALIFIERS: a dtype (float32, bfloat16; default auto), "
-        "compile (config.model.compile), default-heap (config.model.retain_heap off) and/or "
+        "compile (config.model.compile) and/or "
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
         "default: the last two denoising steps) or refresh=all (every step), sink=N (config.model.sink_frames), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
@@ -251,6 +258,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--compile", action="store_true", help="world model: config model.compile (torch.compile)")
+    ap.add_argument("--device", default="cpu", help="world model: config model.device (cpu, cuda[:N], auto)")
     ap.add_argument(
         "--warmup", type=int, default=None, help="untimed steps first (default 2; 12 for a compiled backend)"
     )
@@ -264,7 +272,7 @@ def main() -> None:
     ap.add_argument("--backend-probe", default=None, help=argparse.SUPPRESS)  # internal: one isolated round
     args = ap.parse_args()
     if args.memory_probe:
-        _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint)
+        _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint, args.device)
         return
     if args.backend_probe:
         r = bench_backend(
@@ -276,6 +284,7 @@ def main() -> None:
             args.checkpoint,
             args.compile,
             args.warmup,
+            args.device,
         )
         print(json.dumps(r))
         return
@@ -308,15 +317,16 @@ def main() -> None:
                     args.checkpoint,
                     args.compile,
                     warmup_of(backend),
+                    args.device,
                 )
             r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / hw["highway-fast-v0"]["steps_per_s"]
             r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / hw["highway-v0"]["steps_per_s"]
             rnd["backends"][backend] = r
         rounds.append(rnd)
-    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "backends": {}}
+    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "device": args.device, "backends": {}}
     for backend in args.backend:
         r = median_rounds([rnd["backends"][backend] for rnd in rounds])
-        r["one_env_peak_rss_mb"] = peak_rss_one_env(backend, args.scenario, 50, args.seed, args.checkpoint)
+        r["one_env_peak_rss_mb"] = peak_rss_one_env(backend, args.scenario, 50, args.seed, args.checkpoint, args.device)
         result["backends"][backend] = r
     result["highway_env"] = {
         e: median_rounds([rnd["highway_env"][e] for rnd in rounds]) for e in ("highway-v0", "highway-fast-v0")

@@ -5,9 +5,9 @@ attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cac
 of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does. This script
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
 when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
-``--compile`` adds rows with the blocks compiled (env ``config.model.compile``), without and with
-inductor freezing (``frozen``: ``compile_blocks(freeze=True)``; the env compiles without).
-``--heaps``: the process's allocator as the env sets it on CPU (``retain``:
+``--compile`` adds rows with the blocks compiled (env ``config.model.compile``).
+``--device`` times another device than the CPU (cuda[:N], or auto: CUDA when available; its
+peak and rows alike). ``--heaps``: the process's allocator as the train CLIs set it on CPU (``retain``:
 world_model.heap.retain_freed_memory) and/or glibc's ``default``; with both, each runs in its own
 fresh process, alternating over ``--rounds`` rounds, and the rows give the medians (each row also
 reports the minor page faults of one forward). It measures the machine's matmul peak in the same
@@ -17,7 +17,7 @@ blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
     python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
         [--dtypes auto fp32 bf16] [--compile] [--heaps retain default] [--rounds 3] [--repeats 7]
-        [--out results.json]
+        [--device cpu] [--out results.json]
 """
 
 from __future__ import annotations
@@ -38,12 +38,13 @@ from world_model.heap import retain_freed_memory
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
-from world_model.precision import resolve_bf16
+from world_model.precision import resolve_bf16, resolve_device
 
 ENVS = 8  # batched envs of one vector-env step
 DENOISE_FORWARDS = 4  # the 4-step causal student
 CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
+CPU = torch.device("cpu")
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 HEAPS = ("retain", "default")  # world_model.heap.retain_freed_memory, or glibc's allocator as is
 # Per-row numbers --heaps takes the median of over its rounds.
@@ -58,21 +59,28 @@ NUMBERS = (
 )
 
 
-def median_time(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
-    for _ in range(warmup):
+def median_time(fn: Callable[[], object], repeats: int, warmup: int = 2, device: torch.device | None = None) -> float:
+    """Median wall time of ``fn``; on a CUDA ``device`` each call waits for its kernels."""
+
+    def call() -> None:
         fn()
+        if device is not None and device.type == "cuda":
+            torch.cuda.synchronize(device)
+
+    for _ in range(warmup):
+        call()
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        fn()
+        call()
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
 
-def matmul_peak(dtype: torch.dtype, repeats: int) -> float:
-    a = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype)
-    b = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype)
-    return 2 * PEAK_SIZE**3 / median_time(lambda: a @ b, repeats) / 1e9
+def matmul_peak(dtype: torch.dtype, repeats: int, device: torch.device = CPU) -> float:
+    a = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype, device=device)
+    b = torch.randn(PEAK_SIZE, PEAK_SIZE, dtype=dtype, device=device)
+    return 2 * PEAK_SIZE**3 / median_time(lambda: a @ b, repeats, device=device) / 1e9
 
 
 def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
@@ -97,39 +105,42 @@ def bench_config(
     dtype_name: str,
     compile_: bool,
     which: str = "student",
-    freeze: bool = False,
+    device: torch.device = CPU,
 ) -> dict:
     torch.manual_seed(0)
     cfg = cfg.for_student() if which == "student" else cfg
-    if dtype_name == "auto":  # as the env's dtype "auto": bf16 only where this CPU multiplies it natively
-        dtype_name = "bf16" if resolve_bf16("auto", cfg.dit.autocast_bf16, "cpu") else "fp32"
+    if dtype_name == "auto":  # as the env's dtype "auto": bf16 only where the device multiplies it natively
+        dtype_name = "bf16" if resolve_bf16("auto", cfg.dit.autocast_bf16, device) else "fp32"
     dtype = DTYPES[dtype_name]
     cfg = replace(cfg, dit=replace(cfg.dit, autocast_bf16=dtype_name == "bf16"))  # as runtime.load_world_model
-    model = MultiViewDiT(cfg).eval().requires_grad_(False).to(dtype)  # as runtime.load_world_model
+    model = MultiViewDiT(cfg).eval().requires_grad_(False).to(device, dtype)  # as runtime.load_world_model
     if compile_:
-        model.compile_blocks(freeze=freeze)
-    vae = SensorVAE(cfg).eval().to(dtype)
+        model.compile_blocks()
+    vae = SensorVAE(cfg).eval().to(device, dtype)
     chunk, ctx = cfg.clip.chunk_frames, cfg.clip.context_frames
     n, v = cfg.tokens_per_frame, cfg.sensors.num_views
-    tokens = model.tokenize(synthetic_conditions(cfg, chunk, ENVS))
-    x = torch.randn(ENVS, *cfg.latent_shape(chunk))
-    t = torch.full((ENVS,), 0.5)
+    tokens = model.tokenize(synthetic_conditions(cfg, chunk, ENVS).to(device))
+    x = torch.randn(ENVS, *cfg.latent_shape(chunk), device=device)
+    t = torch.full((ENVS,), 0.5, device=device)
     kv = [
-        tuple(torch.randn(ENVS * v, cfg.dit.heads, ctx * n, cfg.dit.head_dim, dtype=dtype) for _ in range(2))
+        tuple(
+            torch.randn(ENVS * v, cfg.dit.heads, ctx * n, cfg.dit.head_dim, dtype=dtype, device=device)
+            for _ in range(2)
+        )
         for _ in range(cfg.dit.depth)
     ]
 
     def forward() -> torch.Tensor:
         return model(x, t, tokens, causal=True, frame_offset=ctx, kv_context=kv)
 
-    fwd = median_time(forward, repeats, warmup=3 if compile_ else 2)
+    fwd = median_time(forward, repeats, warmup=3 if compile_ else 2, device=device)
     faults = []
     for _ in range(3):
         before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         forward()
         faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
-    z = torch.randn(ENVS * v, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype)  # the newest frame
-    dec = median_time(lambda: vae.decode(z), repeats)
+    z = torch.randn(ENVS * v, cfg.vae.latent_channels, *cfg.latent_hw, dtype=dtype, device=device)  # newest frame
+    dec = median_time(lambda: vae.decode(z), repeats, device=device)
     flops = dit_forward_flops(cfg, ENVS, chunk, ctx, cross_kv=False)  # tokens carry the cross K/V
     achieved = flops["total"] / fwd / 1e9
     return {
@@ -138,7 +149,7 @@ def bench_config(
         "depth": cfg.dit.depth,
         "dtype": dtype_name,
         "compiled": compile_,
-        "frozen": compile_ and freeze,
+        "device": str(device),
         "dit_params_m": sum(p.numel() for p in model.parameters()) / 1e6,
         "vae_params_m": sum(p.numel() for p in vae.parameters()) / 1e6,
         "tokens_per_forward": ENVS * v * chunk * n,
@@ -171,8 +182,13 @@ def main() -> None:
     )
     p.add_argument("--rounds", type=int, default=3, help="with several --heaps: alternating fresh-process rounds")
     p.add_argument("--repeats", type=int, default=7)
+    p.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (CUDA when available)")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     a = p.parse_args()
+    try:
+        resolve_device(a.device)
+    except ValueError as e:
+        p.error(str(e))
     result = compare_heaps(a) if len(a.heaps) > 1 else run_rows(a, a.heaps[0])
     print_rows(result)
     if a.out:
@@ -184,15 +200,23 @@ def run_rows(a: argparse.Namespace, heap: str) -> dict:
     """Every requested row in this process, with the allocator set up as ``heap``."""
     if heap == "retain":
         retain_freed_memory()
-    peaks = {"fp32": matmul_peak(torch.float32, a.repeats), "bf16": matmul_peak(torch.bfloat16, a.repeats)}
+    device = resolve_device(a.device)
+    peaks = {name: matmul_peak(dtype, a.repeats, device) for name, dtype in DTYPES.items()}
     rows = [
-        {**bench_config(get_preset(name), a.repeats, peaks, dtype, compiled, which, frozen), "heap": heap}
+        {**bench_config(get_preset(name), a.repeats, peaks, dtype, compiled, which, device), "heap": heap}
         for name in a.presets
         for which in a.models
         for dtype in a.dtypes
-        for compiled, frozen in (((False, False), (True, False), (True, True)) if a.compile else ((False, False),))
+        for compiled in ((False, True) if a.compile else (False,))
     ]
-    return {"envs": ENVS, "threads": torch.get_num_threads(), "peak_gflops": peaks, "presets": rows}
+    return {
+        "envs": ENVS,
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "peak_gflops": peaks,
+        "presets": rows,
+    }
 
 
 def compare_heaps(a: argparse.Namespace) -> dict:
@@ -204,7 +228,7 @@ def compare_heaps(a: argparse.Namespace) -> dict:
         one = {}
         for heap in a.heaps:
             cmd = [sys.executable, __file__, "--presets", *a.presets, "--models", *a.models, "--dtypes", *a.dtypes]
-            cmd += ["--heaps", heap, "--repeats", str(a.repeats), "--out", "/dev/stdout"]
+            cmd += ["--heaps", heap, "--repeats", str(a.repeats), "--device", a.device, "--out", "/dev/stdout"]
             cmd += ["--compile"] if a.compile else []
             out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
             one[heap] = json.loads(out[out.index("{") :])
@@ -241,7 +265,6 @@ def print_rows(result: dict) -> None:
         "depth",
         "dtype",
         "compiled",
-        "frozen",
         "heap",
         "dit_params_m",
         "forward_gflop",

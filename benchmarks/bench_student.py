@@ -10,22 +10,21 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
    the window + chunk jointly, ``context_frames + chunk_frames`` frames per step; (b) the chunk
    alone, no context: a lower bound that no streaming teacher achieves. Teacher samples are long
    (tens of forwards), so they are timed without a warm-up run.
-2. ``cache_vs_recompute``: the engine with its KV cache vs the same engine recomputing the whole
-   window at every denoising step (``StudentConfig(kv_cache=False)``), window full, with context
-   refresh at every step, at the last two only, or off; the engines are timed in interleaved rounds.
+2. ``cache_vs_recompute``: the engine with its KV cache vs recomputing the whole window at every
+   denoising step (:class:`RecomputeWindow`, the computation the cache replaces), window full, with
+   context refresh at every step, at the last two only, or off; all timed in interleaved rounds.
 3. ``rollout``: a ``--frames`` long rollout (``--rollout-envs`` rows): per-chunk latency, process
    RSS along the way, cache bytes; memory growth from frame 100 to the end.
 4. ``compiled_vs_eager`` (only when named in ``--sections``; inductor needs a C++ compiler): one
-   cached chunk eager vs compiled vs compiled with frozen weights, interleaved rounds.
+   cached chunk eager vs compiled, interleaved rounds.
 
     python benchmarks/bench_student.py [--preset default] [--envs 8] [--frames 600] --out FILE.json
     python benchmarks/bench_student.py --sections cache_vs_recompute --window 12 --out FILE.json
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
 ``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
-``--compile`` times the student compiled (the teacher stays eager). The process keeps freed memory
-in its heap as the env's backend does on CPU (world_model.heap; ``--default-heap``: glibc's
-allocator as is).
+``--compile`` times the student compiled (the teacher stays eager); ``--device`` runs it all on
+another device (default cpu; ``auto``: CUDA when available).
 """
 
 from __future__ import annotations
@@ -45,11 +44,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_model import synthetic_conditions  # noqa: E402
 
-from world_model.heap import retain_freed_memory  # noqa: E402
 from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
+from world_model.model.conditions import Conditions  # noqa: E402
 from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
-from world_model.precision import DTYPES, resolve_bf16  # noqa: E402
-from world_model.student import StreamingEngine, StudentConfig  # noqa: E402
+from world_model.model.flow import gaussian, predict_x0  # noqa: E402
+from world_model.precision import DTYPES, resolve_bf16, resolve_device  # noqa: E402
+from world_model.student import StreamingEngine, StudentConfig, cat_frames, few_step_sample, rollout_blocks  # noqa: E402
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
 
@@ -73,26 +73,80 @@ def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float
     return out
 
 
-def make_model(cfg: ModelConfig) -> MultiViewDiT:
+def make_model(cfg: ModelConfig, device: torch.device) -> MultiViewDiT:
     torch.manual_seed(0)
     model = MultiViewDiT(cfg).eval()
-    with torch.no_grad():  # adaLN-zero starts at zero: a compiled graph with frozen weights could fold it away
+    with torch.no_grad():  # adaLN-zero starts at zero: random weights make every path compute
         for p in model.parameters():
             p.normal_(0.0, 0.02)
+    model = model.to(device)
     return model.to(torch.bfloat16) if cfg.dit.autocast_bf16 else model  # bf16 weights, as the env runs
 
 
-def warm_engine(model: MultiViewDiT, scfg: StudentConfig, envs: int) -> tuple[StreamingEngine, Callable[[], object]]:
-    """An engine whose window is full, and a closure running one more chunk."""
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued kernels, so a timer measures them."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+class RecomputeWindow:
+    """The baseline the KV cache replaces: every denoising step re-runs the window's clean frames
+    together with the noisy chunk in one block-causal forward; nothing is cached. Same interface
+    as :class:`StreamingEngine` for :func:`warm_engine` (no context refresh, no sink frames)."""
+
+    def __init__(self, model: MultiViewDiT, scfg: StudentConfig, generator: torch.Generator) -> None:
+        self.model, self.scfg, self.gen, self.times = model, scfg, generator, scfg.times()
+        self.position = self.prefix = 0
+        self.history: torch.Tensor | None = None
+        self.controls: Conditions | None = None
+
+    def start(self, first: torch.Tensor, controls: Conditions) -> None:
+        dev = next(self.model.parameters()).device
+        self.history, self.controls = first.to(dev), controls.to(dev)
+        self.position = self.prefix = first.shape[1]
+
+    @torch.no_grad()
+    def step(self, controls: Conditions) -> torch.Tensor:
+        m, cfg = self.model, self.model.cfg
+        c, hist = cfg.clip.chunk_frames, self.history
+        f, dev = hist.shape[1], hist.device
+        both = cat_frames(self.controls, controls.to(dev))
+        tokens = m.tokenize(both)
+        blocks = rollout_blocks(self.position - f, f + c, self.prefix, c)
+
+        def recompute(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+            tt = torch.cat([torch.ones(x.shape[0], f, device=dev), t[:, None].expand(-1, c)], dim=1)
+            v = m(torch.cat([hist, x], 1), tt, tokens, causal=True, frame_offset=self.position - f, blocks=blocks)
+            return predict_x0(x, v[:, f:], t)
+
+        noise = gaussian((hist.shape[0], *cfg.latent_shape(c)), self.gen, dev)
+        x0 = few_step_sample(recompute, noise, self.times, self.scfg.renoise, generator=self.gen)
+        keep = min(cfg.clip.context_frames, f + c)
+        self.history = torch.cat([hist, x0], 1)[:, -keep:]
+        self.controls = both.frames(both.num_frames - keep, both.num_frames)
+        self.position += c
+        return x0
+
+
+def warm_engine(
+    model: MultiViewDiT, scfg: StudentConfig, envs: int, engine: type = StreamingEngine
+) -> tuple[StreamingEngine, Callable[[], object]]:
+    """An engine whose window is full, and a closure running one more chunk (and waiting for it)."""
     cfg = model.cfg
     c, w = cfg.clip.chunk_frames, cfg.clip.context_frames
+    device = next(model.parameters()).device
     cond = synthetic_conditions(cfg, 1 + c, envs)
-    eng = StreamingEngine(model, scfg, torch.Generator().manual_seed(0))
+    eng = engine(model, scfg, torch.Generator().manual_seed(0))
     eng.start(torch.zeros(envs, *cfg.latent_shape(1)), cond.frames(0, 1))
     chunk = cond.frames(1, 1 + c)
     while eng.position < w + c:
         eng.step(chunk)
-    return eng, lambda: eng.step(chunk)
+
+    def one_chunk() -> None:
+        eng.step(chunk)
+        synchronize(device)
+
+    return eng, one_chunk
 
 
 @torch.no_grad()
@@ -111,12 +165,18 @@ def student_vs_teacher(student: MultiViewDiT, teacher: MultiViewDiT, envs: int, 
         "student_chunk_s": s,
     }
     gen = torch.Generator().manual_seed(0)
+    device = next(teacher.parameters()).device
+
+    def sample(cond: Conditions) -> None:
+        sample_latents(teacher, cond, gen)
+        synchronize(device)
+
     for name, frames in (
         ("in_context", cfg.clip.context_frames + cfg.clip.chunk_frames),
         ("alone", cfg.clip.chunk_frames),
     ):
         cond = synthetic_conditions(cfg, frames, envs)
-        t = statistics.median(timed(lambda cond=cond: sample_latents(teacher, cond, gen), max(1, repeats // 2), 0))
+        t = statistics.median(timed(lambda cond=cond: sample(cond), max(1, repeats // 2), 0))
         out[f"teacher_{name}_chunk_s"] = t
         out[f"teacher_{name}_over_student"] = t / s
     return out
@@ -138,18 +198,15 @@ def interleaved(steps: dict[str, Callable[[], object]], repeats: int) -> dict:
 
 @torch.no_grad()
 def compiled_vs_eager(model: MultiViewDiT, envs: int, repeats: int) -> dict:
-    """One cached chunk (refresh on) of the eager student, of the student compiled
-    (``compile_blocks()``, what the env's ``compile`` option runs) and compiled with frozen
-    weights, in interleaved rounds; each copy compiles during its warm-up chunks."""
-    frozen, unfrozen = copy.deepcopy(model).requires_grad_(False), copy.deepcopy(model).requires_grad_(False)
-    frozen.compile_blocks(freeze=True)
-    unfrozen.compile_blocks(freeze=False)
+    """One cached chunk (refresh on) of the eager student and of the student compiled
+    (``compile_blocks()``, what the env's ``compile`` option runs), in interleaved rounds; the
+    compiled copy compiles during its warm-up chunks."""
+    compiled = copy.deepcopy(model).requires_grad_(False)
+    compiled.compile_blocks()
     steps = {
-        name: warm_engine(m, StudentConfig(), envs)[1]
-        for name, m in {"eager": model, "compiled_frozen": frozen, "compiled": unfrozen}.items()
+        name: warm_engine(m, StudentConfig(), envs)[1] for name, m in {"eager": model, "compiled": compiled}.items()
     }
     out = {"envs": envs, "window": model.cfg.clip.context_frames} | interleaved(steps, repeats)
-    out["eager_over_compiled_frozen"] = out["eager_chunk_s"] / out["compiled_frozen_chunk_s"]
     out["eager_over_compiled"] = out["eager_chunk_s"] / out["compiled_chunk_s"]
     return out
 
@@ -165,9 +222,9 @@ def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
         "cached_refresh": StudentConfig(),
         "cached_refresh_late": StudentConfig(refresh_steps=(n - 2, n - 1)),
         "cached_no_refresh": StudentConfig(context_refresh=False),
-        "recompute": StudentConfig(kv_cache=False),
     }
     steps = {name: warm_engine(model, scfg, envs)[1] for name, scfg in configs.items()}
+    steps["recompute"] = warm_engine(model, StudentConfig(context_refresh=False), envs, RecomputeWindow)[1]
     out |= interleaved(steps, repeats)
     for name in configs:
         if name != "recompute":
@@ -185,9 +242,11 @@ def rollout(model: MultiViewDiT, envs: int, frames: int) -> dict:
     chunk = cond.frames(1, 1 + c)
     first = min(RSS_FROM_FRAME, frames // 2)  # short smoke runs measure from half way
     times, rss, cache_bytes = [], {}, set()
+    device = next(model.parameters()).device
     while eng.position + c <= frames:
         t0 = time.perf_counter()
         eng.step(chunk)
+        synchronize(device)
         times.append(time.perf_counter() - t0)
         rss[eng.position] = rss_mb()
         if eng.position >= first:
@@ -231,29 +290,31 @@ def main() -> None:
         default="auto",
         choices=DTYPES,
         help="the DiTs' precision, as the env's config={'model': {'dtype': ...}} (auto: bf16 only "
-        "where this CPU multiplies it natively)",
+        "where the device multiplies it natively)",
     )
-    p.add_argument("--default-heap", action="store_true", help="leave glibc's allocator as it is")
+    p.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (CUDA when available)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])
     p.add_argument("--out", required=True)
     a = p.parse_args()
-    if not a.default_heap:
-        retain_freed_memory()
+    try:
+        device = resolve_device(a.device)
+    except ValueError as e:
+        p.error(str(e))
     if a.compile and "compiled_vs_eager" in a.sections:
         p.error("compiled_vs_eager compiles its own copies: leave out --compile")
     if a.threads:
         torch.set_num_threads(a.threads)
     cfg = with_student_settings(get_preset(a.preset), a.student_depth, a.window)
-    bf16 = resolve_bf16(a.dtype, cfg.dit.autocast_bf16, "cpu")
+    bf16 = resolve_bf16(a.dtype, cfg.dit.autocast_bf16, device)
     cfg = dataclasses.replace(cfg, dit=dataclasses.replace(cfg.dit, autocast_bf16=bf16))
-    student = make_model(cfg.for_student())
+    student = make_model(cfg.for_student(), device)
     if a.compile:
         student.requires_grad_(False).compile_blocks()
     result = {
         "preset": a.preset,
         "threads": torch.get_num_threads(),
         "compiled": a.compile,
-        "heap": "default" if a.default_heap else "retain",
+        "device": str(device),
         "dit_dtype": "bfloat16" if bf16 else "float32",
         "model_config": {
             "clip": dataclasses.asdict(cfg.clip),
@@ -264,7 +325,7 @@ def main() -> None:
     }
     for name in a.sections:
         if name == "student_vs_teacher":
-            result[name] = student_vs_teacher(student, make_model(cfg), a.envs, a.repeats)
+            result[name] = student_vs_teacher(student, make_model(cfg, device), a.envs, a.repeats)
         elif name == "rollout":
             result[name] = rollout(student, a.rollout_envs, a.frames)
         elif name == "compiled_vs_eager":

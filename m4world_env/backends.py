@@ -13,10 +13,9 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
 
-import torch
-
 from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError
 from world_model.observation import Observation
+from world_model.precision import resolve_device
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
 from world_model.sim.reference_crops import ReferenceCrops
@@ -110,20 +109,14 @@ class WorldModelBackend:
     def __init__(
         self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig, every_frame: bool = False
     ) -> None:
-        from world_model.heap import retain_freed_memory
         from world_model.runtime import RolloutBatch, load_world_model
 
         mc = config.model
         try:
-            device = torch.device(mc.device)
-        except RuntimeError as e:
+            device = resolve_device(mc.device)
+        except ValueError as e:
             raise InvalidOptionError(f"config.model.device: {e}") from e
-        if device.type == "cuda" and not torch.cuda.is_available():
-            raise InvalidOptionError(f"config.model.device={mc.device!r}, but this torch build sees no CUDA device")
-        torch.set_num_threads(max(1, torch.get_num_threads()))
-        if mc.retain_heap and torch.device(mc.device).type == "cpu":
-            retain_freed_memory()
-        self.wm = load_world_model(checkpoint, device=mc.device, dtype=mc.dtype)
+        self.wm = load_world_model(checkpoint, device=device, dtype=mc.dtype)
         n = mc.denoising_steps
         if n < 1:
             raise InvalidOptionError(f"config.model.denoising_steps must be >= 1, got {n}")

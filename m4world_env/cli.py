@@ -85,7 +85,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
         action_type=args.action_type,
         styles=tuple(args.styles),
     )
-    names = record(cfg)
+    names = record(cfg, workers=args.workers)
     print(f"{len(names)} clips in {args.out}")
     return 0
 
@@ -102,7 +102,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
         write_report,
     )
     from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
-    from world_model.heap import retain_freed_memory
     from world_model.runtime import load_world_model
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
@@ -114,7 +113,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
     def bundle_id(path: str | None) -> str:
         return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
 
-    retain_freed_memory()  # as the env's backend does on CPU (world_model.heap)
     load = partial(load_world_model, dtype=args.dtype, context_frames=args.context_frames)
     wm = load(args.checkpoint)
     window = f",window={args.context_frames}" if args.context_frames else ""  # not the checkpoint's own
@@ -236,6 +234,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+DEVICE_BENCHMARKS = ("env", "model", "student")  # the benchmarks that take --device; the others time CPU work
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
@@ -258,9 +259,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     }
     for name in args.only or list(scripts):
         script, *extra = scripts[name]
+        if name in DEVICE_BENCHMARKS:
+            extra += ["--device", args.device]
         cmd = [sys.executable, str(root / script), *extra, "--out", str(out / f"bench_{name}.json")]
         print("$", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
+    return 0
+
+
+def _cmd_text_embeddings(args: argparse.Namespace) -> int:
+    from m4world_env.scenario import list_scenarios
+    from m4world_env.text_embeddings import precompute_text_embeddings
+
+    scenarios = list_scenarios() if args.scenario == ["all"] else args.scenario
+    path, prompts, pooled = precompute_text_embeddings(
+        scenarios, args.out, args.episodes, args.seed, args.steps, args.checkpoint
+    )
+    print(f"{prompts} prompts and {pooled} object texts in {path}; use it with M4WORLD_TEXT_EMBEDDINGS={path}")
     return 0
 
 
@@ -318,6 +333,12 @@ def build_parser() -> argparse.ArgumentParser:
         default="discrete_meta",
         choices=ACTION_TYPES,
         help="the ego's action space; continuous brakes and accelerates beyond the meta-actions' target speeds",
+    )
+    r.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=1,
+        help="record clips in this many processes (each clip identical to a serial run's; e.g. the CPU count)",
     )
     r.set_defaults(func=_cmd_record)
 
@@ -411,7 +432,24 @@ def build_parser() -> argparse.ArgumentParser:
     benchmarks = ("render", "traffic", "env", "model", "student", "precision", "judge", "first_frame")
     b.add_argument("--only", nargs="+", choices=benchmarks)
     b.add_argument("--evalset", default="data/evalset", help="evaluation set (judge, first_frame)")
+    b.add_argument(
+        "--device",
+        default="cpu",
+        help=f"where the model benchmarks ({', '.join(DEVICE_BENCHMARKS)}) run: cpu, cuda[:N] or auto",
+    )
     b.set_defaults(func=_cmd_bench)
+
+    te = sub.add_parser(
+        "text-embeddings",
+        help="precompute the text embeddings of some episodes, for a machine without the text encoder",
+    )
+    te.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
+    te.add_argument("--episodes", type=_positive_int, default=1, help="seeds --seed .. --seed + episodes - 1")
+    te.add_argument("--seed", type=int, default=0)
+    te.add_argument("--steps", type=int, default=None, help="steps per episode (default: to its end)")
+    te.add_argument("--checkpoint", default=None, help="bundle whose text encoder to use (default: the shipped one)")
+    te.add_argument("--out", required=True, help="the .npz file to write")
+    te.set_defaults(func=_cmd_text_embeddings)
 
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
     v.add_argument("--out", default="data/evalset")

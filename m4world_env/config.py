@@ -68,6 +68,7 @@ class ModelBackendConfig:
     # error in every noise seed measured, though some rollouts still wander (docs/MODEL_CARD.md,
     # "An attention sink").
     sink_frames: int = DEFAULT_SINK_FRAMES
+    # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
     # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
@@ -76,10 +77,6 @@ class ModelBackendConfig:
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
-    # On a CPU, keep freed memory in the process heap (world_model.heap.retain_freed_memory: glibc
-    # mallopt, process-wide): eager steps stop page-faulting their activations, ~1.3x faster
-    # forwards. False leaves the allocator as the host process set it.
-    retain_heap: bool = True
 
     def resolved_refresh_steps(self) -> tuple[int, ...] | None:
         """``refresh_steps`` as increasing indices into the ``denoising_steps`` steps (negative ones

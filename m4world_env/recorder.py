@@ -9,14 +9,22 @@ Clip names are derived from (scenario, seed), so a killed recording restarts whe
 complete clips are skipped, a partial one is rewritten. The settings that shape a clip's content
 (resolution, sensors, duration, randomization, action type, excluded categories) are kept in the
 dataset's ``recording.json``; resuming into it with other settings is refused rather than mixed.
+
+``workers`` > 1 records clips in that many processes (``m4world record --workers N``). Every clip
+depends on its own (scenario, seed) only, so the clips, their names and the dataset's recording
+order (``dataset.json``, written by the parent in job order) are byte for byte the serial run's.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +32,7 @@ import numpy as np
 from m4world_env.policies import IDMAutopilot, driving_style
 from m4world_env.scenario import Scenario, list_scenarios, load_scenario, randomize_scenario
 from m4world_env.traffic import TrafficBridge
-from world_model.data import clip_exists, write_clip
+from world_model.data import clip_exists, register_clip, write_clip
 from world_model.data.clips import write_json_atomic
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
@@ -176,10 +184,77 @@ def record_episode(
     return frames, np.stack(cams), np.stack(lidars), np.stack(bevs), crops
 
 
-def record(cfg: RecordConfig, progress: bool = True) -> list[str]:
-    """Record ``episodes`` clips per scenario into ``cfg.out``; returns the clip names (existing included)."""
+def record_clip(scenario: Scenario, seed: int, cfg: RecordConfig, sim: ProceduralSimulator | None = None) -> int:
+    """Record and write one clip, leaving its registration in ``dataset.json`` to the caller.
+    Returns its number of frames."""
+    frames, cams, lidar, bev, crops = record_episode(scenario, seed, cfg, sim=sim)
+    write_clip(
+        cfg.out,
+        clip_name(scenario.name, seed),
+        frames,
+        cams,
+        lidar,
+        bev,
+        crops=crops.crops,
+        extra_meta={
+            "seed": seed,
+            "randomized": cfg.randomize,
+            "base_scenario": scenario.name,
+            "crop_since": crops.since,
+            "ego_style": cfg.style(seed),
+        },
+        register=False,
+    )
+    return len(frames)
+
+
+# Libraries' thread pools a worker process sizes at import: one thread each, the processes are the parallelism.
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+
+
+@contextmanager
+def _single_threaded_children() -> Iterator[None]:
+    """Worker processes started inside see one thread per library (the environment is read when
+    their libraries load); this process's environment is restored after."""
+    saved = {k: os.environ.get(k) for k in THREAD_VARIABLES}
+    os.environ.update(dict.fromkeys(THREAD_VARIABLES, "1"))
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _init_worker() -> None:
+    import cv2
+
+    cv2.setNumThreads(1)
+    try:
+        import torch
+    except ImportError:
+        return
+    torch.set_num_threads(1)
+
+
+_worker_sim: ProceduralSimulator | None = None  # one simulator per worker process: its caches serve every clip
+
+
+def _record_in_worker(job: tuple[Scenario, int, RecordConfig]) -> int:
+    global _worker_sim
+    _worker_sim = _worker_sim or ProceduralSimulator()
+    return record_clip(*job, sim=_worker_sim)
+
+
+def record(cfg: RecordConfig, progress: bool = True, workers: int = 1) -> list[str]:
+    """Record ``episodes`` clips per scenario into ``cfg.out`` in ``workers`` processes; returns
+    the clip names (existing included) in recording order."""
     from tqdm import tqdm
 
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     scenarios = [load_scenario(s) for s in cfg.scenarios]
     seen = [sc.name for sc in scenarios]
     repeated = sorted({n for n in seen if seen.count(n) > 1})
@@ -187,31 +262,29 @@ def record(cfg: RecordConfig, progress: bool = True) -> list[str]:
         raise ValueError(f"scenario name(s) {repeated} given more than once; clip names come from scenario names")
     check_recording_settings(cfg.out, content_settings(cfg))
     jobs = [(sc, episode_seed(cfg.seed, scenario_key(sc.name), e)) for sc in scenarios for e in range(cfg.episodes)]
-    names = []
-    sim = ProceduralSimulator()
-    bar = tqdm(jobs, desc="recording", unit="clip", disable=not progress)
-    for sc, seed in bar:
-        name = clip_name(sc.name, seed)
-        names.append(name)
-        if clip_exists(cfg.out, name):
-            bar.set_postfix_str(f"skip {name}")
-            continue
-        frames, cams, lidar, bev, crops = record_episode(sc, seed, cfg, sim=sim)
-        write_clip(
-            cfg.out,
-            name,
-            frames,
-            cams,
-            lidar,
-            bev,
-            crops=crops.crops,
-            extra_meta={
-                "seed": seed,
-                "randomized": cfg.randomize,
-                "base_scenario": sc.name,
-                "crop_since": crops.since,
-                "ego_style": cfg.style(seed),
-            },
-        )
-        bar.set_postfix_str(f"{name}: {len(frames)} frames")
+    names = [clip_name(sc.name, seed) for sc, seed in jobs]
+    todo = [(sc, seed, cfg) for (sc, seed), name in zip(jobs, names, strict=True) if not clip_exists(cfg.out, name)]
+    if workers == 1 or len(todo) < 2:
+        sim = ProceduralSimulator()
+        frame_counts: Iterator[int] = (record_clip(*job, sim=sim) for job in todo)
+        pool = None
+    else:  # spawned, not forked: a fork would copy this process's thread pools (OpenCV's, torch's) locked
+        with _single_threaded_children():
+            pool = ProcessPoolExecutor(min(workers, len(todo)), get_context("spawn"), _init_worker)
+            frame_counts = pool.map(_record_in_worker, todo)  # results in job order
+    bar = tqdm(total=len(jobs), desc="recording", unit="clip", disable=not progress)
+    bar.update(len(jobs) - len(todo))
+    try:
+        # Registered in job order as each clip completes: dataset.json lists the serial run's order. A
+        # clip written by a process killed before its registration is registered when resumed (below).
+        for (sc, seed, _), frames in zip(todo, frame_counts, strict=True):
+            register_clip(cfg.out, clip_name(sc.name, seed))
+            bar.set_postfix_str(f"{clip_name(sc.name, seed)}: {frames} frames")
+            bar.update()
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+        bar.close()
+    for name in names:
+        register_clip(cfg.out, name)  # resumed clips: listed already, unless written before a kill
     return names

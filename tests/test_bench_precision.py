@@ -34,8 +34,10 @@ def test_bench_env_backend_spec_names_the_world_models_dtype():
 
 def test_bench_env_backend_spec_qualifiers_combine():
     kwargs = _load("bench_env")._make_kwargs
-    model = kwargs("world_model:float32:compile:default-heap:no-refresh", None)["config"]["model"]
-    assert model == {"dtype": "float32", "compile": True, "retain_heap": False, "context_refresh": False}
+    model = kwargs("world_model:float32:compile:no-refresh", None)["config"]["model"]
+    assert model == {"dtype": "float32", "compile": True, "context_refresh": False}
+    on_gpu = kwargs("world_model", None, device="cuda")["config"]["model"]
+    assert on_gpu == {"device": "cuda"}
     with pytest.raises(SystemExit, match="unknown qualifier 'fast'"):
         kwargs("world_model:fast", None)
 

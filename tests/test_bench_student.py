@@ -21,3 +21,37 @@ def test_bench_student_times_every_engine_and_the_rollout(tmp_path):
         assert timed[f"recompute_over_{name}"] == timed["recompute_chunk_s"] / timed[f"{name}_chunk_s"] > 0
     assert timed["window"] == result["model_config"]["clip"]["context_frames"]
     assert result["rollout"]["frames"] >= 24 - result["model_config"]["clip"]["chunk_frames"]
+
+
+def test_the_recompute_baseline_is_the_computation_the_cache_replaces():
+    """bench_student's RecomputeWindow (every step re-runs the window) and the engine's KV cache
+    give the same chunks from the same noise while the window holds the whole rollout (once frames
+    leave it, the cache keeps keys computed with the older context: the approximation it makes)."""
+    import dataclasses
+    import importlib.util
+
+    import torch
+
+    from tests.model_fixtures import perturbed, tiny_conditions
+    from world_model.model import MultiViewDiT, get_preset
+    from world_model.student import StreamingEngine, StudentConfig
+
+    spec = importlib.util.spec_from_file_location("bench_student", ROOT / "benchmarks" / "bench_student.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    chunks, c = 3, 1
+    cfg = get_preset("tiny").for_student()
+    cfg = dataclasses.replace(cfg, clip=dataclasses.replace(cfg.clip, chunk_frames=c, context_frames=1 + chunks * c))
+    torch.manual_seed(0)
+    model = perturbed(MultiViewDiT(cfg))
+    cond = tiny_conditions(cfg, 1 + chunks * c, batch=2)
+    first = torch.randn(2, *cfg.latent_shape(1), generator=torch.Generator().manual_seed(3))
+    scfg = StudentConfig(context_refresh=False)
+    outs = []
+    for engine in (StreamingEngine, bench.RecomputeWindow):
+        eng = engine(model, scfg, torch.Generator().manual_seed(1))
+        with torch.no_grad():
+            eng.start(first, cond.frames(0, 1))
+            outs.append(torch.cat([eng.step(cond.frames(1 + k * c, 1 + (k + 1) * c)) for k in range(chunks)], 1))
+    assert outs[0].abs().mean() > 0.1
+    assert (outs[0] - outs[1]).abs().max().item() <= 1e-4

@@ -345,18 +345,6 @@ def test_sink_frames_option_keeps_the_first_frame_in_context(tiny_bundle):
         assert np.array_equal(a, b) == (f <= window), f
 
 
-@pytest.mark.parametrize("retain", [True, False])
-def test_world_model_backend_retains_the_heap_unless_told_not_to(tiny_bundle, monkeypatch, retain):
-    import world_model.heap
-
-    calls = []
-    monkeypatch.setattr(world_model.heap, "retain_freed_memory", lambda *a: calls.append(a) or True)
-    M4WorldEnv(
-        "merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": {"retain_heap": retain}}
-    )
-    assert len(calls) == int(retain)
-
-
 def _bundle_with_completion_adapter(bundle, root):
     """A completion adapter (random LoRA B) for category "van" (merge_cut_in's cutting van) on
     ``bundle``'s reference model (``active_bundle``: its output depends on its blocks), saved

@@ -127,6 +127,38 @@ def test_randomized_traffic_mix_can_draw_every_vehicle_category():
     assert "tree_truck" not in exclude_categories(s, ["tree_truck"]).traffic.mix
 
 
+def test_record_with_two_workers_writes_the_serial_runs_files_byte_for_byte(tmp_path):
+    import hashlib
+
+    def digest(root):
+        return {
+            str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*"))
+            if p.is_file()
+        }
+
+    scenarios = ("merge_cut_in", "empty_highway")
+    args = [*_record_args(tmp_path / "serial", *scenarios), "--episodes", "2"]
+    assert main(args) == 0
+    assert main([*_record_args(tmp_path / "parallel", *scenarios), "--episodes", "2", "--workers", "2"]) == 0
+    serial, parallel = digest(tmp_path / "serial"), digest(tmp_path / "parallel")
+    assert len(list_clips(tmp_path / "serial")) == 4
+    assert serial == parallel  # every clip file, recording.json and dataset.json (the recording order)
+
+
+def test_a_clip_written_but_not_registered_is_registered_when_resumed(tmp_path):
+    import json
+
+    out = tmp_path / "clips"
+    assert main(_record_args(out, "empty_highway", "merge_cut_in")) == 0
+    names = list_clips(out)
+    index = json.loads((out / "dataset.json").read_text())
+    index["clips"] = index["clips"][:1]  # as if the recording was killed between writing and registering
+    (out / "dataset.json").write_text(json.dumps(index))
+    assert main([*_record_args(out, "empty_highway", "merge_cut_in"), "--workers", "2"]) == 0
+    assert list_clips(out) == names
+
+
 def _ego_track(style: str, seed: int, action_type: str = "continuous", duration: float = 20.0):
     from m4world_env.recorder import RecordConfig, drive_episode
     from m4world_env.scenario import load_scenario

@@ -12,8 +12,10 @@ page faults per forward).
 does nothing and says so): blocks up to ``mmap_threshold_bytes`` come from the heap and freed
 memory stays mapped for the next call. The process's peak memory does not grow (the freed
 blocks are reused); its resident size just no longer shrinks after a peak. The setting is
-process-wide, so it is applied by the programs that run the model (the env's world-model backend
-on CPU, ``config.model.retain_heap``; the ``m4world`` commands), never on import.
+process-wide, so it is applied by the programs that choose it (the train CLIs unless
+``--default-heap``; ``benchmarks/bench_model.py --heaps retain``), never on import. The env does
+not apply it: a process running the env already raises glibc's dynamic mmap threshold by freeing
+large blocks, and an 8-env vector step measured no faster with it.
 
 Torch-free at import.
 """

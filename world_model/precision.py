@@ -12,7 +12,7 @@ where it is fast. Training stages resolve the same choice (``train_stage(dtype="
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from contextvars import ContextVar
 from typing import TYPE_CHECKING
 
@@ -36,6 +36,26 @@ def cpu_has_native_bf16() -> bool:
 
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """A device option as torch sees it: "auto" (the first CUDA device when torch sees one, else
+    the CPU), "cpu", "cuda", "cuda:N", or any other device torch knows. Raises ``ValueError``
+    naming the option when torch does not know it or when the CUDA device asked for is missing."""
+    import torch
+
+    if str(name) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(name)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {name!r} ({e})") from e
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device {name!r} asked for, but this torch build sees no CUDA device")
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise ValueError(f"device {name!r} asked for, but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    return device
 
 
 def bf16_is_fast(device: torch.device | str) -> bool:
@@ -81,3 +101,11 @@ def built_autocast_bf16(configured: bool) -> bool:
     """The bf16 autocast of a DiT constructed now whose config says ``configured``."""
     override = _built_bf16.get()
     return configured if override is None else override
+
+
+def bf16_autocast(device_type: str, enabled: bool) -> AbstractContextManager[None]:
+    """bf16 autocast on ``device_type`` when ``enabled``; a no-op context otherwise, so a model in
+    float32 runs on any device, also one without autocast support."""
+    import torch
+
+    return torch.autocast(device_type, dtype=torch.bfloat16) if enabled else nullcontext()

@@ -32,7 +32,7 @@ from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
-from world_model.precision import check_dtype, dit_precision, resolve_bf16
+from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim import ProceduralSimulator
@@ -180,7 +180,7 @@ class WorldModel:
 def load_world_model(
     path: str | Path | None = None,
     student: StudentConfig | None = None,
-    device: str = "cpu",
+    device: str | torch.device = "cpu",
     dtype: str = "auto",
     context_frames: int | None = None,
 ) -> WorldModel:
@@ -191,6 +191,7 @@ def load_world_model(
     "float32" or "bfloat16". ``context_frames`` runs the student with another rolling window than
     the one it was trained with (None: the bundle's ``clip.context_frames``): a study knob."""
     check_dtype(dtype)
+    device = resolve_device(device)
     if context_frames is not None and context_frames < 1:  # here: in the try below it would read as a bad bundle
         raise ValueError(f"context_frames must be >= 1, got {context_frames}")
     files = load_bundle_files(path)
@@ -271,7 +272,8 @@ class RolloutBatch:
         return self.wm.cfg.clip.chunk_frames
 
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
-        """Batch noise, each row from its own rollout's generator."""
+        """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
+        model's device, so a seed gives the same rollout noise on every device."""
         return torch.stack([torch.randn(tuple(shape[1:]), generator=g) for g in self.gens])
 
     def reset_row(

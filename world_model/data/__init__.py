@@ -7,6 +7,7 @@ from world_model.data.clips import (
     iter_clips,
     list_clips,
     read_clip,
+    register_clip,
     write_clip,
     write_json_atomic,
 )
@@ -18,6 +19,7 @@ __all__ = [
     "iter_clips",
     "list_clips",
     "read_clip",
+    "register_clip",
     "write_clip",
     "write_json_atomic",
 ]

@@ -88,8 +88,10 @@ def write_clip(
     bev: np.ndarray,
     crops: dict[str, np.ndarray] | None = None,
     extra_meta: dict | None = None,
+    register: bool = True,
 ) -> Path:
-    """Write one clip atomically and register it in ``dataset.json``. Returns the clip dir."""
+    """Write one clip atomically and, with ``register``, list it in ``dataset.json`` (writers in
+    parallel processes leave that to one process: :func:`register_clip`). Returns the clip dir."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     t = len(frames)
@@ -128,18 +130,21 @@ def write_clip(
     if final.exists():
         shutil.rmtree(final)
     os.replace(partial, final)
-    _register(root, name)
+    if register:
+        register_clip(root, name)
     return final
 
 
-def _register(root: Path, name: str) -> None:
+def register_clip(root: str | Path, name: str) -> None:
+    """Append clip ``name`` to ``dataset.json``'s recording order, unless it is listed already."""
+    root = Path(root)
     index_path = root / "dataset.json"
     index = (
         _read_index(root) if index_path.exists() else {"format": FORMAT_NAME, "version": FORMAT_VERSION, "clips": []}
     )
     if name not in index["clips"]:
         index["clips"].append(name)
-    write_json_atomic(index_path, index)
+        write_json_atomic(index_path, index)
 
 
 def _read_index(root: Path) -> dict:

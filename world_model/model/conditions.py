@@ -75,6 +75,20 @@ def camera_condition(rig: CameraRig) -> np.ndarray:
     return mats
 
 
+def category_text(category: str) -> str:
+    """The string a category's name is encoded as."""
+    return category.replace("_", " ")
+
+
+def condition_texts(frames: Sequence[SceneFrame]) -> tuple[set[str], set[str]]:
+    """The strings :func:`build_condition_arrays` can encode for ``frames``: (token-level texts:
+    the prompts, pooled texts: category names and object descriptions)."""
+    prompts = {fr.prompt.full_text() for fr in frames}
+    objects = [o for fr in frames for o in fr.objects]
+    pooled = {category_text(o.category) for o in objects} | {object_text(o) for o in objects}
+    return prompts, pooled - {""}
+
+
 def object_text(obj: SceneObject) -> str:
     if obj.description.strip():
         return obj.description.strip()
@@ -172,7 +186,7 @@ def build_condition_arrays(
         n = len(objs)
         corners[f, :n] = all_corners[keep]
         mask[f, :n] = True
-        cat[f, :n] = text_encoder.pooled([o.category.replace("_", " ") for o in objs])
+        cat[f, :n] = text_encoder.pooled([category_text(o.category) for o in objs])
         descs = [object_text(o) for o in objs]
         idx = [i for i, d in enumerate(descs) if d]
         if idx:

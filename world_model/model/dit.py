@@ -24,6 +24,7 @@ channels between the latent's and the reference's: ``[latent | layout | referenc
 from __future__ import annotations
 
 import math
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, replace
 
 import torch
@@ -42,7 +43,7 @@ from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.rope import rope_tables, rotation_tables
 from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
-from world_model.precision import built_autocast_bf16
+from world_model.precision import bf16_autocast, built_autocast_bf16
 
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
 
@@ -251,27 +252,21 @@ class MultiViewDiT(nn.Module):
             nn.init.zeros_(lin.weight)
             nn.init.zeros_(lin.bias)
 
-    def _autocast(self, device_type: str) -> torch.autocast:
-        return torch.autocast(device_type, dtype=torch.bfloat16, enabled=self.autocast_bf16)
+    def _autocast(self, device_type: str) -> AbstractContextManager[None]:
+        return bf16_autocast(device_type, self.autocast_bf16)
 
-    def compile_blocks(self, freeze: bool = False) -> None:
+    def compile_blocks(self) -> None:
         """``torch.compile`` every block's forward (inductor, static shapes): fuses the norms,
         modulation, RoPE and softmax around the matmuls. Opt-in: the first calls of each shape
-        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time.
-
-        ``freeze`` (inductor's freezing; it only applies to graphs run without autograd): the weights
-        become constants of the compiled kernels, which lets oneDNN pre-pack them. On this 2-core CPU
-        it measured no faster than compiling alone (``benchmarks/bench_student.py --sections
-        compiled_vs_eager``), so it is off by default. A frozen weight is read when its graph
-        compiles: applying or removing a LoRA adapter swaps modules and so recompiles, but a weight
-        changed in place afterwards is not seen."""
+        compile (tens of seconds on CPU) and inductor needs a C++ compiler at run time. Applying or
+        removing a LoRA adapter swaps modules, so the blocks recompile."""
         import torch._dynamo
 
         # One graph per (block kind, chunk/context shape): a rollout's first chunks see shorter
         # contexts, so allow more graphs than dynamo's default before it falls back to eager.
         torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
         for block in self.blocks:
-            block.forward = torch.compile(block.forward, dynamic=False, options={"freezing": freeze})
+            block.forward = torch.compile(block.forward, dynamic=False)
 
     def tokenize(self, cond: Conditions) -> ControlTokens:
         """Control tokens for ``cond`` with every block's cross-attention keys/values; pass them to
@@ -354,8 +349,8 @@ class MultiViewDiT(nn.Module):
 
             temb = self.time_embed(t)  # (B, T, D)
             mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
-            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta)
-            cos, sin = rotation_tables(cos.to(x.device), sin.to(x.device), h.dtype)
+            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta, x.device)
+            cos, sin = rotation_tables(cos, sin, h.dtype)
             ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
             self_mask = None
             if blocks is not None and blocks.shape != (t_len,):

@@ -12,17 +12,34 @@ Training timestep distribution (``FlowConfig``): ``uniform`` is the paper's t ~ 
 intermediate times where the velocity is hardest to predict. ``shift`` s applies SD3's
 resolution shift to the noise level sigma = 1 - t: sigma' = s sigma / (1 + (s - 1) sigma), so s > 1
 spends more steps near noise; the same shift spaces the sampler's time grid.
+
+Noise (:func:`gaussian`) is drawn by its generator where the generator lives (a seeded
+``torch.Generator()`` is a CPU one) and then moved to the model's device: a seed gives the same
+noise on every device, so a GPU rollout and a CPU rollout differ only by their arithmetic.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
 from world_model.model.config import FlowConfig
 
 VelocityFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+# A noise source: a torch.Generator (None: torch's global one), or a function shape -> standard
+# normal tensor (e.g. one generator per batch row, so a rollout's noise does not depend on the
+# other rows of its batch).
+NoiseSource = torch.Generator | Callable[[tuple[int, ...]], torch.Tensor] | None
+
+
+def gaussian(shape: Sequence[int], source: NoiseSource, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Standard normal noise of ``shape`` drawn from ``source`` on its own device, on ``device``."""
+    if callable(source):
+        noise = source(tuple(shape))
+    else:
+        noise = torch.randn(tuple(shape), generator=source, device=None if source is None else source.device)
+    return noise.to(device)
 
 
 def _bcast(t: torch.Tensor, x: torch.Tensor) -> torch.Tensor:

@@ -72,10 +72,11 @@ class VaeCropEncoder(ImageDescriptionEncoder):
 
     @torch.no_grad()
     def _encode(self, crops: list[np.ndarray]) -> np.ndarray:
+        device = self.vae.latent_mean.device
         images = torch.stack(
             [
                 F.interpolate(
-                    cameras_to_images(c)[None],
+                    cameras_to_images(c, device)[None],
                     size=(self.size, self.size),
                     mode="bilinear",
                     antialias=True,
@@ -85,4 +86,4 @@ class VaeCropEncoder(ImageDescriptionEncoder):
             ]
         )
         z = self.vae.encode(images)  # (N, C, s/d, s/d)
-        return torch.cat([z.mean(dim=(2, 3)), z.std(dim=(2, 3), unbiased=False)], dim=1).numpy()
+        return torch.cat([z.mean(dim=(2, 3)), z.std(dim=(2, 3), unbiased=False)], dim=1).cpu().numpy()

@@ -37,7 +37,7 @@ from world_model.geometry import BOX_EDGES
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig, SamplerConfig
 from world_model.model.dit import MultiViewDiT
-from world_model.model.flow import euler_sample
+from world_model.model.flow import euler_sample, gaussian
 from world_model.model.sampler import GuidedVelocity, latents_to_observations
 from world_model.model.tokens import ControlTokens
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
@@ -293,10 +293,10 @@ class ReferenceGenerator:
         """
         s = self.mcfg.sensors
         v, (h, w) = s.num_views, self.mcfg.latent_hw
-        lat = torch.zeros(batch, 1, v, self.mcfg.vae.latent_channels, h, w)
-        mask = torch.zeros(batch, 1, v, 1, h, w)
-        valid = ("cameras", "lidar", *self.names)
         device = next(self.vae.parameters()).device
+        lat = torch.zeros(batch, 1, v, self.mcfg.vae.latent_channels, h, w, device=device)
+        mask = torch.zeros(batch, 1, v, 1, h, w, device=device)
+        valid = ("cameras", "lidar", *self.names)
         if reference is not None and not isinstance(reference, Mapping):
             raise TypeError(
                 f"the reference must be a dict such as {{'FRONT': image}} or {{'cameras': images}}, "
@@ -307,17 +307,18 @@ class ReferenceGenerator:
                 raise ValueError(f"unknown reference key {key!r}; use one of {valid}")
             if key == "lidar":
                 ranges = self._images(key, value, (s.lidar.beams, s.lidar.azimuth), batch)
-                images, views = lidar_to_images(ranges.astype(np.float32), self.mcfg)[:, None], [s.lidar_view]
+                images = lidar_to_images(ranges.astype(np.float32), self.mcfg, device)[:, None]
+                views = [s.lidar_view]
             else:
                 many = key == "cameras"
                 want = (s.num_cameras, s.height, s.width, 3) if many else (s.height, s.width, 3)
                 cams = self._images(key, value, want, batch)
                 if cams.dtype != np.uint8:
                     raise ValueError(f"reference {key!r} must be uint8 RGB, got {cams.dtype}")
-                images = cameras_to_images(cams if many else cams[:, None])
+                images = cameras_to_images(cams if many else cams[:, None], device)
                 views = list(range(s.num_cameras)) if many else [self.names.index(key)]
             with torch.no_grad():
-                enc = self.vae.encode(images.flatten(0, 1).to(device)).cpu()
+                enc = self.vae.encode(images.flatten(0, 1))
             lat[:, 0, views] = enc.view(batch, len(views), *enc.shape[1:])
             mask[:, 0, views] = 1.0
         return reference_input(lat, mask)
@@ -343,10 +344,11 @@ class ReferenceGenerator:
         if observed and not self.conditioned:
             raise ValueError("this model has no reference channels; train one with --stage reference")
         device = next(self.model.parameters()).device
-        noise = torch.randn(shape, generator=torch.Generator().manual_seed(seed)).to(device)
+        noise = gaussian(shape, torch.Generator().manual_seed(seed), device)
         net = self.model
         if self.conditioned:
-            extra = torch.zeros(*shape[:3], reference_channels(mc), *shape[4:]) if extra is None else extra
+            if extra is None:
+                extra = torch.zeros(*shape[:3], reference_channels(mc), *shape[4:], device=device)
             net = _WithReference(self.model, extra.to(device))
         was_training = self.model.training
         self.model.eval()
@@ -383,7 +385,7 @@ class ReferenceGenerator:
     ) -> tuple[torch.Tensor, list[list[Observation]]]:
         """Tasks (a)/(b): all ``cond.num_frames`` frames anchored on a first-frame reference."""
         first = self.encode_reference(reference, cond.batch_size)
-        extra = torch.zeros(first.shape[0], cond.num_frames, *first.shape[2:])
+        extra = first.new_zeros(first.shape[0], cond.num_frames, *first.shape[2:])
         extra[:, :1] = first
         lat = self.sample(cond, extra, steps, seed)
         return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar)
@@ -408,8 +410,8 @@ class ReferenceGenerator:
         region = np.stack([category_region([fr], category, self.mcfg, self.cfg)[0] for fr in frames])  # (B, V, h, w)
         if not region.any():
             return latents
-        mask = torch.from_numpy(~region).float()[:, None, :, None]
-        return self.sample(cond.frames(0, 1), reference_input(latents.cpu(), mask), steps, seed)
+        mask = torch.as_tensor(~region, dtype=latents.dtype, device=latents.device)[:, None, :, None]
+        return self.sample(cond.frames(0, 1), reference_input(latents, mask), steps, seed)
 
     def complete_object(
         self,
@@ -436,7 +438,7 @@ class ReferenceGenerator:
         for f, fr in enumerate(frames):
             if any(o.track_id == track_id for o in fr.objects):
                 mask[f, :, 0][object_region(fr, track_id, self.mcfg, self.cfg)] = 0.0
-        lat = self.vae.encode_frames(np.asarray(cameras), np.asarray(lidar, dtype=np.float32)).cpu()
-        extra = reference_input(lat[None], torch.from_numpy(mask)[None])
+        lat = self.vae.encode_frames(np.asarray(cameras), np.asarray(lidar, dtype=np.float32))
+        extra = reference_input(lat[None], torch.as_tensor(mask, device=lat.device)[None])
         out = self.sample(cond, extra, steps, seed)
         return out, latents_to_observations(self.vae, out, self.mcfg.sensors.lidar), mask

@@ -18,18 +18,24 @@ def rope_axis_dims(head_dim: int) -> tuple[int, int, int]:
 
 
 def _angles(pos: torch.Tensor, dim: int, theta: float) -> torch.Tensor:
-    inv = 1.0 / theta ** (torch.arange(0, dim, 2, dtype=torch.float64) / dim)
+    inv = 1.0 / theta ** (torch.arange(0, dim, 2, dtype=torch.float64, device=pos.device) / dim)
     return pos.double()[:, None] * inv[None, :]
 
 
 def rope_tables(
-    head_dim: int, frames: int, rows: int, cols: int, frame_offset: int = 0, theta: float = 10000.0
+    head_dim: int,
+    frames: int,
+    rows: int,
+    cols: int,
+    frame_offset: int = 0,
+    theta: float = 10000.0,
+    device: torch.device | str = "cpu",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """cos, sin of shape (frames * rows * cols, head_dim / 2), tokens ordered (frame, row, col)."""
+    """cos, sin of shape (frames * rows * cols, head_dim / 2) on ``device``, tokens ordered (frame, row, col)."""
     df, dr, dc = rope_axis_dims(head_dim)
-    f = torch.arange(frames) + frame_offset
-    r = torch.arange(rows)
-    c = torch.arange(cols)
+    f = torch.arange(frames, device=device) + frame_offset
+    r = torch.arange(rows, device=device)
+    c = torch.arange(cols, device=device)
     ff, rr, cc = (g.reshape(-1) for g in torch.meshgrid(f, r, c, indexing="ij"))
     ang = torch.cat([_angles(ff, df, theta), _angles(rr, dr, theta), _angles(cc, dc, theta)], dim=1)
     return ang.cos().float(), ang.sin().float()

@@ -16,7 +16,7 @@ import torch
 from world_model.model.conditions import Conditions
 from world_model.model.config import SamplerConfig
 from world_model.model.dit import MultiViewDiT
-from world_model.model.flow import euler_sample, predict_x0
+from world_model.model.flow import euler_sample, gaussian, predict_x0
 from world_model.model.guidance import AdaptiveProjectedGuidance, cfg_combine
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
@@ -75,7 +75,7 @@ def sample_latents(
     device = next(model.parameters()).device
     if noise is None:
         shape = (cond.batch_size, *cfg.latent_shape(cond.num_frames))
-        noise = torch.randn(shape, generator=generator).to(device)
+        noise = gaussian(shape, generator, device)
     was_training = model.training
     model.eval()
     try:

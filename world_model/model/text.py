@@ -3,6 +3,12 @@
 Two outputs: token-level embeddings for the scene prompt (the DiT's text cross-attention) and
 one pooled vector for short strings (object category names, object descriptions). Both are
 cached by string, so encoding a whole dataset costs one forward per distinct string.
+
+Where an encoder's weights cannot be installed (an offline GPU node without the MiniLM package),
+its embeddings of a known set of strings can be computed elsewhere (:func:`save_text_embeddings`,
+``m4world text-embeddings``) and served from the file: with ``$M4WORLD_TEXT_EMBEDDINGS`` pointing
+at it, :func:`make_text_encoder` returns a :class:`PrecomputedTextEncoder` in place of that
+encoder, which refuses any string the file lacks.
 """
 
 from __future__ import annotations
@@ -10,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import os
 from abc import ABC, abstractmethod
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -116,10 +123,71 @@ class HashTextEncoder(TextEncoder):
         return np.stack(out)
 
 
+TEXT_EMBEDDINGS_VARIABLE = "M4WORLD_TEXT_EMBEDDINGS"
+
+
+def save_text_embeddings(encoder: TextEncoder, name: str, path: str | Path) -> Path:
+    """Write every string ``encoder`` has encoded so far (its caches) with its embeddings to
+    ``path`` (.npz), tagged with the encoder's ``name`` (``TextConfig.encoder``) and width."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    token_texts = sorted(encoder._tokens)
+    pooled_texts = sorted(encoder._pooled)
+    empty = np.zeros((0, encoder.dim), np.float32)
+    np.savez(
+        path,
+        encoder=np.array(name),
+        dim=np.array(encoder.dim),
+        token_texts=np.array(token_texts, dtype=str),
+        token_lengths=np.array([len(encoder._tokens[t]) for t in token_texts], dtype=np.int64),
+        tokens=np.concatenate([encoder._tokens[t] for t in token_texts]) if token_texts else empty,
+        pooled_texts=np.array(pooled_texts, dtype=str),
+        pooled=np.stack([encoder._pooled[t] for t in pooled_texts]) if pooled_texts else empty,
+    )
+    return path
+
+
+class PrecomputedTextEncoder(TextEncoder):
+    """Embeddings read from a :func:`save_text_embeddings` file; a string it lacks raises ``KeyError``."""
+
+    def __init__(self, path: str | Path) -> None:
+        super().__init__()
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"text embeddings file {self.path} (${TEXT_EMBEDDINGS_VARIABLE}) does not exist")
+        with np.load(self.path) as data:
+            self.encoder, self.dim = str(data["encoder"]), int(data["dim"])
+            splits = np.cumsum(data["token_lengths"])[:-1]
+            self._tokens = dict(zip(data["token_texts"].tolist(), np.split(data["tokens"], splits), strict=True))
+            self._pooled = dict(zip(data["pooled_texts"].tolist(), data["pooled"], strict=True))
+
+    def _missing(self, texts: list[str]) -> KeyError:
+        return KeyError(
+            f"{len(texts)} text(s) are not in the precomputed embeddings {self.path}, e.g. {texts[0]!r}; "
+            "compute them where the text encoder is installed (m4world text-embeddings --help)"
+        )
+
+    def _encode_tokens(self, text: str) -> np.ndarray:
+        raise self._missing([text])
+
+    def _encode_pooled(self, texts: list[str]) -> np.ndarray:
+        raise self._missing(texts)
+
+
 def make_text_encoder(cfg: TextConfig) -> TextEncoder:
-    """The encoder named by ``cfg.encoder``; its width must equal ``cfg.dim``."""
+    """The encoder named by ``cfg.encoder``; its width must equal ``cfg.dim``. With
+    ``$M4WORLD_TEXT_EMBEDDINGS`` set to a file of that encoder's embeddings, the file serves them."""
+    stored = os.environ.get(TEXT_EMBEDDINGS_VARIABLE)
+    if stored and cfg.encoder != "hash":  # the hash encoder needs no weights: never stood in for
+        enc: TextEncoder = PrecomputedTextEncoder(stored)
+        if enc.encoder != cfg.encoder or enc.dim != cfg.dim:
+            raise ValueError(
+                f"${TEXT_EMBEDDINGS_VARIABLE}={stored} holds {enc.encoder!r} embeddings of width {enc.dim}, "
+                f"the model needs {cfg.encoder!r} of width {cfg.dim}"
+            )
+        return enc
     if cfg.encoder == "minilm":
-        enc: TextEncoder = MiniLMTextEncoder()
+        enc = MiniLMTextEncoder()
     elif cfg.encoder == "hash":
         enc = HashTextEncoder(cfg.dim)
     else:

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from world_model.model.config import ModelConfig, VaeConfig
+from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
 
 
@@ -146,10 +147,13 @@ class SensorVAE(nn.Module):
     def encode_frames(self, cameras: np.ndarray, lidar: np.ndarray, batch: int = 64) -> torch.Tensor:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) -> latents (T, V+1, C, h, w)."""
         t, v = cameras.shape[:2]
+        device = self.latent_mean.device
         images = torch.cat(
             [
-                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:])).reshape(t, v, 3, *cameras.shape[2:4]),
-                lidar_to_images(lidar, self.cfg)[:, None],
+                cameras_to_images(cameras.reshape(t * v, *cameras.shape[2:]), device).reshape(
+                    t, v, 3, *cameras.shape[2:4]
+                ),
+                lidar_to_images(lidar, self.cfg, device)[:, None],
             ],
             dim=1,
         )
@@ -166,7 +170,7 @@ class SensorVAE(nn.Module):
         latents = latents.float()
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
-        with torch.autocast(latents.device.type, dtype=torch.bfloat16, enabled=self.cfg.dit.autocast_bf16):
+        with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
             images = self.decode(latents[:, :-1].flatten(0, 1))
         cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         lid = images_to_lidar(
@@ -199,11 +203,11 @@ def kl_loss(mean: torch.Tensor, logvar: torch.Tensor) -> torch.Tensor:
 # -- sensor normalization --------------------------------------------------------------------
 
 
-def cameras_to_images(cameras: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """uint8 (..., H, W, 3) -> float32 (..., 3, H, W) in [-1, 1]."""
+def cameras_to_images(cameras: np.ndarray | torch.Tensor, device: torch.device | str | None = None) -> torch.Tensor:
+    """uint8 (..., H, W, 3) -> float32 (..., 3, H, W) in [-1, 1], on ``device`` (None: the input's)."""
     if isinstance(cameras, np.ndarray) and not cameras.flags.writeable:
         cameras = np.array(cameras)  # memory-mapped clips are read-only; torch wants writable memory
-    x = torch.as_tensor(cameras)
+    x = torch.as_tensor(cameras, device=device)
     if x.dtype != torch.uint8 or x.shape[-1] != 3:
         raise ValueError(f"cameras must be uint8 (..., H, W, 3), got {x.dtype} {tuple(x.shape)}")
     return x.movedim(-1, -3).float() / 127.5 - 1.0
@@ -215,10 +219,16 @@ def images_to_cameras(images: torch.Tensor) -> np.ndarray:
     return x.movedim(-3, -1).cpu().numpy()
 
 
-def lidar_to_images(ranges: np.ndarray | torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
-    """Range maps metres (..., beams, azimuth) -> (..., 3, H, W) in [-1, 1] at the view resolution."""
+def lidar_to_images(
+    ranges: np.ndarray | torch.Tensor, cfg: ModelConfig, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Range maps metres (..., beams, azimuth) -> (..., 3, H, W) in [-1, 1] at the view resolution,
+    on ``device`` (None: the input's)."""
     spec = cfg.sensors.lidar
-    r = torch.as_tensor(np.asarray(ranges, dtype=np.float32))
+    if isinstance(ranges, torch.Tensor):
+        r = ranges.float().to(device or ranges.device)
+    else:
+        r = torch.as_tensor(np.asarray(ranges, np.float32), device=device)
     if r.ndim < 2:
         raise ValueError(f"lidar must be (..., beams, azimuth), got shape {tuple(r.shape)}")
     r = torch.where(r <= spec.no_return, torch.full_like(r, spec.max_range), r).clamp(0.0, spec.max_range)

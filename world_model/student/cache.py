@@ -110,7 +110,7 @@ class KVCache:
             raise ValueError(f"{frames} first frames do not fit the window of {self.window}")
         r = torch.as_tensor(list(rows), dtype=torch.long)
         self._check(kvs, frames, len(r))
-        idx = self._rows(r)
+        idx = self._rows(r).to(self.layers[0][0].device)
         n = self.n
         out: list[KV] = []
         for (k, v), (nk, nv) in zip(self.layers, kvs, strict=True):

@@ -42,7 +42,6 @@ class StudentConfig:
     refresh_steps: tuple[int, ...] | None = None
     sink_frames: int = 0  # first frames of a rollout kept in context forever (attention sink)
     prefix_frames: int = 1  # clean conditioning frames a rollout starts from (the reset frame)
-    kv_cache: bool = True  # False: recompute the whole window at every denoising step (ablation)
 
     # -- Self-Forcing + DMD --
     critic_updates: int = 5  # critic steps per generator step (DMD2)
@@ -81,11 +80,8 @@ class StudentConfig:
                     f"refresh_steps must be increasing step indices in [0, {len(steps) - 1}] (one per "
                     f"denoising step to refresh at), or None for every step; got {idx}"
                 )
-            if not (self.context_refresh and self.kv_cache):
-                raise ValueError(
-                    "refresh_steps needs context_refresh=True and kv_cache=True (the recompute ablation has no "
-                    "cached copy of the context frame to fall back on)"
-                )
+            if not self.context_refresh:
+                raise ValueError("refresh_steps needs context_refresh=True (it says at which steps to refresh)")
         if self.renoise not in ("fresh", "ddim"):
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
         if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:

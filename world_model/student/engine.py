@@ -32,22 +32,12 @@ import torch
 from world_model.model.attention import KV
 from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.dit import MultiViewDiT
-from world_model.model.flow import interpolate, predict_x0
+from world_model.model.flow import NoiseSource, gaussian, interpolate, predict_x0
 from world_model.model.tokens import ControlTokens
 from world_model.student.cache import KVCache
-from world_model.student.config import StudentConfig, check_student, rollout_blocks
+from world_model.student.config import StudentConfig, check_student
 
 X0Fn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]  # (x_t, t) -> x0 prediction
-# A noise source: a torch.Generator, or a function shape -> standard normal tensor (e.g. one
-# generator per batch row, so a rollout's noise does not depend on the other rows of its batch).
-NoiseSource = torch.Generator | Callable[[tuple[int, ...]], torch.Tensor] | None
-
-
-def gaussian(shape: Sequence[int], source: NoiseSource) -> torch.Tensor:
-    """Standard normal noise of ``shape`` drawn from ``source``."""
-    if callable(source):
-        return source(tuple(shape))
-    return torch.randn(tuple(shape), generator=source)
 
 
 def few_step_sample(
@@ -78,7 +68,7 @@ def few_step_sample(
             return x0
         t_next = times[k + 1].expand(b).to(noise.device)
         if renoise == "fresh":
-            eps = gaussian(x.shape, generator).to(x.device)
+            eps = gaussian(x.shape, generator, x.device)
         else:  # the noise the current sample implies: deterministic, DDIM-like
             tb = t.reshape(b, *[1] * (x.ndim - 1))
             eps = (x - tb * x0) / (1.0 - tb)
@@ -122,17 +112,12 @@ class StreamingEngine:
         self.cfg = model.cfg
         self.scfg = student or StudentConfig()
         check_student(self.cfg, self.scfg)
-        if not self.scfg.kv_cache and self.scfg.sink_frames:
-            raise ValueError("the recompute ablation (kv_cache=False) supports no sink frames")
         self.gen = generator
         self.times = self.scfg.times()
         self.cache: KVCache | None = None
         self.position = 0  # RoPE frame index of the next frame (shared by all rows)
-        self.prefix = 0  # conditioning frames of the rollout (recompute ablation block layout)
         self.last: torch.Tensor | None = None  # (B, 1, V, C, h, w) last clean frame of each row
         self.last_controls: Conditions | None = None  # its controls (1 frame)
-        self.history: torch.Tensor | None = None  # recompute ablation: (B, <=W, V, C, h, w)
-        self.history_controls: Conditions | None = None
 
     # -- state --
     @property
@@ -185,48 +170,38 @@ class StreamingEngine:
         dev = self._device()
         x, controls = first_latents.to(dev).float(), controls.to(dev)
         b, f0 = x.shape[:2]
-        self.position, self.prefix = f0, f0
+        self.position = f0
         self.last, self.last_controls = x[:, -1:].clone(), controls.frames(f0 - 1, f0)
-        if self.scfg.kv_cache:
-            c = self.cfg
-            self.cache = KVCache(
-                b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, self.scfg.sink_frames
-            )
-            self.cache.append(self._clean_kv(x, controls, 0), f0)
-        else:
-            self.history, self.history_controls = x.clone(), controls
+        c = self.cfg
+        self.cache = KVCache(b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, self.scfg.sink_frames)
+        self.cache.append(self._clean_kv(x, controls, 0), f0)
 
     def start_rows(self, rows: Sequence[int], first_latents: torch.Tensor, controls: Conditions) -> None:
         """Restart rollouts ``rows`` from new first frames (R, F0, ...); the other rows continue."""
         if self.last is None:
             raise RuntimeError("start the batch with start() before restarting rows")
-        if not self.scfg.kv_cache:
-            raise ValueError(
-                "restarting single rows needs the KV cache (kv_cache=True); "
-                "the recompute ablation restarts the whole batch with start()"
-            )
         self._check_latents(first_latents, controls, "first_latents")
-        r = torch.as_tensor(list(rows), dtype=torch.long)
-        if len(r) != first_latents.shape[0] or len(set(r.tolist())) != len(r):
-            raise ValueError(f"rows {list(rows)} must be distinct, one per first_latents sample")
-        if len(r) and (int(r.min()) < 0 or int(r.max()) >= self.batch_size):
-            raise ValueError(f"rows must be in [0, {self.batch_size}), got {list(rows)}")
+        rows = [int(r) for r in rows]
+        if len(rows) != first_latents.shape[0] or len(set(rows)) != len(rows):
+            raise ValueError(f"rows {rows} must be distinct, one per first_latents sample")
+        if rows and (min(rows) < 0 or max(rows) >= self.batch_size):
+            raise ValueError(f"rows must be in [0, {self.batch_size}), got {rows}")
         f0 = first_latents.shape[1]
         if f0 > self.position:
             raise ValueError(f"{f0} first frames cannot precede frame position {self.position}")
         dev = self._device()
         x, controls = first_latents.to(dev).float(), controls.to(dev)
-        self.cache.restart_rows(r.tolist(), self._clean_kv(x, controls, self.position - f0), f0)
+        self.cache.restart_rows(rows, self._clean_kv(x, controls, self.position - f0), f0)
+        r = torch.as_tensor(rows, dtype=torch.long, device=dev)
         self.last = self.last.clone()
-        self.last[r.to(dev)] = x[:, -1:]
-        self.last_controls = set_rows(self.last_controls, r.to(dev), controls.frames(f0 - 1, f0))
+        self.last[r] = x[:, -1:]
+        self.last_controls = set_rows(self.last_controls, r, controls.frames(f0 - 1, f0))
 
     def snapshot(self) -> dict:
         """The rollout state, cheaply: the cache never modifies its tensors in place, so holding
         references is enough. :meth:`restore` rewinds to it (e.g. to draw extra samples from the
         same context for the DMD critic without advancing the rollout)."""
-        keys = ("position", "prefix", "last", "last_controls", "history", "history_controls")
-        state = {k: getattr(self, k) for k in keys}
+        state = {k: getattr(self, k) for k in ("position", "last", "last_controls")}
         if self.cache is not None:
             state["cache"] = (self.cache.layers, self.cache.count)
         return state
@@ -244,11 +219,10 @@ class StreamingEngine:
         ``StudentConfig.refresh_steps`` all rows share one time (the step is read from it)."""
         return self._chunk(controls)[0]
 
-    def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens | None]:
-        """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit (None: the
-        recompute ablation, which commits without a forward)."""
+    def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens]:
+        """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit."""
         m, c = self.model, self.cfg.clip.chunk_frames
-        if self.scfg.kv_cache and self.scfg.context_refresh:
+        if self.scfg.context_refresh:
             ctx, valid = self.cache.context(exclude_newest=True)
             tokens = m.tokenize(cat_frames(self.last_controls, controls))
 
@@ -269,21 +243,8 @@ class StreamingEngine:
             if self.scfg.refresh_steps is None:
                 return refreshed, chunk_tokens
             return self._partly_refreshed(refreshed, self._cached_fn(chunk_tokens)), chunk_tokens
-        if self.scfg.kv_cache:
-            tokens = m.tokenize(controls)
-            return self._cached_fn(tokens), tokens
-        hist, f = self.history, self.history.shape[1]
-        tokens = m.tokenize(cat_frames(self.history_controls, controls))
-        blocks = rollout_blocks(self.position - f, f + c, self.prefix, c)
-
-        def recompute(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-            tt = torch.cat([torch.ones(x.shape[0], f, device=x.device), t[:, None].expand(-1, c)], dim=1)
-            v = m(torch.cat([hist, x], dim=1), tt, tokens, causal=True, frame_offset=self.position - f, blocks=blocks)[
-                :, f:
-            ]
-            return predict_x0(x, v, t)
-
-        return recompute, None
+        tokens = m.tokenize(controls)
+        return self._cached_fn(tokens), tokens
 
     def _cached_fn(self, tokens: ControlTokens) -> X0Fn:
         """x0-prediction of the next chunk attending to the whole cache (no context refresh)."""
@@ -333,7 +294,7 @@ class StreamingEngine:
         controls = controls.to(dev)
         shape = (self.batch_size, *self.cfg.latent_shape(c))
         if noise is None:
-            noise = gaussian(shape, self.gen)
+            noise = gaussian(shape, self.gen, dev)
         elif tuple(noise.shape) != shape:
             raise ValueError(f"noise must be {shape}, got {tuple(noise.shape)}")
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
@@ -350,16 +311,8 @@ class StreamingEngine:
         """
         c = latents.shape[1]
         latents, controls = latents.detach().float(), controls.to(latents.device)
-        if self.scfg.kv_cache:
-            ctx, valid = self.cache.context()
-            kv = self._clean_kv(latents, controls if tokens is None else tokens, self.position, ctx, valid)
-            self.cache.append(kv, c)
-        else:
-            w = self.cfg.clip.context_frames
-            hist = torch.cat([self.history, latents], dim=1)
-            hc = cat_frames(self.history_controls, controls)
-            keep = min(w, hist.shape[1])
-            self.history = hist[:, -keep:]
-            self.history_controls = hc.frames(hc.num_frames - keep, hc.num_frames)
+        ctx, valid = self.cache.context()
+        kv = self._clean_kv(latents, controls if tokens is None else tokens, self.position, ctx, valid)
+        self.cache.append(kv, c)
         self.position += c
         self.last, self.last_controls = latents[:, -1:], controls.frames(c - 1, c)
