@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceGenerator, reference_model_config
+from world_model.model.rows import split_rows
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
@@ -166,8 +167,13 @@ class WorldModel:
         return build_condition_arrays(frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego)
 
     def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
-        """(B, T, V, C, h, w) normalized latents → B lists of T observations."""
-        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar)
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations.
+
+        Each frame is decoded alone: on CPU the decoder's convolutions and group norms pick other
+        kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
+        ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
+        differ from the same rollout run alone. It costs ~10% of the decode at 64 frames."""
+        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1)
 
 
 def load_world_model(
@@ -260,6 +266,11 @@ class RolloutBatch:
     def chunk_frames(self) -> int:
         return self.wm.cfg.clip.chunk_frames
 
+    def _row_independent(self) -> AbstractContextManager:
+        """Batched student calls computed row for row as a batch of one would on CPU
+        (:mod:`world_model.model.rows`), so a rollout never depends on the others in its batch."""
+        return split_rows(self.n) if next(self.wm.student.parameters()).device.type == "cpu" else nullcontext()
+
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
         """Batch noise, each row from its own rollout's generator."""
         return torch.stack([torch.randn(tuple(shape[1:]), generator=g) for g in self.gens])
@@ -289,7 +300,8 @@ class RolloutBatch:
             if len(self._pending) == self.n:
                 rows = sorted(self._pending)
                 first = torch.cat([self._pending[r][0] for r in rows])
-                self.engine.start(first, Conditions.collate([self._pending[r][1] for r in rows]))
+                with self._row_independent():
+                    self.engine.start(first, Conditions.collate([self._pending[r][1] for r in rows]))
                 self._pending.clear()
         return obs
 
@@ -323,7 +335,8 @@ class RolloutBatch:
                     )
                 cond = Conditions.collate(arrays)
                 t1 = time.perf_counter()
-                latents = self.engine.step(cond)
+                with self._row_independent():
+                    latents = self.engine.step(cond)
                 self.seconds["conditions"] += t1 - t0
                 self.seconds["student"] += time.perf_counter() - t1
                 for i in range(self.n):
