@@ -241,7 +241,7 @@ class _WithReference:
         return self.model.tokenize(cond)
 
     def __call__(self, x: torch.Tensor, t: torch.Tensor, tokens: ControlTokens, **kw: Any) -> torch.Tensor:
-        extra = self.extra.repeat(x.shape[0] // self.extra.shape[0], 1, 1, 1, 1, 1)
+        extra = self.extra.repeat_interleave(x.shape[0] // self.extra.shape[0], dim=0)  # guidance's (c, u) pairs
         return self.model(torch.cat([x, extra.to(x.dtype)], dim=3), t, tokens, **kw)
 
 
@@ -329,11 +329,12 @@ class ReferenceGenerator:
         cond: Conditions,
         extra: torch.Tensor | None = None,
         steps: int | None = None,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         sampler: SamplerConfig | None = None,
     ) -> torch.Tensor:
         """Latents (B, T, V, C, h, w) for ``cond`` anchored on ``extra`` (B, T, V, C + 1, h, w)
-        reference channels (:func:`reference_input`); None = controls only."""
+        reference channels (:func:`reference_input`); None = controls only. ``seed``: of the
+        batch's noise, or one per row (row i's noise then as in a batch of one seeded ``seed[i]``)."""
         mc = self.mcfg
         sampler = replace(sampler or mc.sampler, **({"steps": steps} if steps else {}))
         shape = (cond.batch_size, *mc.latent_shape(cond.num_frames))
@@ -343,7 +344,13 @@ class ReferenceGenerator:
         if observed and not self.conditioned:
             raise ValueError("this model has no reference channels; train one with --stage reference")
         device = next(self.model.parameters()).device
-        noise = torch.randn(shape, generator=torch.Generator().manual_seed(seed)).to(device)
+        if isinstance(seed, int):
+            noise = torch.randn(shape, generator=torch.Generator().manual_seed(seed))
+        elif len(seed) == shape[0]:  # one seed per row: each row's noise as in a batch of one
+            noise = torch.cat([torch.randn((1, *shape[1:]), generator=torch.Generator().manual_seed(s)) for s in seed])
+        else:
+            raise ValueError(f"seed: one int or one per row ({shape[0]}), got {len(seed)}")
+        noise = noise.to(device)
         net = self.model
         if self.conditioned:
             extra = torch.zeros(*shape[:3], reference_channels(mc), *shape[4:]) if extra is None else extra
