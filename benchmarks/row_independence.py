@@ -1,21 +1,24 @@
 """Which ops of a batched world-model step are not row-independent on CPU?
 
     PYTHONPATH=. python benchmarks/row_independence.py [--checkpoint BUNDLE] [--rows 3] [--threads 1]
-        [--dtype auto|float32|bfloat16] [--no-split] [--out F.json]
+        [--dtype auto|float32|bfloat16] [--no-split] [--time ROUNDS] [--out F.json]
 
 Runs a vector env of ``--rows`` world-model envs for two steps with a hook on every leaf module of
 the student and the VAE and on the attention function: each call is repeated on each row's block
 of its operands alone (dim 0 cut into ``--rows`` blocks, as :mod:`world_model.model.rows` does),
 and the largest difference from the batched call's block is reported per module and shape. With
 the default :func:`~world_model.model.rows.split_rows` in place every difference is 0;
-``--no-split`` shows what it fixes.
+``--no-split`` shows what it fixes. ``--time ROUNDS`` also reports what splitting costs: the
+median vector step and vector reset (all rows) with and without it, in interleaved rounds.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import statistics
 import sys
+import time
 from contextlib import nullcontext
 from unittest import mock
 
@@ -80,6 +83,33 @@ def measure(checkpoint: str | None, rows: int, dtype: str, split: bool) -> dict[
     return stats
 
 
+def time_split(checkpoint: str | None, rows: int, dtype: str, rounds: int) -> dict[str, float]:
+    """Median seconds of a vector step and of a vector reset with and without
+    :func:`~world_model.model.rows.split_rows`, in interleaved rounds (the machine's speed drifts)."""
+    config = {"observation_keys": ["cameras", "lidar"], "model": {"dtype": dtype}}
+    venv = gym.make_vec(
+        "M4World-v0", num_envs=rows, vectorization_mode="vector_entry_point", scenario="highway_sunny_day",
+        backend="world_model", checkpoint=checkpoint, config=config,
+    )  # fmt: skip
+    unsplit = mock.patch.object(runtime, "split_rows", lambda n: nullcontext())
+    times: dict[str, list[float]] = {k: [] for k in ("step_split", "step_unsplit", "reset_split", "reset_unsplit")}
+    venv.reset(seed=0)
+    venv.step(np.zeros((rows, 2), np.float32))  # warm-up
+    for r in range(rounds):
+        for mode in ("split", "unsplit") if r % 2 == 0 else ("unsplit", "split"):
+            with unsplit if mode == "unsplit" else nullcontext():
+                t0 = time.perf_counter()
+                venv.step(np.zeros((rows, 2), np.float32))
+                t1 = time.perf_counter()
+                venv.reset(seed=r)
+                times[f"step_{mode}"].append(t1 - t0)
+                times[f"reset_{mode}"].append(time.perf_counter() - t1)
+    out = {f"{k}_s": statistics.median(v) for k, v in times.items()}
+    out["step_cost"] = out["step_split_s"] / out["step_unsplit_s"] - 1.0
+    out["reset_cost"] = out["reset_split_s"] / out["reset_unsplit_s"] - 1.0
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", default=None, help="bundle folder (default: the shipped one)")
@@ -87,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
     p.add_argument("--dtype", default="auto", choices=["auto", "float32", "bfloat16"])
     p.add_argument("--no-split", action="store_true", help="batched calls as they are, without split_rows")
+    p.add_argument(
+        "--time", type=int, default=0, metavar="ROUNDS", help="also time steps and resets with and without splitting"
+    )
     p.add_argument("--out", default=None, help="write the figures as JSON")
     args = p.parse_args(argv)
     if args.rows < 2:
@@ -97,9 +130,13 @@ def main(argv: list[str] | None = None) -> int:
     for key, diff in differing.items():
         print(f"{diff:.3g}  {key}")
     print(f"{len(stats)} module/shape pairs checked, {len(differing)} not row-independent")
+    result = {"args": vars(args), "checked": len(stats), "differing": differing}
+    if args.time:
+        result["timing"] = time_split(args.checkpoint, args.rows, args.dtype, args.time)
+        print(json.dumps(result["timing"], indent=1))
     if args.out:
         with open(args.out, "w") as f:
-            json.dump({"args": vars(args), "checked": len(stats), "differing": differing}, f, indent=1)
+            json.dump(result, f, indent=1)
     return 0
 
 

@@ -133,3 +133,32 @@ def test_pooled_text_embedding_does_not_depend_on_the_strings_encoded_with_it():
     together = MiniLMTextEncoder().pooled(["car", "a red delivery van with a ladder on its roof, parked"])
     alone = MiniLMTextEncoder().pooled(["car"])
     assert np.array_equal(together[0], alone[0])
+
+
+def test_vector_reset_samples_every_first_frame_in_one_reference_call(active_bundle, monkeypatch):
+    """The reset and the autoreset of every row (episodes truncated together): one batched
+    reference-model sample each."""
+    from m4world_env.scenario import load_scenario
+    from world_model.model.reference import ReferenceGenerator
+
+    batches = []
+    sample = ReferenceGenerator.sample
+
+    def counting(self, cond, *args, **kwargs):
+        batches.append(cond.batch_size)
+        return sample(self, cond, *args, **kwargs)
+
+    monkeypatch.setattr(ReferenceGenerator, "sample", counting)
+    short = load_scenario("merge_cut_in").model_copy(update={"duration": 1.0})  # 5 steps
+    venv = gym.make_vec(
+        "M4World-v0", num_envs=3, vectorization_mode="vector_entry_point", scenario=short,
+        backend="world_model", checkpoint=str(active_bundle), config=KEYS,
+    )  # fmt: skip
+    venv.reset(seed=0)
+    assert batches == [3]
+    batches.clear()
+    for _ in range(5):
+        *_, terminated, truncated, _ = venv.step(ACTIONS)
+    assert (terminated | truncated).all() and batches == []
+    venv.step(ACTIONS)  # NEXT_STEP autoreset of all three rows
+    assert batches == [3]
