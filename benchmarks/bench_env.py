@@ -6,7 +6,9 @@ Reports, per backend: one env's median step time and steps/s; a vector env of ``
 (one batched backend call per step) vs the same number of single envs stepped one after another;
 the split of a step into traffic (bridge) and sensor time; for the world-model backend the share
 of the vector step spent outside the networks (traffic, condition building: BEV raster, text,
-crops; everything but the student and the VAE decoder); the peak RSS of a process running one env
+crops; everything but the student and the VAE decoder) and the vector step's split into traffic /
+conditions / student / decode / other per env step; the time of a reset of one env and of the
+vector env (every sub-env's first frame at once); the peak RSS of a process running one env
 (a subprocess per backend). highway-v0 and highway-fast-v0 are measured in the same run. The
 policy is the lane-keeping reference policy; its time is not counted.
 
@@ -152,6 +154,19 @@ def own_peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # no procfs: the upper bound
 
 
+def _timed(fn, total: list[float]):  # noqa: ANN001, ANN202 (wraps any callable)
+    """``fn`` adding its wall seconds to ``total[0]`` at each call."""
+
+    def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        t0 = time.perf_counter()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            total[0] += time.perf_counter() - t0
+
+    return timed
+
+
 def bench_backend(
     backend: str,
     scenario: str,
@@ -162,13 +177,17 @@ def bench_backend(
     compile_model: bool = False,
     warmup: int = 2,
     device: str = "cpu",
+    resets: int = 2,
 ) -> dict:
     """One backend: ``steps`` timed single-env steps and ``steps / num_envs`` (at least 10) timed
-    vector steps, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles)."""
+    vector steps, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles);
+    ``resets`` timed resets of the single env and of the vector env (all sub-envs at once), each
+    after one untimed. A vector step is split into traffic (the sub-envs' bridges), conditions
+    (BEV raster, text, crops), student, decode and other (rewards, observations, Python), per env
+    step."""
     kw = _make_kwargs(backend, checkpoint, compile_model, device)
     single = gym.make("M4World-v0", scenario=scenario, **kw)
     totals, traffic = _time_single(single, steps, seed, warmup)
-    single.close()
     step_s = statistics.median(totals)
     result = {
         "single_median_step_ms": 1e3 * step_s,
@@ -183,26 +202,51 @@ def bench_backend(
         scenario=scenario,
         **kw,
     )
-    venv.reset(seed=seed)
+    single_resets, vector_resets = [], []
+    for r in range(1 + resets):  # the first of each is warm-up (allocation, first text encodings)
+        t0 = time.perf_counter()
+        single.reset(seed=seed + r)
+        t1 = time.perf_counter()
+        venv.reset(seed=seed + r)
+        if r:
+            single_resets.append(t1 - t0)
+            vector_resets.append(time.perf_counter() - t1)
+    if resets:
+        result["single_reset_ms"] = 1e3 * statistics.median(single_resets)
+        result["vector_reset_ms"] = 1e3 * statistics.median(vector_resets)
+        result["vector_reset_vs_single"] = result["vector_reset_ms"] / result["single_reset_ms"]
+    single.close()
     rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
     if rollouts is not None:  # what dtype "auto" chose on this machine
         result["dit_dtype"] = rollouts.wm.dtype
+    traffic_s = [0.0]
+    for env in venv.unwrapped.envs:  # the traffic half of each sub-env's step, timed in place
+        env.advance = _timed(env.advance, traffic_s)
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
-    vec_times, model_times = [], []
+    vec_times, parts = [], []
     for i in range(warmup + max(steps // num_envs, 10)):
         actions = np.stack([p(e.bridge) for p, e in zip(policies, venv.unwrapped.envs, strict=True)])
         before = dict(rollouts.seconds) if rollouts is not None else {}
+        traffic_s[0] = 0.0
         t0 = time.perf_counter()
         venv.step(actions)
         if i < warmup:
             continue
         vec_times.append(time.perf_counter() - t0)
+        part = {"traffic": traffic_s[0]}
         if rollouts is not None:
-            model_times.append(sum(rollouts.seconds[k] - before[k] for k in ("student", "decode")))
+            part.update({k: rollouts.seconds[k] - before[k] for k in ("conditions", "student", "decode")})
+        part["other"] = vec_times[-1] - sum(part.values())
+        parts.append(part)
     vec_s = statistics.median(vec_times)
-    if model_times:
-        outside = [total - model for total, model in zip(vec_times, model_times, strict=True)]
+    # Per env step, ms: the median over steps of each part of a vector step, divided by num_envs.
+    result["vector_step_breakdown_ms_per_env_step"] = {
+        k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]
+    }
+    if rollouts is not None:
+        outside = [p["traffic"] + p["conditions"] + p["other"] for p in parts]
         result["vector_outside_model_share"] = statistics.median(outside) / vec_s
+        result["non_model_env_steps_per_s"] = num_envs / statistics.median(outside)
     sequential_s = num_envs * step_s
     result.update(
         {

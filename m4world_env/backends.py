@@ -29,6 +29,11 @@ class SensorBackend(Protocol):
         """Start rollout ``index`` of the batch at ``frame`` (``seed`` seeds its sampling noise);
         returns its first observation."""
 
+    def reset_many(
+        self, indices: Sequence[int], frames: Sequence[SceneFrame], options: dict | None, seeds: Sequence[int]
+    ) -> list[Observation]:
+        """:meth:`reset` of several rollouts at once (each exactly as its own :meth:`reset`)."""
+
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         """Advance every rollout whose chunk is given (``None`` = idle this step) by one chunk.
 
@@ -63,6 +68,11 @@ class ProceduralBackend:
                 "use backend='world_model' (the procedural backend renders ground truth only)"
             )
         return self.sim.render(frame, with_bev=self.with_bev)
+
+    def reset_many(
+        self, indices: Sequence[int], frames: Sequence[SceneFrame], options: dict | None, seeds: Sequence[int]
+    ) -> list[Observation]:
+        return [self.reset(i, f, options, s) for i, f, s in zip(indices, frames, seeds, strict=True)]
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         out: list[list[Observation] | None] = []
@@ -158,6 +168,17 @@ class WorldModelBackend:
             index, frame, seed, reference=reference, crops=crops.crops, crop_since=crops.since
         )
         return self._with_bev(obs, frame)
+
+    def reset_many(
+        self, indices: Sequence[int], frames: Sequence[SceneFrame], options: dict | None, seeds: Sequence[int]
+    ) -> list[Observation]:
+        """First frames of several rollouts in one batched reference-model call; anchored on a
+        user's ``reference`` images, one call each."""
+        if (options or {}).get("reference") is not None or len(indices) == 1:
+            return [self.reset(i, f, options, s) for i, f, s in zip(indices, frames, seeds, strict=True)]
+        crops = [self._crops(f) for f in frames]
+        observations = self.rollouts.reset_rows(indices, frames, seeds, crops)
+        return [self._with_bev(o, f) for o, f in zip(observations, frames, strict=True)]
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         for i, chunk in enumerate(chunks):  # crops of objects that came into view (or were inserted)

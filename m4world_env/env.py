@@ -158,6 +158,15 @@ class M4WorldEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        frame, options, model_seed = self.begin_reset(seed=seed, options=options)
+        return self.finish_reset(self.backend.reset(self.backend_index, frame, options, model_seed))
+
+    def begin_reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[SceneFrame, dict, int]:
+        """First half of :meth:`reset`: seed, check the options, reset the traffic. Returns the first
+        SceneFrame, the options and the backend's seed (the vector env samples the first frames of
+        several sub-envs in one backend call, then calls :meth:`finish_reset` on each)."""
         super().reset(seed=seed)
         # Until this reset succeeds the env holds no valid episode: a failed reset (e.g. a bad
         # reference image) leaves it asking for another reset rather than half-reset.
@@ -169,7 +178,11 @@ class M4WorldEnv(gym.Env):
         bridge_seed = int(self.np_random.integers(0, 2**31 - 1))
         self._frame = self.bridge.reset(seed=bridge_seed)
         model_seed = int(self.np_random.integers(0, 2**31 - 1))
-        self._obs = self.backend.reset(self.backend_index, self._frame, options, model_seed)
+        return self._frame, options, model_seed
+
+    def finish_reset(self, first: Observation) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Second half of :meth:`reset`, given the backend's first observation."""
+        self._obs = first
         self._unrendered = [(self._frame, self._obs)] if self.render_mode == "rgb_array_list" else []
         self._metrics = EpisodeMetrics(
             dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.scenario.road.speed_limit

@@ -7,7 +7,9 @@ every sub-env's chunk, so the world model runs one batched forward for all N rol
 Autoreset: :attr:`AutoresetMode.NEXT_STEP` (Gymnasium's default): the step after an episode ends
 resets that sub-env and returns its first observation with reward 0 and both flags False.
 Seeding: ``reset(seed=s)`` seeds sub-env ``i`` with ``s + i``, so the vector env equals N single envs
-reset with those seeds.
+reset with those seeds (bit for bit on CPU: the batched world model computes row-independently,
+:mod:`world_model.model.rows`). The sub-envs being (re)started, at ``reset`` or by autoreset,
+get their first frames from one batched backend call.
 """
 
 from __future__ import annotations
@@ -84,7 +86,7 @@ class M4WorldVectorEnv(VectorEnv):
                 raise InvalidOptionError(f"reset(seed=list) needs {self.num_envs} seeds, got {len(seeds)}")
         if seed is not None:
             self._np_random_seed = seeds[0]
-        results = [env.reset(seed=s, options=options) for env, s in zip(self.envs, seeds, strict=True)]
+        results = self._reset_envs(list(range(self.num_envs)), seeds, options)
         self._autoreset[:] = False
         infos: dict[str, Any] = {}
         for i, (_obs, info) in enumerate(results):
@@ -107,15 +109,28 @@ class M4WorldVectorEnv(VectorEnv):
         terminated = np.zeros(self.num_envs, dtype=bool)
         truncated = np.zeros(self.num_envs, dtype=bool)
         infos: dict[str, Any] = {}
+        restarting = [i for i in range(self.num_envs) if chunks[i] is None]
+        restarted = dict(zip(restarting, self._reset_envs(restarting, [None] * len(restarting), None), strict=True))
         for i, env in enumerate(self.envs):
-            if chunks[i] is None:
-                obs, info = env.reset()
+            if i in restarted:
+                obs, info = restarted[i]
             else:
                 obs, rewards[i], terminated[i], truncated[i], info = env.finish_step(chunks[i], observations[i])
             obs_list.append(obs)
             infos = self._add_info(infos, info, i)
         self._autoreset = terminated | truncated
         return self._stack(obs_list), rewards, terminated, truncated, infos
+
+    def _reset_envs(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> list[tuple[dict[str, np.ndarray], dict[str, Any]]]:
+        """Reset sub-envs ``indices``: their first frames in one backend call (one batched
+        reference-model call on the world model), each as its own ``reset`` would give."""
+        if not indices:
+            return []
+        begun = [self.envs[i].begin_reset(seed=s, options=options) for i, s in zip(indices, seeds, strict=True)]
+        firsts = self.backend.reset_many(indices, [b[0] for b in begun], begun[0][1], [b[2] for b in begun])
+        return [self.envs[i].finish_reset(first) for i, first in zip(indices, firsts, strict=True)]
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         if self.render_mode is None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -28,6 +28,7 @@ from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceGenerator, reference_model_config
+from world_model.model.rows import split_rows
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
@@ -154,6 +155,33 @@ class WorldModel:
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
         return latents, self.decode(latents)[0][0]
 
+    @torch.no_grad()
+    def batch_first_frames(
+        self, cond: Conditions, frames: Sequence[SceneFrame], seeds: Sequence[int]
+    ) -> tuple[torch.Tensor, list[Observation]]:
+        """First frames of ``len(frames)`` rollouts from controls, row i exactly
+        ``first_frame(cond row i, frames[i], seed=seeds[i])``: latents (R, 1, V, C, h, w) and R
+        observations. One batched reference-model call (computed row-independently on CPU,
+        :mod:`world_model.model.rows`), unless a completion adapter redraws a category in one of
+        the frames: then one call per row."""
+        if cond.batch_size != len(frames) or len(seeds) != len(frames):
+            raise ValueError(f"need one frame and one seed per row of cond ({cond.batch_size})")
+        gen = self.first_frames
+        loaded = loaded_adapters(gen.model)
+        completion = {n: c for n, c in self._completion.items() if n in loaded}
+        if any(o.category in completion.values() for f in frames for o in f.objects):
+            pairs = [
+                self.first_frame(cond.apply(lambda _, v, i=i: v[i : i + 1]), f, seed=s)
+                for i, (f, s) in enumerate(zip(frames, seeds, strict=True))
+            ]
+            return torch.cat([lat for lat, _ in pairs]), [obs for _, obs in pairs]
+        others = [n for n in loaded if n not in completion]
+        on_cpu = next(gen.model.parameters()).device.type == "cpu"
+        rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
+        with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
+            latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
+        return latents, [obs[0] for obs in self.decode(latents)]
+
     def condition_bev(self, frame: SceneFrame) -> np.ndarray:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
@@ -173,8 +201,13 @@ class WorldModel:
         )
 
     def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
-        """(B, T, V, C, h, w) normalized latents → B lists of T observations."""
-        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar)
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations.
+
+        Each frame is decoded alone: on CPU the decoder's convolutions and group norms pick other
+        kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
+        ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
+        differ from the same rollout run alone. It costs ~10% of the decode at 64 frames."""
+        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1)
 
 
 def load_world_model(
@@ -271,6 +304,15 @@ class RolloutBatch:
     def chunk_frames(self) -> int:
         return self.wm.cfg.clip.chunk_frames
 
+    def _row_independent(self) -> AbstractContextManager:
+        """Batched student calls computed row for row as a batch of one would on CPU
+        (:mod:`world_model.model.rows`), so a rollout never depends on the others in its batch."""
+        return split_rows(self.n) if self._on_cpu else nullcontext()
+
+    @property
+    def _on_cpu(self) -> bool:
+        return next(self.wm.student.parameters()).device.type == "cpu"
+
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
         """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
         model's device, so a seed gives the same rollout noise on every device."""
@@ -295,18 +337,49 @@ class RolloutBatch:
         cond = Conditions.collate([arrays])
         with torch.no_grad():
             latents, obs = self.wm.first_frame(cond, frame, reference, seed=int(seed))
-        self.last_arrays[row] = arrays
-        if self.engine.batch_size == self.n and self.n > 1:
-            self.engine.start_rows([row], latents, cond)
-        else:  # the first start, or a single rollout: a fresh engine, so frame positions restart at 0
-            # and a reset with the same seed repeats the episode bit for bit
-            self._pending[row] = (latents, arrays)
-            if len(self._pending) == self.n:
-                rows = sorted(self._pending)
-                first = torch.cat([self._pending[r][0] for r in rows])
-                self.engine.start(first, Conditions.collate([self._pending[r][1] for r in rows]))
-                self._pending.clear()
+        self._start([row], latents, [arrays])
         return obs
+
+    def reset_rows(
+        self,
+        rows: Sequence[int],
+        frames: Sequence[SceneFrame],
+        seeds: Sequence[int],
+        crops: Sequence[Mapping[str, np.ndarray] | None] | None = None,
+    ) -> list[Observation]:
+        """:meth:`reset_row` of several rows from controls, their first frames sampled in one
+        batched reference-model call (:meth:`WorldModel.batch_first_frames`); each row exactly as
+        its own :meth:`reset_row` would be."""
+        crops = list(crops) if crops is not None else [None] * len(rows)
+        if not len(rows) == len(frames) == len(seeds) == len(crops) or len(set(rows)) != len(rows):
+            raise ValueError(f"need distinct rows and one frame, seed and crops per row, got rows {list(rows)}")
+        arrays = []
+        for row, frame, seed, crop in zip(rows, frames, seeds, crops, strict=True):
+            self.gens[row] = torch.Generator().manual_seed(int(seed))
+            self.first[row], self.crops[row] = frame, dict(crop or {})
+            arrays.append(self.wm.condition_arrays([frame], frame, self.crops[row]))
+        latents, obs = self.wm.batch_first_frames(Conditions.collate(arrays), frames, [int(s) for s in seeds])
+        self._start(list(rows), latents, arrays)
+        return obs
+
+    def _start(self, rows: list[int], latents: torch.Tensor, arrays: list[ConditionArrays]) -> None:
+        """Seed the student's cache of ``rows`` with their first frames (R, 1, V, C, h, w)."""
+        for row, a in zip(rows, arrays, strict=True):
+            self.last_arrays[row] = a
+        if self.engine.batch_size == self.n and self.n > 1:
+            with torch.no_grad(), split_rows(len(rows)) if self._on_cpu else nullcontext():
+                self.engine.start_rows(rows, latents, Conditions.collate(arrays))
+            return
+        # The first start, or a single rollout: a fresh engine, so frame positions restart at 0
+        # and a reset with the same seed repeats the episode bit for bit.
+        for i, row in enumerate(rows):
+            self._pending[row] = (latents[i : i + 1], arrays[i])
+        if len(self._pending) == self.n:
+            order = sorted(self._pending)
+            first = torch.cat([self._pending[r][0] for r in order])
+            with torch.no_grad(), self._row_independent():
+                self.engine.start(first, Conditions.collate([self._pending[r][1] for r in order]))
+            self._pending.clear()
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
         """Advance every rollout whose chunk is given (``None``: idle, its output is discarded)."""
@@ -338,7 +411,8 @@ class RolloutBatch:
                     )
                 cond = Conditions.collate(arrays)
                 t1 = time.perf_counter()
-                latents = self.engine.step(cond)
+                with self._row_independent():
+                    latents = self.engine.step(cond)
                 self.seconds["conditions"] += t1 - t0
                 self.seconds["student"] += time.perf_counter() - t1
                 for i in range(self.n):

@@ -241,7 +241,7 @@ class _WithReference:
         return self.model.tokenize(cond)
 
     def __call__(self, x: torch.Tensor, t: torch.Tensor, tokens: ControlTokens, **kw: Any) -> torch.Tensor:
-        extra = self.extra.repeat(x.shape[0] // self.extra.shape[0], 1, 1, 1, 1, 1)
+        extra = self.extra.repeat_interleave(x.shape[0] // self.extra.shape[0], dim=0)  # guidance's (c, u) pairs
         return self.model(torch.cat([x, extra.to(x.dtype)], dim=3), t, tokens, **kw)
 
 
@@ -330,11 +330,12 @@ class ReferenceGenerator:
         cond: Conditions,
         extra: torch.Tensor | None = None,
         steps: int | None = None,
-        seed: int = 0,
+        seed: int | Sequence[int] = 0,
         sampler: SamplerConfig | None = None,
     ) -> torch.Tensor:
         """Latents (B, T, V, C, h, w) for ``cond`` anchored on ``extra`` (B, T, V, C + 1, h, w)
-        reference channels (:func:`reference_input`); None = controls only."""
+        reference channels (:func:`reference_input`); None = controls only. ``seed``: of the
+        batch's noise, or one per row (row i's noise then as in a batch of one seeded ``seed[i]``)."""
         mc = self.mcfg
         sampler = replace(sampler or mc.sampler, **({"steps": steps} if steps else {}))
         shape = (cond.batch_size, *mc.latent_shape(cond.num_frames))
@@ -344,7 +345,13 @@ class ReferenceGenerator:
         if observed and not self.conditioned:
             raise ValueError("this model has no reference channels; train one with --stage reference")
         device = next(self.model.parameters()).device
-        noise = gaussian(shape, torch.Generator().manual_seed(seed), device)
+        if isinstance(seed, int):
+            noise = gaussian(shape, torch.Generator().manual_seed(seed), device)
+        elif len(seed) == shape[0]:  # one seed per row: each row's noise as in a batch of one
+            rows = [gaussian((1, *shape[1:]), torch.Generator().manual_seed(s), device) for s in seed]
+            noise = torch.cat(rows)
+        else:
+            raise ValueError(f"seed: one int or one per row ({shape[0]}), got {len(seed)}")
         net = self.model
         if self.conditioned:
             if extra is None:

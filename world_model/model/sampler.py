@@ -41,7 +41,12 @@ class GuidedVelocity:
         self.kwargs = forward_kwargs
         self.lidar = model.cfg.sensors.lidar_view
         self.guided = self.sampler.camera_cfg_scale != 1.0 or self.sampler.lidar_apg_scale != 1.0
-        both = Conditions.cat([cond, cond.with_drop(True)]) if self.guided else cond
+        # Conditional and unconditional rows interleaved (c0, u0, c1, u1, ...): each sample's pair
+        # is one contiguous block, as in a batch of one, so the forward can be row-independent
+        # (world_model.model.rows).
+        b = cond.batch_size
+        self.pairs = torch.arange(2 * b).view(2, b).t().flatten()
+        both = Conditions.cat([cond, cond.with_drop(True)]).apply(lambda _, v: v[self.pairs]) if self.guided else cond
         self.tokens = model.tokenize(both)
         s = self.sampler
         self.apg = AdaptiveProjectedGuidance(s.lidar_apg_scale, s.apg_eta, s.apg_norm_threshold, s.apg_momentum)
@@ -51,7 +56,8 @@ class GuidedVelocity:
             return self.model(x, t, self.tokens, **self.kwargs)
         if bool((t >= 1.0).any()):
             raise ValueError("guided velocity is evaluated at t < 1 only (t = 1 is clean data)")
-        v_c, v_u = self.model(torch.cat([x, x]), torch.cat([t, t]), self.tokens, **self.kwargs).chunk(2)
+        v = self.model(x.repeat_interleave(2, dim=0), t.repeat_interleave(2, dim=0), self.tokens, **self.kwargs)
+        v_c, v_u = v[0::2], v[1::2]
         out = cfg_combine(v_c, v_u, self.sampler.camera_cfg_scale)
         tl = t if t.ndim == 2 else t[:, None].expand(x.shape[:2])  # (B, T): x0 per frame
         xl = x[:, :, self.lidar]

@@ -46,10 +46,13 @@ class TextEncoder(ABC):
         return self._tokens[text]
 
     def pooled(self, texts: list[str]) -> np.ndarray:
-        """(N, dim) pooled embeddings, one per string."""
+        """(N, dim) pooled embeddings, one per string (each encoded alone: independent of the others)."""
         todo = sorted({t for t in texts if t not in self._pooled})
         if todo:
-            out = np.asarray(self._encode_pooled(todo), dtype=np.float32)
+            # One string per call: batched, a padded transformer's embedding of a string would
+            # depend on which other strings happened to be new with it (rollouts would depend on
+            # their order of first sight, a vector env's rows on each other).
+            out = np.concatenate([np.asarray(self._encode_pooled([t]), dtype=np.float32) for t in todo])
             if out.shape != (len(todo), self.dim):
                 raise RuntimeError(f"{type(self).__name__} returned pooled shape {out.shape}")
             self._pooled.update(zip(todo, out, strict=True))

@@ -1,0 +1,97 @@
+"""Row-independent batched computation on CPU: a batch of B rollouts computes, row for row,
+exactly what B batch-of-one calls compute.
+
+On CPU, oneDNN and MKL choose kernels, blockings and reduction splits by problem size: a linear
+layer over B * M rows, a batched matmul over B * H matrices or a per-sample sum over a batch is
+not bitwise the same, per row, as the same op over M rows (measured with
+``benchmarks/row_independence.py``: small-M linears of the timestep and ego MLPs, the cross-
+attention's matmuls, the decoder's convolutions and group norms, up to ~1e-6 apart per call, which
+a rollout amplifies to 1e-5 m of LiDAR and flipped returns within a few steps). Inside
+:func:`split_rows` those ops run once per row block, with the very shapes a single rollout's call
+has; every other op (elementwise, softmax, norms over the last dim) is row-independent as it is.
+
+The tensors of a batched forward are laid out row-major: dim 0 is ``B * k`` with each rollout's
+``k`` entries contiguous (``(B, ...)``, ``(B * V, ...)``, ``(B * T, ...)``), so a call's operands
+are cut along dim 0 into ``B`` equal blocks. Operands whose dim 0 is not a multiple of ``B``
+(weights, shared tables) are passed whole.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import torch
+import torch.nn.functional as F
+from torch.overrides import TorchFunctionMode
+
+# Ops whose per-row result depends on the batch they are computed in (CPU kernels chosen by
+# shape, reductions split by shape and thread).
+ROW_DEPENDENT_OPS = frozenset(
+    {
+        F.linear,
+        torch.matmul,
+        torch.Tensor.matmul,
+        torch.Tensor.__matmul__,
+        torch.bmm,
+        torch.baddbmm,
+        F.conv2d,
+        F.conv_transpose2d,
+        F.group_norm,
+        torch.sum,
+        torch.Tensor.sum,
+        torch.linalg.vector_norm,
+    }
+)
+
+
+# Ops whose operands after the first are all batched alike (matrices per row); for the others
+# only the first operand is (a linear's weight or a convolution's kernel is shared).
+_ALL_BATCHED = frozenset({torch.matmul, torch.Tensor.matmul, torch.Tensor.__matmul__, torch.bmm, torch.baddbmm})
+_REDUCTIONS = {torch.sum: 1, torch.Tensor.sum: 1, torch.linalg.vector_norm: 2}  # position of ``dim``
+
+
+class _SplitRows(TorchFunctionMode):
+    def __init__(self, rows: int) -> None:
+        super().__init__()
+        self.rows = rows
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204 (torch's protocol)
+        kwargs = kwargs or {}
+        if func not in ROW_DEPENDENT_OPS or not args or not isinstance(args[0], torch.Tensor):
+            return func(*args, **kwargs)
+        first, b = args[0], self.rows
+        n = first.shape[0] if first.ndim else 0
+        if first.device.type != "cpu" or n == 0 or n % b or _reduces_dim0(func, args, kwargs):
+            return func(*args, **kwargs)
+        batched = [
+            i == 0 or (func in _ALL_BATCHED and isinstance(a, torch.Tensor) and a.ndim >= 3 and a.shape[0] == n)
+            for i, a in enumerate(args)
+        ]
+        if func in _ALL_BATCHED and first.ndim >= 3 and not all(batched[1:]) and args[1].ndim >= 3:
+            return func(*args, **kwargs)  # broadcast over dim 0: not a per-row product
+        parts = [list(a.chunk(b)) if cut else [a] * b for a, cut in zip(args, batched, strict=True)]
+        return torch.cat([func(*(p[i] for p in parts), **kwargs) for i in range(b)])
+
+
+def _reduces_dim0(func: object, args: tuple, kwargs: dict) -> bool:
+    """A reduction over dim 0 (or over everything) mixes the rows: it cannot be cut."""
+    if func not in _REDUCTIONS:
+        return False
+    pos = _REDUCTIONS[func]
+    dim = kwargs.get("dim", args[pos] if len(args) > pos else None)
+    if dim is None:
+        return True
+    dims = (dim,) if isinstance(dim, int) else tuple(dim)
+    return any(d % args[0].ndim == 0 for d in dims)
+
+
+@contextmanager
+def split_rows(rows: int) -> Iterator[None]:
+    """Within the block, CPU ops of :data:`ROW_DEPENDENT_OPS` run once per row of a ``rows``-row
+    batch (see the module docstring); ``rows`` <= 1 changes nothing."""
+    if rows <= 1:
+        yield
+        return
+    with _SplitRows(rows):
+        yield
