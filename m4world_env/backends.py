@@ -176,8 +176,12 @@ class WorldModelBackend:
         user's ``reference`` images, one call each."""
         if (options or {}).get("reference") is not None or len(indices) == 1:
             return [self.reset(i, f, options, s) for i, f, s in zip(indices, frames, seeds, strict=True)]
-        crops = [self._crops(f) for f in frames]
-        observations = self.rollouts.reset_rows(indices, frames, seeds, crops)
+        for i, frame in zip(indices, frames, strict=True):
+            self._crops[i] = ReferenceCrops(self._sim)
+            self._crops[i].update(frame)
+        observations = self.rollouts.reset_rows(
+            indices, frames, seeds, [self._crops[i].crops for i in indices], [self._crops[i].since for i in indices]
+        )
         return [self._with_bev(o, f) for o, f in zip(observations, frames, strict=True)]
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:

@@ -346,18 +346,20 @@ class RolloutBatch:
         frames: Sequence[SceneFrame],
         seeds: Sequence[int],
         crops: Sequence[Mapping[str, np.ndarray] | None] | None = None,
+        crop_since: Sequence[Mapping[str, int] | None] | None = None,
     ) -> list[Observation]:
         """:meth:`reset_row` of several rows from controls, their first frames sampled in one
         batched reference-model call (:meth:`WorldModel.batch_first_frames`); each row exactly as
-        its own :meth:`reset_row` would be."""
+        its own :meth:`reset_row` would be. ``crops`` and ``crop_since``: one per row, or None."""
         crops = list(crops) if crops is not None else [None] * len(rows)
-        if not len(rows) == len(frames) == len(seeds) == len(crops) or len(set(rows)) != len(rows):
+        since = list(crop_since) if crop_since is not None else [None] * len(rows)
+        if not len(rows) == len(frames) == len(seeds) == len(crops) == len(since) or len(set(rows)) != len(rows):
             raise ValueError(f"need distinct rows and one frame, seed and crops per row, got rows {list(rows)}")
         arrays = []
-        for row, frame, seed, crop in zip(rows, frames, seeds, crops, strict=True):
+        for row, frame, seed, crop, first_seen in zip(rows, frames, seeds, crops, since, strict=True):
             self.gens[row] = torch.Generator().manual_seed(int(seed))
-            self.first[row], self.crops[row] = frame, dict(crop or {})
-            arrays.append(self.wm.condition_arrays([frame], frame, self.crops[row]))
+            self.first[row], self.crops[row], self.crop_since[row] = frame, dict(crop or {}), dict(first_seen or {})
+            arrays.append(self.wm.condition_arrays([frame], frame, self.crops[row], self.crop_since[row]))
         latents, obs = self.wm.batch_first_frames(Conditions.collate(arrays), frames, [int(s) for s in seeds])
         self._start(list(rows), latents, arrays)
         return obs

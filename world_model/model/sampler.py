@@ -45,7 +45,7 @@ class GuidedVelocity:
         # is one contiguous block, as in a batch of one, so the forward can be row-independent
         # (world_model.model.rows).
         b = cond.batch_size
-        self.pairs = torch.arange(2 * b).view(2, b).t().flatten()
+        self.pairs = torch.arange(2 * b, device=cond.drop.device).view(2, b).t().flatten()
         both = Conditions.cat([cond, cond.with_drop(True)]).apply(lambda _, v: v[self.pairs]) if self.guided else cond
         self.tokens = model.tokenize(both)
         s = self.sampler
