@@ -104,6 +104,11 @@ def _cmd_import_nuscenes(args: argparse.Namespace) -> int:
     )
     names = import_nuscenes(cfg)
     print(f"{len(names)} clips in {args.out}: {', '.join(names)}")
+    if args.scenarios:
+        from m4world_env.replay import write_replay_scenarios
+
+        paths = write_replay_scenarios(args.out, names, args.scenarios)
+        print(f"{len(paths)} log-replay scenarios in {args.scenarios} (m4world eval --scenarios FILE)")
     return 0
 
 
@@ -382,6 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--out", required=True, help="dataset directory to write")
     n.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all of the version)")
     n.add_argument("--preset", default="default", help="model preset whose sensors (views, LiDAR, BEV) the clips match")
+    n.add_argument("--scenarios", default=None, help="also write a log-replay scenario YAML per scene here")
     n.set_defaults(func=_cmd_import_nuscenes)
 
     e = sub.add_parser("eval", help="score a policy over scenarios (PDM-style)")

@@ -181,7 +181,17 @@ class _SceneReader:
         pose = self.nusc.get("ego_pose", sd["ego_pose_token"])
         R = _quat_matrix(pose["rotation"])
         origin = np.asarray(pose["translation"], dtype=np.float64) + R @ self.lidar_in_ego
-        return EgoState(x=float(origin[0]), y=float(origin[1]), yaw=_yaw(R)), float(pose["translation"][2])
+        # Speed: central difference over the neighbouring sweeps of the same channel.
+        before = self.nusc.get("sample_data", sd["prev"]) if sd["prev"] else sd
+        after = self.nusc.get("sample_data", sd["next"]) if sd["next"] else sd
+        speed = 0.0
+        if after["timestamp"] > before["timestamp"]:
+            a, b = (
+                np.asarray(self.nusc.get("ego_pose", x["ego_pose_token"])["translation"][:2]) for x in (before, after)
+            )
+            speed = float(np.linalg.norm(b - a)) / ((after["timestamp"] - before["timestamp"]) * MICROSECONDS)
+        ego = EgoState(x=float(origin[0]), y=float(origin[1]), yaw=_yaw(R), speed=speed)
+        return ego, float(pose["translation"][2])
 
     def image(self, sd: dict) -> np.ndarray:
         from PIL import Image
