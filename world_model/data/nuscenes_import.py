@@ -107,13 +107,13 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
     try:
         from nuscenes.nuscenes import NuScenes
     except ImportError as e:
-        raise ImportError(
+        raise NuScenesImportError(
             "importing nuScenes needs nuscenes-devkit: pip install --no-deps nuscenes-devkit==1.2.0 && "
             'pip install -e ".[nuscenes]"'
         ) from e
     try:
         return NuScenes(version=version, dataroot=str(root), verbose=False)
-    except (FileNotFoundError, AssertionError, KeyError) as e:
+    except (FileNotFoundError, AssertionError, KeyError, ValueError) as e:  # ValueError: bad JSON
         raise NuScenesImportError(f"{root / version}: not a readable nuScenes table set ({e})") from e
 
 
