@@ -45,6 +45,13 @@ POINT_RANGE = 12.0
 POINT_ROW = 5
 KEYFRAMES = 3
 SCENES = ("scene-0001", "scene-0002")
+# scene-0002's location has a map expansion; scene-0001's has none (its BEV comes from the ego path).
+LOCATIONS = ("mini-nomap", "mini-town")
+# The map expansion: a drivable rectangle around the ego's road, a lane divider 2 m left of the
+# LiDAR's path (the ego drives north along x = EGO_START[0]), a road divider 6 m right of it.
+DRIVABLE_X, DRIVABLE_Y = (90.0, 110.0), (150.0, 400.0)
+LANE_DIVIDER_X = EGO_START[0] - 2.0
+ROAD_DIVIDER_X = EGO_START[0] + 6.0
 
 
 def token(*parts: object) -> str:
@@ -128,7 +135,13 @@ def write_mini_nuscenes(root: Path) -> Path:
     for si, scene in enumerate(SCENES):
         log = token("log", si)
         tables["log"].append(
-            {"token": log, "logfile": scene, "vehicle": "n015", "date_captured": "2018-07-24", "location": "mini"}
+            {
+                "token": log,
+                "logfile": scene,
+                "vehicle": "n015",
+                "date_captured": "2018-07-24",
+                "location": LOCATIONS[si],
+            }
         )
         tables["map"][0]["log_tokens"].append(log)
         t0_us = 1_532_402_927_000_000 + si * 100_000_000
@@ -223,6 +236,7 @@ def write_mini_nuscenes(root: Path) -> Path:
                         "next": sds[i + 1] if i + 1 < len(sds) else "",
                     }
                 )
+    _write_map_expansion(root / "maps" / "expansion" / f"{LOCATIONS[1]}.json")
     (root / VERSION).mkdir(parents=True, exist_ok=True)
     for name, rows in tables.items():
         (root / VERSION / f"{name}.json").write_text(json.dumps(rows))
@@ -248,3 +262,28 @@ def _write_lidar(path: Path, rng: np.random.Generator) -> None:
     pts = np.concatenate([sensor[None], far])
     data = np.concatenate([pts, np.zeros((len(pts), 2))], axis=1).astype(np.float32)
     data.tofile(path)
+
+
+def _write_map_expansion(path: Path) -> None:
+    """The map expansion's layers that the importer reads (node, line, polygon, drivable_area,
+    lane_divider, road_divider)."""
+    (x0, x1), (y0, y1) = DRIVABLE_X, DRIVABLE_Y
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    nodes = [{"token": f"n{i}", "x": x, "y": y} for i, (x, y) in enumerate(corners)]
+    nodes += [
+        {"token": "ld0", "x": LANE_DIVIDER_X, "y": y0},
+        {"token": "ld1", "x": LANE_DIVIDER_X, "y": y1},
+        {"token": "rd0", "x": ROAD_DIVIDER_X, "y": y0},
+        {"token": "rd1", "x": ROAD_DIVIDER_X, "y": y1},
+    ]
+    layers = {
+        "version": "1.3",
+        "node": nodes,
+        "polygon": [{"token": "p0", "exterior_node_tokens": ["n0", "n1", "n2", "n3"], "holes": []}],
+        "line": [{"token": "l0", "node_tokens": ["ld0", "ld1"]}, {"token": "l1", "node_tokens": ["rd0", "rd1"]}],
+        "drivable_area": [{"token": "da0", "polygon_tokens": ["p0"]}],
+        "lane_divider": [{"token": "d0", "line_token": "l0", "lane_divider_segments": []}],
+        "road_divider": [{"token": "d1", "line_token": "l1", "road_segment_token": ""}],
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(layers))

@@ -94,6 +94,27 @@ def test_bev_is_the_corridor_along_the_ego_path(imported):
     assert clip.bev[0, h // 2, 0, 0] == 0  # 40 m to the side is not
 
 
+def test_bev_comes_from_the_map_expansion_where_present(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0002")
+    assert clip.meta["bev_from"] == "map_expansion"
+    bev = clip.bev[0]
+    spec = clip.frames[0].bev
+    h = bev.shape[0]
+
+    def column(left_m: float) -> int:  # BevSpec: column 0 is the far left
+        return int(spec.half_width_m - left_m)  # m_per_px = 1
+
+    assert bev[h // 2, column(0.5), 0] == 1  # the ego on drivable area
+    assert bev[h // 2, column(15.5), 0] == 0  # 15 m left: past the drivable rectangle's edge (x = 90)
+    divider = bev[h // 2, :, 1]
+    assert divider[column(2.0) - 1 : column(2.0) + 1].any()  # the lane divider 2 m left
+    assert divider[column(-6.0) - 1 : column(-6.0) + 1].any()  # the road divider 6 m right
+    assert divider.sum() <= 6  # and nothing else on that row
+    road_edge = bev[h // 2, :, 2]
+    assert road_edge[column(10.0) - 1 : column(10.0) + 1].any()  # the drivable area's outline at x = 90
+
+
 def test_imported_clips_train_mixed_with_procedural_ones(imported, tmp_path):
     from tests.model_fixtures import train_cli
 
