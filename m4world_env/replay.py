@@ -4,7 +4,9 @@ The logged agents become scripted objects following their logged tracks (``waypo
 ``static`` when they do not move); the ego starts where and as fast as it was logged and is then
 driven by the policy. The road is a straight highway laid along the ego's logged start heading,
 the ego in its middle lane: logged poses are expressed relative to the ego's start pose and placed
-on that road. Roads that curve or junctions are not reproduced (``docs/data.md``).
+on that road. Roads that curve or junctions are not reproduced (``docs/data.md``). The road's
+speed limit is the ego's mean logged speed, so the progress score compares the policy's distance
+with the logged ego's.
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ REPLAY_EGO_LANE = 1
 REPLAY_LANE_WIDTH = 4.0
 REPLAY_EGO_LONGITUDINAL = 30.0  # metres of road behind the ego's start
 REPLAY_ROAD_LENGTH = 1000.0
-REPLAY_SPEED_LIMIT = 20.0
+# The road's speed limit is the ego's mean logged speed (at least this), so the environment's
+# progress score (distance over speed limit x duration) reads 1 when the policy covers the logged
+# distance: progress is measured against the log's, as NAVSIM measures it against a reference.
+MIN_REPLAY_SPEED_LIMIT = 2.0
 REPLAY_POLICY_FREQUENCY = 5
 STATIC_MOTION_M = 0.5  # an agent that moves less than this over the clip is kept as a static object
 
@@ -74,13 +79,16 @@ def replay_dict(clip: Clip) -> dict:
             }
         )
     duration = max(frames[-1].time, 1.0 / REPLAY_POLICY_FREQUENCY)
+    logged = np.array([(f.ego.x, f.ego.y) for f in frames])
+    logged_distance = float(np.linalg.norm(np.diff(logged, axis=0), axis=1).sum())
+    speed_limit = max(logged_distance / duration, MIN_REPLAY_SPEED_LIMIT)
     return {
         "name": f"replay_{clip.name}",
         "road": {
             "type": "highway",
             "lanes": REPLAY_LANES,
             "length": REPLAY_ROAD_LENGTH,
-            "speed_limit": REPLAY_SPEED_LIMIT,
+            "speed_limit": round(speed_limit, 3),
             "lane_width": REPLAY_LANE_WIDTH,
         },
         "duration": round(math.ceil(duration * REPLAY_POLICY_FREQUENCY) / REPLAY_POLICY_FREQUENCY, 3),

@@ -195,6 +195,9 @@ def test_replay_scenario_places_logged_agents_around_the_ego(replay_files):
     s = load_scenario(replay_files[0])
     assert s.ego.speed == pytest.approx(mini.EGO_SPEED, abs=1e-3)
     assert s.duration == pytest.approx(1.0)
+    # Progress is scored against the log: the reference speed is the ego's mean logged speed.
+    # (The 10 Hz frames take the nearest sweep, so the logged distance is the sweeps' 0 to 1 s.)
+    assert s.road.speed_limit == pytest.approx(mini.EGO_SPEED, abs=1e-3)
     by_cat = {o.category: o for o in s.objects}
     car = by_cat["car"].track  # keeps pace with the ego: waypoints 20 m ahead of it, 2 m left
     assert car.kind == "waypoints"
