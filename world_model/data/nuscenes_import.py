@@ -128,12 +128,15 @@ class _SceneReader:
         self.samples = [first]
         while self.samples[-1]["next"]:
             self.samples.append(nusc.get("sample", self.samples[-1]["next"]))
+        if "LIDAR_TOP" not in first["data"]:
+            raise NuScenesImportError(f"scene {scene['name']}: no LIDAR_TOP sample_data")
         lidar_sd = nusc.get("sample_data", first["data"]["LIDAR_TOP"])
         cs = nusc.get("calibrated_sensor", lidar_sd["calibrated_sensor_token"])
         self.lidar_to_ego_R = _quat_matrix(cs["rotation"])
         self.lidar_in_ego = np.asarray(cs["translation"], dtype=np.float64)
         self.lidar_spec = replace(cfg.lidar, mount_height=float(self.lidar_in_ego[2]))
-        self.channels = {ch: self._chain(first["data"][ch]) for ch in first["data"]}
+        used = ("LIDAR_TOP", *(f"CAM_{n}" for n in DEFAULT_CAMERA_NAMES))
+        self.channels = {ch: self._chain(first["data"][ch]) for ch in used if ch in first["data"]}
 
     def _chain(self, token: str) -> list[dict]:
         """Every sample_data (keyframes and sweeps) of one channel over the scene, in time order."""
@@ -238,7 +241,7 @@ class _SceneReader:
             )
             objects.append(
                 SceneObject(
-                    track_id=inst[:12],
+                    track_id=inst,
                     category=map_category(ann["category_name"]),
                     box=Box3D(
                         center=(float(centre[0]), float(centre[1]), float(centre[2] - ego_z)),
