@@ -90,6 +90,31 @@ def _cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_import_nuscenes(args: argparse.Namespace) -> int:
+    from world_model.data.nuscenes_import import NuScenesImportConfig, import_nuscenes
+    from world_model.model.config import get_preset
+
+    sensors = get_preset(args.preset).sensors  # the clips must match the model that trains on them
+    cfg = NuScenesImportConfig(
+        dataroot=Path(args.dataroot),
+        version=args.version,
+        out=Path(args.out),
+        scenes=tuple(args.scenes or ()),
+        height=sensors.height,
+        width=sensors.width,
+        lidar=sensors.lidar,
+        bev=sensors.bev,
+    )
+    names = import_nuscenes(cfg)
+    print(f"{len(names)} clips in {args.out}: {', '.join(names)}")
+    if args.scenarios:
+        from m4world_env.replay import write_replay_scenarios
+
+        paths = write_replay_scenarios(args.out, names, args.scenarios)
+        print(f"{len(paths)} log-replay scenarios in {args.scenarios} (m4world eval --scenarios FILE)")
+    return 0
+
+
 def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
@@ -341,6 +366,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="record clips in this many processes (each clip identical to a serial run's; e.g. the CPU count)",
     )
     r.set_defaults(func=_cmd_record)
+
+    imp = sub.add_parser("import", help="import real driving logs as training clips").add_subparsers(
+        dest="source", required=True
+    )
+    n = imp.add_parser("nuscenes", help="nuScenes scenes -> clips (needs the [nuscenes] extra; docs/data.md)")
+    n.add_argument("--dataroot", required=True, help="nuScenes root (holds samples/, sweeps/ and the version dir)")
+    n.add_argument("--version", default="v1.0-mini", help="v1.0-mini, v1.0-trainval, ...")
+    n.add_argument("--out", required=True, help="dataset directory to write")
+    n.add_argument("--scenes", nargs="+", default=None, help="scene names (default: all of the version)")
+    n.add_argument("--preset", default="default", help="model preset whose sensors (views, LiDAR, BEV) the clips match")
+    n.add_argument("--scenarios", default=None, help="also write a log-replay scenario YAML per scene here")
+    n.set_defaults(func=_cmd_import_nuscenes)
 
     e = sub.add_parser("eval", help="score a policy over scenarios (PDM-style)")
     e.add_argument("--policy", default="idm")

@@ -1,0 +1,224 @@
+"""nuScenes import through the real devkit, on a miniature dataset written by the test."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("nuscenes")
+
+from m4world_env.cli import main  # noqa: E402
+from tests import nuscenes_mini as mini  # noqa: E402
+from world_model.data import read_clip  # noqa: E402
+from world_model.data.nuscenes_import import map_category  # noqa: E402
+from world_model.sensors import LidarSpec  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def imported(tmp_path_factory):
+    root = mini.write_mini_nuscenes(tmp_path_factory.mktemp("nuscenes"))
+    out = tmp_path_factory.mktemp("clips")
+    rc = main(["import", "nuscenes", "--dataroot", str(root), "--version", mini.VERSION, "--out", str(out)])
+    assert rc == 0
+    return root, out
+
+
+def test_every_scene_becomes_a_10hz_clip(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0001")
+    assert clip.fps == pytest.approx(10.0)
+    assert clip.num_frames == 11  # 1 s between the first and last 2 Hz keyframe
+    assert clip.cameras.shape == (11, 6, 64, 112, 3)
+    assert clip.lidar.shape == (11, 32, 1024)
+    assert clip.frames[0].prompt.text == "Wait at light, peds crossing"
+    assert read_clip(out, "nuscenes_scene-0002").frames[0].prompt.text.startswith("Night, rain")
+
+
+def test_box_lands_at_the_known_pixel_of_the_front_camera(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0001")
+    frame = clip.frames[0]
+    cam = frame.rig.cameras[frame.rig.names.index("FRONT")]
+    car = next(o for o in frame.objects if o.category == "car")
+    p = frame.world_to_lidar(np.asarray(car.box.center))
+    pc = (p - cam.t) @ cam.R
+    u = cam.K[0, 0] * pc[0] / pc[2] + cam.K[0, 2]
+    v = cam.K[1, 1] * pc[1] / pc[2] + cam.K[1, 2]
+    u0, v0 = mini.car_pixel_original()
+    sx, sy = 112 / mini.IMAGE_W, 64 / mini.IMAGE_H
+    assert u == pytest.approx((u0 + 0.5) * sx - 0.5, abs=1e-6)
+    assert v == pytest.approx((v0 + 0.5) * sy - 0.5, abs=1e-6)
+    # The white square painted there in the original JPEG is there in the resized view.
+    img = clip.cameras[0, frame.rig.names.index("FRONT")].mean(axis=-1)
+    assert img[round(v), round(u)] > 200
+    assert img[5, 5] < 60
+    # The size and yaw survive (nuScenes w, l, h -> our l, w, h; heading along the ego's).
+    assert car.box.size == pytest.approx((4.5, 1.9, 1.6))
+    assert car.box.yaw == pytest.approx(frame.ego.yaw)
+    assert car.box.center[2] == pytest.approx(mini.CAR_IN_EGO[2])
+
+
+def test_boxes_between_keyframes_are_interpolated(imported):
+    _, out = imported
+    frames = read_clip(out, "nuscenes_scene-0001").frames
+    for fr in frames:  # the car keeps pace with the ego: 20 m ahead at every 10 Hz frame
+        car = next(o for o in fr.objects if o.category == "car")
+        ahead = fr.world_to_lidar(np.asarray(car.box.center))
+        assert ahead[0] == pytest.approx(mini.CAR_IN_EGO[0] - mini.LIDAR_IN_EGO[0], abs=1e-6)
+        assert ahead[1] == pytest.approx(mini.CAR_IN_EGO[1], abs=1e-6)
+
+
+def test_lidar_point_lands_in_the_known_range_map_cell(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0001")
+    col = LidarSpec().azimuth // 4  # azimuth +90 deg: straight left
+    assert clip.lidar[0, mini.POINT_ROW, col] == pytest.approx(mini.POINT_RANGE, abs=0.01)
+    assert np.count_nonzero(clip.lidar[0, :, : LidarSpec().azimuth // 2]) == 1  # nothing else on the left
+    assert clip.frames[0].lidar.mount_height == pytest.approx(mini.LIDAR_IN_EGO[2])
+
+
+def test_categories_map_with_a_fallback(imported):
+    _, out = imported
+    cats = sorted(o.category for o in read_clip(out, "nuscenes_scene-0001").frames[0].objects)
+    assert cats == ["barrier", "car"]  # the animal falls back to a static obstacle
+    assert map_category("vehicle.bicycle") == "cyclist"
+    assert map_category("human.pedestrian.adult") == "pedestrian"
+
+
+def test_bev_is_the_corridor_along_the_ego_path(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0001")
+    assert clip.meta["bev_from"] == "ego_path"
+    h, w, _ = clip.bev.shape[1:]
+    assert clip.bev[0, h // 2, w // 2, 0] == 1  # the ego stands on drivable area
+    assert clip.bev[0, h // 2, 0, 0] == 0  # 40 m to the side is not
+
+
+def test_bev_comes_from_the_map_expansion_where_present(imported):
+    _, out = imported
+    clip = read_clip(out, "nuscenes_scene-0002")
+    assert clip.meta["bev_from"] == "map_expansion"
+    bev = clip.bev[0]
+    spec = clip.frames[0].bev
+    h = bev.shape[0]
+
+    def column(left_m: float) -> int:  # BevSpec: column 0 is the far left
+        return int(spec.half_width_m - left_m)  # m_per_px = 1
+
+    assert bev[h // 2, column(0.5), 0] == 1  # the ego on drivable area
+    assert bev[h // 2, column(15.5), 0] == 0  # 15 m left: past the drivable rectangle's edge (x = 90)
+    divider = bev[h // 2, :, 1]
+    assert divider[column(2.0) - 1 : column(2.0) + 1].any()  # the lane divider 2 m left
+    assert divider[column(-6.0) - 1 : column(-6.0) + 1].any()  # the road divider 6 m right
+    assert divider.sum() <= 6  # and nothing else on that row
+    road_edge = bev[h // 2, :, 2]
+    assert road_edge[column(10.0) - 1 : column(10.0) + 1].any()  # the drivable area's outline at x = 90
+
+
+def test_imported_clips_train_mixed_with_procedural_ones(imported, tmp_path):
+    from tests.model_fixtures import train_cli
+
+    root, _ = imported
+    data = tmp_path / "mixed"
+    assert (
+        main(["record", "--scenario", "highway_sunny_day", "--duration", "0.3", "--preset", "tiny", "--out", str(data)])
+        == 0
+    )
+    assert (
+        main(
+            [
+                "import",
+                "nuscenes",
+                "--dataroot",
+                str(root),
+                "--scenes",
+                "scene-0002",
+                "--preset",
+                "tiny",
+                "--out",
+                str(data),
+            ]
+        )
+        == 0
+    )
+    summary = train_cli("--stage", "vae", "--data", str(data), "--run", str(tmp_path / "run"), "--steps", "2")
+    assert summary
+
+
+@pytest.mark.parametrize(
+    "change, args, message",
+    [
+        (None, ["--dataroot", "/nonexistent/nuscenes"], "--dataroot /nonexistent/nuscenes does not exist"),
+        (None, ["--version", "v1.0-trainval"], "--version 'v1.0-trainval' is not in"),
+        (None, ["--scenes", "scene-9999"], "--scenes ['scene-9999'] not in v1.0-mini"),
+        ("samples/CAM_FRONT/scene-0002__CAM_FRONT__1.jpg", [], "scene scene-0002: cannot read camera file"),
+        ("samples/LIDAR_TOP/scene-0001__LIDAR_TOP__0.pcd.bin", [], "scene scene-0001: cannot read LiDAR file"),
+    ],
+)
+def test_bad_input_is_refused_by_name(tmp_path, capsys, change, args, message):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    if change:
+        (root / change).write_bytes(b"\x00\x01garbage")
+    cmd = ["import", "nuscenes", "--dataroot", str(root), "--out", str(tmp_path / "out"), *args]
+    assert main(cmd) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    if change:
+        assert change in err
+
+
+def test_documented_install_is_what_make_install_runs():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    doc = (root / "docs" / "data.md").read_text()
+    makefile = (root / "Makefile").read_text()
+    assert "pip install --no-deps nuscenes-devkit==1.2.0" in doc
+    assert "-m pip install -q --no-deps nuscenes-devkit==1.2.0" in makefile
+    assert ",nuscenes]" in makefile and '".[nuscenes]"' in doc
+
+
+@pytest.fixture(scope="module")
+def replay_files(imported, tmp_path_factory):
+    root, _ = imported
+    out = tmp_path_factory.mktemp("replay_clips")
+    scen = tmp_path_factory.mktemp("replay_scenarios")
+    args = ["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--scenarios", str(scen)]
+    assert main(args) == 0
+    return sorted(scen.glob("*.yaml"))
+
+
+def test_replay_scenario_places_logged_agents_around_the_ego(replay_files):
+    from m4world_env.scenario import load_scenario
+
+    assert [p.name for p in replay_files] == ["replay_nuscenes_scene-0001.yaml", "replay_nuscenes_scene-0002.yaml"]
+    s = load_scenario(replay_files[0])
+    assert s.ego.speed == pytest.approx(mini.EGO_SPEED, abs=1e-3)
+    assert s.duration == pytest.approx(1.0)
+    # Progress is scored against the log: the reference speed is the ego's mean logged speed.
+    # (The 10 Hz frames take the nearest sweep, so the logged distance is the sweeps' 0 to 1 s.)
+    assert s.road.speed_limit == pytest.approx(mini.EGO_SPEED, abs=1e-3)
+    by_cat = {o.category: o for o in s.objects}
+    car = by_cat["car"].track  # keeps pace with the ego: waypoints 20 m ahead of it, 2 m left
+    assert car.kind == "waypoints"
+    assert car.points[0].x - 30.0 == pytest.approx(mini.CAR_IN_EGO[0] - mini.LIDAR_IN_EGO[0], abs=1e-3)
+    assert car.points[0].y - (-4.0) == pytest.approx(mini.CAR_IN_EGO[1], abs=1e-3)
+    assert car.points[-1].x - car.points[0].x == pytest.approx(mini.EGO_SPEED * car.points[-1].t, abs=1e-2)
+    assert by_cat["barrier"].track.kind == "static"  # the animal does not move
+
+
+@pytest.mark.parametrize("backend", ["procedural", "world_model"])
+def test_replay_scenario_runs_to_its_end_and_scores_deterministically(replay_files, backend, tiny_bundle):
+    from m4world_env.evaluate import evaluate
+
+    kwargs = {"checkpoint": str(tiny_bundle)} if backend == "world_model" else {}
+    runs = [evaluate("idm", [str(replay_files[0])], episodes=1, seed=3, backend=backend, **kwargs) for _ in range(2)]
+    assert runs[0] == runs[1]
+    episode = runs[0]["episodes"][0]
+    assert episode["steps"] == 5  # 1 s of log at 5 decisions per second: run to the end
+    assert 0.0 <= episode["pdms"] <= 1.0 and episode["distance_m"] > 0
+
+
+def test_ego_speed_comes_from_the_logged_poses(imported):
+    _, out = imported
+    assert read_clip(out, "nuscenes_scene-0001").frames[0].ego.speed == pytest.approx(mini.EGO_SPEED)
