@@ -316,6 +316,11 @@ class TrafficBridge:
 
     def _get(self, track_id: str) -> TrafficVehicle | ScriptedObject:
         self._require_reset()
+        if not isinstance(track_id, str):
+            raise population.UnknownObjectError(
+                f"an object is named by its track id, a string, got {type(track_id).__name__}; "
+                f"known ids: {sorted(self._ids)}"
+            )
         if track_id not in self._ids:
             raise population.UnknownObjectError(f"no object {track_id!r}; known ids: {sorted(self._ids)}")
         return self._ids[track_id]
