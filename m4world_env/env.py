@@ -37,15 +37,13 @@ def _reset_options(options: Any) -> dict[str, Any]:
     if options is None:
         return {}
     if not isinstance(options, Mapping):
-        raise InvalidOptionError(
-            f"reset options must be a dict such as {{'reference': ...}}, got {type(options).__name__}"
-        )
+        raise TypeError(f"reset options must be a dict such as {{'reference': ...}}, got {type(options).__name__}")
     bad = [k for k in options if not isinstance(k, str)]
     if bad:
-        raise InvalidOptionError(f"reset option names must be strings, got {bad!r}")
+        raise TypeError(f"reset option names must be strings, got {bad!r}")
     reference = options.get("reference")
     if reference is not None and not isinstance(reference, Mapping):
-        raise InvalidOptionError(
+        raise TypeError(
             "reset option 'reference' must be a dict of images by view, such as {'FRONT': image}, "
             f"{{'cameras': images}} or {{'lidar': ranges}}, got {type(reference).__name__}"
         )

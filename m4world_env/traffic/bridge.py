@@ -42,6 +42,17 @@ class BridgeConfig:
     population: population.PopulationConfig = population.PopulationConfig()
 
 
+def check_reset(scenario: Scenario, source: str) -> None:
+    """Build what ``reset`` builds (road, ego, scripted objects, traffic) once, so that a scenario
+    that passes ``m4world scenarios --check`` never fails at reset. Raises :class:`ScenarioError`."""
+    try:
+        TrafficBridge(scenario).reset(seed=0)
+    except ScenarioError:
+        raise
+    except (ValueError, ArithmeticError, IndexError, KeyError, MemoryError) as e:
+        raise ScenarioError(f"{source}: the scenario validates but its road or traffic cannot be built: {e!r}") from e
+
+
 class TrafficBridge:
     """highway-env road + IDM/MOBIL traffic + scripted objects + ego, emitting SceneFrames."""
 
