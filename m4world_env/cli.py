@@ -1,9 +1,10 @@
-"""The ``m4world`` command line: demo, record, eval, train, export, bench, scenarios."""
+"""The ``m4world`` command line: one subcommand per job (demo, record, import, eval, train, export, bench, ...)."""
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from functools import partial
@@ -68,6 +69,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from m4world_env.scenario import list_scenarios
     from world_model.model.config import get_preset
 
+    _check_out(args.out, "folder")
     sensors = get_preset(args.preset).sensors  # the clips must match the model that trains on them
     scenarios = list_scenarios() if args.scenario == ["all"] else args.scenario
     cfg = RecordConfig(
@@ -217,7 +219,24 @@ def _step_list(text: str) -> tuple[int, ...]:
         raise ValueError(f"--refresh-steps takes comma-separated step indices such as 0 or 1,3, got {text!r}") from None
 
 
+def _check_out(path: str | None, kind: str, option: str = "--out") -> None:
+    """Refuse an output path of the wrong kind before any work is done (not after an hour of it)."""
+    if path is None:
+        return
+    p = Path(path)
+    if kind == "file" and p.is_dir():
+        raise ValueError(f"{option} {path} is a directory; give a file path for the JSON report")
+    if kind == "folder" and p.exists() and not p.is_dir():
+        raise ValueError(f"{option} {path} is a file; give a folder (it is created if missing)")
+    parent = p.parent if kind == "file" else p
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise ValueError(f"{option} {path}: {parent} is not a writable folder")
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
+    _check_out(args.out, "folder" if args.report else "file")
     if args.report:
         return _cmd_report(args)
     from m4world_env.evaluate import evaluate, format_table, write_report
@@ -242,10 +261,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_scenarios(args: argparse.Namespace) -> int:
     from m4world_env.scenario import list_scenarios, load_scenario
+    from m4world_env.traffic.bridge import check_reset
 
     targets = args.check or list_scenarios()
     for name in targets:
         s = load_scenario(name)
+        if args.check is not None:
+            check_reset(s, str(name))
         print(
             f"{s.name:32s} road={s.road.type:13s} weather={s.weather:6s} time={s.time_of_day:5s} duration={s.duration}s"
         )
@@ -386,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--backend", default="procedural", choices=("procedural", "world_model"))
     e.add_argument("--checkpoint", default=None)
-    e.add_argument("--max-steps", type=int, default=None)
+    e.add_argument("--max-steps", type=_positive_int, default=None, help="stop each episode after N steps")
     e.add_argument("--out", default=None, help="write the JSON report here (with --report: a folder)")
     e.add_argument(
         "--report",
@@ -509,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args) or 0)
-    except (ValueError, KeyError, FileNotFoundError) as e:
+    except (ValueError, KeyError, OSError) as e:
         # User errors (bad scenario, option, policy): one clear line, no traceback.
         print(f"m4world {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -21,6 +21,14 @@ OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
 BACKENDS = ("procedural", "world_model")
 DEFAULT_REFRESH_STEPS = (-2, -1)  # ModelBackendConfig.refresh_steps: the last two denoising steps
 DEFAULT_SINK_FRAMES = 1  # ModelBackendConfig.sink_frames
+# Bounds that keep every call finite in time and memory and every reward finite.
+MAX_REWARD_WEIGHT = 1.0e3
+MAX_SPEED_RANGE_MPS = 100.0
+MAX_DENOISING_STEPS = 50  # the student is distilled for 4; the teacher's sampler uses 20
+MAX_SINK_FRAMES = 64
+MAX_STATE_OBJECTS = 256
+MIN_VIEW_PX, MAX_VIEW_PX = 16, 1024  # the procedural rig's height and width
+DEVICE_TYPES = ("cpu", "cuda")
 
 
 class UnknownOptionError(KeyError):
@@ -110,12 +118,22 @@ class EnvConfig:
             raise InvalidOptionError(
                 f"config.observation_keys must be a non-empty subset of {OBSERVATION_KEYS}, got {self.observation_keys}"
             )
-        for name in ("height", "width", "state_objects"):
-            if int(getattr(self, name)) <= 0:
-                raise InvalidOptionError(f"config.{name} must be a positive integer, got {getattr(self, name)!r}")
-        lo, hi = self.reward.speed_range
-        if not lo < hi:
-            raise InvalidOptionError(f"config.reward.speed_range must be (low, high) with low < high, got {(lo, hi)}")
+        for name in ("height", "width"):
+            _check_int_range(getattr(self, name), MIN_VIEW_PX, MAX_VIEW_PX, f"config.{name}")
+        _check_int_range(self.state_objects, 1, MAX_STATE_OBJECTS, "config.state_objects")
+        r = self.reward
+        for name in ("collision", "high_speed", "right_lane", "on_road", "progress"):
+            if abs(getattr(r, name)) > MAX_REWARD_WEIGHT:
+                raise InvalidOptionError(
+                    f"config.reward.{name} must lie in [-{MAX_REWARD_WEIGHT:g}, {MAX_REWARD_WEIGHT:g}], "
+                    f"got {getattr(r, name)!r}"
+                )
+        pair = _number_tuple(r.speed_range)
+        if pair is None or len(pair) != 2 or not 0 <= pair[0] < pair[1] <= MAX_SPEED_RANGE_MPS:
+            raise InvalidOptionError(
+                f"config.reward.speed_range must be (low, high) m/s with 0 <= low < high <= {MAX_SPEED_RANGE_MPS:g}, "
+                f"got {r.speed_range!r}"
+            )
         m = self.model
         if m.refresh_steps is not None:
             steps = _int_tuple(m.refresh_steps)  # a string is characters, not ints: refused too
@@ -130,17 +148,25 @@ class EnvConfig:
                     "or set it to None, to run without refresh)"
                 )
             m.refresh_steps = steps
-        if isinstance(m.sink_frames, bool) or not isinstance(m.sink_frames, numbers.Integral) or m.sink_frames < 0:
-            raise InvalidOptionError(f"config.model.sink_frames must be an integer >= 0, got {m.sink_frames!r}")
+        _check_int_range(m.sink_frames, 0, MAX_SINK_FRAMES, "config.model.sink_frames")
+        _check_int_range(m.denoising_steps, 1, MAX_DENOISING_STEPS, "config.model.denoising_steps")
+        device = m.device.split(":", 1)
+        if device[0] not in DEVICE_TYPES or (len(device) == 2 and not device[1].isdigit()):
+            raise InvalidOptionError(f"config.model.device must be 'cpu', 'cuda' or 'cuda:N', got {m.device!r}")
         if self.model.dtype not in DTYPES:
             raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None) -> EnvConfig:
-        return _build(cls, d or {}, "config")
+        return _build(cls, {} if d is None else d, "config")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def _check_int_range(value: Any, low: int, high: int, name: str) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
+        raise InvalidOptionError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
 
 
 def _int_tuple(x: Any) -> tuple[int, ...] | None:
@@ -165,6 +191,10 @@ def _build(cls: type, d: dict[str, Any], path: str) -> Any:
     known = {f.name: f for f in fields(cls)}
     kwargs: dict[str, Any] = {}
     for key, value in d.items():
+        if not isinstance(key, str):
+            raise UnknownOptionError(
+                f"option names in {path} must be strings, got {key!r}; valid keys: {sorted(known)}"
+            )
         if key not in known:
             close = difflib.get_close_matches(key, list(known), n=1)
             hint = f"; did you mean {close[0]!r}?" if close else ""

@@ -8,6 +8,8 @@ state, highway-env style (:mod:`m4world_env.rewards`).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -28,6 +30,26 @@ from world_model.sensors import BevSpec, LidarSpec, default_rig
 
 STATE_FEATURES = ("presence", "x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "length", "width")
 RESET_OPTIONS = ("reference",)
+
+
+def _reset_options(options: Any) -> dict[str, Any]:
+    """``reset(options=...)`` as a dict, refusing what is not one before any work is done."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise TypeError(f"reset options must be a dict such as {{'reference': ...}}, got {type(options).__name__}")
+    bad = [k for k in options if not isinstance(k, str)]
+    if bad:
+        raise TypeError(f"reset option names must be strings, got {bad!r}")
+    reference = options.get("reference")
+    if reference is not None and not isinstance(reference, Mapping):
+        raise TypeError(
+            "reset option 'reference' must be a dict of images by view, such as {'FRONT': image}, "
+            f"{{'cameras': images}} or {{'lidar': ranges}}, got {type(reference).__name__}"
+        )
+    return dict(options)
+
+
 STATE_BOUND = 1.0e4  # metres / m/s; values are clipped to it (roads are at most a few km long)
 
 
@@ -171,7 +193,7 @@ class M4WorldEnv(gym.Env):
         # Until this reset succeeds the env holds no valid episode: a failed reset (e.g. a bad
         # reference image) leaves it asking for another reset rather than half-reset.
         self._needs_reset = True
-        options = dict(options or {})
+        options = _reset_options(options)
         unknown = set(options) - set(RESET_OPTIONS)
         if unknown:
             raise UnknownOptionError(f"unknown reset option(s) {sorted(unknown)}; valid: {list(RESET_OPTIONS)}")
@@ -225,6 +247,8 @@ class M4WorldEnv(gym.Env):
             self._metrics.add_frame(fr)
         terms = self._reward_terms(previous, frames)
         reward = combine_reward(terms, self.cfg.reward)
+        if not math.isfinite(reward):  # the config bounds the weights; this names a bug, never returns NaN
+            raise RuntimeError(f"the reward came out non-finite ({reward}) from the terms {terms}")
         crashed, on_road = bool(self.bridge.crashed), bool(self.bridge.on_road)
         self._metrics.add_step(reward, crashed, on_road)
         terminated = crashed or (self.cfg.offroad_terminal and not on_road)

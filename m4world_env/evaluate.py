@@ -61,6 +61,8 @@ def make_policy(spec: str, env: gym.Env) -> Policy:
         obj = getattr(importlib.import_module(module_name), attr)
     except (ImportError, AttributeError) as e:
         raise ValueError(f"cannot load policy {spec!r}: {e}") from e
+    if not callable(obj):
+        raise ValueError(f"policy {spec!r} is a {type(obj).__name__}, not a callable or a class")
     if inspect.isclass(obj):
         return obj(env)
     # A policy takes (obs, info); a factory takes the env alone, whatever its parameter is called.
@@ -118,6 +120,8 @@ def evaluate(
     import gymnasium as gym
     from tqdm import tqdm
 
+    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1):
+        raise ValueError(f"max_steps must be a positive integer or None (the whole episode), got {max_steps!r}")
     per_scenario: dict[str, dict] = {}
     records: list[dict] = []
     for name in scenarios:

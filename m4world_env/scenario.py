@@ -14,11 +14,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
 
 from world_model.scene import CATEGORIES, CATEGORY_SIZES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS, ScenePrompt
 
@@ -28,6 +28,29 @@ SCENARIOS_DIR = Path(__file__).parent / "scenarios"
 VEHICLE_CATEGORIES = ("car", "truck", "bus", "van", "motorcycle", "tree_truck", "cement_mixer")
 DEFAULT_TRAFFIC_MIX = {"car": 0.8, "truck": 0.06, "bus": 0.03, "van": 0.07, "motorcycle": 0.04}
 DEFAULT_TRAFFIC_COLORS = ("white", "black", "gray", "silver", "red", "blue", "dark_red", "navy", "beige")
+
+# Physical bounds of a scenario. Past them a file describes nothing a driving policy meets, and the
+# road builder, the traffic or a step's frame count would run out of memory or time
+# (docs/scenarios.md, "Bounds").
+MAX_ROAD_LENGTH_M = 10_000.0  # any straight road, approach, arm or road section
+MAX_LANE_WIDTH_M = 8.0
+MAX_RADIUS_M = 500.0  # roundabout ring, turning lanes
+MAX_SPEED_MPS = 90.0  # ~320 km/h: speed limits, the ego's and scripted objects' speeds
+MAX_POSITION_M = 20_000.0  # |x|, |y|, positions and offsets along a lane
+MAX_LATERAL_M = 20.0  # offset from a lane's centre
+MAX_YAW_RAD = 4 * math.pi
+MAX_DURATION_S = 3_600.0  # episode duration, waypoint and manoeuvre times
+MIN_POLICY_FREQUENCY_HZ = 0.1
+MAX_FREQUENCY_HZ = 100.0
+MAX_FRAMES_PER_STEP = 20  # sensor frames per env step: one causal chunk of the world model
+MAX_OBJECT_SIZE_M = 30.0
+MAX_OBJECTS = 64
+MAX_WAYPOINTS = 10_000
+
+# Numbers must be written as numbers: YAML reads ``yes``/``true`` as booleans, which pydantic would
+# otherwise take as 1 (``lanes: yes`` would build a one-lane road); ints stay ints (no 2.7 -> 2).
+Float = Annotated[float, Strict()]
+Int = Annotated[int, Strict()]
 
 Category = Literal[CATEGORIES]  # type: ignore[valid-type]
 VehicleCategory = Literal[VEHICLE_CATEGORIES]  # type: ignore[valid-type]
@@ -53,7 +76,7 @@ def _check_color(value: str | tuple[int, int, int]) -> str | tuple[int, int, int
     return tuple(int(c) for c in value)
 
 
-Color = str | tuple[int, int, int]
+Color = str | tuple[Int, Int, Int]
 
 # ---------------------------------------------------------------------------------------- roads
 
@@ -62,10 +85,10 @@ class HighwayRoad(_Strict):
     """A straight multi-lane highway (highway-env's ``highway-v0`` road)."""
 
     type: Literal["highway"] = "highway"
-    lanes: int = Field(4, ge=1, le=8)
-    length: float = Field(2000.0, gt=50)
-    speed_limit: float = Field(30.0, gt=0)
-    lane_width: float = Field(4.0, gt=2)
+    lanes: Int = Field(4, ge=1, le=8)
+    length: Float = Field(2000.0, gt=50, le=MAX_ROAD_LENGTH_M)
+    speed_limit: Float = Field(30.0, gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
@@ -77,14 +100,14 @@ class MergeRoad(_Strict):
     """A highway with an on-ramp joining from the right (``merge-v0``)."""
 
     type: Literal["merge"] = "merge"
-    lanes: int = Field(2, ge=1, le=6)
-    before: float = Field(150.0, gt=10, description="main road before the ramp converges, m")
-    converging: float = Field(80.0, gt=10, description="length of the ramp's S-curve, m")
-    merge_length: float = Field(80.0, gt=10, description="length of the acceleration lane, m")
-    after: float = Field(800.0, gt=10, description="main road after the merge, m")
-    speed_limit: float = Field(30.0, gt=0)
-    ramp_speed_limit: float = Field(20.0, gt=0)
-    lane_width: float = Field(4.0, gt=2)
+    lanes: Int = Field(2, ge=1, le=6)
+    before: Float = Field(150.0, gt=10, le=MAX_ROAD_LENGTH_M, description="main road before the ramp converges, m")
+    converging: Float = Field(80.0, gt=10, le=MAX_ROAD_LENGTH_M, description="length of the ramp's S-curve, m")
+    merge_length: Float = Field(80.0, gt=10, le=MAX_ROAD_LENGTH_M, description="length of the acceleration lane, m")
+    after: Float = Field(800.0, gt=10, le=MAX_ROAD_LENGTH_M, description="main road after the merge, m")
+    speed_limit: Float = Field(30.0, gt=0, le=MAX_SPEED_MPS)
+    ramp_speed_limit: Float = Field(20.0, gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
@@ -96,12 +119,12 @@ class RoundaboutRoad(_Strict):
     """A four-arm roundabout, counter-clockwise (right-hand traffic)."""
 
     type: Literal["roundabout"] = "roundabout"
-    radius: float = Field(20.0, ge=8, description="radius of the inner ring lane, m")
-    lanes: int = Field(2, ge=1, le=3, description="ring lanes")
-    access_length: float = Field(150.0, gt=20, description="length of each straight approach, m")
-    entry_angle_deg: float = Field(24.0, gt=5, lt=40, description="half-angle between entry and exit")
-    speed_limit: float = Field(12.0, gt=0)
-    lane_width: float = Field(4.0, gt=2)
+    radius: Float = Field(20.0, ge=8, le=MAX_RADIUS_M, description="radius of the inner ring lane, m")
+    lanes: Int = Field(2, ge=1, le=3, description="ring lanes")
+    access_length: Float = Field(150.0, gt=20, le=MAX_ROAD_LENGTH_M, description="length of each straight approach, m")
+    entry_angle_deg: Float = Field(24.0, gt=5, lt=40, description="half-angle between entry and exit")
+    speed_limit: Float = Field(12.0, gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
@@ -113,10 +136,10 @@ class IntersectionRoad(_Strict):
     """A four-arm unsignalized crossing, one lane per direction, with turning lanes."""
 
     type: Literal["intersection"] = "intersection"
-    arm_length: float = Field(100.0, gt=20)
-    turn_radius: float = Field(10.0, ge=4, description="radius of the right-turn lanes, m")
-    speed_limit: float = Field(12.0, gt=0)
-    lane_width: float = Field(4.0, gt=2)
+    arm_length: Float = Field(100.0, gt=20, le=MAX_ROAD_LENGTH_M)
+    turn_radius: Float = Field(10.0, ge=4, le=MAX_RADIUS_M, description="radius of the right-turn lanes, m")
+    speed_limit: Float = Field(12.0, gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
@@ -128,11 +151,11 @@ class TwoWayRoad(_Strict):
     """A straight road with oncoming traffic on the left (``two-way-v0``)."""
 
     type: Literal["two_way"] = "two_way"
-    lanes: int = Field(1, ge=1, le=4, description="lanes in the ego's direction")
-    oncoming_lanes: int = Field(1, ge=1, le=4)
-    length: float = Field(1000.0, gt=50)
-    speed_limit: float = Field(20.0, gt=0)
-    lane_width: float = Field(4.0, gt=2)
+    lanes: Int = Field(1, ge=1, le=4, description="lanes in the ego's direction")
+    oncoming_lanes: Int = Field(1, ge=1, le=4)
+    length: Float = Field(1000.0, gt=50, le=MAX_ROAD_LENGTH_M)
+    speed_limit: Float = Field(20.0, gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
@@ -146,18 +169,18 @@ Road = Annotated[HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | T
 
 
 class EgoSpec(_Strict):
-    lane: int = Field(1, ge=0, description="lane id on the road's start edge (0 = leftmost)")
-    longitudinal: float = Field(30.0, ge=0, description="position along the start lane, m")
-    speed: float = Field(25.0, ge=0)
+    lane: Int = Field(1, ge=0, description="lane id on the road's start edge (0 = leftmost)")
+    longitudinal: Float = Field(30.0, ge=0, le=MAX_POSITION_M, description="position along the start lane, m")
+    speed: Float = Field(25.0, ge=0, le=MAX_SPEED_MPS)
     turn: Literal["left", "straight", "right"] = Field(
         "straight", description="route at a roundabout or intersection (ignored on straight roads)"
     )
 
 
 class TrafficSpec(_Strict):
-    count: int = Field(10, ge=0, le=200)
-    density: float = Field(1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense")
-    mix: dict[VehicleCategory, float] = Field(default_factory=lambda: dict(DEFAULT_TRAFFIC_MIX))
+    count: Int = Field(10, ge=0, le=200)
+    density: Float = Field(1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense")
+    mix: dict[VehicleCategory, Float] = Field(default_factory=lambda: dict(DEFAULT_TRAFFIC_MIX))
     colors: list[str] = Field(default_factory=lambda: list(DEFAULT_TRAFFIC_COLORS), min_length=1)
 
     @field_validator("mix")
@@ -182,12 +205,17 @@ class StaticTrack(_Strict):
     """Standing still, either on a lane (``lane`` + ``longitudinal``) or at ``x``/``y``/``yaw``."""
 
     kind: Literal["static"] = "static"
-    lane: int | None = Field(None, ge=0)
-    longitudinal: float | None = None
-    x: float | None = None
-    y: float | None = None
-    yaw: float = 0.0
-    lateral: float = Field(0.0, description="offset to the LEFT of the lane centre, m (lane placement only)")
+    lane: Int | None = Field(None, ge=0)
+    longitudinal: Float | None = Field(None, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    x: Float | None = Field(None, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    y: Float | None = Field(None, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    yaw: Float = Field(0.0, ge=-MAX_YAW_RAD, le=MAX_YAW_RAD)
+    lateral: Float = Field(
+        0.0,
+        ge=-MAX_LATERAL_M,
+        le=MAX_LATERAL_M,
+        description="offset to the LEFT of the lane centre, m (lane placement only)",
+    )
 
     @model_validator(mode="after")
     def _one_placement(self) -> StaticTrack:
@@ -202,24 +230,24 @@ class LaneFollowTrack(_Strict):
     """Drives along a lane from ``start``: constant speed, or IDM (brakes for what is ahead)."""
 
     kind: Literal["lane_follow"] = "lane_follow"
-    lane: int = Field(..., ge=0)
-    start: float = 0.0
-    speed: float = Field(..., ge=0)
+    lane: Int = Field(..., ge=0)
+    start: Float = Field(0.0, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    speed: Float = Field(..., ge=0, le=MAX_SPEED_MPS)
     mode: Literal["constant", "idm"] = "constant"
 
 
 class Waypoint(_Strict):
-    t: float = Field(..., ge=0)
-    x: float
-    y: float
-    yaw: float | None = Field(None, description="omitted: the direction of motion")
+    t: Float = Field(..., ge=0, le=MAX_DURATION_S)
+    x: Float = Field(..., ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    y: Float = Field(..., ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    yaw: Float | None = Field(None, ge=-MAX_YAW_RAD, le=MAX_YAW_RAD, description="omitted: the direction of motion")
 
 
 class WaypointsTrack(_Strict):
     """Timed poses in our frame, linearly interpolated; holds the last pose afterwards."""
 
     kind: Literal["waypoints"] = "waypoints"
-    points: list[Waypoint] = Field(..., min_length=2)
+    points: list[Waypoint] = Field(..., min_length=2, max_length=MAX_WAYPOINTS)
 
     @field_validator("points")
     @classmethod
@@ -234,12 +262,12 @@ class CutInTrack(_Strict):
     ``time + duration`` (a smooth cosine lateral profile)."""
 
     kind: Literal["cut_in"] = "cut_in"
-    from_lane: int = Field(..., ge=0)
-    to_lane: int = Field(..., ge=0)
-    start: float = 0.0
-    speed: float = Field(..., ge=0)
-    time: float = Field(..., ge=0)
-    duration: float = Field(2.0, gt=0)
+    from_lane: Int = Field(..., ge=0)
+    to_lane: Int = Field(..., ge=0)
+    start: Float = Field(0.0, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
+    speed: Float = Field(..., ge=0, le=MAX_SPEED_MPS)
+    time: Float = Field(..., ge=0, le=MAX_DURATION_S)
+    duration: Float = Field(2.0, gt=0, le=MAX_DURATION_S)
 
 
 Track = Annotated[StaticTrack | LaneFollowTrack | WaypointsTrack | CutInTrack, Field(discriminator="kind")]
@@ -253,7 +281,7 @@ class ObjectSpec(_Strict):
     color: Color = "gray"
     description: str = ""
     image: str | None = None
-    size: tuple[float, float, float] | None = Field(None, description="length, width, height; default by category")
+    size: tuple[Float, Float, Float] | None = Field(None, description="length, width, height; default by category")
     track: Track
 
     @field_validator("color")
@@ -270,9 +298,9 @@ class ObjectSpec(_Strict):
 
     @field_validator("size")
     @classmethod
-    def _size(cls, v: tuple[float, float, float] | None) -> tuple[float, float, float] | None:
-        if v is not None and any(not (math.isfinite(s) and s > 0) for s in v):
-            raise ValueError(f"size must be three positive lengths, got {v}")
+    def _size(cls, v: tuple[Float, Float, Float] | None) -> tuple[Float, Float, Float] | None:
+        if v is not None and any(not (math.isfinite(s) and 0 < s <= MAX_OBJECT_SIZE_M) for s in v):
+            raise ValueError(f"size must be three lengths in (0, {MAX_OBJECT_SIZE_M:g}] m, got {v}")
         return v
 
     @property
@@ -294,16 +322,18 @@ class ObjectSpec(_Strict):
 class Scenario(_Strict):
     name: str = Field(..., min_length=1)
     road: Road
-    duration: float = Field(30.0, gt=0, description="seconds")
-    policy_frequency: float = Field(5.0, gt=0, description="agent decisions per second")
-    sensor_frequency: float = Field(10.0, gt=0, description="sensor frames per second")
-    substeps: int = Field(1, ge=1, le=20, description="simulation steps per sensor frame")
+    duration: Float = Field(30.0, gt=0, le=MAX_DURATION_S, description="seconds")
+    policy_frequency: Float = Field(
+        5.0, ge=MIN_POLICY_FREQUENCY_HZ, le=MAX_FREQUENCY_HZ, description="agent decisions per second"
+    )
+    sensor_frequency: Float = Field(10.0, gt=0, le=MAX_FREQUENCY_HZ, description="sensor frames per second")
+    substeps: Int = Field(1, ge=1, le=20, description="simulation steps per sensor frame")
     prompt_text: str = Field("", alias="prompt")
     weather: Weather = "sunny"
     time_of_day: TimeOfDay = "day"
     ego: EgoSpec = Field(default_factory=EgoSpec)
     traffic: TrafficSpec = Field(default_factory=TrafficSpec)
-    objects: list[ObjectSpec] = Field(default_factory=list)
+    objects: list[ObjectSpec] = Field(default_factory=list, max_length=MAX_OBJECTS)
     adapters: list[str] = Field(
         default_factory=list, description="LoRA adapter names or paths; each goes into the model it was trained on"
     )
@@ -313,10 +343,10 @@ class Scenario(_Strict):
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
         ratio = self.sensor_frequency / self.policy_frequency
-        if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        if abs(ratio - round(ratio)) > 1e-9 or not 1 <= round(ratio) <= MAX_FRAMES_PER_STEP:
             raise ValueError(
-                f"sensor_frequency / policy_frequency must be a positive integer, got "
-                f"{self.sensor_frequency} / {self.policy_frequency}"
+                f"sensor_frequency / policy_frequency (sensor frames per env step) must be an integer in "
+                f"[1, {MAX_FRAMES_PER_STEP}], got {self.sensor_frequency} / {self.policy_frequency}"
             )
         ids = [o.id for o in self.objects]
         dup = sorted({i for i in ids if ids.count(i) > 1})
@@ -403,11 +433,43 @@ def _check_lanes(scenario: Scenario, source: str) -> None:
         raise ScenarioError("\n".join(errors))
 
 
+MAX_FILE_BYTES = 1_000_000  # a scenario is a page of YAML; this bounds parsing time and memory
+
+
+class _StrictYamlLoader(yaml.SafeLoader):
+    """YAML's safe subset, refusing duplicate keys (the last one would silently win)."""
+
+
+def _construct_unique_mapping(loader: _StrictYamlLoader, node: yaml.MappingNode, deep: bool = False) -> dict:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            duplicate = key in seen
+        except TypeError:
+            raise yaml.constructor.ConstructorError(
+                None, None, f"a mapping key must be a plain value, got {type(key).__name__}", key_node.start_mark
+            ) from None
+        if duplicate:
+            raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+        seen.add(key)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_StrictYamlLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_unique_mapping)
+
+
 def _resolve(name_or_path: str | Path) -> Path:
+    if not isinstance(name_or_path, str | Path):
+        raise ScenarioError(
+            f"scenario must be a bundled scenario name or a path to a YAML file, got {type(name_or_path).__name__}"
+        )
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml") or p.exists():
         if not p.exists():
             raise ScenarioError(f"{p}: no such scenario file")
+        if not p.is_file():
+            raise ScenarioError(f"{p}: a scenario must be a YAML file, not a directory")
         return p
     bundled = SCENARIOS_DIR / f"{name_or_path}.yaml"
     if not bundled.exists():
@@ -418,8 +480,17 @@ def _resolve(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load a bundled scenario by name (``"merge_cut_in"``) or any YAML file by path."""
     path = _resolve(name_or_path)
+    raw = path.read_bytes()
+    if len(raw) > MAX_FILE_BYTES:
+        raise ScenarioError(f"{path}: {len(raw)} bytes; a scenario file may have at most {MAX_FILE_BYTES}")
     try:
-        data = yaml.safe_load(path.read_text())
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ScenarioError(f"{path}: not UTF-8 text (byte {err.start}: {raw[err.start : err.start + 1]!r})") from None
+    try:
+        data = yaml.load(text, Loader=_StrictYamlLoader)  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:
+        raise ScenarioError(f"{path}: YAML nested too deeply to be a scenario") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "<unknown position>"
@@ -438,11 +509,11 @@ class RandomizationConfig:
     """Ranges of :func:`randomize_scenario`."""
 
     density_scale: tuple[float, float] = (0.6, 1.6)  # multiplies the scenario's density
-    count_scale_max: float = 2.0  # count drawn in [0, count_scale_max * count]
-    empty_count_max: int = 8  # an empty scenario gets up to this many vehicles
-    mix_concentration: float = 0.5  # Dirichlet alpha of the random category weights
-    car_bias: float = 2.0  # added to the car weight so that traffic stays mostly cars
-    min_colors: int = 3
+    count_scale_max: Float = 2.0  # count drawn in [0, count_scale_max * count]
+    empty_count_max: Int = 8  # an empty scenario gets up to this many vehicles
+    mix_concentration: Float = 0.5  # Dirichlet alpha of the random category weights
+    car_bias: Float = 2.0  # added to the car weight so that traffic stays mostly cars
+    min_colors: Int = 3
 
 
 def randomize_scenario(

@@ -14,6 +14,7 @@ get their first frames from one batched backend call.
 
 from __future__ import annotations
 
+import numbers
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,8 @@ from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
+
+MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
 
 
 class M4WorldVectorEnv(VectorEnv):
@@ -43,8 +46,8 @@ class M4WorldVectorEnv(VectorEnv):
     ) -> None:
         if kwargs:
             raise InvalidOptionError(f"unknown M4World vector env option(s) {sorted(kwargs)}")
-        if num_envs < 1:
-            raise InvalidOptionError(f"num_envs must be >= 1, got {num_envs}")
+        if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= MAX_ENVS:
+            raise InvalidOptionError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {num_envs!r}")
         cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
         needs_bev = "bev" in cfg.observation_keys or render_mode is not None
         self.backend = make_backend(

@@ -30,7 +30,7 @@ import torch
 from safetensors import SafetensorError
 from safetensors.torch import load_file
 
-from world_model.data.clips import write_json_atomic
+from world_model.data.clips import sha256_file, write_json_atomic
 from world_model.lora import META, WEIGHTS
 
 BUNDLE_FORMAT = "m4world-bundle"
@@ -43,6 +43,7 @@ COMPONENT_STAGES = {
     "reference": ("reference",),
 }
 REQUIRED = ("vae", "student")
+DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields and the bundle's other JSON files
 BF16_COMPONENTS = ("student", "reference")  # DiTs; the VAE stays float32
 OWN_CONFIG_COMPONENTS = ("reference",)  # may differ from the student's config (input width, depth)
 
@@ -75,14 +76,6 @@ class BundleFiles:
 
     def has(self, component: str) -> bool:
         return component in self.tensors
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while block := f.read(chunk):
-            h.update(block)
-    return h.hexdigest()
 
 
 def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
@@ -194,11 +187,83 @@ def _write_manifest(root: Path, model_config: dict, components: dict, student_co
     }
     if student_config is not None:
         manifest["student_config"] = student_config
+    manifest[DIGEST_KEY] = bundle_digest(root, manifest)
     write_json_atomic(root / "manifest.json", manifest)
+
+
+def bundle_digest(root: Path, manifest: dict) -> str:
+    """sha256 over the manifest (configs, component hashes; its own digest left out) and every other
+    JSON file in the bundle's folder, so that no config can change without the bundle noticing.
+    Weight files are covered by their own hashes in the manifest."""
+    h = hashlib.sha256()
+    body = {k: v for k, v in manifest.items() if k != DIGEST_KEY}
+    h.update(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+    for file in sorted(root.glob("*.json")):
+        if file.name != "manifest.json":
+            h.update(file.name.encode() + b"\0" + file.read_bytes())
+    return h.hexdigest()
+
+
+def reseal_bundle(path: str | Path) -> Path:
+    """Rewrite ``path``'s manifest after its files were deliberately changed: the hashes and sizes of
+    the listed weight files and the digest are recomputed. Refuses a bundle whose manifest is not one."""
+    root = resolve_bundle(path)
+    manifest = _read_manifest(root / "manifest.json")
+    for info in _components(manifest, root / "manifest.json").values():
+        file = root / info["file"]
+        info.update(sha256=sha256_file(file), bytes=file.stat().st_size)
+    _write_manifest(root, manifest["model_config"], manifest["components"], manifest.get("student_config"))
+    return root
+
+
+def _read_manifest(manifest_path: Path) -> dict:
+    root = manifest_path.parent
+    try:
+        manifest = json.loads(manifest_path.read_bytes().decode("utf-8"))
+    except FileNotFoundError as e:
+        raise CheckpointError(f"{root} is not a checkpoint bundle: {manifest_path.name} is missing") from e
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise CheckpointError(f"{manifest_path} is corrupt (not valid JSON in UTF-8: {e})") from e
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("components", {}), dict):
+        raise CheckpointError(f"{manifest_path} is corrupt: not a bundle manifest (an object with 'components')")
+    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != BUNDLE_VERSION:
+        raise CheckpointError(
+            f"{manifest_path}: format {manifest.get('format')!r} v{manifest.get('version')} is not "
+            f"{BUNDLE_FORMAT!r} v{BUNDLE_VERSION}"
+        )
+    if not isinstance(manifest.get("model_config"), dict):
+        raise CheckpointError(f"{manifest_path} is corrupt: 'model_config' must be an object")
+    return manifest
+
+
+def _components(manifest: dict, manifest_path: Path) -> dict[str, dict]:
+    """The manifest's components, each checked for its fields; unknown components refused."""
+    components = manifest.get("components", {})
+    unknown = sorted(set(components) - set(COMPONENT_STAGES))
+    if unknown:
+        raise CheckpointError(
+            f"{manifest_path}: unknown component(s) {unknown}; a bundle holds {list(COMPONENT_STAGES)}"
+        )
+    missing = [c for c in REQUIRED if c not in components]
+    if missing:
+        raise CheckpointError(f"{manifest_path} lists no {missing} component: the bundle is incomplete")
+    for name, info in components.items():
+        if not isinstance(info, dict) or not {"file", "bytes", "sha256"} <= set(info):
+            raise CheckpointError(f"{manifest_path} is corrupt: component {name!r} needs 'file', 'bytes' and 'sha256'")
+        file = info["file"]
+        if not isinstance(file, str) or Path(file).name != file or file in ("", ".", ".."):
+            raise CheckpointError(
+                f"{manifest_path} is corrupt: component {name!r} 'file' must be a file name in the bundle, got {file!r}"
+            )
+    return components
 
 
 def resolve_bundle(path: str | Path | None) -> Path:
     """``None`` → the shipped default bundle; a path must exist."""
+    if path is not None and not isinstance(path, str | os.PathLike):
+        raise CheckpointError(
+            f"checkpoint must be a path to a bundle folder (or None for the shipped one), got {path!r}"
+        )
     p = DEFAULT_BUNDLE if path is None else Path(path)
     if not p.exists():
         hint = (
@@ -219,27 +284,15 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
             f"checkpoint {root} is a file; give the bundle folder that holds it and manifest.json ({root.parent})"
         )
     manifest_path = root / "manifest.json"
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except FileNotFoundError as e:
-        raise CheckpointError(f"{root} is not a checkpoint bundle: {manifest_path.name} is missing") from e
-    except json.JSONDecodeError as e:
-        raise CheckpointError(f"{manifest_path} is corrupt (not valid JSON: {e})") from e
-    if not isinstance(manifest, dict) or not isinstance(manifest.get("components", {}), dict):
-        raise CheckpointError(f"{manifest_path} is corrupt: not a bundle manifest (an object with 'components')")
-    if manifest.get("format") != BUNDLE_FORMAT or manifest.get("version") != BUNDLE_VERSION:
+    manifest = _read_manifest(manifest_path)
+    components = _components(manifest, manifest_path)
+    if manifest.get(DIGEST_KEY) != bundle_digest(root, manifest):
         raise CheckpointError(
-            f"{manifest_path}: format {manifest.get('format')!r} v{manifest.get('version')} is not "
-            f"{BUNDLE_FORMAT!r} v{BUNDLE_VERSION}"
+            f"{manifest_path}: the bundle's configs differ from what it was exported with (its digest does not "
+            "match): export it again (`m4world export`), or world_model.bundle.reseal_bundle() after a deliberate edit"
         )
-    components = manifest.get("components", {})
-    missing = [c for c in REQUIRED if c not in components]
-    if missing:
-        raise CheckpointError(f"{manifest_path} lists no {missing} component: the bundle is incomplete")
     tensors = {}
     for name, info in components.items():
-        if not isinstance(info, dict) or not {"file", "bytes", "sha256"} <= set(info):
-            raise CheckpointError(f"{manifest_path} is corrupt: component {name!r} needs 'file', 'bytes' and 'sha256'")
         file = root / info["file"]
         if not file.exists():
             raise CheckpointError(f"checkpoint file {file} is missing (listed in {manifest_path.name})")
@@ -249,4 +302,7 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
             tensors[name] = load_file(str(file))
         except SafetensorError as e:  # pragma: no cover - caught by the hash check first
             raise CheckpointError(f"checkpoint file {file} cannot be read: {e}") from e
+        bad = [k for k, t in tensors[name].items() if t.is_floating_point() and not torch.isfinite(t).all()]
+        if bad:
+            raise CheckpointError(f"checkpoint file {file} holds non-finite weights (NaN or inf) in {bad[:5]}")
     return BundleFiles(path=root, manifest=manifest, tensors=tensors)

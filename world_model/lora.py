@@ -212,7 +212,7 @@ def save_adapter(
     extra_meta: dict | None = None,
 ) -> Path:
     """Write adapter ``name`` to ``out_dir/adapter.{safetensors,json}`` atomically; returns out_dir."""
-    from world_model.data.clips import write_json_atomic
+    from world_model.data.clips import sha256_file, write_json_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -226,9 +226,37 @@ def save_adapter(
         "base_sha256": base_sha256,
         "lora": {**asdict(cfg), "target_modules": list(cfg.target_modules)},
         **(extra_meta or {}),
+        "weights_sha256": sha256_file(out / WEIGHTS),
     }
     write_json_atomic(out / META, meta)
     return out
+
+
+def seal_adapter(path: str | Path) -> Path:
+    """Record the sha256 of an adapter's weights in its ``adapter.json`` (after a deliberate edit)."""
+    from world_model.data.clips import sha256_file, write_json_atomic
+
+    path = Path(path)
+    meta = _read_meta(path)
+    meta["weights_sha256"] = sha256_file(path / WEIGHTS)
+    write_json_atomic(path / META, meta)
+    return path
+
+
+class AdapterError(ValueError):
+    """An adapter folder whose files are missing, corrupt or tampered with. The message names the file."""
+
+
+def _read_meta(path: Path) -> dict:
+    try:
+        meta = json.loads((path / META).read_bytes().decode("utf-8"))
+    except FileNotFoundError as e:
+        raise AdapterError(f"{path / META} is missing") from e
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
+        raise AdapterError(f"{path / META} is corrupt (not valid JSON in UTF-8: {e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise AdapterError(f"{path / META} is not a {FORMAT} v{VERSION} adapter")
+    return meta
 
 
 def resolve_adapter(name_or_path: str | Path, search_dirs: Sequence[str | Path] = ()) -> Path:
@@ -253,14 +281,29 @@ def resolve_adapter(name_or_path: str | Path, search_dirs: Sequence[str | Path] 
 
 def read_adapter(path: str | Path) -> tuple[AdapterInfo, dict[str, torch.Tensor]]:
     """An adapter directory -> (info, tensors)."""
+    from world_model.data.clips import sha256_file
+
     path = Path(path)
-    meta = json.loads((path / META).read_text())
-    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
-        raise ValueError(f"{path / META} is not a {FORMAT} v{VERSION} adapter")
-    lora = meta["lora"]
-    cfg = LoraConfig(**{**lora, "target_modules": tuple(lora["target_modules"])})
-    info = AdapterInfo(name=meta["name"], base_sha256=meta["base_sha256"], lora=cfg, meta=meta)
-    return info, load_file(str(path / WEIGHTS))
+    meta = _read_meta(path)
+    weights = path / WEIGHTS
+    if not weights.is_file():
+        raise AdapterError(f"{weights} is missing")
+    if meta.get("weights_sha256") != sha256_file(weights):
+        raise AdapterError(
+            f"{weights} does not match the sha256 recorded in {META} (corrupt, replaced, or written without one); "
+            "retrain the adapter, or world_model.lora.seal_adapter() after a deliberate edit"
+        )
+    try:
+        lora = meta["lora"]
+        cfg = LoraConfig(**{**lora, "target_modules": tuple(lora["target_modules"])})
+        info = AdapterInfo(name=meta["name"], base_sha256=meta["base_sha256"], lora=cfg, meta=meta)
+    except (KeyError, TypeError, ValueError) as e:
+        raise AdapterError(f"{path / META} is corrupt: {e!r}") from e
+    tensors = load_file(str(weights))
+    bad = [k for k, t in tensors.items() if t.is_floating_point() and not torch.isfinite(t).all()]
+    if bad:
+        raise AdapterError(f"{weights} holds non-finite weights (NaN or inf) in {bad[:5]}")
+    return info, tensors
 
 
 def apply_adapters(

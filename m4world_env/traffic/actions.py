@@ -45,9 +45,17 @@ def continuous_controls(action: object, cfg: ActionConfig) -> dict[str, float]:
     the RIGHT (policies trained on highway-env keep their meaning). ``EgoState.steering`` reports
     the same angle in our counter-clockwise convention (negated). Raises :class:`ActionError`."""
     try:
-        a = np.asarray(action, dtype=np.float64)
-    except (TypeError, ValueError) as err:
+        raw = np.asarray(action)
+    except (TypeError, ValueError, OverflowError) as err:
         raise ActionError(f"continuous action must be numeric [acceleration, steering], got {action!r}") from err
+    # Only real numbers: strings, booleans, complex numbers, dates (and ints too large for any dtype,
+    # which numpy keeps as objects) would otherwise be coerced into some float.
+    if raw.dtype.kind not in "iuf":
+        raise ActionError(
+            f"continuous action must be numeric: two real numbers [acceleration, steering], got {action!r} "
+            f"(dtype {raw.dtype})"
+        )
+    a = raw.astype(np.float64)
     if a.shape != (2,):
         raise ActionError(f"continuous action must have shape (2,) [acceleration, steering], got shape {a.shape}")
     if not np.all(np.isfinite(a)):

@@ -42,6 +42,17 @@ class BridgeConfig:
     population: population.PopulationConfig = population.PopulationConfig()
 
 
+def check_reset(scenario: Scenario, source: str) -> None:
+    """Build what ``reset`` builds (road, ego, scripted objects, traffic) once, so that a scenario
+    that passes ``m4world scenarios --check`` never fails at reset. Raises :class:`ScenarioError`."""
+    try:
+        TrafficBridge(scenario).reset(seed=0)
+    except ScenarioError:
+        raise
+    except (ValueError, ArithmeticError, IndexError, KeyError, MemoryError) as e:
+        raise ScenarioError(f"{source}: the scenario validates but its road or traffic cannot be built: {e!r}") from e
+
+
 class TrafficBridge:
     """highway-env road + IDM/MOBIL traffic + scripted objects + ego, emitting SceneFrames."""
 
@@ -316,6 +327,11 @@ class TrafficBridge:
 
     def _get(self, track_id: str) -> TrafficVehicle | ScriptedObject:
         self._require_reset()
+        if not isinstance(track_id, str):
+            raise population.UnknownObjectError(
+                f"an object is named by its track id, a string, got {type(track_id).__name__}; "
+                f"known ids: {sorted(self._ids)}"
+            )
         if track_id not in self._ids:
             raise population.UnknownObjectError(f"no object {track_id!r}; known ids: {sorted(self._ids)}")
         return self._ids[track_id]

@@ -69,6 +69,14 @@ class Clip:
         return {k: int(v) for k, v in self.meta.get("crop_since", {}).items()}
 
 
+def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
 def write_json_atomic(path: Path, obj: object) -> None:
     """Write JSON so a reader never sees a half file (write aside, fsync, rename)."""
     tmp = path.with_name(path.name + ".tmp")

@@ -307,6 +307,13 @@ class ReferenceGenerator:
                 raise ValueError(f"unknown reference key {key!r}; use one of {valid}")
             if key == "lidar":
                 ranges = self._images(key, value, (s.lidar.beams, s.lidar.azimuth), batch)
+                if ranges.dtype.kind not in "iuf" or not np.isfinite(ranges).all():
+                    raise ValueError(f"reference 'lidar' must be finite ranges in metres, got dtype {ranges.dtype}")
+                if ranges.min() < 0 or ranges.max() > s.lidar.max_range:
+                    raise ValueError(
+                        f"reference 'lidar' ranges must lie in [0, {s.lidar.max_range:g}] m (0 = no return), "
+                        f"got [{ranges.min():g}, {ranges.max():g}]"
+                    )
                 images = lidar_to_images(ranges.astype(np.float32), self.mcfg, device)[:, None]
                 views = [s.lidar_view]
             else:

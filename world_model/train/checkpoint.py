@@ -94,14 +94,20 @@ def load_latest(root: str | Path) -> Checkpoint | None:
     pointer = root / LATEST
     if not pointer.exists():
         return None
-    info = json.loads(pointer.read_text())
-    path = root / info["dir"]
+    try:
+        info = json.loads(pointer.read_text())
+        path, step = root / info["dir"], int(info["step"])
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError, ValueError) as e:
+        raise ValueError(
+            f"{pointer} is corrupt ({e!r}): a checkpoint pointer holds {{'dir': ..., 'step': ...}}; "
+            f"delete {pointer} to resume from the checkpoints' folder anew"
+        ) from None
     if not path.is_dir():
         raise FileNotFoundError(f"{pointer} points to {path}, which is missing; delete {pointer} to restart")
     tensors = {p.stem: load_file(str(p)) for p in sorted(path.glob("*.safetensors"))}
     train_state = torch.load(path / "train_state.pt", map_location="cpu", weights_only=True)
     meta = json.loads((path / "meta.json").read_text())
-    return Checkpoint(step=int(info["step"]), path=path, tensors=tensors, train_state=train_state, meta=meta)
+    return Checkpoint(step=step, path=path, tensors=tensors, train_state=train_state, meta=meta)
 
 
 def export_weights(path: str | Path, state: dict[str, torch.Tensor], config: dict) -> None:
