@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -279,6 +281,25 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_streaming(args: argparse.Namespace) -> int:
+    from world_model.bundle import load_bundle_files, set_streaming
+    from world_model.student.streaming import STREAMING_FILE, StreamingConfig
+
+    files = load_bundle_files(args.checkpoint)
+    current = StreamingConfig.from_dict(files.streaming or {}, str(files.path / STREAMING_FILE))
+    refresh = None if args.refresh_steps in (None, "all") else _step_list(args.refresh_steps)
+    chosen = current.override(denoising_steps=args.denoising_steps, refresh_steps=refresh, sink_frames=args.sink_frames)
+    if args.refresh_steps == "all":
+        chosen = replace(chosen, refresh_steps=None)
+    if args.no_refresh:
+        chosen = replace(chosen, context_refresh=False)
+    if args.write:
+        set_streaming(files.path, chosen)
+        print(f"wrote {files.path / STREAMING_FILE} and its manifest entry")
+    print(json.dumps(chosen.to_dict()))
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
@@ -453,6 +474,18 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--run", required=True)
     x.add_argument("--out", required=True)
     x.set_defaults(func=_cmd_export)
+
+    st = sub.add_parser(
+        "streaming",
+        help="show (or, with --write, set) a bundle's streaming.json: how the env and the report run the student",
+    )
+    st.add_argument("--checkpoint", default=None, help="bundle folder (default: the shipped one)")
+    st.add_argument("--denoising-steps", type=int, default=None)
+    st.add_argument("--refresh-steps", default=None, help="comma-separated step indices (-1 = the last), or all")
+    st.add_argument("--no-refresh", action="store_true", help="turn the context refresh off")
+    st.add_argument("--sink-frames", type=int, default=None)
+    st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
+    st.set_defaults(func=_cmd_streaming)
 
     b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
     b.add_argument("--out", default="out/bench")

@@ -9,6 +9,9 @@ Layout::
       vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
       student.safetensors      the causal few-step student (stage ``compress``, else ``long``, ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
+      streaming.json           how the student streams at inference (denoising steps, context
+                               refresh, sink frames: :class:`~world_model.student.streaming.StreamingConfig`),
+                               listed in the manifest's ``streaming`` entry with its sha256
       adapters/                optional LoRA adapters (``lora`` stage output)
 
 :func:`export_bundle` collects the stage exports of a training run; :func:`load_bundle_files`
@@ -32,6 +35,7 @@ from safetensors.torch import load_file
 
 from world_model.data.clips import write_json_atomic
 from world_model.lora import META, WEIGHTS
+from world_model.student.streaming import STREAMING_FILE, StreamingConfig
 
 BUNDLE_FORMAT = "m4world-bundle"
 BUNDLE_VERSION = 1
@@ -62,6 +66,7 @@ class BundleFiles:
     path: Path
     manifest: dict
     tensors: dict[str, dict[str, torch.Tensor]]  # component -> state dict
+    streaming: dict | None = None  # streaming.json's content; None: a bundle without one
 
     @property
     def model_config(self) -> dict:
@@ -85,8 +90,9 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
-    """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically)."""
+def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: StreamingConfig | None = None) -> Path:
+    """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically),
+    with ``streaming`` (default: :class:`StreamingConfig`'s defaults) as its ``streaming.json``."""
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     found: dict[str, tuple[str, Path]] = {}
     for component, stages in COMPONENT_STAGES.items():
@@ -121,7 +127,7 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
     adapters = run_dir / "lora"
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=_adapter_files_only)
-    _write_manifest(tmp, config, components, student_meta.get("student_config"))
+    _write_manifest(tmp, config, components, student_meta.get("student_config"), streaming)
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
@@ -159,6 +165,7 @@ def save_bundle(
     student_config: dict | None = None,
     stages: dict[str, str] | None = None,
     component_configs: dict[str, dict] | None = None,
+    streaming: StreamingConfig | None = None,
 ) -> Path:
     """Write state dicts (``vae``, ``student``, optional ``reference``) as a bundle, atomically.
     ``model_config`` is the student's; ``component_configs`` the others' where they differ."""
@@ -178,14 +185,16 @@ def save_bundle(
         save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(dst))
         own = (component_configs or {}).get(name)
         entries[name] = _entry(dst, (stages or {}).get(name, "unknown"), model_config, own)
-    _write_manifest(tmp, model_config, entries, student_config)
+    _write_manifest(tmp, model_config, entries, student_config, streaming)
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(tmp, out_dir)
     return out_dir
 
 
-def _write_manifest(root: Path, model_config: dict, components: dict, student_config: dict | None) -> None:
+def _write_manifest(
+    root: Path, model_config: dict, components: dict, student_config: dict | None, streaming: StreamingConfig | None
+) -> None:
     manifest = {
         "format": BUNDLE_FORMAT,
         "version": BUNDLE_VERSION,
@@ -194,7 +203,25 @@ def _write_manifest(root: Path, model_config: dict, components: dict, student_co
     }
     if student_config is not None:
         manifest["student_config"] = student_config
+    manifest["streaming"] = _write_streaming_file(root, streaming or StreamingConfig())
     write_json_atomic(root / "manifest.json", manifest)
+
+
+def _write_streaming_file(root: Path, streaming: StreamingConfig) -> dict:
+    file = root / STREAMING_FILE
+    write_json_atomic(file, streaming.to_dict())
+    return {"file": file.name, "sha256": sha256_file(file), "bytes": file.stat().st_size}
+
+
+def set_streaming(path: str | Path | None, streaming: StreamingConfig) -> Path:
+    """Write ``streaming`` as the bundle's ``streaming.json`` and its manifest entry (hash and size).
+
+    The bundle's other files are verified first, so a damaged bundle is never re-hashed."""
+    files = load_bundle_files(path)
+    manifest = dict(files.manifest)
+    manifest["streaming"] = _write_streaming_file(files.path, streaming)
+    write_json_atomic(files.path / "manifest.json", manifest)
+    return files.path
 
 
 def resolve_bundle(path: str | Path | None) -> Path:
@@ -249,4 +276,23 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
             tensors[name] = load_file(str(file))
         except SafetensorError as e:  # pragma: no cover - caught by the hash check first
             raise CheckpointError(f"checkpoint file {file} cannot be read: {e}") from e
-    return BundleFiles(path=root, manifest=manifest, tensors=tensors)
+    return BundleFiles(path=root, manifest=manifest, tensors=tensors, streaming=_read_streaming(root, manifest))
+
+
+def _read_streaming(root: Path, manifest: dict) -> dict | None:
+    """``streaming.json``'s content, verified against the manifest's ``streaming`` entry."""
+    info = manifest.get("streaming")
+    if info is None:
+        return None
+    manifest_path = root / "manifest.json"
+    if not isinstance(info, dict) or not {"file", "bytes", "sha256"} <= set(info):
+        raise CheckpointError(f"{manifest_path} is corrupt: 'streaming' needs 'file', 'bytes' and 'sha256'")
+    file = root / info["file"]
+    if not file.exists():
+        raise CheckpointError(f"bundle file {file} is missing (listed in {manifest_path.name})")
+    if file.stat().st_size != info["bytes"] or sha256_file(file) != info["sha256"]:
+        raise CheckpointError(f"bundle file {file} is corrupt: its size or sha256 differs from the manifest")
+    try:
+        return json.loads(file.read_text())
+    except json.JSONDecodeError as e:  # pragma: no cover - caught by the hash check first
+        raise CheckpointError(f"{file} is not valid JSON: {e}") from e
