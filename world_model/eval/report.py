@@ -110,6 +110,31 @@ class Answer:
     question: str
     yes: bool
     category: str | None  # the asked-about object's category; None for scene questions
+    view: int | None = None  # the camera a scene question was asked about; None for object questions
+
+
+def judge_scene_per_view(backend: JudgeBackend, frames: np.ndarray, weather: str, time_of_day: str) -> list[Answer]:
+    """Weather and time of day asked of every view of ``frames`` (N, V, H, W, 3) on its own, so a
+    frame whose views disagree (some dark as night) cannot pass as one averaged scene."""
+    n, v = frames.shape[:2]
+    views = frames.reshape(n * v, 1, *frames.shape[2:])
+    view_of = np.tile(np.arange(v), n).tolist()
+    weathers = backend.is_weather(views, [weather] * len(views))
+    answers = [Answer("weather", bool(y), None, k) for y, k in zip(weathers, view_of, strict=True)]
+    times = backend.is_time_of_day(views, [time_of_day] * len(views))
+    return answers + [Answer("time_of_day", bool(y), None, k) for y, k in zip(times, view_of, strict=True)]
+
+
+def per_view(answers: Sequence[Answer]) -> dict[str, list[float | None]]:
+    """Yes-frequency of each scene question per camera view: {question: [view 0, view 1, ...]}."""
+    out: dict[str, list[float | None]] = {}
+    for q in ("weather", "time_of_day"):
+        scored = [a for a in answers if a.question == q and a.view is not None]
+        if not scored:
+            continue
+        views = max(a.view for a in scored) + 1
+        out[q] = [float(np.mean(ys)) if (ys := [a.yes for a in scored if a.view == k]) else None for k in range(views)]
+    return out
 
 
 def judge_clip(
@@ -120,10 +145,7 @@ def judge_clip(
     idx = list(range(0, clip.num_frames, config.frame_stride))
     prompt = clip.frames[0].prompt
     frames = np.ascontiguousarray(cameras[idx])
-    answers = [Answer("weather", bool(y), None) for y in backend.is_weather(frames, [prompt.weather] * len(idx))]
-    answers += [
-        Answer("time_of_day", bool(y), None) for y in backend.is_time_of_day(frames, [prompt.time_of_day] * len(idx))
-    ]
+    answers = judge_scene_per_view(backend, frames, prompt.weather, prompt.time_of_day)
     crops: list[ObjectCrop] = []
     for i in idx:
         crops += extract_crops(clip.frames[i], np.ascontiguousarray(cameras[i]), sim, crop_config)
@@ -349,6 +371,7 @@ def score_row(
         "chunk_jumps_per_clip": clip_jump_scores,
         "table2": yes_frequencies(answers),
         "per_category": per_category(answers),
+        "per_view": per_view(answers),
         "answers": len(answers),
         "long_horizon": long_curves,
     }
@@ -498,6 +521,7 @@ def format_markdown(report: dict) -> str:
     for row, r in report["rows"].items():
         lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
     lines += existence_by_category(report)
+    lines += scene_by_view(report)
     long_rows = [(row, c) for row, r in report["rows"].items() for c in r.get("long_horizon", [])]
     if long_rows:
         w = report.get("config", {}).get("long_window_s", "?")
@@ -552,6 +576,22 @@ def existence_by_category(report: dict) -> list[str]:
     for row, r in rows.items():
         ex = r.get("per_category", {}).get("existence", {})
         lines.append(f"| {row} | " + " | ".join(_fmt(ex.get(c)) for c in cats) + " |")
+    return lines
+
+
+def scene_by_view(report: dict) -> list[str]:
+    """Markdown lines: weather and time-of-day yes-frequencies of each camera view per row (a model
+    whose side views turn to night shows it here, not averaged away). Empty for older rows."""
+    rows = {row: r["per_view"] for row, r in report["rows"].items() if r.get("per_view")}
+    if not rows:
+        return []
+    views = max(len(v) for r in rows.values() for v in r.values())
+    lines = ["", "### Weather and time of day per camera view (judge yes-frequencies)", ""]
+    lines += ["| row | question | " + " | ".join(f"view {k}" for k in range(views)) + " |"]
+    lines += ["|---|---" + "|---" * views + "|"]
+    for row, r in rows.items():
+        for q, freqs in r.items():
+            lines.append(f"| {row} | {q} | " + " | ".join(_fmt(f) for f in freqs) + " |")
     return lines
 
 
