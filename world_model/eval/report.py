@@ -16,7 +16,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -200,7 +200,7 @@ def _check_generated(gen: Generated, clip: Clip, row: str) -> None:
 
 
 def evaluate_rows(
-    rows: dict[str, RowFn],
+    rows: dict[str, RowFn | Sequence[RowFn]],
     clips: Sequence[Clip],
     judge: JudgeBackend | None = None,
     config: ReportConfig = ReportConfig(),
@@ -212,7 +212,9 @@ def evaluate_rows(
     for clips of at least twice ``long_window_s`` seconds, ``long_horizon`` PSNR curves and ratios.
 
     ``judge`` answers the questions (default: the shipped CNN judge); its ``frame_features`` feed
-    the Fréchet distances (a backend without them gets None there).
+    the Fréchet distances (a backend without them gets None there). A row given as a sequence of
+    generators is one model under several noise seeds: each is scored and the row holds their mean
+    (:func:`average_seeds`: ``seeds`` and each score's ``spread``).
 
     Rows take minutes to hours, so with ``cache_dir`` each finished row is written there
     (``<row>.json``, atomically) under a key made of ``row_ids[row]`` (what generates it: model
@@ -226,24 +228,77 @@ def evaluate_rows(
     features = getattr(judge, "frame_features", None)
     gt_feats = [features(np.asarray(c.cameras)) for c in clips] if features else []
     report: dict = {"rows": {}, "clips": [c.name for c in clips], "config": config.__dict__}
-    for row, fn in rows.items():
+    for row, fns in rows.items():
         rid = (row_ids or {}).get(row)
-        cache = Path(cache_dir) / f"{row}.json" if cache_dir is not None and rid is not None else None
-        key = row_cache_key(rid, clips, config, judge) if cache is not None else None
-        if cache is not None and cache.exists():
-            saved = json.loads(cache.read_text())
-            if saved.get("key") == key:
-                log.info("report row %s: reused from %s", row, cache)
-                report["rows"][row] = saved["result"]
-                continue
-        t0 = time.perf_counter()
-        log.info("report row %s: generating and scoring %d clips", row, len(clips))
-        report["rows"][row] = score_row(row, fn, clips, judge, config, gt_feats)
-        log.info("report row %s: done in %.0f s", row, time.perf_counter() - t0)
-        if cache is not None:
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            write_json_atomic(cache, {"key": key, "row_id": rid, "result": report["rows"][row]})
+        if isinstance(fns, Sequence):  # one model under several noise seeds: scored each, then averaged
+            results = [
+                _scored_row(row, fn, clips, judge, config, gt_feats, cache_dir, _seed_id(rid, k), f".seed{k}")
+                for k, fn in enumerate(fns)
+            ]
+            report["rows"][row] = average_seeds(results)
+        else:
+            report["rows"][row] = _scored_row(row, fns, clips, judge, config, gt_feats, cache_dir, rid, "")
     return report
+
+
+def _seed_id(row_id: str | None, index: int) -> str | None:
+    return None if row_id is None else f"{row_id},noise_seed_index={index}"
+
+
+def _scored_row(
+    row: str,
+    fn: RowFn,
+    clips: Sequence[Clip],
+    judge: JudgeBackend,
+    config: ReportConfig,
+    gt_feats: Sequence[np.ndarray],
+    cache_dir: str | Path | None,
+    rid: str | None,
+    suffix: str,
+) -> dict:
+    """:func:`score_row`, reused from / written to ``cache_dir`` under ``rid`` (see :func:`evaluate_rows`)."""
+    cache = Path(cache_dir) / f"{row}{suffix}.json" if cache_dir is not None and rid is not None else None
+    key = row_cache_key(rid, clips, config, judge) if cache is not None else None
+    if cache is not None and cache.exists():
+        saved = json.loads(cache.read_text())
+        if saved.get("key") == key:
+            log.info("report row %s%s: reused from %s", row, suffix, cache)
+            return saved["result"]
+    t0 = time.perf_counter()
+    log.info("report row %s%s: generating and scoring %d clips", row, suffix, len(clips))
+    result = score_row(row, fn, clips, judge, config, gt_feats)
+    log.info("report row %s%s: done in %.0f s", row, suffix, time.perf_counter() - t0)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(cache, {"key": key, "row_id": rid, "result": result})
+    return result
+
+
+def _mean_leaves(values: list[Any], spread: bool) -> Any:
+    """Leaf-by-leaf mean (``spread``: standard deviation) of equally shaped JSON values; a number
+    missing (None) in any seed is None; non-numbers and mismatched shapes keep the first seed's."""
+    first = values[0]
+    if isinstance(first, dict) and all(isinstance(v, dict) and v.keys() == first.keys() for v in values):
+        return {k: _mean_leaves([v[k] for v in values], spread) for k in first}
+    if isinstance(first, list) and all(isinstance(v, list) and len(v) == len(first) for v in values):
+        return [_mean_leaves([v[i] for v in values], spread) for i in range(len(first))]
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return float(np.std(values)) if spread else float(np.mean(values))
+    if all(v is None or isinstance(v, int | float) for v in values) and any(v is None for v in values):
+        return None
+    return None if spread else first
+
+
+def average_seeds(results: Sequence[dict]) -> dict:
+    """One row from its results under several noise seeds: every score is the mean over seeds;
+    ``seeds`` holds their count and ``spread`` the standard deviation of every score."""
+    if not results:
+        raise ValueError("average_seeds needs at least one seeded result")
+    out = _mean_leaves(list(results), spread=False)
+    out["seeds"] = len(results)
+    out["spread"] = {k: _mean_leaves([r[k] for r in results], spread=True) for k in ("table1", "table2", "per_view")
+                     if all(k in r for r in results)}  # fmt: skip
+    return out
 
 
 def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
