@@ -79,7 +79,7 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     world-model backend) and/or ``no-refresh`` (``context_refresh`` off: the student's latent context
     refresh, §4.2, skipped) or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising
     steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
-    (``refresh_steps=None``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
+    (``refresh_steps="all"``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
     frames kept in context beside the window), and ``checkpoint=BUNDLE`` (this backend's bundle
     instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
     ``config.model.device`` of the world-model backends."""
@@ -104,7 +104,7 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
             if not checkpoint:
                 raise SystemExit(f"checkpoint=BUNDLE needs a bundle folder, got {backend!r}")
         elif q == "refresh=all":
-            model["refresh_steps"] = None
+            model["refresh_steps"] = "all"
         elif q.startswith("refresh="):
             try:
                 model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]

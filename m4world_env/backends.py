@@ -13,13 +13,12 @@ from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
 
-from m4world_env.config import BACKENDS, EnvConfig, InvalidOptionError
+from m4world_env.config import BACKENDS, REFRESH_ALL, EnvConfig, InvalidOptionError
 from world_model.observation import Observation
 from world_model.precision import resolve_device
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
 from world_model.sim.reference_crops import ReferenceCrops
-from world_model.student.config import DIFFUSION_STEPS
 
 
 class SensorBackend(Protocol):
@@ -127,18 +126,17 @@ class WorldModelBackend:
         except ValueError as e:
             raise InvalidOptionError(f"config.model.device: {e}") from e
         self.wm = load_world_model(checkpoint, device=device, dtype=mc.dtype)
-        n = mc.denoising_steps
-        if n < 1:
-            raise InvalidOptionError(f"config.model.denoising_steps must be >= 1, got {n}")
-        steps = tuple(round(DIFFUSION_STEPS * (1 - k / n)) for k in range(n))  # 4 -> 1000, 750, 500, 250
         try:
-            self.wm.student_cfg = replace(
-                self.wm.student_cfg,
-                denoising_steps=steps,
+            every_step = mc.refresh_steps == REFRESH_ALL
+            self.streaming = self.wm.streaming.override(
+                denoising_steps=mc.denoising_steps,
                 context_refresh=mc.context_refresh,
-                refresh_steps=mc.resolved_refresh_steps(),
-                sink_frames=int(mc.sink_frames),
+                refresh_steps=None if every_step else mc.refresh_steps,
+                sink_frames=mc.sink_frames,
             )
+            if every_step:
+                self.streaming = replace(self.streaming, refresh_steps=None)
+            self.wm.student_cfg = self.streaming.apply(self.wm.student_cfg)
         except ValueError as e:  # e.g. refresh_steps beyond the denoising steps
             raise InvalidOptionError(f"config.model: {e}") from e
         if mc.compile:

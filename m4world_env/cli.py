@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
 import time
+from collections.abc import Callable
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -121,6 +124,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
     from world_model.bundle import resolve_bundle, sha256_file
     from world_model.data import iter_clips
     from world_model.eval.report import (
+        RowFn,
         evaluate_rows,
         first_frame_row,
         format_markdown,
@@ -149,6 +153,9 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
     refresh_rows = [_step_list(s) for s in args.refresh_steps]  # parsed before any row is generated
 
+    def seeded(make_row: Callable[[int], RowFn]) -> list[RowFn]:  # one model row under --seeds noise seeds
+        return [make_row(args.seed + k) for k in range(args.seeds)]
+
     rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
     rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
     vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
@@ -156,22 +163,25 @@ def _cmd_report(args: argparse.Namespace) -> int:
     rows["road_only"], ids["road_only"] = road_only_row, "road_only"  # the floor of the object scores
     rows["first_frame"], ids["first_frame"] = first_frame_row, "first_frame"  # the floor of the motion scores
     if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
-        rows["geometry_only"] = world_model_row(load(args.baseline), seed=args.seed)
+        baseline = load(args.baseline)
+        rows["geometry_only"] = seeded(lambda s: world_model_row(baseline, seed=s))
         ids["geometry_only"] = student_id(args.baseline)
-    rows["student"] = world_model_row(wm, seed=args.seed)
+    rows["student"] = seeded(lambda s: world_model_row(wm, seed=s))  # exactly what the env runs
     ids["student"] = student_id(args.checkpoint)
-    rows["student_no_refresh"] = world_model_row(wm, seed=args.seed, context_refresh=False)
+    rows["student_no_refresh"] = seeded(lambda s: world_model_row(wm, seed=s, context_refresh=False))
     ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
     for steps in refresh_rows:
         name = "student_refresh_" + "_".join(map(str, steps))
-        rows[name] = world_model_row(wm, seed=args.seed, refresh_steps=steps)
+        rows[name] = seeded(lambda s, steps=steps: world_model_row(wm, seed=s, refresh_steps=steps))
         ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps}"
     for sinks in args.sink_frames:  # each with the bundle's own refresh and with every --refresh-steps row
         if sinks < 1:
             raise ValueError(f"--sink-frames takes a number of frames >= 1, got {sinks}")
         for steps in (None, *refresh_rows):
             name = "student" + ("_refresh_" + "_".join(map(str, steps)) if steps else "") + f"_sink_{sinks}"
-            rows[name] = world_model_row(wm, seed=args.seed, refresh_steps=steps, sink_frames=sinks)
+            rows[name] = seeded(
+                lambda s, steps=steps, sinks=sinks: world_model_row(wm, seed=s, refresh_steps=steps, sink_frames=sinks)
+            )
             ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps},sink_frames={sinks}"
     if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
         from world_model.lora import META, WEIGHTS
@@ -180,7 +190,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
         adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
         # The JSON too: it decides how an adapter acts (a completion adapter only redraws its category).
         digests = [sha256_file(d / f)[:16] for d in adapted.adapter_dirs for f in (WEIGHTS, META)]
-        rows["student_adapted"] = world_model_row(adapted, seed=args.seed)
+        rows["student_adapted"] = seeded(lambda s: world_model_row(adapted, seed=s))
         ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
     if args.teacher:
         from world_model.precision import dit_precision
@@ -188,7 +198,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
         with dit_precision(wm.cfg.dit.autocast_bf16):  # the teacher in the student's precision
             teacher_model = load_teacher(args.teacher)
-        rows["teacher"] = teacher_row(wm, teacher_model, seed=args.seed)
+        rows["teacher"] = seeded(lambda s: teacher_row(wm, teacher_model, seed=s))
         weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
         teacher = sha256_file(weights)[:16] if weights.exists() else args.teacher
         ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed},dtype={wm.dtype}"
@@ -278,6 +288,25 @@ def _cmd_export(args: argparse.Namespace) -> int:
     from world_model.bundle import export_bundle
 
     print(f"wrote {export_bundle(args.run, args.out)}")
+    return 0
+
+
+def _cmd_streaming(args: argparse.Namespace) -> int:
+    from world_model.bundle import load_bundle_files, set_streaming
+    from world_model.student.streaming import STREAMING_FILE, StreamingConfig
+
+    files = load_bundle_files(args.checkpoint)
+    current = StreamingConfig.from_dict(files.streaming or {}, str(files.path / STREAMING_FILE))
+    refresh = None if args.refresh_steps in (None, "all") else _step_list(args.refresh_steps)
+    chosen = current.override(denoising_steps=args.denoising_steps, refresh_steps=refresh, sink_frames=args.sink_frames)
+    if args.refresh_steps == "all":
+        chosen = replace(chosen, refresh_steps=None)
+    if args.no_refresh:
+        chosen = replace(chosen, context_refresh=False)
+    if args.write:
+        set_streaming(files.path, chosen)
+        print(f"wrote {files.path / STREAMING_FILE} and its manifest entry")
+    print(json.dumps(chosen.to_dict()))
     return 0
 
 
@@ -406,6 +435,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--scenarios", nargs="+", default=["all"])
     e.add_argument("--episodes", type=_positive_int, default=1)
     e.add_argument("--seed", type=int, default=0)
+    e.add_argument(
+        "--seeds",
+        type=_positive_int,
+        default=3,
+        help="--report: noise seeds per model row (--seed, --seed + 1, ...): scores are their mean, with the spread",
+    )
     e.add_argument("--backend", default="procedural", choices=("procedural", "world_model"))
     e.add_argument("--checkpoint", default=None)
     e.add_argument("--max-steps", type=_positive_int, default=None, help="stop each episode after N steps")
@@ -485,6 +520,18 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--run", required=True)
     x.add_argument("--out", required=True)
     x.set_defaults(func=_cmd_export)
+
+    st = sub.add_parser(
+        "streaming",
+        help="show (or, with --write, set) a bundle's streaming.json: how the env and the report run the student",
+    )
+    st.add_argument("--checkpoint", default=None, help="bundle folder (default: the shipped one)")
+    st.add_argument("--denoising-steps", type=int, default=None)
+    st.add_argument("--refresh-steps", default=None, help="comma-separated step indices (-1 = the last), or all")
+    st.add_argument("--no-refresh", action="store_true", help="turn the context refresh off")
+    st.add_argument("--sink-frames", type=int, default=None)
+    st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
+    st.set_defaults(func=_cmd_streaming)
 
     b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
     b.add_argument("--out", default="out/bench")

@@ -10,7 +10,8 @@ import difflib
 import math
 import numbers
 from dataclasses import asdict, dataclass, field, fields, is_dataclass
-from typing import Any, get_type_hints
+from types import UnionType
+from typing import Any, get_args, get_origin, get_type_hints
 
 import numpy as np
 
@@ -19,8 +20,6 @@ from world_model.precision import DTYPES
 ACTION_TYPES = ("continuous", "discrete_meta")
 OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
 BACKENDS = ("procedural", "world_model")
-DEFAULT_REFRESH_STEPS = (-2, -1)  # ModelBackendConfig.refresh_steps: the last two denoising steps
-DEFAULT_SINK_FRAMES = 1  # ModelBackendConfig.sink_frames
 # Bounds that keep every call finite in time and memory and every reward finite.
 MAX_REWARD_WEIGHT = 1.0e3
 MAX_SPEED_RANGE_MPS = 100.0
@@ -28,7 +27,8 @@ MAX_DENOISING_STEPS = 50  # the student is distilled for 4; the teacher's sample
 MAX_SINK_FRAMES = 64
 MAX_STATE_OBJECTS = 256
 MIN_VIEW_PX, MAX_VIEW_PX = 16, 1024  # the procedural rig's height and width
-DEVICE_TYPES = ("cpu", "cuda")
+DEVICE_TYPES = ("cpu", "cuda", "auto")
+REFRESH_ALL = "all"  # ModelBackendConfig.refresh_steps: refresh the context at every denoising step
 
 
 class UnknownOptionError(KeyError):
@@ -60,22 +60,15 @@ class RewardConfig:
 class ModelBackendConfig:
     """Options of the world-model backend (ignored by the procedural one)."""
 
-    denoising_steps: int = 4
-    context_refresh: bool = True
-    # With context_refresh: the denoising steps that refresh the context frame; the others attend to
-    # the cache's copy. 0 = the first of denoising_steps; negative indices count from the last
-    # (-1 = the last), clamped at the first. None: every step (the paper's §4.2). The default, the
-    # last two, scored like every step on the shipped checkpoint for 12 frame passes a chunk instead
-    # of 14 (docs/MODEL_CARD.md, "Refreshing at some denoising steps only"). Left at this default, it
-    # is ignored when context_refresh is False.
-    refresh_steps: tuple[int, ...] | None = DEFAULT_REFRESH_STEPS
-    # The first frames of an episode kept in the student's context for the whole episode, beside
-    # its rolling window (an attention sink, StreamingLLM / Deep Forcing, cited in the paper's §2).
-    # The student was trained with the window alone (0), but one sink frame improves every camera
-    # and LiDAR error score of the evaluation report and lowers the shipped checkpoint's 60 s LiDAR
-    # error in every noise seed measured, though some rollouts still wander (docs/MODEL_CARD.md,
-    # "An attention sink").
-    sink_frames: int = DEFAULT_SINK_FRAMES
+    # Streaming: None takes the bundle's streaming.json (world_model.student.streaming.StreamingConfig,
+    # the shipped one: 4 denoising steps, context refresh at the last two, one sink frame); a value
+    # overrides it. refresh_steps: denoising-step indices that refresh the context frame (0 = the
+    # first, negative ones count from the last); sink_frames: the first frames of an episode kept in
+    # context beside the rolling window.
+    denoising_steps: int | None = None
+    context_refresh: bool | None = None
+    refresh_steps: tuple[int, ...] | str | None = None  # or "all": every denoising step (the paper's)
+    sink_frames: int | None = None
     # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
@@ -85,16 +78,6 @@ class ModelBackendConfig:
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
-
-    def resolved_refresh_steps(self) -> tuple[int, ...] | None:
-        """``refresh_steps`` as increasing indices into the ``denoising_steps`` steps (negative ones
-        counted from the last, clamped at 0), or None: refresh at every step, or no refresh at all
-        when ``context_refresh`` is off. Indices past the last step are left for
-        :class:`world_model.student.StudentConfig` to refuse."""
-        if not self.context_refresh or self.refresh_steps is None:
-            return None
-        n = self.denoising_steps
-        return tuple(sorted({max(n + k, 0) if k < 0 else k for k in self.refresh_steps}))
 
 
 @dataclass
@@ -135,24 +118,29 @@ class EnvConfig:
                 f"got {r.speed_range!r}"
             )
         m = self.model
-        if m.refresh_steps is not None:
+        if m.refresh_steps is not None and m.refresh_steps != REFRESH_ALL:
             steps = _int_tuple(m.refresh_steps)  # a string is characters, not ints: refused too
             if steps is None:
                 raise InvalidOptionError(
-                    "config.model.refresh_steps must be a list of denoising-step indices or None, "
+                    f"config.model.refresh_steps must be a list of denoising-step indices, {REFRESH_ALL!r} or None, "
                     f"got {m.refresh_steps!r}"
                 )
-            if not m.context_refresh and steps != DEFAULT_REFRESH_STEPS:
-                raise InvalidOptionError(
-                    "config.model.refresh_steps needs config.model.context_refresh=True (leave it out, "
-                    "or set it to None, to run without refresh)"
-                )
             m.refresh_steps = steps
-        _check_int_range(m.sink_frames, 0, MAX_SINK_FRAMES, "config.model.sink_frames")
-        _check_int_range(m.denoising_steps, 1, MAX_DENOISING_STEPS, "config.model.denoising_steps")
+        if m.refresh_steps is not None and m.context_refresh is False:
+            raise InvalidOptionError(
+                "config.model.refresh_steps needs context refresh (leave it out to run without refresh)"
+            )
+        if m.context_refresh is not None and not isinstance(m.context_refresh, bool | np.bool_):
+            raise InvalidOptionError(
+                f"config.model.context_refresh must be True, False or None, got {m.context_refresh!r}"
+            )
+        if m.sink_frames is not None:
+            _check_int_range(m.sink_frames, 0, MAX_SINK_FRAMES, "config.model.sink_frames")
+        if m.denoising_steps is not None:
+            _check_int_range(m.denoising_steps, 1, MAX_DENOISING_STEPS, "config.model.denoising_steps")
         device = m.device.split(":", 1)
-        if device[0] not in DEVICE_TYPES or (len(device) == 2 and not device[1].isdigit()):
-            raise InvalidOptionError(f"config.model.device must be 'cpu', 'cuda' or 'cuda:N', got {m.device!r}")
+        if device[0] not in DEVICE_TYPES or (len(device) == 2 and (device[0] != "cuda" or not device[1].isdigit())):
+            raise InvalidOptionError(f"config.model.device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {m.device!r}")
         if self.model.dtype not in DTYPES:
             raise InvalidOptionError(f"config.model.dtype must be one of {DTYPES}, got {self.model.dtype!r}")
 
@@ -215,6 +203,10 @@ def _check_type(value: Any, kind: Any, name: str) -> None:
     """Refuse a value of the wrong type for a scalar option (a bool given as "no" would otherwise
     count as True, a weight given as a string fail only at the first step); float options must be
     finite. Options of other types (tuples, nested configs) are checked where they are used."""
+    if get_origin(kind) is UnionType and type(None) in get_args(kind):  # an optional setting
+        if value is None:
+            return
+        kind = next(k for k in get_args(kind) if k is not type(None))
     is_bool = isinstance(value, bool | np.bool_)
     if kind is bool and not is_bool:
         raise InvalidOptionError(f"{name} must be True or False, got {value!r}")

@@ -54,7 +54,7 @@ def test_world_model_qualifiers_become_model_options():
     assert EnvConfig.from_dict(kw["config"]).model.refresh_steps == (0, 3)  # what gym.make gets
     assert bench_env._make_kwargs("world_model:no-refresh", None)["config"]["model"] == {"context_refresh": False}
     every = bench_env._make_kwargs("world_model:refresh=all", None)["config"]
-    assert every["model"] == {"refresh_steps": None} and EnvConfig.from_dict(every).model.refresh_steps is None
+    assert every["model"] == {"refresh_steps": "all"} and EnvConfig.from_dict(every).model.refresh_steps == "all"
     with pytest.raises(SystemExit, match="refresh=K"):
         bench_env._make_kwargs("world_model:refresh-first", None)
     sink = bench_env._make_kwargs("world_model:sink=1", None)["config"]

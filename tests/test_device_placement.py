@@ -51,8 +51,8 @@ def test_the_guard_flags_a_factory_off_the_model_device_and_names_the_line():
 )
 def test_rollouts_reset_step_and_restart_on_the_model_device(tiny_bundle, student):
     wm = load_world_model(tiny_bundle, device="meta", dtype="float32")
-    wm.student_cfg = replace(wm.student_cfg, **{k: getattr(student, k) for k in ("context_refresh", "sink_frames")})
-    wm.student_cfg = replace(wm.student_cfg, refresh_steps=student.refresh_steps)
+    streaming = ("context_refresh", "sink_frames", "refresh_steps")
+    wm.student_cfg = replace(wm.student_cfg, **{k: getattr(student, k) for k in streaming})
     frames = make_frames(wm.cfg, 9)
     chunk = wm.cfg.clip.chunk_frames
     guard = OnDevice(META)
@@ -119,8 +119,11 @@ def test_streaming_engine_start_step_restart_on_the_model_device():
     assert out.device == META and engine.cache.layers[0][0].device == META
 
 
-def test_the_env_and_a_vector_env_step_with_the_model_on_the_device(tiny_bundle):
+def test_the_env_and_a_vector_env_step_with_the_model_on_the_device(tiny_bundle, monkeypatch):
     import gymnasium as gym
+
+    # A user's config.model.device is cpu, cuda[:N] or auto; meta (no values) is this test's stand-in.
+    monkeypatch.setattr("m4world_env.config.DEVICE_TYPES", ("cpu", "cuda", "auto", "meta"))
 
     import m4world_env  # noqa: F401 (registers M4World-v0)
     from m4world_env.policies import ConstantSpeedLaneKeeping

@@ -46,18 +46,11 @@ def test_invalid_values_rejected(bad):
         EnvConfig.from_dict(bad)
 
 
-def test_refresh_steps_resolve_against_the_denoising_steps():
-    def resolved(**model) -> tuple[int, ...] | None:
-        return EnvConfig.from_dict({"model": model}).model.resolved_refresh_steps()
-
-    assert resolved() == (2, 3)  # default: the last two of 4
-    assert resolved(denoising_steps=6) == (4, 5)
-    assert resolved(denoising_steps=1) == (0,)  # clamped at the first
-    assert resolved(refresh_steps=None) is None  # every step
-    assert resolved(refresh_steps=[3, -4, 0]) == (0, 3)  # -4 of 4 is step 0: each step once, in order
-    assert resolved(refresh_steps=[9]) == (9,)  # past the last: the student's config refuses it
-    assert resolved(context_refresh=False) is None
-    assert resolved(context_refresh=False, refresh_steps=None) is None
+def test_streaming_options_default_to_the_bundle_and_take_all():
+    m = EnvConfig.from_dict({}).model
+    assert (m.denoising_steps, m.context_refresh, m.refresh_steps, m.sink_frames) == (None, None, None, None)
+    assert EnvConfig.from_dict({"model": {"refresh_steps": "all"}}).model.refresh_steps == "all"
+    assert EnvConfig.from_dict({"model": {"refresh_steps": [3, -1]}}).model.refresh_steps == (3, -1)
 
 
 def test_reward_terms_and_normalization():

@@ -8,9 +8,11 @@ from gymnasium.error import ResetNeeded
 from gymnasium.utils.env_checker import check_env
 
 import m4world_env  # noqa: F401
-from m4world_env.config import DEFAULT_SINK_FRAMES, InvalidOptionError
+from m4world_env.config import InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import CheckpointError, CheckpointNotFoundError
+from world_model.runtime import load_world_model
+from world_model.student.streaming import StreamingConfig
 
 from .model_fixtures import perturbed
 
@@ -306,8 +308,8 @@ def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
         env.close()
         return frames
 
-    # The default refreshes at the last two of the 4 denoising steps; None at every step.
-    default, every = episode({}, (2, 3)), episode({"refresh_steps": None}, None)
+    # The bundle's default refreshes at the last two of the 4 denoising steps; 'all' at every step.
+    default, every = episode({}, (2, 3)), episode({"refresh_steps": "all"}, None)
     np.testing.assert_array_equal(default, episode({"refresh_steps": [-2, -1]}, (2, 3)))
     first = episode({"refresh_steps": [0]}, (0,))
     np.testing.assert_array_equal(every[0], first[0])  # the reset frame does not involve the student
@@ -326,7 +328,7 @@ def test_sink_frames_option_keeps_the_first_frame_in_context(tiny_bundle):
     def episode(model: dict) -> tuple[list[np.ndarray], list[int], int]:
         """LiDAR of the reset and of 4 steps, the index of the frame each shows, the student's window."""
         env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
-        assert env.backend.wm.student_cfg.sink_frames == model.get("sink_frames", DEFAULT_SINK_FRAMES)
+        assert env.backend.wm.student_cfg.sink_frames == model.get("sink_frames", StreamingConfig().sink_frames)
         perturbed(env.backend.wm.student)
         engine = env.backend.rollouts.engine
         frames, index = [env.reset(seed=0)[0]["lidar"]], [0]
@@ -466,3 +468,13 @@ def test_an_image_given_to_an_inserted_object_reaches_the_model(active_bundle, t
     with pytest.raises(ScenarioError, match="image"):
         env.edit_object("cutting_van", image=str(tmp_path / "missing.png"))
     env.step(np.zeros(2, np.float32))  # still usable
+
+
+def test_env_streams_exactly_as_the_report_headline_row(tiny_bundle):
+    """The report's student row runs load_world_model's settings: the env must run the same."""
+    env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle))
+    report_wm = load_world_model(str(tiny_bundle))
+    assert env.backend.wm.student_cfg == report_wm.student_cfg
+    assert env.backend.streaming == report_wm.streaming == StreamingConfig()
+    assert report_wm.student_cfg.refresh_steps == (2, 3) and report_wm.student_cfg.sink_frames == 1
+    env.close()

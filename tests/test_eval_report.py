@@ -203,3 +203,21 @@ def test_simulator_object_masks_are_the_visible_object_pixels_and_returns(clips)
     assert ((ranges[lidar] < road[lidar]) | (road[lidar] == frame.lidar.no_return)).all()
     none_cams, none_lidar = sim.object_masks(replace(frame, objects=()))
     assert not none_cams.any() and not none_lidar.any()
+
+
+def test_a_row_of_several_seeds_is_their_mean(clips, judge, tmp_path):
+    shifted = [lambda c, k=k: Generated(color_shift(c.cameras, k + 1), c.lidar) for k in range(2)]
+    report = evaluate_rows(
+        {"shift": shifted, "shift0": shifted[0], "shift1": shifted[1]},
+        clips[:1],
+        judge=judge,
+        config=ReportConfig(frame_stride=10),
+        cache_dir=tmp_path,
+        row_ids={"shift": "shift-test"},
+    )
+    rows = report["rows"]
+    assert rows["shift"]["seeds"] == 2
+    psnrs = [rows[r]["table1"]["psnr_db"] for r in ("shift0", "shift1")]
+    assert rows["shift"]["table1"]["psnr_db"] == pytest.approx(sum(psnrs) / 2)
+    assert rows["shift"]["spread"]["table1"]["psnr_db"] == pytest.approx(abs(psnrs[0] - psnrs[1]) / 2)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["shift.seed0.json", "shift.seed1.json"]

@@ -69,10 +69,10 @@ def test_student_rows_stream_with_the_refresh_they_are_named_for(tiny_bundle):
     partial = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=(3,)))
     assert world_model_row(partial, context_refresh=False).wm.student_cfg.refresh_steps is None
     # A bundle streaming without refresh still gets the partial-refresh row it is asked for.
-    no_refresh = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=False))
+    no_refresh = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=False, refresh_steps=None))
     scfg = world_model_row(no_refresh, refresh_steps=(0,)).wm.student_cfg
     assert scfg.context_refresh and scfg.refresh_steps == (0,)
-    assert world_model_row(wm).wm.student_cfg.refresh_steps is None  # the bundle's own: every step
-    assert world_model_row(wm).wm.student_cfg.sink_frames == 0  # the bundle's own: no sink
+    assert world_model_row(wm).wm.student_cfg.refresh_steps == (2, 3)  # the bundle's streaming.json: the last two
+    assert world_model_row(wm).wm.student_cfg.sink_frames == 1  # and one sink frame
     sink = world_model_row(wm, refresh_steps=(2, 3), sink_frames=1).wm.student_cfg
     assert sink.sink_frames == 1 and sink.refresh_steps == (2, 3)

@@ -50,27 +50,30 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert "| visual_fidelity ≥ geometry_only + 0.30 | " in printed and "not measured" in printed  # no baseline
     # Each finished row is kept: a rerun (e.g. adding a --baseline row) reuses them, same numbers.
     kept = sorted(p.stem for p in (out / "rows").iterdir())
-    assert kept == ["autoencoder", "first_frame", "oracle", "road_only", "student", "student_no_refresh"]
-    stamp = (out / "rows" / "student.json").stat().st_mtime_ns
+    seeds = [f"{row}.seed{k}" for row in ("student", "student_no_refresh") for k in range(3)]  # --seeds' default
+    assert kept == ["autoencoder", "first_frame", "oracle", "road_only", *seeds]
+    assert report["rows"]["student"]["seeds"] == 3 and "psnr_db" in report["rows"]["student"]["spread"]["table1"]
+    assert len(report["rows"]["student"]["per_view"]["time_of_day"]) == 6
+    stamp = (out / "rows" / "student.seed0.json").stat().st_mtime_ns
     assert main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]) == 0
-    assert (out / "rows" / "student.json").stat().st_mtime_ns == stamp
+    assert (out / "rows" / "student.seed0.json").stat().st_mtime_ns == stamp
     assert json.loads((out / "report.json").read_text())["rows"] == report["rows"]
     # The DiTs' precision is part of a row's key: forcing bf16 regenerates the model rows only.
     oracle_stamp = (out / "rows" / "oracle.json").stat().st_mtime_ns
-    old_key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    old_key = json.loads((out / "rows" / "student.seed0.json").read_text())["key"]
     bf16 = ["--dtype", "bfloat16"]
     assert (
         main(["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out), *bf16])
         == 0
     )
-    assert json.loads((out / "rows" / "student.json").read_text())["key"] != old_key
+    assert json.loads((out / "rows" / "student.seed0.json").read_text())["key"] != old_key
     assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
     # Another rolling window for the student (a study knob) is part of the student rows' key too.
-    bf16_key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    bf16_key = json.loads((out / "rows" / "student.seed0.json").read_text())["key"]
     window = ["--dtype", "bfloat16", "--context-frames", "1"]
     args = ["eval", "--report", "--evalset", str(clips), "--checkpoint", str(tiny_bundle), "--out", str(out)]
     assert main([*args, *window]) == 0
-    key = json.loads((out / "rows" / "student.json").read_text())["key"]
+    key = json.loads((out / "rows" / "student.seed0.json").read_text())["key"]
     assert key != bf16_key
     assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
     assert main([*args, "--context-frames", "0"]) == 2
@@ -86,7 +89,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert main([*args, "--refresh-steps", "0", "--refresh-steps", "1,3"]) == 0
     rows = json.loads((out / "report.json").read_text())["rows"]
     assert {"student_refresh_0", "student_refresh_1_3"} <= set(rows)
-    keys = {json.loads((out / "rows" / f"{r}.json").read_text())["key"] for r in rows if r.startswith("student")}
+    keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if r.startswith("student")}
     assert len(keys) == 4  # student, no-refresh, refresh at 0, at 1 and 3: each its own cached row
     for bad, says in (("9", "refresh_steps must be increasing step indices in [0, 3]"), ("first", "--refresh-steps")):
         assert main([*args, "--refresh-steps", bad]) == 2
@@ -95,7 +98,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert main([*args, "--refresh-steps", "0", "--sink-frames", "1"]) == 0
     rows = json.loads((out / "report.json").read_text())["rows"]
     assert {"student_sink_1", "student_refresh_0_sink_1"} <= set(rows)
-    sink_keys = {json.loads((out / "rows" / f"{r}.json").read_text())["key"] for r in rows if "sink" in r}
+    sink_keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if "sink" in r}
     assert len(sink_keys) == 2 and not sink_keys & keys
     assert main([*args, "--sink-frames", "0"]) == 2
     assert "--sink-frames takes a number of frames >= 1" in capsys.readouterr().err
@@ -165,7 +168,7 @@ def test_report_row_with_lora_adapters(tmp_path, capsys):
     assert rows["student_adapted"]["table1"]["psnr_db"] != rows["student"]["table1"]["psnr_db"]
 
     def key(row: str) -> str:
-        return json.loads((out / "rows" / f"{row}.json").read_text())["key"]
+        return json.loads((out / "rows" / f"{row}.seed0.json").read_text())["key"]
 
     adapted_key = key("student_adapted")
     assert adapted_key != key("student")

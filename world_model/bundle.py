@@ -9,6 +9,8 @@ Layout::
       vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
+      streaming.json           how the student streams at inference (denoising steps, context
+                               refresh, sink frames: :class:`~world_model.student.streaming.StreamingConfig`)
       adapters/                optional LoRA adapters (``lora`` stage output)
 
 :func:`export_bundle` collects the stage exports of a training run; :func:`load_bundle_files`
@@ -32,6 +34,7 @@ from safetensors.torch import load_file
 
 from world_model.data.clips import sha256_file, write_json_atomic
 from world_model.lora import META, WEIGHTS
+from world_model.student.streaming import STREAMING_FILE, StreamingConfig
 
 BUNDLE_FORMAT = "m4world-bundle"
 BUNDLE_VERSION = 1
@@ -63,6 +66,7 @@ class BundleFiles:
     path: Path
     manifest: dict
     tensors: dict[str, dict[str, torch.Tensor]]  # component -> state dict
+    streaming: dict | None = None  # streaming.json's content; None: a bundle without one
 
     @property
     def model_config(self) -> dict:
@@ -78,8 +82,9 @@ class BundleFiles:
         return component in self.tensors
 
 
-def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
-    """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically)."""
+def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: StreamingConfig | None = None) -> Path:
+    """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically),
+    with ``streaming`` (default: :class:`StreamingConfig`'s defaults) as its ``streaming.json``."""
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     found: dict[str, tuple[str, Path]] = {}
     for component, stages in COMPONENT_STAGES.items():
@@ -114,6 +119,7 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path) -> Path:
     adapters = run_dir / "lora"
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=_adapter_files_only)
+    _write_streaming(tmp, streaming or StreamingConfig())
     _write_manifest(tmp, config, components, student_meta.get("student_config"))
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -152,6 +158,7 @@ def save_bundle(
     student_config: dict | None = None,
     stages: dict[str, str] | None = None,
     component_configs: dict[str, dict] | None = None,
+    streaming: StreamingConfig | None = None,
 ) -> Path:
     """Write state dicts (``vae``, ``student``, optional ``reference``) as a bundle, atomically.
     ``model_config`` is the student's; ``component_configs`` the others' where they differ."""
@@ -171,6 +178,7 @@ def save_bundle(
         save_file({k: v.detach().contiguous().cpu() for k, v in state.items()}, str(dst))
         own = (component_configs or {}).get(name)
         entries[name] = _entry(dst, (stages or {}).get(name, "unknown"), model_config, own)
+    _write_streaming(tmp, streaming or StreamingConfig())
     _write_manifest(tmp, model_config, entries, student_config)
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -189,6 +197,20 @@ def _write_manifest(root: Path, model_config: dict, components: dict, student_co
         manifest["student_config"] = student_config
     manifest[DIGEST_KEY] = bundle_digest(root, manifest)
     write_json_atomic(root / "manifest.json", manifest)
+
+
+def _write_streaming(root: Path, streaming: StreamingConfig) -> None:
+    write_json_atomic(root / STREAMING_FILE, streaming.to_dict())
+
+
+def set_streaming(path: str | Path | None, streaming: StreamingConfig) -> Path:
+    """Write ``streaming`` as the bundle's ``streaming.json`` and re-seal its manifest. The bundle is
+    verified first, so a damaged bundle is never re-sealed."""
+    files = load_bundle_files(path)
+    _write_streaming(files.path, streaming)
+    m = files.manifest
+    _write_manifest(files.path, m["model_config"], m["components"], m.get("student_config"))
+    return files.path
 
 
 def bundle_digest(root: Path, manifest: dict) -> str:
@@ -305,4 +327,15 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
         bad = [k for k, t in tensors[name].items() if t.is_floating_point() and not torch.isfinite(t).all()]
         if bad:
             raise CheckpointError(f"checkpoint file {file} holds non-finite weights (NaN or inf) in {bad[:5]}")
-    return BundleFiles(path=root, manifest=manifest, tensors=tensors)
+    return BundleFiles(path=root, manifest=manifest, tensors=tensors, streaming=_read_streaming(root))
+
+
+def _read_streaming(root: Path) -> dict | None:
+    """``streaming.json``'s content (covered by the manifest's digest), or None for a bundle without one."""
+    file = root / STREAMING_FILE
+    if not file.exists():
+        return None
+    try:
+        return json.loads(file.read_bytes().decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:  # pragma: no cover - caught by the digest first
+        raise CheckpointError(f"{file} is not valid JSON: {e}") from e

@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +39,7 @@ from world_model.sensors import CameraRig
 from world_model.sim import ProceduralSimulator
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
+from world_model.student.streaming import STREAMING_FILE, StreamingConfig
 
 __all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle", "save_untrained_bundle"]
 
@@ -54,6 +55,7 @@ class WorldModel:
     reference: MultiViewDiT | None
     text: TextEncoder
     path: Path | None = None
+    streaming: StreamingConfig = field(default_factory=StreamingConfig)  # the bundle's streaming.json
 
     def __post_init__(self) -> None:
         self.image = VaeCropEncoder(self.vae)
@@ -217,8 +219,8 @@ def load_world_model(
     dtype: str = "auto",
     context_frames: int | None = None,
 ) -> WorldModel:
-    """Load and verify a checkpoint bundle (default: the shipped one). ``student`` overrides the
-    bundle's streaming settings (e.g. ``context_refresh=False`` for the ablation). ``dtype`` of the
+    """Load and verify a checkpoint bundle (default: the shipped one), streaming as its
+    ``streaming.json`` says. ``student`` replaces the student's settings, streaming included. ``dtype`` of the
     DiTs: "auto" (bf16 when the checkpoint was trained with ``dit.autocast_bf16`` and ``device``
     computes bf16 natively, else float32: :func:`world_model.precision.resolve_bf16`),
     "float32" or "bfloat16". ``context_frames`` runs the student with another rolling window than
@@ -237,7 +239,8 @@ def load_world_model(
             raise ValueError("the reference model's sensors, VAE or controls differ from the student's")
         bf16 = resolve_bf16(dtype, cfg.dit.autocast_bf16, device)
         cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
-        scfg = student or StudentConfig.from_dict(files.manifest.get("student_config", {}))
+        streaming = StreamingConfig.from_dict(files.streaming or {}, f"{files.path / STREAMING_FILE}")
+        scfg = student or streaming.apply(StudentConfig.from_dict(files.manifest.get("student_config", {})))
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])
         with dit_precision(bf16):  # the weights' dtype below, whatever precision context encloses the load
@@ -256,7 +259,7 @@ def load_world_model(
         for module in (dit, ref):
             if module is not None:
                 module.to(torch.bfloat16)
-    return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path)
+    return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path, streaming)
 
 
 def save_untrained_bundle(

@@ -16,7 +16,7 @@ from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -110,6 +110,31 @@ class Answer:
     question: str
     yes: bool
     category: str | None  # the asked-about object's category; None for scene questions
+    view: int | None = None  # the camera a scene question was asked about; None for object questions
+
+
+def judge_scene_per_view(backend: JudgeBackend, frames: np.ndarray, weather: str, time_of_day: str) -> list[Answer]:
+    """Weather and time of day asked of every view of ``frames`` (N, V, H, W, 3) on its own, so a
+    frame whose views disagree (some dark as night) cannot pass as one averaged scene."""
+    n, v = frames.shape[:2]
+    views = frames.reshape(n * v, 1, *frames.shape[2:])
+    view_of = np.tile(np.arange(v), n).tolist()
+    weathers = backend.is_weather(views, [weather] * len(views))
+    answers = [Answer("weather", bool(y), None, k) for y, k in zip(weathers, view_of, strict=True)]
+    times = backend.is_time_of_day(views, [time_of_day] * len(views))
+    return answers + [Answer("time_of_day", bool(y), None, k) for y, k in zip(times, view_of, strict=True)]
+
+
+def per_view(answers: Sequence[Answer]) -> dict[str, list[float | None]]:
+    """Yes-frequency of each scene question per camera view: {question: [view 0, view 1, ...]}."""
+    out: dict[str, list[float | None]] = {}
+    for q in ("weather", "time_of_day"):
+        scored = [a for a in answers if a.question == q and a.view is not None]
+        if not scored:
+            continue
+        views = max(a.view for a in scored) + 1
+        out[q] = [float(np.mean(ys)) if (ys := [a.yes for a in scored if a.view == k]) else None for k in range(views)]
+    return out
 
 
 def judge_clip(
@@ -120,10 +145,7 @@ def judge_clip(
     idx = list(range(0, clip.num_frames, config.frame_stride))
     prompt = clip.frames[0].prompt
     frames = np.ascontiguousarray(cameras[idx])
-    answers = [Answer("weather", bool(y), None) for y in backend.is_weather(frames, [prompt.weather] * len(idx))]
-    answers += [
-        Answer("time_of_day", bool(y), None) for y in backend.is_time_of_day(frames, [prompt.time_of_day] * len(idx))
-    ]
+    answers = judge_scene_per_view(backend, frames, prompt.weather, prompt.time_of_day)
     crops: list[ObjectCrop] = []
     for i in idx:
         crops += extract_crops(clip.frames[i], np.ascontiguousarray(cameras[i]), sim, crop_config)
@@ -178,7 +200,7 @@ def _check_generated(gen: Generated, clip: Clip, row: str) -> None:
 
 
 def evaluate_rows(
-    rows: dict[str, RowFn],
+    rows: dict[str, RowFn | Sequence[RowFn]],
     clips: Sequence[Clip],
     judge: JudgeBackend | None = None,
     config: ReportConfig = ReportConfig(),
@@ -190,7 +212,9 @@ def evaluate_rows(
     for clips of at least twice ``long_window_s`` seconds, ``long_horizon`` PSNR curves and ratios.
 
     ``judge`` answers the questions (default: the shipped CNN judge); its ``frame_features`` feed
-    the Fréchet distances (a backend without them gets None there).
+    the Fréchet distances (a backend without them gets None there). A row given as a sequence of
+    generators is one model under several noise seeds: each is scored and the row holds their mean
+    (:func:`average_seeds`: ``seeds`` and each score's ``spread``).
 
     Rows take minutes to hours, so with ``cache_dir`` each finished row is written there
     (``<row>.json``, atomically) under a key made of ``row_ids[row]`` (what generates it: model
@@ -204,24 +228,77 @@ def evaluate_rows(
     features = getattr(judge, "frame_features", None)
     gt_feats = [features(np.asarray(c.cameras)) for c in clips] if features else []
     report: dict = {"rows": {}, "clips": [c.name for c in clips], "config": config.__dict__}
-    for row, fn in rows.items():
+    for row, fns in rows.items():
         rid = (row_ids or {}).get(row)
-        cache = Path(cache_dir) / f"{row}.json" if cache_dir is not None and rid is not None else None
-        key = row_cache_key(rid, clips, config, judge) if cache is not None else None
-        if cache is not None and cache.exists():
-            saved = json.loads(cache.read_text())
-            if saved.get("key") == key:
-                log.info("report row %s: reused from %s", row, cache)
-                report["rows"][row] = saved["result"]
-                continue
-        t0 = time.perf_counter()
-        log.info("report row %s: generating and scoring %d clips", row, len(clips))
-        report["rows"][row] = score_row(row, fn, clips, judge, config, gt_feats)
-        log.info("report row %s: done in %.0f s", row, time.perf_counter() - t0)
-        if cache is not None:
-            cache.parent.mkdir(parents=True, exist_ok=True)
-            write_json_atomic(cache, {"key": key, "row_id": rid, "result": report["rows"][row]})
+        if isinstance(fns, Sequence):  # one model under several noise seeds: scored each, then averaged
+            results = [
+                _scored_row(row, fn, clips, judge, config, gt_feats, cache_dir, _seed_id(rid, k), f".seed{k}")
+                for k, fn in enumerate(fns)
+            ]
+            report["rows"][row] = average_seeds(results)
+        else:
+            report["rows"][row] = _scored_row(row, fns, clips, judge, config, gt_feats, cache_dir, rid, "")
     return report
+
+
+def _seed_id(row_id: str | None, index: int) -> str | None:
+    return None if row_id is None else f"{row_id},noise_seed_index={index}"
+
+
+def _scored_row(
+    row: str,
+    fn: RowFn,
+    clips: Sequence[Clip],
+    judge: JudgeBackend,
+    config: ReportConfig,
+    gt_feats: Sequence[np.ndarray],
+    cache_dir: str | Path | None,
+    rid: str | None,
+    suffix: str,
+) -> dict:
+    """:func:`score_row`, reused from / written to ``cache_dir`` under ``rid`` (see :func:`evaluate_rows`)."""
+    cache = Path(cache_dir) / f"{row}{suffix}.json" if cache_dir is not None and rid is not None else None
+    key = row_cache_key(rid, clips, config, judge) if cache is not None else None
+    if cache is not None and cache.exists():
+        saved = json.loads(cache.read_text())
+        if saved.get("key") == key:
+            log.info("report row %s%s: reused from %s", row, suffix, cache)
+            return saved["result"]
+    t0 = time.perf_counter()
+    log.info("report row %s%s: generating and scoring %d clips", row, suffix, len(clips))
+    result = score_row(row, fn, clips, judge, config, gt_feats)
+    log.info("report row %s%s: done in %.0f s", row, suffix, time.perf_counter() - t0)
+    if cache is not None:
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(cache, {"key": key, "row_id": rid, "result": result})
+    return result
+
+
+def _mean_leaves(values: list[Any], spread: bool) -> Any:
+    """Leaf-by-leaf mean (``spread``: standard deviation) of equally shaped JSON values; a number
+    missing (None) in any seed is None; non-numbers and mismatched shapes keep the first seed's."""
+    first = values[0]
+    if isinstance(first, dict) and all(isinstance(v, dict) and v.keys() == first.keys() for v in values):
+        return {k: _mean_leaves([v[k] for v in values], spread) for k in first}
+    if isinstance(first, list) and all(isinstance(v, list) and len(v) == len(first) for v in values):
+        return [_mean_leaves([v[i] for v in values], spread) for i in range(len(first))]
+    if all(isinstance(v, int | float) and not isinstance(v, bool) for v in values):
+        return float(np.std(values)) if spread else float(np.mean(values))
+    if all(v is None or isinstance(v, int | float) for v in values) and any(v is None for v in values):
+        return None
+    return None if spread else first
+
+
+def average_seeds(results: Sequence[dict]) -> dict:
+    """One row from its results under several noise seeds: every score is the mean over seeds;
+    ``seeds`` holds their count and ``spread`` the standard deviation of every score."""
+    if not results:
+        raise ValueError("average_seeds needs at least one seeded result")
+    out = _mean_leaves(list(results), spread=False)
+    out["seeds"] = len(results)
+    out["spread"] = {k: _mean_leaves([r[k] for r in results], spread=True) for k in ("table1", "table2", "per_view")
+                     if all(k in r for r in results)}  # fmt: skip
+    return out
 
 
 def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
@@ -349,6 +426,7 @@ def score_row(
         "chunk_jumps_per_clip": clip_jump_scores,
         "table2": yes_frequencies(answers),
         "per_category": per_category(answers),
+        "per_view": per_view(answers),
         "answers": len(answers),
         "long_horizon": long_curves,
     }
@@ -498,6 +576,7 @@ def format_markdown(report: dict) -> str:
     for row, r in report["rows"].items():
         lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
     lines += existence_by_category(report)
+    lines += scene_by_view(report)
     long_rows = [(row, c) for row, r in report["rows"].items() for c in r.get("long_horizon", [])]
     if long_rows:
         w = report.get("config", {}).get("long_window_s", "?")
@@ -552,6 +631,22 @@ def existence_by_category(report: dict) -> list[str]:
     for row, r in rows.items():
         ex = r.get("per_category", {}).get("existence", {})
         lines.append(f"| {row} | " + " | ".join(_fmt(ex.get(c)) for c in cats) + " |")
+    return lines
+
+
+def scene_by_view(report: dict) -> list[str]:
+    """Markdown lines: weather and time-of-day yes-frequencies of each camera view per row (a model
+    whose side views turn to night shows it here, not averaged away). Empty for older rows."""
+    rows = {row: r["per_view"] for row, r in report["rows"].items() if r.get("per_view")}
+    if not rows:
+        return []
+    views = max(len(v) for r in rows.values() for v in r.values())
+    lines = ["", "### Weather and time of day per camera view (judge yes-frequencies)", ""]
+    lines += ["| row | question | " + " | ".join(f"view {k}" for k in range(views)) + " |"]
+    lines += ["|---|---" + "|---" * views + "|"]
+    for row, r in rows.items():
+        for q, freqs in r.items():
+            lines.append(f"| {row} | {q} | " + " | ".join(_fmt(f) for f in freqs) + " |")
     return lines
 
 

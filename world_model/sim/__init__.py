@@ -12,12 +12,24 @@ frame. Knows nothing of gymnasium or highway-env. How it works, module by module
   decals (windows, lamps, stripes), painted far-to-near per view with near-plane clipping.
 * ``lidar``: exact ray casting against the road plane and every object's full 3D box.
 * ``lighting`` / ``precipitation``: sky, sun, fog, lamps at night, rain streaks and snow.
+* ``labels``: per-camera semantic label maps (sky, off-road, road, marking, object classes) at
+  any resolution, the ground truth of layout scores and layout conditioning.
 * ``mosaic``: one overview image; ``demo``: small deterministic scenes for benchmarks and docs.
 """
 
 from world_model.sim.config import SimConfig
+from world_model.sim.labels import LABEL_CLASSES, LabelRasterizer, label_maps
 from world_model.sim.lighting import Lighting, lighting_for
 from world_model.sim.mosaic import mosaic
 from world_model.sim.simulator import ProceduralSimulator
 
-__all__ = ["Lighting", "ProceduralSimulator", "SimConfig", "lighting_for", "mosaic"]
+__all__ = [
+    "LABEL_CLASSES",
+    "LabelRasterizer",
+    "Lighting",
+    "ProceduralSimulator",
+    "SimConfig",
+    "label_maps",
+    "lighting_for",
+    "mosaic",
+]

@@ -1,0 +1,101 @@
+"""Per-camera label maps: sky, road texture classes and objects after occlusion, at any resolution."""
+
+import numpy as np
+import pytest
+
+from world_model import Box3D, EgoState, SceneFrame, SceneObject, default_rig
+from world_model.sim import ProceduralSimulator, ground
+from world_model.sim.config import SimConfig
+from world_model.sim.demo import demo_frame, straight_road
+from world_model.sim.labels import (
+    LABEL_CLASSES,
+    MARKING,
+    OFFROAD,
+    OTHER_OBJECT,
+    ROAD,
+    SKY,
+    VEHICLE,
+    VULNERABLE,
+    LabelRasterizer,
+    label_maps,
+    scaled_rig,
+)
+
+ROAD_MAP = straight_road(num_lanes=3)  # lanes centred at y = 0, -4, -8; road spans y in [-10, 2]
+RIG = default_rig(width=112, height=64)
+FRONT = 1  # view order of the default rig: front-left, front, front-right, ...
+
+
+def frame(objects=()):
+    ego = EgoState(0.0, -4.0, 0.0)
+    return SceneFrame(time=0.0, frame_index=0, ego=ego, objects=tuple(objects), map=ROAD_MAP, rig=RIG)
+
+
+def obj(track_id, x, y, category, size):
+    box = Box3D((x, y, size[2] / 2), size, 0.0)
+    return SceneObject(track_id=track_id, category=category, box=box, color=(90, 90, 90))
+
+
+def test_background_classes_follow_the_road_geometry():
+    fr = frame()
+    labels = label_maps(fr, RIG, 64, 112)
+    assert labels.shape == (6, 64, 112) and labels.dtype == np.uint8
+    rays = ground.ground_rays(RIG, fr.lidar.mount_height, SimConfig().max_ground_distance_m)
+    flat = labels.reshape(-1)
+    sky = np.ones(flat.size, dtype=bool)
+    sky[rays.ground_index] = False
+    assert np.all(flat[sky] == SKY) and np.all(flat[~sky] != SKY)
+    # Ground hits in world y (ego at y = -4 facing +x, so world y = ego-frame y - 4).
+    wy = rays.ground_xy[:, 0, 1].astype(np.float64) - 4.0
+    hit = flat[rays.ground_index]
+    inside = np.abs(wy - (-4.0)) < 5.5  # well inside the road, away from its edges
+    outside = np.abs(wy - (-4.0)) > 6.5
+    assert np.all(np.isin(hit[inside], (ROAD, MARKING))) and np.mean(hit[inside] == ROAD) > 0.8
+    assert np.all(hit[outside] == OFFROAD)
+    # Lane lines at y = -2 and -6 are painted: markings appear only near a line.
+    near_line = np.min(np.abs(wy[:, None] - np.array([2.0, -2.0, -6.0, -10.0])), axis=1) < 0.5
+    assert np.any(hit == MARKING) and np.all(near_line[hit == MARKING])
+
+
+def test_objects_take_their_class_after_occlusion():
+    car = obj("car", 15.0, -4.0, "car", (4.5, 1.9, 1.6))
+    hidden = obj("walker", 30.0, -4.0, "pedestrian", (0.6, 0.6, 1.2))  # behind the car
+    walker = obj("walker2", 12.0, 3.5, "pedestrian", (0.6, 0.6, 1.8))
+    cone = obj("cone", 10.0, -9.0, "cone", (0.4, 0.4, 0.7))
+    fr = frame([car, hidden, walker, cone])
+    labels = label_maps(fr, RIG, 64, 112)
+    seen, _ = ProceduralSimulator().object_masks(fr)
+    assert np.array_equal(np.isin(labels, (VEHICLE, VULNERABLE, OTHER_OBJECT)), seen)
+    front = labels[FRONT]
+    assert front[36, 56] == VEHICLE  # the car straight ahead, just below the horizon
+    assert np.any(front == VULNERABLE) and np.any(front == OTHER_OBJECT)
+    visible, _ = ProceduralSimulator().visible_pixels(fr)
+    assert visible[FRONT, 1] == 0  # the hidden pedestrian contributes nothing
+    assert np.sum(front == VULNERABLE) == visible[FRONT, 2]
+
+
+def test_lower_resolution_matches_downsampled_full_resolution():
+    fr = demo_frame(num_objects=12, seed=3, rig=RIG)
+    full = label_maps(fr, RIG, 64, 112)
+    small = label_maps(fr, RIG, 16, 28)
+    assert small.shape == (6, 16, 28)
+    centres = full[:, 2::4, 2::4]  # the full-resolution pixel nearest each small pixel's centre
+    assert np.mean(small == centres) > 0.9
+    for c in (SKY, ROAD, VEHICLE):
+        assert np.any(small == c)
+
+
+def test_rasterizer_reuse_is_identical_and_deterministic():
+    road = straight_road()
+    frames = [demo_frame(seed=1, rig=RIG, road=road, frame_index=i, ego_x=3.0 * i) for i in range(3)]
+    r = LabelRasterizer()
+    again = [r(f, RIG, 32, 56) for f in frames]
+    fresh = [label_maps(f, RIG, 32, 56) for f in frames]
+    for a, b in zip(again, fresh, strict=True):
+        assert np.array_equal(a, b)
+    assert int(max(a.max() for a in again)) < len(LABEL_CLASSES)
+
+
+def test_bad_size_is_rejected():
+    with pytest.raises(ValueError, match="height=0"):
+        scaled_rig(RIG, 0, 10)

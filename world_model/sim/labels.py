@@ -1,0 +1,134 @@
+"""Per-camera semantic label maps: which class every pixel of the ground-truth views shows.
+
+The simulator knows each pixel's source: the sky, the road plane's label texture (off-road ground,
+road surface, painted markings and road edges) or an object's polygon after occlusion. Label maps
+are rendered with the same geometry as the images, at any resolution (the rig's intrinsics are
+scaled), so they also serve as per-view layout rasters at latent resolution.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from world_model.scene import CATEGORIES, SceneFrame
+from world_model.sensors import CameraRig
+from world_model.sim import ground, objects
+from world_model.sim.config import SimConfig
+from world_model.sim.lighting import lighting_for
+from world_model.sim.poses import object_poses
+from world_model.sim.scene_mesh import build_scene_mesh
+from world_model.sim.texture import MapTexture, labels_layout
+
+# Class ids are the index in this table; a label map is (V, H, W) uint8 of these ids.
+LABEL_CLASSES: tuple[str, ...] = (
+    "sky",
+    "offroad",
+    "road",
+    "marking",  # painted lane markings and road-edge lines
+    "vehicle",
+    "vulnerable",  # pedestrians and cyclists
+    "other_object",  # cones, barriers
+)
+SKY, OFFROAD, ROAD, MARKING, VEHICLE, VULNERABLE, OTHER_OBJECT = range(len(LABEL_CLASSES))
+
+CATEGORY_CLASS: dict[str, int] = {
+    "car": VEHICLE,
+    "truck": VEHICLE,
+    "bus": VEHICLE,
+    "van": VEHICLE,
+    "motorcycle": VEHICLE,
+    "tree_truck": VEHICLE,
+    "cement_mixer": VEHICLE,
+    "cyclist": VULNERABLE,
+    "pedestrian": VULNERABLE,
+    "cone": OTHER_OBJECT,
+    "barrier": OTHER_OBJECT,
+}
+assert set(CATEGORY_CLASS) == set(CATEGORIES), "every scene category needs a label class"
+
+
+def scaled_rig(rig: CameraRig, height: int, width: int) -> CameraRig:
+    """``rig`` with every camera resampled to ``height`` x ``width`` pixels (same field of view)."""
+    if height < 1 or width < 1:
+        raise ValueError(f"label map size must be positive, got height={height}, width={width}")
+    cams = []
+    for cam in rig.cameras:
+        k = cam.K.copy()
+        k[0] *= width / cam.width
+        k[1] *= height / cam.height
+        cams.append(replace(cam, K=k, width=width, height=height))
+    return CameraRig(cameras=tuple(cams))
+
+
+def texture_classes(levels: int) -> np.ndarray:
+    """(256,) uint8: the label class of every road-texture label."""
+    off0, road0, marking, edge = labels_layout(levels)
+    table = np.full(256, OFFROAD, dtype=np.uint8)
+    table[road0 : road0 + levels] = ROAD
+    table[[marking, edge]] = MARKING
+    return table
+
+
+class LabelRasterizer:
+    """Renders label maps of frames; keeps the per-rig ray geometry and per-map texture of the last
+    rig and map it saw (a rollout shares them across its frames)."""
+
+    def __init__(self, config: SimConfig | None = None) -> None:
+        self.config = config or SimConfig()
+        self._classes = texture_classes(self.config.texture_noise_levels)
+        self._rig_key: tuple | None = None
+        self._rays: ground.GroundRays | None = None
+        self._rig: CameraRig | None = None
+        self._rig_anchor: CameraRig | None = None  # keeps id(rig) in the key unique
+        self._map_key: object | None = None
+        self._texture: MapTexture | None = None
+
+    def __call__(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
+        """(V, H, W) uint8 class ids (:data:`LABEL_CLASSES`) of ``frame`` seen by ``rig`` at H x W."""
+        cfg = self.config
+        key = (id(rig), height, width, frame.lidar.mount_height)
+        if key != self._rig_key:
+            self._rig = scaled_rig(rig, height, width)
+            self._rays = ground.ground_rays(self._rig, frame.lidar.mount_height, cfg.max_ground_distance_m)
+            self._rig_key, self._rig_anchor = key, rig
+        if frame.map is not self._map_key:
+            self._texture, self._map_key = MapTexture(frame.map, cfg), frame.map
+        rays, small = self._rays, self._rig
+        flat = np.full(rays.distance.size, SKY, dtype=np.uint8)
+        texels = self._texture.lookup_ego(rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
+        flat[rays.ground_index] = self._classes[texels]
+        out = flat.reshape(small.num_views, height, width)
+        if frame.objects:
+            plan = objects.plan_objects(
+                frame,
+                build_scene_mesh(frame),
+                object_poses(frame, frame.lidar.mount_height),
+                small,
+                objects.rig_arrays(small),
+                lighting_for(frame.prompt),
+                cfg.near_plane_m,
+                cfg.min_face_area_px,
+                cfg.impostor_max_px,
+                cfg.subpixel_bits,
+            )
+            ids = np.zeros((height, width), dtype=np.int32)
+            lut = np.array([0] + [CATEGORY_CLASS[o.category] for o in frame.objects], dtype=np.uint8)
+            for v in range(small.num_views):
+                ids[:] = 0
+                objects.paint(ids, plan, v, False, cfg.subpixel_bits, value=lambda o: o + 1)
+                seen = ids > 0
+                out[v][seen] = lut[ids[seen]]
+        return out
+
+
+def label_maps(
+    frame: SceneFrame, rig: CameraRig, height: int, width: int, config: SimConfig | None = None
+) -> np.ndarray:
+    """(V, H, W) uint8 class ids (:data:`LABEL_CLASSES`) of every camera of ``rig`` at H x W pixels.
+
+    For many frames of one rollout, keep one :class:`LabelRasterizer` instead (it reuses the ray
+    geometry and road texture).
+    """
+    return LabelRasterizer(config)(frame, rig, height, width)
