@@ -125,6 +125,10 @@ class WorldModelBackend:
             device = resolve_device(mc.device)
         except ValueError as e:
             raise InvalidOptionError(f"config.model.device: {e}") from e
+        if mc.threads is not None:
+            import torch
+
+            torch.set_num_threads(mc.threads)
         self.wm = load_world_model(checkpoint, device=device, dtype=mc.dtype)
         try:
             every_step = mc.refresh_steps == REFRESH_ALL

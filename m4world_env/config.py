@@ -28,6 +28,8 @@ MAX_SINK_FRAMES = 64
 MAX_STATE_OBJECTS = 256
 MIN_VIEW_PX, MAX_VIEW_PX = 16, 1024  # the procedural rig's height and width
 DEVICE_TYPES = ("cpu", "cuda", "auto")
+MAX_TORCH_THREADS = 256
+DEFAULT_TORCH_THREADS = 1  # ModelBackendConfig.threads
 REFRESH_ALL = "all"  # ModelBackendConfig.refresh_steps: refresh the context at every denoising step
 
 
@@ -78,6 +80,10 @@ class ModelBackendConfig:
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.
     compile: bool = False
+    # torch intra-op threads of the process (torch.set_num_threads, process-wide): one thread keeps
+    # a step from collapsing when other processes (other envs, a learner) share the cores
+    # (docs/performance.md, benchmarks/bench_threads.py). None leaves torch's setting as it is.
+    threads: int | None = DEFAULT_TORCH_THREADS
 
 
 @dataclass
@@ -134,6 +140,8 @@ class EnvConfig:
             raise InvalidOptionError(
                 f"config.model.context_refresh must be True, False or None, got {m.context_refresh!r}"
             )
+        if m.threads is not None:
+            _check_int_range(m.threads, 1, MAX_TORCH_THREADS, "config.model.threads")
         if m.sink_frames is not None:
             _check_int_range(m.sink_frames, 0, MAX_SINK_FRAMES, "config.model.sink_frames")
         if m.denoising_steps is not None:

@@ -1,0 +1,84 @@
+"""Torch threads under CPU contention: wall time of a world-model episode per thread setting.
+
+Each setting runs in a fresh process (thread pools are fixed at the first torch call), while a
+competitor process keeps the cores busy with torch matmuls (its own default threads), as when
+several env processes share a machine::
+
+    python benchmarks/bench_threads.py --steps 20 --repeats 2 --out out/bench_threads.json
+
+Settings: ``default`` (``config.model.threads=None``: torch's own choice, one thread per core),
+``torch1`` (``config.model.threads=1``, the env's default: ``torch.set_num_threads(1)``), ``omp1``
+(``threads=None`` with ``OMP_NUM_THREADS=1`` in the environment).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+SETTINGS = ("default", "torch1", "omp1")
+
+EPISODE = """
+import sys, time, numpy as np, torch
+from m4world_env.env import M4WorldEnv
+threads = 1 if sys.argv[1] == "torch1" else None  # None: the process keeps torch's (or OMP's) choice
+env = M4WorldEnv("highway_sunny_day", backend="world_model", config={"model": {"threads": threads}})
+env.reset(seed=0)
+start = time.perf_counter()
+for _ in range(int(sys.argv[2])):
+    env.step(np.zeros(2, np.float32))
+print(time.perf_counter() - start, torch.get_num_threads())
+"""
+
+COMPETITOR = """
+import torch
+a = torch.randn(512, 512)
+while True:
+    a = torch.tanh(a @ a)
+"""
+
+
+def run_episode(setting: str, steps: int) -> tuple[float, int]:
+    env = dict(os.environ)
+    env.pop("OMP_NUM_THREADS", None)
+    if setting == "omp1":
+        env["OMP_NUM_THREADS"] = "1"
+    out = subprocess.run(
+        [sys.executable, "-c", EPISODE, setting, str(steps)], env=env, capture_output=True, text=True, check=True
+    )
+    seconds, threads = out.stdout.split()[-2:]
+    return float(seconds), int(threads)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--repeats", type=int, default=1)
+    p.add_argument("--no-competitor", action="store_true", help="measure without the busy process")
+    p.add_argument("--out", default=None)
+    args = p.parse_args()
+    competitor = None if args.no_competitor else subprocess.Popen([sys.executable, "-c", COMPETITOR])
+    rows = []
+    try:
+        time.sleep(0 if competitor is None else 2)
+        for repeat in range(args.repeats):
+            for setting in SETTINGS:
+                seconds, threads = run_episode(setting, args.steps)
+                rows.append({"setting": setting, "repeat": repeat, "threads": threads, "episode_s": seconds})
+                print(f"{setting:8s} repeat {repeat}: {threads} thread(s), {args.steps} steps in {seconds:.1f} s")
+    finally:
+        if competitor is not None:
+            competitor.kill()
+    result = {"steps": args.steps, "cpus": os.cpu_count(), "competitor": competitor is not None, "rows": rows}
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
