@@ -80,7 +80,8 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
     refresh, §4.2, skipped) or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising
     steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
     (``refresh_steps="all"``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
-    frames kept in context beside the window), and ``checkpoint=BUNDLE`` (this backend's bundle
+    frames kept in context beside the window), ``threads=N`` or ``threads=torch``
+    (``config.model.threads``: N torch threads, or torch's own choice), and ``checkpoint=BUNDLE`` (this backend's bundle
     instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
     ``config.model.device`` of the world-model backends."""
     name, *qualifiers = backend.split(":")
@@ -110,6 +111,13 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
                 model["refresh_steps"] = [int(k) for k in q.removeprefix("refresh=").split(",")]
             except ValueError:
                 raise SystemExit(f"refresh=K[,K...] takes denoising-step indices, got {q!r} in {backend!r}") from None
+        elif q == "threads=torch":
+            model["threads"] = None  # torch's own choice: one thread per core
+        elif q.startswith("threads="):
+            try:
+                model["threads"] = int(q.removeprefix("threads="))
+            except ValueError:
+                raise SystemExit(f"threads=N|torch takes a thread count, got {q!r} in {backend!r}") from None
         elif q.startswith("sink="):
             try:
                 model["sink_frames"] = int(q.removeprefix("sink="))
@@ -118,7 +126,7 @@ def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fal
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
-                "refresh=K[,K...], refresh=all, sink=N or checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all, sink=N, threads=N|torch or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint

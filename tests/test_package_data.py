@@ -105,3 +105,9 @@ def test_highway_env_is_bounded_to_the_versions_the_equivalence_tests_cover():
     highway = _requirement("highway-env")
     assert highway.specifier.contains(version("highway-env"))
     assert not highway.specifier.contains("2.0.0"), "traffic/fastmath.py and traffic/sim.py override its internals"
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/MODEL_CARD.md"])
+def test_the_readme_and_the_model_card_read_in_minutes(page):
+    lines = (ROOT / page).read_text().count("\n")
+    assert lines <= 250, f"{page} has {lines} lines; keep it a page a user reads in five minutes (<= 250)"

@@ -650,14 +650,14 @@ def scene_by_view(report: dict) -> list[str]:
     return lines
 
 
-QUALITY_RATIOS = {"existence": 0.8, "weather": 0.85, "time_of_day": 0.85}  # x Oracle (issue 7)
+QUALITY_RATIOS = {"existence": 0.8, "weather": 0.85, "time_of_day": 0.85}  # x Oracle: the shipped checkpoint's bars
 FIDELITY_MARGIN = 0.30  # visual/textual fidelity above the geometry-only baseline
 LONG_TOLERANCE = 0.20  # last vs first long-horizon window
 LIDAR_FIRST_S_MAX_M = 2.0
 
 
 def quality_bars(report: dict, model: str = "student") -> list[str]:
-    """Markdown lines: the shipped checkpoint's quality bars (issue 7) from the report's rows —
+    """Markdown lines: the shipped checkpoint's quality bars from the report's rows —
     judge ratios to the Oracle, fidelity margins over ``geometry_only``, long-horizon stability
     and first-second LiDAR MAE. With an ``autoencoder`` row, each judge bar also shows whether
     that ceiling (ground truth through the VAE) passes it: a bar the ceiling misses is out of reach

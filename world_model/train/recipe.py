@@ -86,12 +86,22 @@ SCALES = {
 }
 
 
+# The recipe trains the design that puts the scene where the pixels are: pixel-aligned layout
+# channels (docs/layout.md: its tiny-preset ablation won on every region), at 2 rays per latent cell
+# side, which keeps the env's per-frame raster cheap (benchmarks/bench_layout.py).
+LAYOUT_SUPERSAMPLE = 2
+# An ego that brakes, accelerates and changes lanes, so that actions have consequences to learn.
+RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
+
+
 def recipe_config(preset: str):  # noqa: ANN201 - a ModelConfig
-    """The preset with the hash text encoder (no download) at the preset's text width."""
+    """The preset with the hash text encoder (no download) at the preset's text width, and layout
+    conditioning on."""
     from world_model.model.config import get_preset
 
     cfg = get_preset(preset)
-    return replace(cfg, text=replace(cfg.text, encoder="hash"))
+    layout = replace(cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE)
+    return replace(cfg, text=replace(cfg.text, encoder="hash"), layout=layout)
 
 
 def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
@@ -108,6 +118,7 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
         scenarios, base_seed = job
         cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(out)]
         cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
+        cmd += ["--styles", *RECORD_STYLES, "--action-type", "continuous"]
         if scale.duration_s is not None:
             cmd += ["--duration", str(scale.duration_s)]
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
