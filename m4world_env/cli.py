@@ -15,6 +15,7 @@ from pathlib import Path
 
 from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
+from world_model.train.cli import positive_int as _positive_int
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -209,16 +210,6 @@ def _cmd_report(args: argparse.Namespace) -> int:
         md, js = write_report(report, args.out)
         print(f"wrote {md} and {js}")
     return 0
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
 
 
 def _step_list(text: str) -> tuple[int, ...]:

@@ -332,6 +332,8 @@ def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
     "args, match",
     [
         (["eval", "--max-steps", "0"], "--max-steps"),
+        (["train", "--stage", "vae", "--batch-size", "0"], "--batch-size"),
+        (["record", "--scenario", "highway_sunny_day", "--episodes", "0", "--out", "x"], "--episodes"),
         (["eval", "--policy", "math:pi", "--scenarios", "highway_sunny_day", "--max-steps", "1"], "not a callable"),
     ],
 )

@@ -24,6 +24,17 @@ RUN/bundle. Multi-GPU: torchrun --nproc-per-node N -m world_model.train -- FLAGS
 PIPELINE = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")  # --all
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: ``0`` or ``-3`` would otherwise mean "the default" or fail deep in a stage."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return value
+
+
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Every flag of the training command."""
     p.add_argument("--stage", default=None, help="the stage to train (see below)")
@@ -37,10 +48,14 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         help="the evaluation's baseline: object tokens without image/text descriptions (use its own --run; "
         "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
     )
-    p.add_argument("--steps", type=int, default=None, help="total optimizer steps of --stage (default: preset's)")
-    p.add_argument("--batch-size", type=int, default=None, help="global batch (default: the stage's)")
+    p.add_argument(
+        "--steps", type=positive_int, default=None, help="total optimizer steps of --stage (default: preset's)"
+    )
+    p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the stage's)")
     p.add_argument("--lr", type=float, default=None)
-    p.add_argument("--ckpt-every", type=int, default=None, help="steps between checkpoints (default: the stage's)")
+    p.add_argument(
+        "--ckpt-every", type=positive_int, default=None, help="steps between checkpoints (default: the stage's)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
