@@ -10,6 +10,7 @@ import copy
 import json
 import os
 import shutil
+import zlib
 from pathlib import Path
 
 import gymnasium as gym
@@ -263,11 +264,12 @@ def _corrupt(bundle: Path, how: int, value) -> None:
     elif how == 1:  # replace a manifest field with a nasty value
         m = json.loads(manifest_path.read_text())
         paths = [p for p, _ in _paths(m)]
-        path = paths[int(abs(hash(str(value)))) % len(paths)]
+        path = paths[zlib.crc32(repr(value).encode()) % len(paths)]  # not hash(): it is salted per process
         cur = m
         for k in path[:-1]:
             cur = cur[k]
-        cur[path[-1]] = value if not isinstance(value, float) or np.isfinite(value) else str(value)
+        new = value if not isinstance(value, float) or np.isfinite(value) else str(value)
+        cur[path[-1]] = new if new != cur[path[-1]] else {"corrupt": repr(new)}  # always a change
         manifest_path.write_text(json.dumps(m))
     elif how == 2:  # truncate the manifest
         manifest_path.write_bytes(manifest_path.read_bytes()[: len(str(value)) % 200])
