@@ -6,12 +6,21 @@ import json
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
+import pytest
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
-from world_model.train.recipe import CHAIN, join_files
+from world_model.train.recipe import (
+    BUNDLE_RESERVE_S,
+    CHAIN,
+    SCALES,
+    TIME_SHARES,
+    join_files,
+    stage_time_limit,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,3 +51,13 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
     assert obs["cameras"].shape[0] == manifest["model_config"]["sensors"]["num_cameras"]
     assert manifest["model_config"]["text"]["encoder"] == "hash"  # no download on the GPU machine
     env.close()
+
+
+def test_stage_time_limits_share_what_is_left_and_pass_on_what_a_stage_did_not_use():
+    spec = replace(SCALES["dry"], time_limit_s=100.0 + BUNDLE_RESERVE_S)
+    first = stage_time_limit(spec, CHAIN, elapsed_s=0.0)
+    assert first == pytest.approx(100.0 * TIME_SHARES["vae"] / sum(TIME_SHARES.values()))
+    # the last stage gets everything that is left, whatever the earlier stages took
+    assert stage_time_limit(spec, CHAIN[-1:], elapsed_s=70.0) == pytest.approx(30.0)
+    assert stage_time_limit(spec, CHAIN[-1:], elapsed_s=500.0) == 1.0  # over time: one more short try
+    assert stage_time_limit(SCALES["dry"], CHAIN, elapsed_s=0.0) is None  # no limit: steps decide

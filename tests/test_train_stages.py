@@ -2,6 +2,7 @@
 
 import json
 import math
+import time
 
 import pytest
 import torch
@@ -185,3 +186,19 @@ def test_train_dtype_reaches_the_stage_models_not_the_checkpoint(dataset, tmp_pa
         meta = json.loads((run / "teacher" / "model.json").read_text())
         assert meta["model_config"]["dit"]["autocast_bf16"] is False  # the preset's: dtype is a run-time choice
     assert losses["float32"] != losses["bfloat16"]  # bf16 autocast reached the teacher's forwards
+
+
+def test_a_time_limit_stops_the_run_checkpointed_and_a_rerun_resumes_to_its_steps(tmp_path):
+    model = torch.nn.Linear(2, 1)
+    tcfg = TrainConfig(steps=50, batch_size=1, lr=1e-2, ckpt_every=100)
+
+    def slow_step(tr):
+        time.sleep(0.02)
+        return model(torch.ones(1, 2)).sum() ** 2, 1
+
+    out = Trainer(tmp_path, model, tcfg, {}, False, time_limit_s=0.05).run(slow_step, "toy")
+    assert out["stopped_by_time_limit"] and 1 <= out["step"] < 50
+    assert load_latest(tmp_path / "checkpoints").step == out["step"]  # saved where it stopped
+    again = Trainer(tmp_path, model, tcfg, {}, False).run(slow_step, "toy")
+    assert again["resumed_from"] == out["step"] and again["step"] == 50
+    assert not again["stopped_by_time_limit"]

@@ -9,7 +9,11 @@
 3. writes the bundle (``OUT/bundle``) and a copy whose every file is at most ``--max-file-mib``
    (``OUT/bundle_parts``: larger files split into ``NAME.partNNN`` with ``SHA256SUMS``; rejoin
    with ``python -m world_model.train.recipe --join OUT/bundle_parts DEST``);
-4. writes ``OUT/recipe.json``: each phase's wall time, each stage's final loss.
+4. writes ``OUT/recipe.json``: each phase's wall time, each stage's steps and final loss.
+
+A scale with a time limit (``gpu``: 9 minutes, ``--time-limit-s``) gives each stage a share of the
+time left after recording and stops it there, checkpointed, even short of its steps: the steps are
+upper bounds, sized for an H100, and a slower machine still gets a whole chain in time.
 
 The text encoder is the dependency-free hash encoder: the GPU machine has no MiniLM weights.
 ``--scale dry`` runs the very same command at the tiny preset and a few steps per stage (the
@@ -50,14 +54,14 @@ class RecipeScale:
     scenarios_per_process: int
     duration_s: float | None  # None: the scenarios' own durations
     stages: dict[str, tuple[int, int]] = field(default_factory=dict)
+    time_limit_s: float | None = None  # the whole recipe, recording included; None: no limit
 
 
 SCALES = {
     # One H100/H200 in 9 minutes. 216 clips as the shipped checkpoint's dataset: recording runs at
-    # about 60 frames/s per core (default preset), so 18 processes on 16 cores take 1.5-2 min. A
-    # teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is kernel-launch
-    # bound there), so each stage runs at a large batch and the steps fill what is left: about
-    # 1 min vae, 2.5 min teacher, 1 min tf, 2 min for ode, dmd, long and reference together.
+    # about 150 frames/s per core (default preset), so 18 processes on 16 cores take well under a
+    # minute. A teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is
+    # kernel-launch bound there), so each stage runs at a large batch for its share of the time.
     "gpu": RecipeScale(
         preset="default",
         episodes=12,
@@ -65,14 +69,15 @@ SCALES = {
         scenarios_per_process=1,
         duration_s=None,
         stages={
-            "vae": (1200, 64),
-            "teacher": (1400, 64),
-            "tf": (600, 32),
-            "ode": (100, 16),
-            "dmd": (60, 8),
-            "long": (20, 8),
-            "reference": (300, 32),
+            "vae": (4000, 64),
+            "teacher": (5000, 64),
+            "tf": (2000, 32),
+            "ode": (400, 16),
+            "dmd": (300, 8),
+            "long": (100, 8),
+            "reference": (1500, 32),
         },
+        time_limit_s=540.0,
     ),
     # The same command on a CPU: every stage runs, a few steps each.
     "dry": RecipeScale(
@@ -92,6 +97,13 @@ SCALES = {
 LAYOUT_SUPERSAMPLE = 2
 # An ego that brakes, accelerates and changes lanes, so that actions have consequences to learn.
 RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
+# The long-tail case stays out of the base model's data: the LoRA adapters learn it (docs/MODEL_CARD.md).
+EXCLUDED_CATEGORIES = ("tree_truck",)
+# Each stage's share of the training time under a time limit: about the split of the shipped
+# checkpoint's CPU training (docs/MODEL_CARD.md), the teacher the largest.
+TIME_SHARES = {"vae": 0.14, "teacher": 0.36, "tf": 0.14, "ode": 0.08, "dmd": 0.1, "long": 0.06, "reference": 0.12}
+# Kept from the time limit for what follows the last stage's training: its export and the bundle.
+BUNDLE_RESERVE_S = 15.0
 
 
 def recipe_config(preset: str):  # noqa: ANN201 - a ModelConfig
@@ -119,6 +131,8 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
         cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(out)]
         cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
         cmd += ["--styles", *RECORD_STYLES, "--action-type", "continuous"]
+        for category in EXCLUDED_CATEGORIES:
+            cmd += ["--exclude-category", category]
         if scale.duration_s is not None:
             cmd += ["--duration", str(scale.duration_s)]
         done = subprocess.run(cmd, capture_output=True, text=True, env=env)
@@ -171,6 +185,17 @@ def join_files(src: Path, dest: Path) -> None:
         (dest / rel).write_bytes(data)
 
 
+def stage_time_limit(spec: RecipeScale, stages_left: tuple[str, ...], elapsed_s: float) -> float | None:
+    """The training time of ``stages_left[0]``: its share of what the time limit leaves after
+    ``elapsed_s`` (and the bundle's reserve), among the stages still to run, so that a stage that
+    ends early, or takes longer to set up, passes the difference on. None: the scale has no limit."""
+    if spec.time_limit_s is None:
+        return None
+    left = spec.time_limit_s - elapsed_s - BUNDLE_RESERVE_S
+    share = TIME_SHARES[stages_left[0]] / sum(TIME_SHARES[s] for s in stages_left)
+    return max(1.0, left * share)
+
+
 def run_recipe(
     out: Path,
     scale: str = "gpu",
@@ -179,25 +204,32 @@ def run_recipe(
     seed: int = 0,
     max_file_mib: float = 16.0,
     progress: bool = True,
+    time_limit_s: float | None = None,
 ) -> dict:
-    """Record, train the chain and write the bundle into ``out`` (module docstring); the summary."""
+    """Record, train the chain and write the bundle into ``out`` (module docstring); the summary.
+    ``time_limit_s`` overrides the scale's time limit."""
     if scale not in SCALES:
         raise ValueError(f"--scale must be one of {', '.join(SCALES)}, got {scale!r}")
     from world_model.bundle import export_bundle
     from world_model.train.stages import train_stage
 
     spec = SCALES[scale]
+    if time_limit_s is not None:
+        if not time_limit_s > 0:
+            raise ValueError(f"--time-limit-s must be positive, got {time_limit_s}")
+        spec = replace(spec, time_limit_s=time_limit_s)
     out.mkdir(parents=True, exist_ok=True)
     data, run = out / "data", out / "run"
     data.mkdir(exist_ok=True)
-    times, losses = {}, {}
+    times, losses, steps_done = {}, {}, {}
     t0 = time.perf_counter()
     clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
     times["record"] = time.perf_counter() - t0
     config = recipe_config(spec.preset)
-    for stage in CHAIN:
+    for k, stage in enumerate(CHAIN):
         steps, batch = spec.stages[stage]
         t = time.perf_counter()
+        limit = stage_time_limit(spec, CHAIN[k:], t - t0)
         summary = train_stage(
             stage,
             data,
@@ -209,8 +241,14 @@ def run_recipe(
             progress=progress,
             config=config,
             device=device,
+            time_limit_s=limit,
         )
         times[stage], losses[stage] = time.perf_counter() - t, summary["final_loss"]
+        steps_done[stage] = summary["step"]
+        if progress:
+            print(
+                f"{stage}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[stage]:.0f} s", flush=True
+            )
     t = time.perf_counter()
     bundle = export_bundle(run, out / "bundle")
     parts = split_files(bundle, out / "bundle_parts", int(max_file_mib * MIB))
@@ -222,6 +260,8 @@ def run_recipe(
         "clips": clips,
         "seconds": {k: round(v, 1) for k, v in times.items()},
         "total_s": round(time.perf_counter() - t0, 1),
+        "time_limit_s": spec.time_limit_s,
+        "steps": steps_done,
         "final_loss": losses,
         "bundle": str(bundle),
         "largest_part_mib": round(max(p.stat().st_size for p in parts) / MIB, 2),
@@ -238,6 +278,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--workers", type=int, default=None, help="recording processes (default: every core)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-file-mib", type=float, default=16.0, help="largest file of bundle_parts/")
+    p.add_argument(
+        "--time-limit-s", type=float, default=None, help="the whole recipe's wall time (default: the scale's)"
+    )
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--join", nargs=2, metavar=("PARTS", "DEST"), help="rebuild a bundle from bundle_parts/")
     a = p.parse_args(argv)
@@ -248,7 +291,14 @@ def main(argv: list[str] | None = None) -> int:
         if not a.out:
             raise ValueError("--out is required (the folder the recipe writes into)")
         summary = run_recipe(
-            Path(a.out), a.scale, a.device, a.workers, a.seed, a.max_file_mib, progress=not a.no_progress
+            Path(a.out),
+            a.scale,
+            a.device,
+            a.workers,
+            a.seed,
+            a.max_file_mib,
+            progress=not a.no_progress,
+            time_limit_s=a.time_limit_s,
         )
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         print(f"error: {e}", file=sys.stderr)

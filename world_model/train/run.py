@@ -32,13 +32,22 @@ class StageRun:
     progress: bool = True
     scfg: StudentConfig = field(default_factory=StudentConfig)
     compile_model: bool = False
+    time_limit_s: float | None = None
 
     def trainer(self, model: nn.Module, stage: str, resume_keys: dict | None = None, **meta: object) -> Trainer:
         """The stage's :class:`Trainer` (checkpoints in ``stage_dir``, metadata naming the stage and,
         unless ``meta`` gives another, the run's model config)."""
         info = {"stage": stage, "model_config": self.cfg.to_dict(), **meta}
         return Trainer(
-            self.stage_dir, model, self.tcfg, info, self.progress, resume_keys, self.place, self.compile_model
+            self.stage_dir,
+            model,
+            self.tcfg,
+            info,
+            self.progress,
+            resume_keys,
+            self.place,
+            self.compile_model,
+            self.time_limit_s,
         )
 
     def latents(self, stage: str) -> LatentWindows:

@@ -182,21 +182,23 @@ def train_stage(
     device: str = "cpu",
     place: TrainPlace | None = None,
     compile_model: bool = False,
+    time_limit_s: float | None = None,
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
-    ``config`` overrides the preset's config (it must then stay the same across resumes);
-    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
-    ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
-    dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
-    (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
-    object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
-    ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and the
-    device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
-    or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
-    ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
-    ``torch.compile`` the trained networks. Precision, device and compilation are run-time choices:
-    checkpoints and their configs do not record them.
+        ``config`` overrides the preset's config (it must then stay the same across resumes);
+        ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
+        ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
+        dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
+        (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
+        object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
+        ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and the
+        device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
+        or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
+        ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
+        ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops after this many seconds
+        of training, checkpointed and exported, even short of ``steps``. Precision, device, compilation
+        and time limit are run-time choices: checkpoints and their configs do not record them.
     """
     if stage not in REGISTRY:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
@@ -219,7 +221,16 @@ def train_stage(
     tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
     place.local_rows(tcfg.batch_size)  # an uneven shard is refused before any training
     run = StageRun(
-        Path(data_dir), run_root, stage_dir, cfg, tcfg, place, progress, student or StudentConfig(), compile_model
+        Path(data_dir),
+        run_root,
+        stage_dir,
+        cfg,
+        tcfg,
+        place,
+        progress,
+        student or StudentConfig(),
+        compile_model,
+        time_limit_s,
     )
     with dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, place.device)):
         out = spec.train(run, **kwargs)

@@ -71,12 +71,16 @@ class Trainer:
         resume_keys: dict[str, object] | None = None,
         place: TrainPlace | None = None,
         compile_model: bool = False,
+        time_limit_s: float | None = None,
     ):
         """``resume_keys``: entries of ``meta`` a resumed run must share with its checkpoint (a
         setting that changes the objective mid-run), else :meth:`resume` raises ``ValueError``; each
         maps to the value meant by a checkpoint written before the entry existed. ``place``: the
         device and rank (default: one process on the CPU); the model moves there. ``compile_model``:
-        ``torch.compile`` the model's forward (each trained network of a container module)."""
+        ``torch.compile`` the model's forward (each trained network of a container module).
+        ``time_limit_s``: :meth:`run` stops after this many seconds of training, checkpointed, even
+        short of ``tcfg.steps`` (rerunning resumes towards ``tcfg.steps``)."""
+        self.time_limit_s = time_limit_s
         self.resume_keys = dict(resume_keys or {})
         self.place = place or TrainPlace(torch.device("cpu"))
         self.dir = Path(stage_dir)
@@ -184,12 +188,14 @@ class Trainer:
 
     # -- loop --
     def run(self, step_fn: StepFn, desc: str) -> dict:
-        """Train until ``tcfg.steps``; returns a summary (losses, throughput, resume point)."""
+        """Train until ``tcfg.steps`` or the time limit; returns a summary (losses, throughput, resume
+        point, whether the time limit stopped it)."""
         self.resume()
         self.model.train()
         losses: list[float] = []
         samples, t0 = 0, time.perf_counter()
         last_report = t0
+        timed_out = False
         bar = tqdm(
             total=self.tcfg.steps,
             initial=self.step,
@@ -225,12 +231,15 @@ class Trainer:
                 rate = samples / max(now - t0, 1e-9)
                 bar.set_postfix(loss=f"{value:.4f}", samples_per_s=f"{rate:.1f}")
                 bar.update(1)
-                checkpoint = self.step % self.tcfg.ckpt_every == 0 or self.step == self.tcfg.steps
+                timed_out = self._out_of_time(now - t0)
+                checkpoint = self.step % self.tcfg.ckpt_every == 0 or self.step == self.tcfg.steps or timed_out
                 if checkpoint:
                     self.save()
                 if checkpoint or now - last_report >= PROGRESS_PERIOD_S:
                     self.write_progress(desc, losses, len(losses) / max(now - t0, 1e-9), rate)
                     last_report = now
+                if timed_out:
+                    break
         finally:
             bar.close()
         elapsed = time.perf_counter() - t0
@@ -240,7 +249,15 @@ class Trainer:
             "resumed_from": self.resumed_from,
             "samples_per_s": samples / elapsed if losses else 0.0,
             "final_loss": self.last_loss,
+            "stopped_by_time_limit": timed_out,
         }
+
+    def _out_of_time(self, elapsed_s: float) -> bool:
+        """Whether the time limit is reached; every rank of a ``torchrun`` group takes rank 0's word,
+        so that they stop at the same step."""
+        if self.time_limit_s is None:
+            return False
+        return self.place.mean(float(elapsed_s >= self.time_limit_s) if self.place.is_main else 0.0) > 0
 
 
 def _to_cpu(state: object) -> object:
