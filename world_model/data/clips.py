@@ -23,6 +23,7 @@ leaves no half clip behind and a restarted one skips the clips that exist.
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
@@ -78,8 +79,9 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
 
 
 def write_json_atomic(path: Path, obj: object) -> None:
-    """Write JSON so a reader never sees a half file (write aside, fsync, rename)."""
-    tmp = path.with_name(path.name + ".tmp")
+    """Write JSON so a reader never sees a half file (write aside, fsync, rename); the aside file
+    is the writing process's own, so that writers in several processes never share one."""
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
     with open(tmp, "w") as f:
         json.dump(obj, f, indent=1)
         f.flush()
@@ -144,15 +146,31 @@ def write_clip(
 
 
 def register_clip(root: str | Path, name: str) -> None:
-    """Append clip ``name`` to ``dataset.json``'s recording order, unless it is listed already."""
+    """Append clip ``name`` to ``dataset.json``'s recording order, unless it is listed already.
+    Several processes may record into one dataset (``m4world record`` runs side by side): each
+    read-modify-write of the index holds an exclusive lock, so no clip is lost from it."""
     root = Path(root)
     index_path = root / "dataset.json"
-    index = (
-        _read_index(root) if index_path.exists() else {"format": FORMAT_NAME, "version": FORMAT_VERSION, "clips": []}
-    )
-    if name not in index["clips"]:
-        index["clips"].append(name)
-        write_json_atomic(index_path, index)
+    with open(root / "dataset.json.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        index = (
+            _read_index(root)
+            if index_path.exists()
+            else {"format": FORMAT_NAME, "version": FORMAT_VERSION, "clips": []}
+        )
+        if name not in index["clips"]:
+            index["clips"].append(name)
+            write_json_atomic(index_path, index)
+
+
+def sort_index(root: str | Path) -> list[str]:
+    """Put ``dataset.json``'s clips in name order: the order of a dataset written by processes
+    side by side, whose recording order depends on their timing. Returns the clips."""
+    root = Path(root)
+    index = _read_index(root)
+    index["clips"] = sorted(index["clips"])
+    write_json_atomic(root / "dataset.json", index)
+    return index["clips"]
 
 
 def _read_index(root: Path) -> dict:

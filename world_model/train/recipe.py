@@ -143,7 +143,9 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
         names, n = list_scenarios(), scale.scenarios_per_process
         groups = [names[i : i + n] for i in range(0, len(names), n)]
         list(pool.map(one, [(g, seed + k) for g in groups for k in range(scale.seeds)]))
-    return sum(1 for p in out.iterdir() if p.is_dir() and not p.name.startswith("."))
+    from world_model.data.clips import sort_index
+
+    return len(sort_index(out))
 
 
 def split_files(src: Path, dest: Path, max_bytes: int) -> list[Path]:

@@ -186,19 +186,19 @@ def train_stage(
 ) -> dict:
     """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
 
-        ``config`` overrides the preset's config (it must then stay the same across resumes);
-        ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
-        ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
-        dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
-        (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
-        object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
-        ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and the
-        device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
-        or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
-        ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
-        ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops after this many seconds
-        of training, checkpointed and exported, even short of ``steps``. Precision, device, compilation
-        and time limit are run-time choices: checkpoints and their configs do not record them.
+    ``config`` overrides the preset's config (it must then stay the same across resumes);
+    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
+    ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
+    dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
+    (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
+    object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
+    ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and the
+    device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
+    or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
+    ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
+    ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops after this many seconds
+    of training, checkpointed and exported, even short of ``steps``. Precision, device, compilation
+    and time limit are run-time choices: checkpoints and their configs do not record them.
     """
     if stage not in REGISTRY:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
