@@ -58,16 +58,17 @@ class RecipeScale:
 
 
 SCALES = {
-    # One H100/H200 in 9 minutes. 216 clips as the shipped checkpoint's dataset: recording runs at
-    # about 150 frames/s per core (default preset), so 18 processes on 16 cores take well under a
-    # minute. A teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is
-    # kernel-launch bound there), so each stage runs at a large batch for its share of the time.
+    # One H100/H200 in 9 minutes. 216 clips of 20 s as the shipped checkpoint's dataset (about 8 GB):
+    # recording runs at about 150 frames/s per core (default preset), so 18 processes on 16 cores
+    # take well under a minute; the layout rasters are computed once, on every core. A teacher step
+    # takes 0.11 s at batch 4 and at batch 64 alike (the default preset is kernel-launch bound
+    # there), so each stage runs at a large batch for its share of the time.
     "gpu": RecipeScale(
         preset="default",
         episodes=12,
         seeds=2,
         scenarios_per_process=1,
-        duration_s=None,
+        duration_s=20.0,
         stages={
             "vae": (4000, 64),
             "teacher": (5000, 64),
@@ -225,6 +226,11 @@ def run_recipe(
     data.mkdir(exist_ok=True)
     times, losses, steps_done = {}, {}, {}
     t0 = time.perf_counter()
+
+    def say(message: str) -> None:  # the phases as they start: a run cut short shows where it was
+        print(f"[{time.perf_counter() - t0:6.1f} s] {message}", flush=True)
+
+    say(f"recording {spec.episodes * spec.seeds} clips per scenario into {data}")
     clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
     times["record"] = time.perf_counter() - t0
     config = recipe_config(spec.preset)
@@ -232,6 +238,7 @@ def run_recipe(
         steps, batch = spec.stages[stage]
         t = time.perf_counter()
         limit = stage_time_limit(spec, CHAIN[k:], t - t0)
+        say(f"{stage}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s of training" if limit else ""))
         summary = train_stage(
             stage,
             data,
@@ -247,10 +254,7 @@ def run_recipe(
         )
         times[stage], losses[stage] = time.perf_counter() - t, summary["final_loss"]
         steps_done[stage] = summary["step"]
-        if progress:
-            print(
-                f"{stage}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[stage]:.0f} s", flush=True
-            )
+        say(f"{stage}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[stage]:.0f} s")
     t = time.perf_counter()
     bundle = export_bundle(run, out / "bundle")
     parts = split_files(bundle, out / "bundle_parts", int(max_file_mib * MIB))
