@@ -211,7 +211,7 @@ class M4WorldEnv(gym.Env):
         self._metrics = EpisodeMetrics(
             dt=1.0 / self.scenario.sensor_frequency,
             reference_speed=road.speed_limit,
-            route=Polyline.from_points(road.route) if road.type == "route" else None,
+            route=Polyline.from_points(road.reference_path) if road.type == "route" else None,
         )
         self._metrics.add_frame(self._frame)
         self._needs_reset = False

@@ -11,7 +11,7 @@ heading +x). The road is a ``route`` road (``docs/data.md``):
 * ``ego_path``: otherwise, three lanes following the logged ego path (extended straight at both
   ends), the ego in the middle one.
 
-Progress is scored along the logged ego path (``road.route``); the road's speed limit is the ego's
+Progress is scored along the logged ego path (``road.reference_path``); the road's speed limit is the ego's
 mean logged speed, which the policies' target speeds follow.
 """
 
@@ -158,7 +158,7 @@ def _road(clip: Clip, logged: np.ndarray, to_local: Callable[[np.ndarray], np.nd
             "type": "route",
             "source": "map_expansion",
             "lanes": [_rounded(centerline)],
-            "route": _rounded(route),
+            "reference_path": _rounded(route),
             "lane_width": round(float(clip.meta["route_lane_width"]), 3),
             "map": _route_map(clip.frames[0].map, to_local),
         }
@@ -169,7 +169,7 @@ def _road(clip: Clip, logged: np.ndarray, to_local: Callable[[np.ndarray], np.nd
         "type": "route",
         "source": "ego_path",
         "lanes": [_rounded(lane.points) for lane in lanes],
-        "route": _rounded(route),
+        "reference_path": _rounded(route),
         "lane_width": REPLAY_LANE_WIDTH,
     }
     return road, REPLAY_EGO_LANE

@@ -18,7 +18,16 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from world_model.scene import CATEGORIES, CATEGORY_SIZES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS, ScenePrompt
 
@@ -167,7 +176,6 @@ Point = tuple[
     Annotated[Float, Field(ge=-MAX_POSITION_M, le=MAX_POSITION_M)],
     Annotated[Float, Field(ge=-MAX_POSITION_M, le=MAX_POSITION_M)],
 ]
-PolylinePoints = Annotated[list[Point], Field(min_length=2, max_length=MAX_WAYPOINTS)]
 
 
 def _check_polyline(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -177,6 +185,9 @@ def _check_polyline(points: list[tuple[float, float]]) -> list[tuple[float, floa
     if np.all(np.hypot(*(p - p[0]).T) < 1e-3):
         raise ValueError("a polyline needs at least two distinct points")
     return points
+
+
+PolylinePoints = Annotated[list[Point], Field(min_length=2, max_length=MAX_WAYPOINTS), AfterValidator(_check_polyline)]
 
 
 class RouteLaneLine(_Strict):
@@ -195,8 +206,8 @@ class RouteMap(_Strict):
 
 
 class RouteRoad(_Strict):
-    """Lanes along polylines (log replay): the ego's lanes follow ``lanes``; ``route`` is the path
-    the ego is scored along (its logged path)."""
+    """Lanes along polylines (log replay): the ego's lanes follow ``lanes``; ``reference_path`` is
+    the path the ego is scored along (its logged path)."""
 
     type: Literal["route"] = "route"
     source: Literal["map_expansion", "ego_path"] = Field(
@@ -205,20 +216,10 @@ class RouteRoad(_Strict):
     lanes: list[PolylinePoints] = Field(
         ..., min_length=1, max_length=8, description="lane centerlines, leftmost first, all in the driving direction"
     )
-    route: PolylinePoints = Field(..., description="the path progress is measured along")
+    reference_path: PolylinePoints = Field(..., description="the path progress is measured along (the logged one)")
     speed_limit: Float = Field(..., gt=0, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
     map: RouteMap | None = Field(None, description="drawn map and drivable area; absent: the lanes' strips")
-
-    @field_validator("lanes")
-    @classmethod
-    def _lanes(cls, lanes: list[list[tuple[float, float]]]) -> list[list[tuple[float, float]]]:
-        return [_check_polyline(lane) for lane in lanes]
-
-    @field_validator("route")
-    @classmethod
-    def _route(cls, route: list[tuple[float, float]]) -> list[tuple[float, float]]:
-        return _check_polyline(route)
 
     @property
     def start_lanes(self) -> int:

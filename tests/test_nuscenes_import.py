@@ -210,7 +210,9 @@ def test_replay_scenario_places_logged_agents_around_the_ego(replay_files):
     # No map at this location: three lanes along the logged path, the ego in the middle at its start.
     assert s.road.type == "route" and s.road.source == "ego_path" and len(s.road.lanes) == 3
     assert (s.ego.lane, s.ego.longitudinal) == (1, pytest.approx(REPLAY_BEHIND_M, abs=1e-3))
-    assert s.road.route[0] == pytest.approx((0.0, 0.0)) and s.road.route[-1] == pytest.approx((mini.EGO_SPEED, 0.0))
+    assert s.road.reference_path[0] == pytest.approx((0.0, 0.0)) and s.road.reference_path[-1] == pytest.approx(
+        (mini.EGO_SPEED, 0.0)
+    )
 
 
 def _local(point: tuple[float, float]) -> np.ndarray:
