@@ -13,7 +13,8 @@ has; every other op (elementwise, softmax, norms over the last dim) is row-indep
 Large products are row-independent as they are, and run whole (splitting them cost a third of a
 vector step): a linear whose row blocks have at least :data:`MIN_CONSISTENT_GEMM_ROWS` rows, and a
 batched product of matrices with at least that many rows and columns (each matrix is multiplied
-alone, by a kernel chosen alike for one block and for all). ``benchmarks/row_independence.py
+alone, by a kernel chosen alike for one block and for all); so do reductions over the last dim
+alone (the QK-norm's: each vector is reduced by itself). ``benchmarks/row_independence.py
 --no-split`` shows which ops differ; ``tests/test_vector_equality.py`` holds a vector env's rows
 to its single envs' bit for bit.
 
@@ -77,6 +78,8 @@ class _SplitRows(TorchFunctionMode):
         n = first.shape[0] if first.ndim else 0
         if first.device.type != "cpu" or n == 0 or n % b or _reduces_dim0(func, args, kwargs):
             return func(*args, **kwargs)
+        if _reduces_last_dim_only(func, args, kwargs):
+            return func(*args, **kwargs)
         batched = [
             i == 0 or (func in _ALL_BATCHED and isinstance(a, torch.Tensor) and a.ndim >= 3 and a.shape[0] == n)
             for i, a in enumerate(args)
@@ -103,6 +106,16 @@ def _reduces_dim0(func: object, args: tuple, kwargs: dict) -> bool:
         return True
     dims = (dim,) if isinstance(dim, int) else tuple(dim)
     return any(d % args[0].ndim == 0 for d in dims)
+
+
+def _reduces_last_dim_only(func: object, args: tuple, kwargs: dict) -> bool:
+    """A reduction over the last dim alone: each row of every vector is reduced by itself."""
+    if func not in _REDUCTIONS:
+        return False
+    pos = _REDUCTIONS[func]
+    dim = kwargs.get("dim", args[pos] if len(args) > pos else None)
+    dims = (dim,) if isinstance(dim, int) else tuple(dim or ())
+    return len(dims) == 1 and dims[0] % args[0].ndim == args[0].ndim - 1
 
 
 @contextmanager
