@@ -5,7 +5,8 @@
   CNN backend (:func:`load_default_judge`); :mod:`~world_model.eval.train_judge` trains it.
 * :mod:`~world_model.eval.metrics`: PSNR, SSIM, judge-feature Fréchet distances, LiDAR errors,
   long-horizon curves, inter-chunk jumps, motion.
-* :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2.
+* :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2 and
+  the quality bars, one module per concern (rows, scoring, cache, markdown, bars).
 """
 
 from world_model.eval.crops import CropConfig, ObjectCrop, crop_boxes, extract_crops, group_by_track_time
