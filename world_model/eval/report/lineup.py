@@ -11,7 +11,6 @@ any of them regenerates that row only.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,8 +31,6 @@ from world_model.eval.report.rows import (
 from world_model.eval.report.run import evaluate_rows, write_report
 from world_model.precision import DTYPES
 from world_model.runtime import WorldModel, load_world_model
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
