@@ -133,7 +133,7 @@ class Segmenter:
         flat = images.reshape(-1, *images.shape[-3:])
         out = np.empty(flat.shape[:3], dtype=np.uint8)
         for i in range(0, len(flat), self.batch_size):
-            x = torch.from_numpy(np.ascontiguousarray(flat[i : i + self.batch_size])).permute(0, 3, 1, 2).float() / 255
+            x = torch.from_numpy(np.array(flat[i : i + self.batch_size])).permute(0, 3, 1, 2).float() / 255
             out[i : i + len(x)] = self.net(x).argmax(1).to(torch.uint8).numpy()
         return out.reshape(images.shape[:-1])
 
