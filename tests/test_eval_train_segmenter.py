@@ -82,7 +82,7 @@ def test_bad_inputs_are_specific(dirs, tmp_path):
     train_segmenter([train], [held], tmp_path / "x", tmp_path / "w", config=_cfg(), max_minutes=0.0, log=lambda s: None)
     with pytest.raises(ValueError, match="other settings"):
         train_segmenter([train], [held], tmp_path / "x", tmp_path / "w", config=_cfg(lr=1e-4))
-    with pytest.raises(ValueError, match="lists no clips"):
+    with pytest.raises(ValueError, match="not an m4world dataset"):
         train_segmenter([tmp_path], [held], tmp_path / "x", tmp_path / "w2", config=_cfg())
     with pytest.raises(SystemExit):
         main(["--data", str(train), "--heldout", str(held), "--work", "w", "--out", "o", "--steps", "0"])
