@@ -23,6 +23,7 @@ from m4world_env.metrics import EpisodeMetrics
 from m4world_env.rewards import combine_reward, reward_terms
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError, TrafficBridge  # noqa: F401 (ActionError: part of the env API)
+from m4world_env.traffic.polyline import Polyline
 from world_model.geometry import world_to_ego_xy, wrap_angle
 from world_model.observation import Observation
 from world_model.scene import SceneFrame
@@ -206,8 +207,11 @@ class M4WorldEnv(gym.Env):
         """Second half of :meth:`reset`, given the backend's first observation."""
         self._obs = first
         self._unrendered = [(self._frame, self._obs)] if self.render_mode == "rgb_array_list" else []
+        road = self.scenario.road
         self._metrics = EpisodeMetrics(
-            dt=1.0 / self.scenario.sensor_frequency, reference_speed=self.scenario.road.speed_limit
+            dt=1.0 / self.scenario.sensor_frequency,
+            reference_speed=road.speed_limit,
+            route=Polyline.from_points(road.reference_path) if road.type == "route" else None,
         )
         self._metrics.add_frame(self._frame)
         self._needs_reset = False
@@ -325,6 +329,8 @@ class M4WorldEnv(gym.Env):
             "on_road": bool(self.bridge.on_road),
             "end_of_road": bool(self.bridge.end_of_road),
             "lane_index": int(self.bridge.lane_index[2]),
+            # What the road is made from: a route road's map or logged path, else the scenario's road.
+            "road_source": getattr(self.scenario.road, "source", "scenario"),
             "rewards": dict(terms),
             "episode_metrics": self._metrics.summary(),
         }

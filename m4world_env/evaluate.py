@@ -28,6 +28,8 @@ if TYPE_CHECKING:
 
 Policy = Callable[[dict, dict], Any]
 AGGREGATED = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "return", "distance_m")
+# Reported by scenarios scored along a route (log replay); averaged over the episodes that have them.
+ROUTE_AGGREGATED = ("off_route", "route_deviation_max_m")
 
 
 def _builtin_policy(name: str, env: gym.Env) -> Policy:
@@ -97,6 +99,10 @@ def aggregate(episodes: Sequence[dict[str, float]]) -> dict[str, float]:
     if not episodes:
         return {}
     out = {k: float(np.mean([e[k] for e in episodes])) for k in AGGREGATED}
+    for k in ROUTE_AGGREGATED:
+        values = [e[k] for e in episodes if k in e]
+        if values:
+            out[k] = float(np.mean(values))
     out["episodes"] = float(len(episodes))
     return out
 
@@ -149,11 +155,20 @@ def evaluate(
 
 
 def format_table(report: dict[str, Any]) -> str:
-    """A plain-text table of the per-scenario and overall figures."""
+    """A plain-text table of the per-scenario and overall figures; with route-scored (log-replay)
+    scenarios, an ``off_route`` column too ("-" where a scenario has no route)."""
     cols = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "episodes")
+    if any("off_route" in agg for agg in report["per_scenario"].values()):
+        cols = (*cols[:2], "off_route", *cols[2:])
+
+    def cell(agg: dict[str, float], c: str) -> str:
+        if c == "episodes":
+            return f"{int(agg[c])}"
+        return f"{agg[c]:.3f}" if c in agg else "-"
+
     rows = [("scenario", *cols)]
     for name, agg in [*report["per_scenario"].items(), ("OVERALL", report["overall"])]:
-        rows.append((name, *(f"{agg[c]:.3f}" if c != "episodes" else f"{int(agg[c])}" for c in cols)))
+        rows.append((name, *(cell(agg, c) for c in cols)))
     widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(r, widths, strict=True)) for r in rows]
     lines.insert(1, "  ".join("-" * w for w in widths))

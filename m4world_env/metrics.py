@@ -9,7 +9,9 @@ acceleration). :meth:`EpisodeMetrics.summary` turns them into NAVSIM's sub-score
 
 with NC no-collision (1, or 0 after a collision), DAC drivable-area compliance (0 after leaving the
 road), EP ego progress (driven distance relative to driving the whole episode at the road's
-speed limit, clipped to [0, 1]), TTC (1 when the time to collision never fell under
+speed limit, clipped to [0, 1]; on a road with a ``route``, the log replay's, the fraction of the
+route's arc length from the ego's start that the ego covered, measured by projecting it onto the
+route), TTC (1 when the time to collision never fell under
 ``ttc_threshold``), C comfort (1 when every comfort signal stayed inside NAVSIM's bounds).
 """
 
@@ -19,8 +21,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from m4world_env.traffic.polyline import Polyline
 from world_model.geometry import world_to_ego_xy
 from world_model.scene import SceneFrame
+
+# A route shorter than this (a logged ego that stood still) leaves nothing to cover: progress is 1,
+# as NAVSIM scores a scene whose reference progress is below its threshold.
+MIN_ROUTE_M = 1.0
+# Farther than this from the route (about a lane: the ego left the logged lane) counts as off-route.
+ROUTE_TOLERANCE_M = 4.0
 
 # NAVSIM comfort bounds (m/s^2, m/s^3, rad/s).
 COMFORT_BOUNDS = {
@@ -86,6 +95,11 @@ class EpisodeMetrics:
     dt: float
     reference_speed: float = 30.0
     ttc_threshold: float = 0.9
+    route: Polyline | None = None  # our frame; progress is measured along it when given
+    route_tolerance_m: float = ROUTE_TOLERANCE_M
+    route_start_s: float | None = None
+    route_s: float = 0.0
+    route_deviation_max: float = 0.0
     steps: int = 0
     frames: int = 0
     collided: bool = False
@@ -108,6 +122,12 @@ class EpisodeMetrics:
         if self._last_xy is not None:
             self.distance += float(np.hypot(ego.x - self._last_xy[0], ego.y - self._last_xy[1]))
         self._last_xy = (ego.x, ego.y)
+        if self.route is not None:
+            s, lateral = self.route.project(np.array([[ego.x, ego.y]]))
+            self.route_s = float(s[0])
+            if self.route_start_s is None:
+                self.route_start_s = self.route_s
+            self.route_deviation_max = max(self.route_deviation_max, abs(float(lateral[0])))
         if self._last_speed is not None:
             accel = (ego.speed - self._last_speed) / self.dt
             self.lon_accel_min = min(self.lon_accel_min, accel)
@@ -149,6 +169,14 @@ class EpisodeMetrics:
         )
         duration = max(self.frames - 1, 1) * self.dt
         progress = min(self.distance / (self.reference_speed * duration), 1.0)
+        route: dict[str, float] = {}
+        if self.route is not None:
+            progress = self.route_progress()
+            route = {
+                "route_progress": progress,
+                "route_deviation_max_m": self.route_deviation_max,
+                "off_route": float(self.route_deviation_max > self.route_tolerance_m),
+            }
         nc = 0.0 if self.collided else 1.0
         dac = 0.0 if self.off_road else 1.0
         ttc_ok = 1.0 if self.ttc_violations == 0 else 0.0
@@ -165,5 +193,14 @@ class EpisodeMetrics:
             "ttc_violation": 1.0 - ttc_ok,
             "comfort": c,
             **comfort,
+            **route,
             "pdms": pdms,
         }
+
+    def route_progress(self) -> float:
+        """Fraction of the route's arc length ahead of the ego's start that it covered, in [0, 1]."""
+        start = self.route_start_s or 0.0
+        remaining = self.route.length - start
+        if remaining < MIN_ROUTE_M:
+            return 1.0
+        return float(np.clip((self.route_s - start) / remaining, 0.0, 1.0))

@@ -10,7 +10,8 @@ complete clips are skipped, a partial one is rewritten. The settings that shape 
 (resolution, sensors, duration, randomization, action type, excluded categories) are kept in the
 dataset's ``recording.json``; resuming into it with other settings is refused rather than mixed.
 
-``workers`` > 1 records clips in that many processes (``m4world record --workers N``). Every clip
+``workers`` > 1 records clips in that many processes (``m4world record --workers N``): the command's
+own process and N - 1 spawned ones, which take the next clip whenever they are free. Every clip
 depends on its own (scenario, seed) only, so the clips, their names and the dataset's recording
 order (``dataset.json``, written by the parent in job order) are byte for byte the serial run's.
 """
@@ -21,7 +22,7 @@ import json
 import os
 import zlib
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
@@ -248,6 +249,59 @@ def _record_in_worker(job: tuple[Scenario, int, RecordConfig]) -> int:
     return record_clip(*job, sim=_worker_sim)
 
 
+# Clips queued per spawned worker: one to record and one waiting, so that a worker that finishes
+# while this process records a clip of its own need not wait for it.
+QUEUED_PER_WORKER = 2
+
+
+def _record_beside_pool(
+    todo: list[tuple[Scenario, int, RecordConfig]], pool: ProcessPoolExecutor, workers: int, sim: ProceduralSimulator
+) -> Iterator[int]:
+    """Frame counts of ``todo``'s clips in job order, recorded by the ``workers`` processes of
+    ``pool`` and by this process, which records the next clip itself whenever every worker's queue
+    is full (so the workers' start, a few seconds of imports, is spent recording too)."""
+    results: dict[int, Future | int] = {}
+
+    def ready(k: int) -> bool:
+        r = results.get(k)
+        return r is not None and (not isinstance(r, Future) or r.done())
+
+    def take(k: int) -> int:
+        r = results.pop(k)
+        return r.result() if isinstance(r, Future) else r
+
+    following, emitted = 0, 0
+    with _single_threaded_self():
+        while emitted < len(todo):
+            queued = sum(isinstance(r, Future) and not r.done() for r in results.values())
+            while following < len(todo) and queued < QUEUED_PER_WORKER * workers:
+                results[following] = pool.submit(_record_in_worker, todo[following])
+                following, queued = following + 1, queued + 1
+            while emitted < len(todo) and ready(emitted):
+                yield take(emitted)
+                emitted += 1
+            if following < len(todo):  # every worker's queue is full: record the next clip here
+                results[following] = record_clip(*todo[following], sim=sim)
+                following += 1
+            elif emitted < len(todo):  # every clip handed out: wait for the next in order
+                yield take(emitted)
+                emitted += 1
+
+
+@contextmanager
+def _single_threaded_self() -> Iterator[None]:
+    """OpenCV in this process on one thread while it records beside the workers (the processes
+    are the parallelism); its thread count is restored after."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def record(cfg: RecordConfig, progress: bool = True, workers: int = 1) -> list[str]:
     """Record ``episodes`` clips per scenario into ``cfg.out`` in ``workers`` processes; returns
     the clip names (existing included) in recording order."""
@@ -264,14 +318,15 @@ def record(cfg: RecordConfig, progress: bool = True, workers: int = 1) -> list[s
     jobs = [(sc, episode_seed(cfg.seed, scenario_key(sc.name), e)) for sc in scenarios for e in range(cfg.episodes)]
     names = [clip_name(sc.name, seed) for sc, seed in jobs]
     todo = [(sc, seed, cfg) for (sc, seed), name in zip(jobs, names, strict=True) if not clip_exists(cfg.out, name)]
+    sim = ProceduralSimulator()
     if workers == 1 or len(todo) < 2:
-        sim = ProceduralSimulator()
         frame_counts: Iterator[int] = (record_clip(*job, sim=sim) for job in todo)
         pool = None
     else:  # spawned, not forked: a fork would copy this process's thread pools (OpenCV's, torch's) locked
         with _single_threaded_children():
-            pool = ProcessPoolExecutor(min(workers, len(todo)), get_context("spawn"), _init_worker)
-            frame_counts = pool.map(_record_in_worker, todo)  # results in job order
+            spawned = min(workers, len(todo)) - 1
+            pool = ProcessPoolExecutor(spawned, get_context("spawn"), _init_worker)
+        frame_counts = _record_beside_pool(todo, pool, spawned, sim)
     bar = tqdm(total=len(jobs), desc="recording", unit="clip", disable=not progress)
     bar.update(len(jobs) - len(todo))
     try:

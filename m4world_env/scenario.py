@@ -18,7 +18,16 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, Strict, ValidationError, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    Strict,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from world_model.scene import CATEGORIES, CATEGORY_SIZES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS, ScenePrompt
 
@@ -163,7 +172,64 @@ class TwoWayRoad(_Strict):
         return self.lanes
 
 
-Road = Annotated[HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, Field(discriminator="type")]
+Point = tuple[
+    Annotated[Float, Field(ge=-MAX_POSITION_M, le=MAX_POSITION_M)],
+    Annotated[Float, Field(ge=-MAX_POSITION_M, le=MAX_POSITION_M)],
+]
+
+
+def _check_polyline(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    p = np.asarray(points, dtype=np.float64)
+    if np.hypot(*np.diff(p, axis=0).T).sum() > MAX_ROAD_LENGTH_M:
+        raise ValueError(f"a polyline may be at most {MAX_ROAD_LENGTH_M:g} m long")
+    if np.all(np.hypot(*(p - p[0]).T) < 1e-3):
+        raise ValueError("a polyline needs at least two distinct points")
+    return points
+
+
+PolylinePoints = Annotated[list[Point], Field(min_length=2, max_length=MAX_WAYPOINTS), AfterValidator(_check_polyline)]
+
+
+class RouteLaneLine(_Strict):
+    kind: Literal["solid", "dashed"]
+    points: PolylinePoints
+
+
+class RouteMap(_Strict):
+    """Map geometry drawn around a route road (and, with ``drivable_area``, what on-road means)."""
+
+    drivable_area: list[Annotated[list[Point], Field(min_length=3, max_length=MAX_WAYPOINTS)]] = Field(
+        default_factory=list, max_length=MAX_OBJECTS, description="polygons; their union is the road"
+    )
+    lane_lines: list[RouteLaneLine] = Field(default_factory=list, max_length=4 * MAX_OBJECTS)
+    road_edges: list[PolylinePoints] = Field(default_factory=list, max_length=MAX_OBJECTS)
+
+
+class RouteRoad(_Strict):
+    """Lanes along polylines (log replay): the ego's lanes follow ``lanes``; ``reference_path`` is
+    the path the ego is scored along (its logged path)."""
+
+    type: Literal["route"] = "route"
+    source: Literal["map_expansion", "ego_path"] = Field(
+        ..., description="what the lanes were made from: a map's lane centerlines or the logged ego path"
+    )
+    lanes: list[PolylinePoints] = Field(
+        ..., min_length=1, max_length=8, description="lane centerlines, leftmost first, all in the driving direction"
+    )
+    reference_path: PolylinePoints = Field(..., description="the path progress is measured along (the logged one)")
+    speed_limit: Float = Field(..., gt=0, le=MAX_SPEED_MPS)
+    lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
+    map: RouteMap | None = Field(None, description="drawn map and drivable area; absent: the lanes' strips")
+
+    @property
+    def start_lanes(self) -> int:
+        """Every lane runs the route's whole length."""
+        return len(self.lanes)
+
+
+Road = Annotated[
+    HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad | RouteRoad, Field(discriminator="type")
+]
 
 # ------------------------------------------------------------------------------ ego and traffic
 

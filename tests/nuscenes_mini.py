@@ -3,7 +3,8 @@
 Two scenes of three 2 Hz keyframes with one LiDAR sweep between keyframes; six cameras and
 LIDAR_TOP calibrated like the real rig (LIDAR_TOP x right, y forward; cameras with OpenCV axes);
 one car annotated at a known pose and one LiDAR return at a known place, so tests can check where
-they land after the import. Images are small (``IMAGE_W`` x ``IMAGE_H``).
+they land after the import. scene-0002's location has a map expansion with lanes; its ego turns left
+along one of them. Images are small (``IMAGE_W`` x ``IMAGE_H``).
 """
 
 from __future__ import annotations
@@ -52,6 +53,15 @@ LOCATIONS = ("mini-nomap", "mini-town")
 DRIVABLE_X, DRIVABLE_Y = (90.0, 110.0), (150.0, 400.0)
 LANE_DIVIDER_X = EGO_START[0] - 2.0
 ROAD_DIVIDER_X = EGO_START[0] + 6.0
+# Its lanes (arcline paths): north along x = EGO_START[0] up to the ego's start, a connector turning
+# left (west) on a quarter circle, a lane west; and an oncoming lane that the route must not take.
+TURN_RADIUS = 10.0
+TURN_CENTRE = (EGO_START[0] - TURN_RADIUS, EGO_START[1])
+LANE_IN_START_Y = 140.0
+LANE_OUT_END_X = 30.0
+LANE_WIDTH = 3.6  # lane_in's polygon
+WEST_ARM_Y = (TURN_CENTRE[1] + TURN_RADIUS - 5.0, TURN_CENTRE[1] + TURN_RADIUS + 5.0)  # drivable, x < 90
+ONCOMING_X = EGO_START[0] + 4.0
 
 
 def token(*parts: object) -> str:
@@ -78,14 +88,23 @@ def point_elevation_rad() -> float:
     return math.radians(np.linspace(10.0, -30.0, 32)[POINT_ROW])
 
 
-def ego_pose(t: float) -> tuple[list[float], list[float]]:
-    x = EGO_START[0] + EGO_SPEED * t * math.cos(EGO_YAW)
-    y = EGO_START[1] + EGO_SPEED * t * math.sin(EGO_YAW)
-    return [x, y, EGO_Z], list(Quaternion(axis=(0, 0, 1), angle=EGO_YAW).elements)
+def ego_pose(t: float, scene: int = 0) -> tuple[list[float], list[float]]:
+    """scene-0001's ego drives straight north; scene-0002's turns left along the map's connector
+    (a circle of ``TURN_RADIUS`` about ``TURN_CENTRE``), at ``EGO_SPEED`` both."""
+    if scene == 0:
+        x = EGO_START[0] + EGO_SPEED * t * math.cos(EGO_YAW)
+        y = EGO_START[1] + EGO_SPEED * t * math.sin(EGO_YAW)
+        yaw = EGO_YAW
+    else:
+        turned = EGO_SPEED * t / TURN_RADIUS
+        x = TURN_CENTRE[0] + TURN_RADIUS * math.cos(turned)
+        y = TURN_CENTRE[1] + TURN_RADIUS * math.sin(turned)
+        yaw = EGO_YAW + turned
+    return [x, y, EGO_Z], list(Quaternion(axis=(0, 0, 1), angle=yaw).elements)
 
 
-def ego_to_global(p: np.ndarray, t: float) -> np.ndarray:
-    trans, rot = ego_pose(t)
+def ego_to_global(p: np.ndarray, t: float, scene: int = 0) -> np.ndarray:
+    trans, rot = ego_pose(t, scene)
     return Quaternion(rot).rotation_matrix @ p + np.array(trans)
 
 
@@ -181,7 +200,7 @@ def write_mini_nuscenes(root: Path) -> Path:
             for k, a in enumerate(anns):
                 t = 0.5 * k
                 # The car keeps pace with the ego (its ego-frame pose stays put); the dog stands still.
-                centre = ego_to_global(np.array(offset), t if inst == "car" else 0.0)
+                centre = ego_to_global(np.array(offset), t if inst == "car" else 0.0, si)
                 tables["sample_annotation"].append(
                     {
                         "token": a,
@@ -191,7 +210,7 @@ def write_mini_nuscenes(root: Path) -> Path:
                         "visibility_token": "4",
                         "translation": centre.tolist(),
                         "size": list(CAR_SIZE_WLH if inst == "car" else (0.4, 0.9, 0.6)),
-                        "rotation": list(Quaternion(axis=(0, 0, 1), angle=EGO_YAW).elements),
+                        "rotation": ego_pose(t if inst == "car" else 0.0, si)[1],
                         "prev": anns[k - 1] if k else "",
                         "next": anns[k + 1] if k + 1 < KEYFRAMES else "",
                         "num_lidar_pts": 1,
@@ -215,7 +234,7 @@ def write_mini_nuscenes(root: Path) -> Path:
                     _write_lidar(path, rng)
                 else:
                     _write_image(path, bright=(ch == "CAM_FRONT"))
-                trans, rot = ego_pose(t)
+                trans, rot = ego_pose(t, si)
                 ego_token = token("ego", si, ch, i)
                 tables["ego_pose"].append(
                     {"token": ego_token, "timestamp": t0_us + int(t * 1e6), "translation": trans, "rotation": rot}
@@ -264,26 +283,85 @@ def _write_lidar(path: Path, rng: np.random.Generator) -> None:
     data.tofile(path)
 
 
+def turn_point(angle: float) -> tuple[float, float]:
+    """The connector's centerline point ``angle`` radians into the left turn."""
+    return TURN_CENTRE[0] + TURN_RADIUS * math.cos(angle), TURN_CENTRE[1] + TURN_RADIUS * math.sin(angle)
+
+
+def _straight(x: float, y: float, yaw: float, length: float) -> dict:
+    end = (x + length * math.cos(yaw), y + length * math.sin(yaw), yaw)
+    return {
+        "start_pose": [x, y, yaw],
+        "end_pose": list(end),
+        "shape": "LSL",
+        "radius": 999.0,
+        "segment_length": [0.0, length, 0.0],
+    }
+
+
+def _rectangle(prefix: str, x: tuple[float, float], y: tuple[float, float]) -> tuple[list[dict], list[str]]:
+    corners = [(x[0], y[0]), (x[1], y[0]), (x[1], y[1]), (x[0], y[1])]
+    return [{"token": f"{prefix}{i}", "x": a, "y": b} for i, (a, b) in enumerate(corners)], [
+        f"{prefix}{i}" for i in range(4)
+    ]
+
+
 def _write_map_expansion(path: Path) -> None:
     """The map expansion's layers that the importer reads (node, line, polygon, drivable_area,
-    lane_divider, road_divider)."""
-    (x0, x1), (y0, y1) = DRIVABLE_X, DRIVABLE_Y
-    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
-    nodes = [{"token": f"n{i}", "x": x, "y": y} for i, (x, y) in enumerate(corners)]
+    lane_divider, road_divider, lane, lane_connector, arcline_path_3, connectivity)."""
+    x0, (y0, y1) = DRIVABLE_X[0], DRIVABLE_Y
+    nodes, road_ring = _rectangle("n", DRIVABLE_X, DRIVABLE_Y)
+    west, west_ring = _rectangle("w", (LANE_OUT_END_X - 10.0, x0), WEST_ARM_Y)
+    half = LANE_WIDTH / 2
+    lane_in, lane_in_ring = _rectangle(
+        "li", (EGO_START[0] - half, EGO_START[0] + half), (LANE_IN_START_Y, EGO_START[1])
+    )
+    nodes += west + lane_in
     nodes += [
         {"token": "ld0", "x": LANE_DIVIDER_X, "y": y0},
         {"token": "ld1", "x": LANE_DIVIDER_X, "y": y1},
         {"token": "rd0", "x": ROAD_DIVIDER_X, "y": y0},
         {"token": "rd1", "x": ROAD_DIVIDER_X, "y": y1},
     ]
+    turn_end = turn_point(math.pi / 2)
     layers = {
         "version": "1.3",
         "node": nodes,
-        "polygon": [{"token": "p0", "exterior_node_tokens": ["n0", "n1", "n2", "n3"], "holes": []}],
+        "polygon": [
+            {"token": "p0", "exterior_node_tokens": road_ring, "holes": []},
+            {"token": "p1", "exterior_node_tokens": west_ring, "holes": []},
+            {"token": "p_lane_in", "exterior_node_tokens": lane_in_ring, "holes": []},
+        ],
         "line": [{"token": "l0", "node_tokens": ["ld0", "ld1"]}, {"token": "l1", "node_tokens": ["rd0", "rd1"]}],
-        "drivable_area": [{"token": "da0", "polygon_tokens": ["p0"]}],
+        "drivable_area": [{"token": "da0", "polygon_tokens": ["p0", "p1"]}],
         "lane_divider": [{"token": "d0", "line_token": "l0", "lane_divider_segments": []}],
         "road_divider": [{"token": "d1", "line_token": "l1", "road_segment_token": ""}],
+        "lane": [
+            {"token": "lane_in", "polygon_token": "p_lane_in", "lane_type": "CAR"},
+            {"token": "lane_out", "polygon_token": "", "lane_type": "CAR"},
+            {"token": "lane_oncoming", "polygon_token": "", "lane_type": "CAR"},
+        ],
+        "lane_connector": [{"token": "turn_left", "polygon_token": ""}],
+        "arcline_path_3": {
+            "lane_in": [_straight(EGO_START[0], LANE_IN_START_Y, EGO_YAW, EGO_START[1] - LANE_IN_START_Y)],
+            "turn_left": [
+                {
+                    "start_pose": [EGO_START[0], EGO_START[1], EGO_YAW],
+                    "end_pose": [*turn_end, math.pi],
+                    "shape": "LSL",
+                    "radius": TURN_RADIUS,
+                    "segment_length": [TURN_RADIUS * math.pi / 2, 0.0, 0.0],
+                }
+            ],
+            "lane_out": [_straight(*turn_end, math.pi, turn_end[0] - LANE_OUT_END_X)],
+            "lane_oncoming": [_straight(ONCOMING_X, 260.0, -EGO_YAW, 260.0 - LANE_IN_START_Y)],
+        },
+        "connectivity": {
+            "lane_in": {"incoming": [], "outgoing": ["turn_left"]},
+            "turn_left": {"incoming": ["lane_in"], "outgoing": ["lane_out"]},
+            "lane_out": {"incoming": ["turn_left"], "outgoing": []},
+            "lane_oncoming": {"incoming": [], "outgoing": []},
+        },
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(layers))

@@ -14,8 +14,9 @@ import pytest
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
 from world_model.train.recipe import (
+    ADAPTERS,
     BUNDLE_RESERVE_S,
-    CHAIN,
+    PHASES,
     SCALES,
     TIME_SHARES,
     join_files,
@@ -33,7 +34,7 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads((out / "recipe.json").read_text())
-    assert summary["clips"] == 9 and set(summary["final_loss"]) == set(CHAIN)
+    assert summary["clips"] == 9 and set(summary["final_loss"]) == set(PHASES)
     assert all(v == v for v in summary["final_loss"].values())  # finite, not NaN
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
     assert {"vae", "student", "reference"} <= set(manifest["components"])
@@ -45,7 +46,11 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
     for file in (out / "bundle").rglob("*"):
         if file.is_file():
             assert (tmp_path / "joined" / file.relative_to(out / "bundle")).read_bytes() == file.read_bytes()
-    env = gym.make("M4World-v0", backend="world_model", checkpoint=str(tmp_path / "joined"))
+    assert sorted(p.name for p in (out / "bundle" / "adapters").iterdir()) == sorted(ADAPTERS)
+    # the rare object's scenario names the completion adapter: it loads on the bundle it was trained on
+    env = gym.make(
+        "M4World-v0", scenario="tree_truck_highway", backend="world_model", checkpoint=str(tmp_path / "joined")
+    )
     obs, _ = env.reset(seed=0)
     obs, *_ = env.step(env.action_space.sample())
     assert obs["cameras"].shape[0] == manifest["model_config"]["sensors"]["num_cameras"]
@@ -55,9 +60,9 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
 
 def test_stage_time_limits_share_what_is_left_and_pass_on_what_a_stage_did_not_use():
     spec = replace(SCALES["dry"], time_limit_s=100.0 + BUNDLE_RESERVE_S)
-    first = stage_time_limit(spec, CHAIN, elapsed_s=0.0)
+    first = stage_time_limit(spec, PHASES, elapsed_s=0.0)
     assert first == pytest.approx(100.0 * TIME_SHARES["vae"] / sum(TIME_SHARES.values()))
     # the last stage gets everything that is left, whatever the earlier stages took
-    assert stage_time_limit(spec, CHAIN[-1:], elapsed_s=70.0) == pytest.approx(30.0)
-    assert stage_time_limit(spec, CHAIN[-1:], elapsed_s=500.0) == 1.0  # over time: one more short try
-    assert stage_time_limit(SCALES["dry"], CHAIN, elapsed_s=0.0) is None  # no limit: steps decide
+    assert stage_time_limit(spec, PHASES[-1:], elapsed_s=70.0) == pytest.approx(30.0)
+    assert stage_time_limit(spec, PHASES[-1:], elapsed_s=500.0) == 1.0  # over time: one more short try
+    assert stage_time_limit(SCALES["dry"], PHASES, elapsed_s=0.0) is None  # no limit: steps decide

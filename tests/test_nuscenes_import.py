@@ -189,22 +189,90 @@ def replay_files(imported, tmp_path_factory):
 
 
 def test_replay_scenario_places_logged_agents_around_the_ego(replay_files):
+    from m4world_env.replay import REPLAY_BEHIND_M
     from m4world_env.scenario import load_scenario
 
     assert [p.name for p in replay_files] == ["replay_nuscenes_scene-0001.yaml", "replay_nuscenes_scene-0002.yaml"]
     s = load_scenario(replay_files[0])
     assert s.ego.speed == pytest.approx(mini.EGO_SPEED, abs=1e-3)
     assert s.duration == pytest.approx(1.0)
-    # Progress is scored against the log: the reference speed is the ego's mean logged speed.
+    # The policies' target speed is the ego's mean logged speed.
     # (The 10 Hz frames take the nearest sweep, so the logged distance is the sweeps' 0 to 1 s.)
     assert s.road.speed_limit == pytest.approx(mini.EGO_SPEED, abs=1e-3)
+    # Poses are in the ego's logged start frame: the ego at the origin, heading +x.
     by_cat = {o.category: o for o in s.objects}
     car = by_cat["car"].track  # keeps pace with the ego: waypoints 20 m ahead of it, 2 m left
     assert car.kind == "waypoints"
-    assert car.points[0].x - 30.0 == pytest.approx(mini.CAR_IN_EGO[0] - mini.LIDAR_IN_EGO[0], abs=1e-3)
-    assert car.points[0].y - (-4.0) == pytest.approx(mini.CAR_IN_EGO[1], abs=1e-3)
+    assert car.points[0].x == pytest.approx(mini.CAR_IN_EGO[0] - mini.LIDAR_IN_EGO[0], abs=1e-3)
+    assert car.points[0].y == pytest.approx(mini.CAR_IN_EGO[1], abs=1e-3)
     assert car.points[-1].x - car.points[0].x == pytest.approx(mini.EGO_SPEED * car.points[-1].t, abs=1e-2)
     assert by_cat["barrier"].track.kind == "static"  # the animal does not move
+    # No map at this location: three lanes along the logged path, the ego in the middle at its start.
+    assert s.road.type == "route" and s.road.source == "ego_path" and len(s.road.lanes) == 3
+    assert (s.ego.lane, s.ego.longitudinal) == (1, pytest.approx(REPLAY_BEHIND_M, abs=1e-3))
+    assert s.road.reference_path[0] == pytest.approx((0.0, 0.0)) and s.road.reference_path[-1] == pytest.approx(
+        (mini.EGO_SPEED, 0.0)
+    )
+
+
+def _local(point: tuple[float, float]) -> np.ndarray:
+    """A global point of scene-0002 in its replay frame (the ego's logged start: LIDAR_TOP, heading north)."""
+    start = np.array([mini.EGO_START[0], mini.EGO_START[1] + mini.LIDAR_IN_EGO[0]])
+    d = np.asarray(point) - start
+    return np.array([d[1], -d[0]])  # heading north: forward = +y, left = -x
+
+
+def test_replay_road_follows_the_map_lanes(imported, replay_files):
+    from m4world_env.scenario import load_scenario
+    from m4world_env.traffic.polyline import Polyline
+
+    _, out = imported
+    meta = read_clip(out, "nuscenes_scene-0002").meta
+    assert meta["route_lanes"] == ["lane_in", "turn_left", "lane_out"]  # not the oncoming lane
+    s = load_scenario(replay_files[1])
+    assert s.road.source == "map_expansion" and len(s.road.lanes) == 1
+    assert s.road.lane_width == pytest.approx(mini.LANE_WIDTH)  # lane_in's polygon area / length
+    lane = Polyline.from_points(s.road.lanes[0])
+    # The lane runs through the connector's centerline half-way round the turn, and ends on lane_out.
+    _, lateral = lane.project(_local(mini.turn_point(np.pi / 4))[None])
+    assert abs(lateral[0]) < 0.01
+    assert lane.points[-1] == pytest.approx(_local((mini.LANE_OUT_END_X, mini.TURN_CENTRE[1] + mini.TURN_RADIUS)))
+    # The ego starts on it, where it was logged (LIDAR_TOP, 0.94 m ahead on the tangent: 4.4 cm outside).
+    s_ego, r_ego = lane.project(np.zeros((1, 2)))
+    assert r_ego[0] == pytest.approx(-(np.hypot(mini.TURN_RADIUS, mini.LIDAR_IN_EGO[0]) - mini.TURN_RADIUS), abs=1e-3)
+    assert s.ego.longitudinal == pytest.approx(s_ego[0], abs=1e-3)
+    # The map expansion is drawn around it: both drivable polygons, the two dividers.
+    assert len(s.road.map.drivable_area) == 2 and len(s.road.map.lane_lines) == 2
+
+
+def _stop(env):
+    return lambda obs, info: np.array([-1.0, 0.0], dtype=np.float32)
+
+
+@pytest.mark.parametrize("backend", ["procedural", "world_model"])
+def test_replay_on_the_map_scores_progress_along_the_logged_route(replay_files, backend, tiny_bundle):
+    import gymnasium as gym
+
+    from m4world_env.evaluate import evaluate, format_table
+    from m4world_env.scenario import load_scenario
+
+    kwargs = {"checkpoint": str(tiny_bundle)} if backend == "world_model" else {}
+    path = str(replay_files[1])
+    runs = [evaluate("lane_keeping", [path], episodes=1, seed=3, backend=backend, **kwargs) for _ in range(2)]
+    assert runs[0] == runs[1]
+    follow = runs[0]["episodes"][0]
+    assert follow["steps"] == 5  # 1 s of log at 5 decisions per second: run to the end
+    # Following the lane round the turn covers the logged route (5 m in 1 s) and stays on it.
+    assert follow["route_progress"] == pytest.approx(1.0, abs=0.05) and follow["progress"] == follow["route_progress"]
+    assert follow["off_route"] == 0.0 and follow["off_road"] == 0.0 and follow["collision"] == 0.0
+    assert follow["route_deviation_max_m"] < 1.0  # the controller lags into a 10 m radius turn
+    stop = evaluate(_stop, [path], episodes=1, seed=3, backend=backend, **kwargs)["episodes"][0]
+    assert stop["route_progress"] < 0.6 and stop["pdms"] < follow["pdms"]
+    assert "off_route" in format_table(runs[0]).splitlines()[0]
+    env = gym.make("M4World-v0", scenario=load_scenario(path), backend=backend, **kwargs)
+    _, info = env.reset(seed=0)
+    assert info["road_source"] == "map_expansion"
+    env.close()
 
 
 @pytest.mark.parametrize("backend", ["procedural", "world_model"])
@@ -216,7 +284,9 @@ def test_replay_scenario_runs_to_its_end_and_scores_deterministically(replay_fil
     assert runs[0] == runs[1]
     episode = runs[0]["episodes"][0]
     assert episode["steps"] == 5  # 1 s of log at 5 decisions per second: run to the end
-    assert 0.0 <= episode["pdms"] <= 1.0 and episode["distance_m"] > 0
+    # The logged car 20 m ahead straddles the lane line: IDM brakes for it and changes lanes.
+    assert 0.0 <= episode["pdms"] <= 1.0 and 0.0 < episode["route_progress"] < 1.0
+    assert episode["route_deviation_max_m"] < 4.0 and episode["off_route"] == 0.0
 
 
 def test_ego_speed_comes_from_the_logged_poses(imported):

@@ -27,6 +27,7 @@ from m4world_env.traffic.actions import (
 )
 from m4world_env.traffic.mapgeom import MapSamplingConfig, extract_map
 from m4world_env.traffic.objects import ScriptedObject
+from m4world_env.traffic.polyline import points_in_polygons
 from m4world_env.traffic.roads import build_road
 from m4world_env.traffic.sim import EgoMetaVehicle, EgoVehicle, FastRoad, TrafficVehicle, size_object
 from world_model.scene import CATEGORY_SIZES, Box3D, EgoState, MapGeometry, SceneFrame, SceneObject
@@ -93,7 +94,8 @@ class TrafficBridge:
         self.road = FastRoad(self.layout.network, np.random.default_rng(road_seed))
         self._traffic_rng = np.random.default_rng(traffic_seed)
         if self._map is None:  # the road never changes for a bridge: one map object for all frames
-            self._map = extract_map(self.layout, self.config.map_sampling)
+            drawn = self.layout.map
+            self._map = drawn if drawn is not None else extract_map(self.layout, self.config.map_sampling)
         self.ego_vehicle = self._make_ego()
         self.road.vehicles.append(self.ego_vehicle)
         self._ids: dict[str, TrafficVehicle | ScriptedObject] = {}
@@ -196,9 +198,22 @@ class TrafficBridge:
 
     @property
     def on_road(self) -> bool:
-        """On a lane; running past the end of the network counts as the end of the route, not as
-        leaving the road (at speed the ego can overshoot the lane's on-lane margin in one step)."""
-        return bool(self.ego_vehicle.on_road) or self.end_of_road
+        """On a lane, or, where the road has a drivable area (a map), every corner of the ego's
+        footprint inside it; running past the end of the network counts as the end of the route,
+        not as leaving the road (at speed the ego can overshoot the lane's on-lane margin in one step)."""
+        if self.end_of_road:
+            return True
+        if self.layout.drivable_area:
+            return bool(points_in_polygons(self.ego_footprint(), self.layout.drivable_area).all())
+        return bool(self.ego_vehicle.on_road)
+
+    def ego_footprint(self) -> np.ndarray:
+        """(4, 2) corners of the ego's footprint, our frame."""
+        e = self.ego
+        half_l, half_w = e.size[0] / 2, e.size[1] / 2
+        c, s = math.cos(e.yaw), math.sin(e.yaw)
+        local = np.array([[half_l, half_w], [half_l, -half_w], [-half_l, -half_w], [-half_l, half_w]])
+        return np.array([e.x, e.y]) + local @ np.array([[c, s], [-s, c]])
 
     @property
     def lane_index(self) -> tuple[str, str, int]:

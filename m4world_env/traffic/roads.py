@@ -15,8 +15,10 @@ import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane, LineType, SineLane, StraightLane
 from highway_env.road.road import LaneIndex, RoadNetwork
 
-from m4world_env.scenario import HighwayRoad, IntersectionRoad, MergeRoad, RoundaboutRoad, TwoWayRoad
+from m4world_env.scenario import HighwayRoad, IntersectionRoad, MergeRoad, RoundaboutRoad, RouteRoad, TwoWayRoad
+from m4world_env.traffic.polyline import PolylineLane
 from m4world_env.traffic.sim import FastNetwork
+from world_model.scene import LaneLine, MapGeometry
 
 C, S, N = LineType.CONTINUOUS_LINE, LineType.STRIPED, LineType.NONE
 
@@ -40,6 +42,10 @@ class RoadLayout:
     lane_width: float = AbstractLane.DEFAULT_WIDTH
     # (lane index, side) pairs whose boundary is shared with other lanes, so not a road edge.
     inner_sides: set[tuple[LaneIndex, int]] = field(default_factory=set)
+    # A map drawn instead of the lanes' own strips and markings (our frame), and the polygons whose
+    # union is the road for the on-road test (empty: on a lane is on the road).
+    map: MapGeometry | None = None
+    drivable_area: tuple[np.ndarray, ...] = ()
 
 
 def _lines(k: int, n: int) -> tuple[int, int]:
@@ -283,17 +289,47 @@ def build_two_way(road: TwoWayRoad) -> RoadLayout:
     )
 
 
+def _to_highway(points: list[tuple[float, float]]) -> np.ndarray:
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    return np.stack([p[:, 0], -p[:, 1]], axis=1)
+
+
+def build_route(road: RouteRoad) -> RoadLayout:
+    """One edge whose lanes follow the given centerlines (polylines, our frame); with ``road.map``
+    the drawn map and the drivable area are the map's."""
+    net = FastNetwork()
+    w, n = road.lane_width, len(road.lanes)
+    for k, centerline in enumerate(road.lanes):
+        lane = PolylineLane(_to_highway(centerline), width=w, line_types=_lines(k, n), speed_limit=road.speed_limit)
+        net.add_lane("route_start", "route_end", lane)
+    drawn, drivable = None, ()
+    if road.map is not None:
+        drivable = tuple(np.asarray(p, dtype=np.float64) for p in road.map.drivable_area)
+        drawn = MapGeometry(
+            lane_lines=tuple(
+                LaneLine(points=np.asarray(ln.points, dtype=np.float64), kind=ln.kind) for ln in road.map.lane_lines
+            ),
+            road_edges=tuple(np.asarray(e, dtype=np.float64) for e in road.map.road_edges),
+            drivable_area=drivable,
+            lane_width=w,
+        )
+    edge = ("route_start", "route_end")
+    return RoadLayout(net, edge, [edge], lane_width=w, map=drawn, drivable_area=drivable)
+
+
 BUILDERS = {
     "highway": build_highway,
     "merge": build_merge,
     "roundabout": build_roundabout,
     "intersection": build_intersection,
     "two_way": build_two_way,
+    "route": build_route,
 }
 
 
 def build_road(
-    road: HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad, turn: str = "straight"
+    road: HighwayRoad | MergeRoad | RoundaboutRoad | IntersectionRoad | TwoWayRoad | RouteRoad,
+    turn: str = "straight",
 ) -> RoadLayout:
     """Build the network of a scenario's road; ``turn`` picks the ego's exit at a junction."""
     layout = BUILDERS[road.type](road)

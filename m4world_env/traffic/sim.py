@@ -26,6 +26,7 @@ from highway_env.vehicle.kinematics import Vehicle
 from highway_env.vehicle.objects import Landmark, Obstacle
 
 from m4world_env.traffic.fastmath import FastControlMixin, FastIDMMixin
+from m4world_env.traffic.polyline import PolylineLane
 
 # highway-env's AbstractLane.on_lane margin used by Road.neighbour_vehicles.
 NEIGHBOUR_LANE_MARGIN = 1.0
@@ -50,6 +51,8 @@ def lane_coordinates(lane: AbstractLane, points: np.ndarray) -> tuple[np.ndarray
         phi = lane.start_phase + _wrap(phi - lane.start_phase)
         rr = np.hypot(d[:, 0], d[:, 1])
         return lane.direction * (phi - lane.start_phase) * lane.radius, lane.direction * (lane.radius - rr)
+    if isinstance(lane, PolylineLane):
+        return lane.polyline.project(points)
     coords = np.array([lane.local_coordinates(p) for p in points]).reshape(-1, 2)
     return coords[:, 0], coords[:, 1]
 
@@ -62,6 +65,8 @@ def lane_headings(lane: AbstractLane, s: np.ndarray) -> np.ndarray:
         return np.full_like(s, lane.heading)
     if isinstance(lane, CircularLane):
         return lane.direction * s / lane.radius + lane.start_phase + np.pi / 2 * lane.direction
+    if isinstance(lane, PolylineLane):
+        return lane.polyline.heading(s)
     return np.array([lane.heading_at(x) for x in s])
 
 

@@ -12,7 +12,10 @@ through the official ``nuscenes-devkit`` (extra ``[nuscenes]``) and writes one c
   extrinsics from ``calibrated_sensor`` expressed in the project's LiDAR frame;
 * LiDAR: the sweep's points binned into the preset's range map (nearest return per cell);
 * BEV: from the map expansion (``maps/expansion/<location>.json``: drivable area, lane and road
-  dividers) where it is present, else a drivable corridor along the logged ego path.
+  dividers) where it is present, else a drivable corridor along the logged ego path;
+* route: where the map expansion is present and every logged pose is on one of its lanes, the
+  driven lanes' joined centerline (``meta.json``: ``route_centerline``, ``route_lanes``,
+  ``route_lane_width``; :func:`world_model.data.nuscenes_map.map_route`), which log replay drives on.
 
 Frames: the nuScenes global frame (x east, y north, z up) is used as the world frame. The project's
 LiDAR frame sits at LIDAR_TOP's position, yawed with the ego (x forward, y left, z up); nuScenes'
@@ -21,7 +24,6 @@ LIDAR_TOP sensor frame (x right, y forward, z up) reaches it through its ``calib
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -31,7 +33,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from world_model.data.clips import write_clip
-from world_model.scene import CATEGORIES, Box3D, EgoState, LaneLine, MapGeometry, SceneFrame, SceneObject, ScenePrompt
+from world_model.data.nuscenes_map import corridor_map, map_expansion, map_route
+from world_model.scene import CATEGORIES, Box3D, EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import DEFAULT_CAMERA_NAMES, BevSpec, CameraRig, CameraSpec, LidarSpec
 
 if TYPE_CHECKING:
@@ -55,8 +58,6 @@ CATEGORY_MAP: dict[str, str] = {
 # static obstacle of this category, with their logged size.
 FALLBACK_CATEGORY = "barrier"
 
-# Half-width of the drivable corridor drawn along the logged ego path, metres.
-CORRIDOR_HALF_WIDTH_M = 5.0
 MICROSECONDS = 1e-6
 
 
@@ -287,51 +288,6 @@ def points_to_range_map(points: np.ndarray, spec: LidarSpec) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def corridor_map(path_xy: np.ndarray, half_width: float = CORRIDOR_HALF_WIDTH_M) -> MapGeometry:
-    """A drivable corridor along a logged path: its area, and its two edges as road edges."""
-    if len(path_xy) < 2:
-        path_xy = np.concatenate([path_xy, path_xy + [[0.1, 0.0]]])
-    d = np.gradient(path_xy, axis=0)
-    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-    normal = np.stack([-d[:, 1], d[:, 0]], axis=1)
-    left, right = path_xy + half_width * normal, path_xy - half_width * normal
-    return MapGeometry(
-        road_edges=(left, right),
-        drivable_area=(np.concatenate([left, right[::-1]]),),
-        lane_width=2 * half_width,
-    )
-
-
-def map_expansion(dataroot: str | Path, location: str, path_xy: np.ndarray, margin: float) -> MapGeometry | None:
-    """The map expansion's drivable area (its outlines as road edges), lane dividers (dashed) and
-    road dividers (solid) within ``margin`` metres of the path's bounding box; None when
-    ``maps/expansion/<location>.json`` is absent. Read as JSON (no shapely needed); polygon holes
-    are not kept."""
-    path = Path(dataroot) / "maps" / "expansion" / f"{location}.json"
-    if not path.exists():
-        return None
-    try:
-        layers = json.loads(path.read_text())
-        nodes = {n["token"]: (n["x"], n["y"]) for n in layers["node"]}
-        polygons = {p["token"]: p["exterior_node_tokens"] for p in layers["polygon"]}
-        lines = {ln["token"]: ln["node_tokens"] for ln in layers["line"]}
-        areas = [polygons[t] for a in layers["drivable_area"] for t in a["polygon_tokens"]]
-        dividers = [(lines[d["line_token"]], "dashed") for d in layers["lane_divider"]]
-        dividers += [(lines[d["line_token"]], "solid") for d in layers["road_divider"]]
-    except (ValueError, KeyError) as e:
-        raise NuScenesImportError(f"map expansion {path} is not readable: {e!r}") from e
-    lo, hi = path_xy.min(axis=0) - margin, path_xy.max(axis=0) + margin
-
-    def near(tokens: list[str]) -> np.ndarray | None:
-        pts = np.array([nodes[t] for t in tokens], dtype=np.float64)
-        return pts if len(pts) >= 2 and np.any(np.all((pts >= lo) & (pts <= hi), axis=1)) else None
-
-    drivable = tuple(p for p in (near(a) for a in areas) if p is not None)
-    lane_lines = tuple(LaneLine(points=p, kind=k) for p, k in ((near(t), k) for t, k in dividers) if p is not None)
-    edges = tuple(np.concatenate([p, p[:1]]) for p in drivable)
-    return MapGeometry(lane_lines=lane_lines, road_edges=edges, drivable_area=drivable)
-
-
 def import_scene(nusc: NuScenes, scene: dict, cfg: NuScenesImportConfig) -> str:
     """Write one scene as a clip; returns its name."""
     from world_model.sim import ProceduralSimulator
@@ -346,10 +302,22 @@ def import_scene(nusc: NuScenes, scene: dict, cfg: NuScenesImportConfig) -> str:
     sim = ProceduralSimulator()
     path_xy = np.array([[e.x, e.y] for e, _ in egos])
     location = nusc.get("log", scene["log_token"])["location"]
+    route = map_route(nusc.dataroot, location, np.array([[e.x, e.y, e.yaw] for e, _ in egos]))
     reach = math.hypot(max(cfg.bev.forward_m, cfg.bev.backward_m), cfg.bev.half_width_m)
-    road = map_expansion(nusc.dataroot, location, path_xy, margin=reach)
+    # The drawn map covers the route's lanes too, so that a replay along them sees its road.
+    covered = path_xy if route is None else np.concatenate([path_xy, route.centerline])
+    road = map_expansion(nusc.dataroot, location, covered, margin=reach)
     bev_from = "map_expansion" if road is not None else "ego_path"
     road = road or corridor_map(path_xy)
+    route_meta = (
+        {
+            "route_lanes": list(route.lanes),
+            "route_centerline": np.round(route.centerline, 3).tolist(),
+            "route_lane_width": round(route.lane_width, 3),
+        }
+        if route is not None
+        else {}
+    )
     frames, cams, lidars, bevs = [], [], [], []
     for i, (sd, (ego, ego_z)) in enumerate(zip(sweeps, egos, strict=True)):
         t_us = t0 + i / cfg.fps / MICROSECONDS
@@ -383,6 +351,7 @@ def import_scene(nusc: NuScenes, scene: dict, cfg: NuScenesImportConfig) -> str:
             "version": cfg.version,
             "scene_token": scene["token"],
             "bev_from": bev_from,
+            **route_meta,
         },
     )
     return name

@@ -147,13 +147,16 @@ def build_condition_arrays(
     crops: Mapping[str, np.ndarray] | None = None,
     first_ego: EgoState | None = None,
     crop_since: Mapping[str, int] | None = None,
+    layout: np.ndarray | None = None,
 ) -> ConditionArrays:
     """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
 
     ``first_ego`` is the rollout's first ego state (default: ``frames[0].ego``). Without an
     ``image_encoder`` every object's image description counts as missing. ``crop_since``: the frame
     index from which each track's crop exists (:class:`world_model.sim.reference_crops.ReferenceCrops`);
-    a track absent from it has its crop at every frame.
+    a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
+    when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
+    data's cache), else it is computed here when the config enables it.
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -204,7 +207,11 @@ def build_condition_arrays(
                 has_img[f, [i for i, _ in pairs]] = True
 
     h, w = cfg.latent_hw
-    if cfg.layout.enabled:
+    if cfg.layout.enabled and layout is not None:
+        expected = (t, cfg.sensors.num_views, cfg.layout.channels, h, w)
+        if layout.shape != expected:
+            raise ValueError(f"layout must have shape {expected} for this config, got {layout.shape}")
+    elif cfg.layout.enabled:
         layout = layout_sequence(frames, bev, cfg.sensors.lidar, (h, w), cfg.layout.supersample)
     else:
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)

@@ -10,6 +10,13 @@ a rollout amplifies to 1e-5 m of LiDAR and flipped returns within a few steps). 
 :func:`split_rows` those ops run once per row block, with the very shapes a single rollout's call
 has; every other op (elementwise, softmax, norms over the last dim) is row-independent as it is.
 
+Large products are row-independent as they are, and run whole (splitting them cost a third of a
+vector step): a linear whose row blocks have at least :data:`MIN_CONSISTENT_GEMM_ROWS` rows, and a
+batched product of matrices with at least that many rows and columns (each matrix is multiplied
+alone, by a kernel chosen alike for one block and for all). ``benchmarks/row_independence.py
+--no-split`` shows which ops differ; ``tests/test_vector_equality.py`` holds a vector env's rows
+to its single envs' bit for bit.
+
 The tensors of a batched forward are laid out row-major: dim 0 is ``B * k`` with each rollout's
 ``k`` entries contiguous (``(B, ...)``, ``(B * V, ...)``, ``(B * T, ...)``), so a call's operands
 are cut along dim 0 into ``B`` equal blocks. Operands whose dim 0 is not a multiple of ``B``
@@ -45,6 +52,12 @@ ROW_DEPENDENT_OPS = frozenset(
 )
 
 
+# Fewer rows (or columns) a block than this, and a CPU GEMM may take another kernel for the block
+# alone than for the whole batch. Measured in float32: linears of 1-3 rows a rollout differ by
+# ~1e-6, and so do products of 224 x 16 by 16 x 9 matrices (cross-attention to 9 tokens); bf16
+# differed at no size. Self-attention and the DiT's linears (hundreds of tokens a rollout) run whole.
+MIN_CONSISTENT_GEMM_ROWS = 32
+
 # Ops whose operands after the first are all batched alike (matrices per row); for the others
 # only the first operand is (a linear's weight or a convolution's kernel is shared).
 _ALL_BATCHED = frozenset({torch.matmul, torch.Tensor.matmul, torch.Tensor.__matmul__, torch.bmm, torch.baddbmm})
@@ -68,8 +81,14 @@ class _SplitRows(TorchFunctionMode):
             i == 0 or (func in _ALL_BATCHED and isinstance(a, torch.Tensor) and a.ndim >= 3 and a.shape[0] == n)
             for i, a in enumerate(args)
         ]
-        if func in _ALL_BATCHED and first.ndim >= 3 and not all(batched[1:]) and args[1].ndim >= 3:
-            return func(*args, **kwargs)  # broadcast over dim 0: not a per-row product
+        matrices = func in _ALL_BATCHED and first.ndim >= 3 and args[1].ndim >= 3
+        large = matrices and min(first.shape[-2], args[1].shape[-1]) >= MIN_CONSISTENT_GEMM_ROWS
+        if matrices and (large or not all(batched[1:])):
+            return func(*args, **kwargs)  # broadcast, or products of large matrices, each alone
+        if func is F.linear or (func in _ALL_BATCHED and args[1].ndim < 3):  # one GEMM over every row of ``first``
+            rows_per_block = first.numel() // max(1, first.shape[-1]) // b
+            if rows_per_block >= MIN_CONSISTENT_GEMM_ROWS:
+                return func(*args, **kwargs)
         parts = [list(a.chunk(b)) if cut else [a] * b for a, cut in zip(args, batched, strict=True)]
         return torch.cat([func(*(p[i] for p in parts), **kwargs) for i in range(b)])
 

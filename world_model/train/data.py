@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import hashlib
+import json
+import multiprocessing
 import os
-from dataclasses import fields, replace
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, fields, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -18,12 +21,16 @@ from world_model.geometry import wrap_angle
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder
+from world_model.model.layout import layout_sequence
 from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.scene import SceneFrame
 
 NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
+# Fewer frames than this are rastered in-process: starting spawned workers costs about 2 s, the
+# raster a few ms a frame.
+LAYOUT_POOL_MIN_FRAMES = 2000
 
 
 def load_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
@@ -155,16 +162,83 @@ def cached_latents(clip: Clip, vae: SensorVAE, cache_dir: Path, vae_digest: str)
                 return lat
         except Exception:  # noqa: BLE001 - a corrupt cache entry is re-encoded
             pass
-    lat = vae.encode_frames(np.asarray(clip.cameras), np.asarray(clip.lidar, dtype=np.float32))
+    lat = vae.encode_frames(np.asarray(clip.cameras), np.asarray(clip.lidar, dtype=np.float32)).cpu()
     _write_latents(path, lat, vae_digest, key)
     return lat
 
 
-def _write_latents(path: Path, lat: torch.Tensor, vae_digest: str, clip_key: str) -> None:
+def layout_cache_dir(run_dir: str | Path) -> Path:
+    """The run's cache of the clips' layout rasters, beside the latent cache."""
+    return Path(run_dir) / "teacher" / "layouts"
+
+
+def layout_key(cfg: ModelConfig) -> str:
+    """What decides a clip's layout raster besides the clip: the layout settings, the LiDAR and the
+    latent resolution."""
+    blob = json.dumps([asdict(cfg.layout), asdict(cfg.sensors.lidar), list(cfg.latent_hw)], sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def _clip_layout(frames: list[SceneFrame], bev: np.ndarray, cfg: ModelConfig) -> np.ndarray:
+    return layout_sequence(frames, bev, cfg.sensors.lidar, cfg.latent_hw, cfg.layout.supersample)
+
+
+def cached_layouts(clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None) -> list | None:
+    """Each clip's layout raster (T, V, Cl, h, w) float32, computed once per run and stored in
+    ``cache_dir``; None when the config has no layout. The raster ray-casts every view of every
+    frame (a few ms a frame): a dataset's worth is computed by ``workers`` processes (default: every
+    core) and every later stage reads it back. The result is the same for any ``workers``."""
+    if not cfg.layout.enabled:
+        return None
+    key = layout_key(cfg)
+    out: list[np.ndarray | None] = [None] * len(clips)
+    missing = []
+    for i, clip in enumerate(clips):
+        path = cache_dir / f"{clip.name}.safetensors"
+        out[i] = _read_cached(path, {"layout": key, "clip": clip_fingerprint(clip)}, "layout")
+        if out[i] is None:
+            missing.append(i)
+    workers = min(workers or os.cpu_count() or 1, len(missing))
+    if workers > 1 and sum(clips[i].num_frames for i in missing) >= LAYOUT_POOL_MIN_FRAMES:
+        ctx = multiprocessing.get_context("spawn")  # no fork of a process that runs torch threads
+        with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
+            jobs = [pool.submit(_clip_layout, clips[i].frames, np.asarray(clips[i].bev), cfg) for i in missing]
+            computed = [job.result() for job in jobs]
+    else:
+        computed = [_clip_layout(clips[i].frames, np.asarray(clips[i].bev), cfg) for i in missing]
+    for i, layout in zip(missing, computed, strict=True):
+        meta = {"layout": key, "clip": clip_fingerprint(clips[i])}
+        _write_tensor(cache_dir / f"{clips[i].name}.safetensors", "layout", torch.from_numpy(layout), meta)
+        out[i] = layout
+    return out
+
+
+def _read_cached(path: Path, meta: dict[str, str], name: str) -> np.ndarray | None:
+    """The array ``name`` of cache entry ``path`` when its metadata holds ``meta``; None when it is
+    missing, stale or corrupt (then it is recomputed)."""
+    if not path.exists():
+        return None
+    try:
+        from safetensors import safe_open
+
+        with safe_open(str(path), "np") as f:
+            found = f.metadata() or {}
+            if any(found.get(k) != v for k, v in meta.items()):
+                return None
+            return f.get_tensor(name)
+    except Exception:  # noqa: BLE001 - a corrupt cache entry is recomputed
+        return None
+
+
+def _write_tensor(path: Path, name: str, value: torch.Tensor, meta: dict[str, str]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    save_file({"latents": lat.contiguous()}, str(tmp), metadata={"vae": vae_digest, "clip": clip_key})
+    save_file({name: value.contiguous()}, str(tmp), metadata=meta)
     os.replace(tmp, path)
+
+
+def _write_latents(path: Path, lat: torch.Tensor, vae_digest: str, clip_key: str) -> None:
+    _write_tensor(path, "latents", lat, {"vae": vae_digest, "clip": clip_key})
 
 
 class LatentWindows:
@@ -181,13 +255,23 @@ class LatentWindows:
         cfg: ModelConfig,
         text_encoder: TextEncoder,
         image_encoder: ImageDescriptionEncoder | None,
+        layouts: list[np.ndarray] | None = None,
     ) -> None:
+        """``layouts``: each clip's layout raster when computed already (:func:`cached_layouts`)."""
         self.clips, self.latents, self.cfg = clips, latents, cfg
+        layouts = layouts if layouts is not None else [None] * len(clips)
         self.arrays: list[ConditionArrays] = [
             build_condition_arrays(
-                c.frames, np.asarray(c.bev), cfg, text_encoder, image_encoder, c.crops, crop_since=c.crop_since
+                c.frames,
+                np.asarray(c.bev),
+                cfg,
+                text_encoder,
+                image_encoder,
+                c.crops,
+                crop_since=c.crop_since,
+                layout=lay,
             )
-            for c in clips
+            for c, lay in zip(clips, layouts, strict=True)
         ]
         self.lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)

@@ -8,6 +8,7 @@ config and metadata); the ``dmd`` and ``long`` stages also export their critic
 
 from __future__ import annotations
 
+import copy
 import json
 from pathlib import Path
 
@@ -19,7 +20,15 @@ from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.student.config import StudentConfig
-from world_model.train.data import LatentWindows, cached_latents, file_digest, latent_cache_dir, load_clips
+from world_model.train.data import (
+    LatentWindows,
+    cached_latents,
+    cached_layouts,
+    file_digest,
+    latent_cache_dir,
+    layout_cache_dir,
+    load_clips,
+)
 
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
 CRITIC = "critic"  # RUN/dmd/critic.safetensors + critic.json
@@ -82,14 +91,27 @@ def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str
     return vae, file_digest(path.with_suffix(".safetensors"))
 
 
-def latent_windows(clips: list, vae: SensorVAE, vae_digest: str, run_dir: Path, cfg: ModelConfig) -> LatentWindows:
-    """``clips`` encoded by ``vae`` (through the run's latent cache) with their conditions."""
-    latents = [cached_latents(c, vae, latent_cache_dir(run_dir), vae_digest) for c in clips]
-    return LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
+def latent_windows(
+    clips: list,
+    vae: SensorVAE,
+    vae_digest: str,
+    run_dir: Path,
+    cfg: ModelConfig,
+    device: torch.device | str = "cpu",
+) -> LatentWindows:
+    """``clips`` encoded by ``vae`` on ``device`` (through the run's latent cache) with their
+    conditions, their layout rasters from the run's layout cache."""
+    device = torch.device(device)
+    encoder = vae if device.type == "cpu" else copy.deepcopy(vae).to(device)
+    latents = [cached_latents(c, encoder, latent_cache_dir(run_dir), vae_digest) for c in clips]
+    layouts = cached_layouts(clips, cfg, layout_cache_dir(run_dir))
+    return LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae), layouts)
 
 
-def open_run_latents(data_dir: str | Path, run_dir: Path, cfg: ModelConfig, stage: str) -> LatentWindows:
-    """The dataset's clips in the run's VAE latents (encoded once, cached in the run) with their
-    conditions: what every stage after ``vae`` trains on."""
+def open_run_latents(
+    data_dir: str | Path, run_dir: Path, cfg: ModelConfig, stage: str, device: torch.device | str = "cpu"
+) -> LatentWindows:
+    """The dataset's clips in the run's VAE latents (encoded once on ``device``, cached in the run)
+    with their conditions: what every stage after ``vae`` trains on."""
     vae, digest = run_vae(run_dir, cfg, stage)
-    return latent_windows(load_clips(data_dir, cfg), vae, digest, run_dir, cfg)
+    return latent_windows(load_clips(data_dir, cfg), vae, digest, run_dir, cfg, device)

@@ -289,7 +289,7 @@ def lora_stage(
     lb = load_lora_base(base, run_dir, cfg)
     model, vae, digest = lb.model, lb.vae, lb.vae_digest
     clips, rare, ordinary = select_clips(run.data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
-    windows = latent_windows(clips, vae, digest, run_dir, cfg)
+    windows = latent_windows(clips, vae, digest, run_dir, cfg, run.place.device)
     sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
 
     extra_channels = model.cfg.dit.in_channels_extra

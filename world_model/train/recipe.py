@@ -5,7 +5,8 @@
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
 2. trains vae -> teacher -> tf -> ode -> dmd -> long -> reference into ``OUT/run`` through
    :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
-   scale's steps and batch size;
+   scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
+   bundle's own weights, from the rare object's clips (``OUT/data_rare``);
 3. writes the bundle (``OUT/bundle``) and a copy whose every file is at most ``--max-file-mib``
    (``OUT/bundle_parts``: larger files split into ``NAME.partNNN`` with ``SHA256SUMS``; rejoin
    with ``python -m world_model.train.recipe --join OUT/bundle_parts DEST``);
@@ -35,6 +36,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 CHAIN = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")
+# The long-tail adapters of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
+# name -> (component adapted, extra loss weight inside the rare object's boxes).
+RARE_CATEGORY = "tree_truck"
+ADAPTERS = {f"{RARE_CATEGORY}_completion": ("reference", 9.0), RARE_CATEGORY: ("student", 0.0)}
+PHASES = CHAIN + tuple(ADAPTERS)
 MIB = 1 << 20
 
 
@@ -53,21 +59,24 @@ class RecipeScale:
     seeds: int
     scenarios_per_process: int
     duration_s: float | None  # None: the scenarios' own durations
+    rare_episodes: int  # clips of the rare object's scenario with the object, for the adapters
     stages: dict[str, tuple[int, int]] = field(default_factory=dict)
     time_limit_s: float | None = None  # the whole recipe, recording included; None: no limit
 
 
 SCALES = {
-    # One H100/H200 in 9 minutes. 216 clips as the shipped checkpoint's dataset: recording runs at
-    # about 150 frames/s per core (default preset), so 18 processes on 16 cores take well under a
-    # minute. A teacher step takes 0.11 s at batch 4 and at batch 64 alike (the default preset is
-    # kernel-launch bound there), so each stage runs at a large batch for its share of the time.
+    # One H100/H200 in 9 minutes. 216 clips of 20 s as the shipped checkpoint's dataset (about 8 GB):
+    # recording runs at about 150 frames/s per core (default preset), so 18 processes on 16 cores
+    # take well under a minute; the layout rasters are computed once, on every core. A teacher step
+    # takes 0.11 s at batch 4 and at batch 64 alike (the default preset is kernel-launch bound
+    # there), so each stage runs at a large batch for its share of the time.
     "gpu": RecipeScale(
         preset="default",
         episodes=12,
         seeds=2,
         scenarios_per_process=1,
-        duration_s=None,
+        duration_s=20.0,
+        rare_episodes=5,
         stages={
             "vae": (4000, 64),
             "teacher": (5000, 64),
@@ -76,6 +85,7 @@ SCALES = {
             "dmd": (300, 8),
             "long": (100, 8),
             "reference": (1500, 32),
+            "lora": (1500, 32),
         },
         time_limit_s=540.0,
     ),
@@ -86,7 +96,8 @@ SCALES = {
         seeds=1,
         scenarios_per_process=9,
         duration_s=0.6,
-        stages={stage: (2, 2) for stage in CHAIN},
+        rare_episodes=1,
+        stages={stage: (2, 2) for stage in (*CHAIN, "lora")},
     ),
 }
 
@@ -101,7 +112,19 @@ RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
 EXCLUDED_CATEGORIES = ("tree_truck",)
 # Each stage's share of the training time under a time limit: about the split of the shipped
 # checkpoint's CPU training (docs/MODEL_CARD.md), the teacher the largest.
-TIME_SHARES = {"vae": 0.14, "teacher": 0.36, "tf": 0.14, "ode": 0.08, "dmd": 0.1, "long": 0.06, "reference": 0.12}
+TIME_SHARES = {
+    "vae": 0.14,
+    "teacher": 0.36,
+    "tf": 0.14,
+    "ode": 0.08,
+    "dmd": 0.1,
+    "long": 0.06,
+    "reference": 0.12,
+    f"{RARE_CATEGORY}_completion": 0.05,
+    RARE_CATEGORY: 0.05,
+}
+# The rare clips: the scenario with the rare object, at the base seed the shipped adapters used.
+RARE_SCENARIO, RARE_SEED = "tree_truck_highway", 7
 # Kept from the time limit for what follows the last stage's training: its export and the bundle.
 BUNDLE_RESERVE_S = 15.0
 
@@ -128,10 +151,12 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
 
     def one(job: tuple[list[str], int]) -> None:
         scenarios, base_seed = job
-        cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(out)]
-        cmd += ["--episodes", str(scale.episodes), "--preset", scale.preset, "--seed", str(base_seed)]
+        rare = base_seed == RARE_SEED
+        folder, episodes = (rare_dir(out), scale.rare_episodes) if rare else (out, scale.episodes)
+        cmd = [sys.executable, "-m", "m4world_env.cli", "record", "--scenario", *scenarios, "--out", str(folder)]
+        cmd += ["--episodes", str(episodes), "--preset", scale.preset, "--seed", str(base_seed)]
         cmd += ["--styles", *RECORD_STYLES, "--action-type", "continuous"]
-        for category in EXCLUDED_CATEGORIES:
+        for category in () if rare else EXCLUDED_CATEGORIES:
             cmd += ["--exclude-category", category]
         if scale.duration_s is not None:
             cmd += ["--duration", str(scale.duration_s)]
@@ -142,10 +167,36 @@ def record_clips(out: Path, scale: RecipeScale, workers: int, seed: int) -> int:
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         names, n = list_scenarios(), scale.scenarios_per_process
         groups = [names[i : i + n] for i in range(0, len(names), n)]
-        list(pool.map(one, [(g, seed + k) for g in groups for k in range(scale.seeds)]))
+        jobs = [([RARE_SCENARIO], RARE_SEED)] + [(g, seed + k) for g in groups for k in range(scale.seeds)]
+        list(pool.map(one, jobs))
     from world_model.data.clips import sort_index
 
+    sort_index(rare_dir(out))
     return len(sort_index(out))
+
+
+def rename_adapter(adapter: Path, name: str) -> Path:
+    """Move the adapter folder ``adapter`` (``RUN/lora/<case>``) to ``RUN/lora/<name>`` under that
+    name, its category (``train.case``) kept; replaces an older one of that name."""
+    import shutil
+
+    from world_model.data.clips import write_json_atomic
+    from world_model.lora import seal_adapter
+
+    meta_path = adapter / "adapter.json"
+    meta = json.loads(meta_path.read_text())
+    meta["name"] = name
+    write_json_atomic(meta_path, meta)
+    target = adapter.with_name(name)
+    if target.exists():
+        shutil.rmtree(target)
+    adapter.rename(target)
+    return seal_adapter(target)
+
+
+def rare_dir(data: Path) -> Path:
+    """The rare object's clips, beside the training clips (``data``)."""
+    return data.with_name(data.name + "_rare")
 
 
 def split_files(src: Path, dest: Path, max_bytes: int) -> list[Path]:
@@ -225,13 +276,29 @@ def run_recipe(
     data.mkdir(exist_ok=True)
     times, losses, steps_done = {}, {}, {}
     t0 = time.perf_counter()
+
+    def say(message: str) -> None:  # the phases as they start: a run cut short shows where it was
+        print(f"[{time.perf_counter() - t0:6.1f} s] {message}", flush=True)
+
+    say(f"recording {spec.episodes * spec.seeds} clips per scenario into {data}")
     clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
     times["record"] = time.perf_counter() - t0
     config = recipe_config(spec.preset)
-    for k, stage in enumerate(CHAIN):
+    bundle = out / "bundle"
+    for k, phase in enumerate(PHASES):
+        stage = phase if phase in CHAIN else "lora"
         steps, batch = spec.stages[stage]
         t = time.perf_counter()
-        limit = stage_time_limit(spec, CHAIN[k:], t - t0)
+        limit = stage_time_limit(spec, PHASES[k:], t - t0)
+        say(f"{phase}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s of training" if limit else ""))
+        options = {}
+        if phase in ADAPTERS:
+            if phase == PHASES[len(CHAIN)]:  # the adapters adapt the bundle's own (bf16-stored) weights
+                export_bundle(run, bundle)
+            component, box_weight = ADAPTERS[phase]
+            base = bundle / "reference.safetensors" if component == "reference" else bundle
+            options = {"case": RARE_CATEGORY, "case_data": rare_dir(data), "base": str(base)}
+            options["lora_box_weight"] = box_weight
         summary = train_stage(
             stage,
             data,
@@ -244,15 +311,15 @@ def run_recipe(
             config=config,
             device=device,
             time_limit_s=limit,
+            **options,
         )
-        times[stage], losses[stage] = time.perf_counter() - t, summary["final_loss"]
-        steps_done[stage] = summary["step"]
-        if progress:
-            print(
-                f"{stage}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[stage]:.0f} s", flush=True
-            )
+        if phase in ADAPTERS and phase != RARE_CATEGORY:
+            rename_adapter(Path(summary["stage_dir"]), phase)
+        times[phase], losses[phase] = time.perf_counter() - t, summary["final_loss"]
+        steps_done[phase] = summary["step"]
+        say(f"{phase}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[phase]:.0f} s")
     t = time.perf_counter()
-    bundle = export_bundle(run, out / "bundle")
+    bundle = export_bundle(run, bundle)  # the same weights, now with run/lora/ as its adapters
     parts = split_files(bundle, out / "bundle_parts", int(max_file_mib * MIB))
     times["bundle"] = time.perf_counter() - t
     summary = {

@@ -55,7 +55,7 @@ class StageRun:
         encodes the clips missing from the cache first, and the other ranks then read them."""
         if not self.place.is_main:
             self.place.barrier()
-        windows = open_run_latents(self.data_dir, self.run_dir, self.cfg, stage)
+        windows = open_run_latents(self.data_dir, self.run_dir, self.cfg, stage, self.place.device)
         if self.place.is_main:
             self.place.barrier()
         return windows
