@@ -26,6 +26,7 @@ from world_model.eval.crops import CropConfig, ObjectCrop, extract_crops, group_
 from world_model.eval.judge import CnnJudge, JudgeBackend, load_default_judge
 from world_model.eval.metrics import (
     ChangeSums,
+    ConfusionSums,
     JumpSums,
     chamfer_distance,
     chunk_jumps,
@@ -33,21 +34,24 @@ from world_model.eval.metrics import (
     frechet_features,
     lagged_change,
     lidar_range_mae,
+    lidar_region_errors,
     long_horizon_ratio,
     masked_psnr,
-    masked_range_mae,
     motion_ratio,
     per_second_curve,
     psnr,
     ssim,
 )
 from world_model.eval.questions import QUESTION_TYPES
+from world_model.eval.scene_iou import SceneIoU, pool_scene_iou, scene_iou, scene_labels
+from world_model.eval.segmenter import SCENE_CLASSES, Segmenter, load_default_segmenter
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
 # Part of a cached row's key: bump when rows or scoring change (3: bf16 camera decoding; 4: chunk
-# jumps; 5: per-clip chunk jumps; 6: object-region PSNR and LiDAR MAE; 7: motion).
-REPORT_VERSION = 7
+# jumps; 5: per-clip chunk jumps; 6: object-region PSNR and LiDAR MAE; 7: motion; 8: scene IoU
+# and road LiDAR MAE).
+REPORT_VERSION = 8
 
 
 @dataclass
@@ -64,6 +68,8 @@ class Generated:
 
 
 RowFn = Callable[[Clip], Generated]
+# The scene classes whose IoU Table 1 shows (every class is in the row's ``scene_iou``).
+HEADLINE_IOU = ("road", "marking", "vehicle")
 T = TypeVar("T")
 
 
@@ -78,6 +84,7 @@ class ReportConfig:
     psnr_cap_db: float = 100.0  # identical frames (PSNR inf) count as this when averaged
     long_window_s: int = 10  # long-horizon ratio: last vs first window, seconds
     motion_lag_s: float = 1.0  # motion scores: change between frames this far apart, seconds
+    scene_frame_stride: int = 5  # scene IoU: the segmenter labels every k-th frame
 
 
 def oracle_row(clip: Clip) -> Generated:
@@ -206,15 +213,17 @@ def evaluate_rows(
     config: ReportConfig = ReportConfig(),
     cache_dir: str | Path | None = None,
     row_ids: dict[str, str] | None = None,
+    segmenter: Segmenter | None = None,
 ) -> dict:
     """Score every row on every clip. Returns a JSON-ready report: per row ``table1`` (Fréchet
     distances, PSNR, SSIM, LiDAR MAE / Chamfer), ``table2`` (yes-frequencies), ``per_category`` and,
     for clips of at least twice ``long_window_s`` seconds, ``long_horizon`` PSNR curves and ratios.
 
     ``judge`` answers the questions (default: the shipped CNN judge); its ``frame_features`` feed
-    the Fréchet distances (a backend without them gets None there). A row given as a sequence of
-    generators is one model under several noise seeds: each is scored and the row holds their mean
-    (:func:`average_seeds`: ``seeds`` and each score's ``spread``).
+    the Fréchet distances (a backend without them gets None there). ``segmenter`` labels the rows'
+    camera pixels for the scene IoU against the recordings' label maps (default: the shipped one).
+    A row given as a sequence of generators is one model under several noise seeds: each is scored
+    and the row holds their mean (:func:`average_seeds`: ``seeds`` and each score's ``spread``).
 
     Rows take minutes to hours, so with ``cache_dir`` each finished row is written there
     (``<row>.json``, atomically) under a key made of ``row_ids[row]`` (what generates it: model
@@ -225,20 +234,43 @@ def evaluate_rows(
     if not rows or not clips:
         raise ValueError("evaluate_rows needs at least one row and one clip")
     judge = judge if judge is not None else load_default_judge()
+    segmenter = segmenter if segmenter is not None else load_default_segmenter()
     features = getattr(judge, "frame_features", None)
     gt_feats = [features(np.asarray(c.cameras)) for c in clips] if features else []
+    gt = GroundTruth(gt_feats, [_scene_labels(c, config) for c in clips], segmenter)
     report: dict = {"rows": {}, "clips": [c.name for c in clips], "config": config.__dict__}
     for row, fns in rows.items():
         rid = (row_ids or {}).get(row)
         if isinstance(fns, Sequence):  # one model under several noise seeds: scored each, then averaged
             results = [
-                _scored_row(row, fn, clips, judge, config, gt_feats, cache_dir, _seed_id(rid, k), f".seed{k}")
+                _scored_row(row, fn, clips, judge, config, gt, cache_dir, _seed_id(rid, k), f".seed{k}")
                 for k, fn in enumerate(fns)
             ]
             report["rows"][row] = average_seeds(results)
         else:
-            report["rows"][row] = _scored_row(row, fns, clips, judge, config, gt_feats, cache_dir, rid, "")
+            report["rows"][row] = _scored_row(row, fns, clips, judge, config, gt, cache_dir, rid, "")
     return report
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """What every row is scored against, computed once per report: the judge's frame features of
+    each clip's recording (empty when the judge has none), each clip's scene label maps at the
+    scored frames (:func:`_scene_labels`) and the segmenter that labels the rows' pixels."""
+
+    features: Sequence[np.ndarray]
+    scene_labels: Sequence[np.ndarray]
+    segmenter: Segmenter
+
+
+def _scene_labels(clip: Clip, config: ReportConfig) -> np.ndarray:
+    """(T, V, H, W) scene class ids of the recording's every ``scene_frame_stride``-th frame (the
+    frames :func:`scene_iou` reads; the others stay 0)."""
+    t, v, h, w = clip.cameras.shape[:4]
+    labels = np.zeros((t, v, h, w), np.uint8)
+    idx = list(range(0, t, config.scene_frame_stride))
+    labels[idx] = scene_labels([clip.frames[i] for i in idx], h, w)
+    return labels
 
 
 def _seed_id(row_id: str | None, index: int) -> str | None:
@@ -251,14 +283,14 @@ def _scored_row(
     clips: Sequence[Clip],
     judge: JudgeBackend,
     config: ReportConfig,
-    gt_feats: Sequence[np.ndarray],
+    gt: GroundTruth,
     cache_dir: str | Path | None,
     rid: str | None,
     suffix: str,
 ) -> dict:
     """:func:`score_row`, reused from / written to ``cache_dir`` under ``rid`` (see :func:`evaluate_rows`)."""
     cache = Path(cache_dir) / f"{row}{suffix}.json" if cache_dir is not None and rid is not None else None
-    key = row_cache_key(rid, clips, config, judge) if cache is not None else None
+    key = row_cache_key(rid, clips, config, judge, gt.segmenter) if cache is not None else None
     if cache is not None and cache.exists():
         saved = json.loads(cache.read_text())
         if saved.get("key") == key:
@@ -266,7 +298,7 @@ def _scored_row(
             return saved["result"]
     t0 = time.perf_counter()
     log.info("report row %s%s: generating and scoring %d clips", row, suffix, len(clips))
-    result = score_row(row, fn, clips, judge, config, gt_feats)
+    result = score_row(row, fn, clips, judge, config, gt)
     log.info("report row %s%s: done in %.0f s", row, suffix, time.perf_counter() - t0)
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -296,13 +328,17 @@ def average_seeds(results: Sequence[dict]) -> dict:
         raise ValueError("average_seeds needs at least one seeded result")
     out = _mean_leaves(list(results), spread=False)
     out["seeds"] = len(results)
-    out["spread"] = {k: _mean_leaves([r[k] for r in results], spread=True) for k in ("table1", "table2", "per_view")
+    out["spread"] = {k: _mean_leaves([r[k] for r in results], spread=True)
+                     for k in ("table1", "table2", "per_view", "scene_iou")
                      if all(k in r for r in results)}  # fmt: skip
     return out
 
 
-def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
-    """Identity of one row's scores: generator id, clips (name + recording fingerprint), config, judge."""
+def row_cache_key(
+    row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend, segmenter: Segmenter
+) -> str:
+    """Identity of one row's scores: generator id, clips (name + recording fingerprint), config,
+    judge and segmenter."""
     blob = json.dumps(
         [
             REPORT_VERSION,
@@ -310,10 +346,20 @@ def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judg
             [(c.name, clip_fingerprint(c)) for c in clips],
             config.__dict__,
             judge_identity(judge),
+            segmenter_identity(segmenter),
         ],
         sort_keys=True,
     )
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def segmenter_identity(segmenter: Segmenter) -> str:
+    """Digest of the segmenter's weights."""
+    h = hashlib.sha256()
+    for name, tensor in sorted(segmenter.net.state_dict().items()):
+        h.update(name.encode())
+        h.update(tensor.detach().float().contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
 
 
 def judge_identity(judge: JudgeBackend) -> str:
@@ -334,10 +380,10 @@ def score_row(
     clips: Sequence[Clip],
     judge: JudgeBackend,
     config: ReportConfig,
-    gt_feats: Sequence[np.ndarray],
+    truth: GroundTruth,
 ) -> dict:
-    """One row of the report (see :func:`evaluate_rows`); ``gt_feats``: the judge's frame features
-    of each clip's ground truth (empty when the judge has none)."""
+    """One row of the report (see :func:`evaluate_rows`), scored against ``truth``."""
+    gt_feats = truth.features
     features = getattr(judge, "frame_features", None)
     crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
     sim = ProceduralSimulator()
@@ -345,6 +391,8 @@ def score_row(
     psnrs, ssims, maes, maes_first_s, chamfers, feats = [], [], [], [], [], []
     obj_psnrs: list[float] = []  # per scored frame with objects in view: PSNR over their pixels
     obj_maes: list[float] = []  # per scored frame with object returns: range MAE over those rays
+    road_maes: list[float] = []  # per scored frame: range MAE over the recording's other returns
+    scene: list[SceneIoU] = []  # per clip
     long_curves = []
     clip_jump_sums: list[dict[str, dict[str, JumpSums]]] = []  # per clip: sensor -> generated / recording
     clip_jump_scores = []
@@ -376,9 +424,14 @@ def score_row(
             chamfers += [chamfer_distance(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec,
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride)]  # fmt: skip
-        clip_obj_psnrs, clip_obj_maes = object_scores(gen, clip, sim, config)
+        clip_obj_psnrs, clip_obj_maes, clip_road_maes = object_scores(gen, clip, sim, config)
         obj_psnrs += clip_obj_psnrs
         obj_maes += clip_obj_maes
+        road_maes += clip_road_maes
+        scene.append(
+            scene_iou(gen.cameras, truth.scene_labels[ci], clip.fps, truth.segmenter, config.long_window_s,
+                      config.scene_frame_stride)
+        )  # fmt: skip
         clip_motion = motion_sums_of(gen, clip, config)
         for sensor, sides in clip_motion.items():
             for side, sums in sides.items():
@@ -400,7 +453,16 @@ def score_row(
         "lidar_chamfer_m": float(np.mean(chamfers)) if chamfers else None,
         "object_psnr_db": float(np.mean(obj_psnrs)) if obj_psnrs else None,
         "lidar_object_mae_m": float(np.mean(obj_maes)) if obj_maes else None,
+        "lidar_road_mae_m": float(np.mean(road_maes)) if road_maes else None,
     }
+    pooled = pool_scene_iou(scene)
+    overall = sum(pooled.per_second, ConfusionSums.zeros(len(SCENE_CLASSES)))
+    table1 |= {f"{c}_iou": v for c, v in zip(SCENE_CLASSES, overall.iou(), strict=True) if c in HEADLINE_IOU}
+    long_clips = [
+        (clip, r)
+        for clip, r in zip(clips, scene, strict=True)
+        if clip.num_frames / clip.fps >= 2 * config.long_window_s
+    ]
     if features:
         sl = slice(None, None, config.frame_stride)
         table1["frechet_judge_frame"] = frechet_features(
@@ -429,19 +491,29 @@ def score_row(
         "per_view": per_view(answers),
         "answers": len(answers),
         "long_horizon": long_curves,
+        "scene_iou": {
+            "overall": dict(zip(SCENE_CLASSES, overall.iou(), strict=True)),
+            "per_second": pooled.per_second_iou(),
+            "last_window_long_clips": pool_scene_iou([r for _, r in long_clips]).last_window_iou()
+            if long_clips
+            else None,
+            "per_clip": [{"clip": c.name, "per_second": r.per_second_iou()} for c, r in zip(clips, scene, strict=True)],
+        },
     }
 
 
 def object_scores(
     gen: Generated, clip: Clip, sim: ProceduralSimulator, config: ReportConfig
-) -> tuple[list[float], list[float]]:
+) -> tuple[list[float], list[float], list[float]]:
     """Does the row keep the recording's objects? Per scored frame of one clip: the PSNR over the
     pixels where the recording's objects are visible (every ``frame_stride``-th frame with one in
-    view) and the range MAE over its object returns (every ``lidar_stride``-th frame with any). A
-    row that paints road where the vehicles were scores low on both though the whole frame barely
-    changes (objects cover ~3 % of the pixels and ~4 % of the rays)."""
+    view), the range MAE over its object returns and, apart, over its other returns (the road and
+    the ground; every ``lidar_stride``-th frame). A row that paints road where the vehicles were
+    scores low on the object scores though the whole frame barely changes (objects cover ~3 % of
+    the pixels and ~4 % of the rays); one that loses the road plane, on the road MAE."""
     psnrs: list[float] = []
     maes: list[float] = []
+    road_maes: list[float] = []
     cams = np.asarray(clip.cameras)
     for f in range(clip.num_frames):
         on_cams, on_lidar = f % config.frame_stride == 0, gen.lidar is not None and f % config.lidar_stride == 0
@@ -450,9 +522,13 @@ def object_scores(
         cam_mask, lidar_mask = sim.object_masks(clip.frames[f])
         if on_cams and (p := masked_psnr(gen.cameras[f], cams[f], cam_mask)) is not None:
             psnrs.append(min(p, config.psnr_cap_db))
-        if on_lidar and (m := masked_range_mae(_ranges(gen.lidar, f), _ranges(clip.lidar, f), lidar_mask)) is not None:
-            maes.append(m)
-    return psnrs, maes
+        if on_lidar:
+            errors = lidar_region_errors(
+                _ranges(gen.lidar, f), _ranges(clip.lidar, f), lidar_mask, clip.frames[f].lidar
+            )
+            maes += [] if errors.objects_m is None else [errors.objects_m]
+            road_maes += [] if errors.road_m is None else [errors.road_m]
+    return psnrs, maes, road_maes
 
 
 def per_sensor(gen: Generated, clip: Clip, score: Callable[[np.ndarray], T]) -> dict[str, dict[str, T]]:
@@ -562,6 +638,8 @@ def format_markdown(report: dict) -> str:
         "lidar_chamfer_m",
         "object_psnr_db",
         "lidar_object_mae_m",
+        "lidar_road_mae_m",
+        *(f"{c}_iou" for c in HEADLINE_IOU),
         "chunk_jump_cameras",
         "chunk_jump_lidar",
         "motion_cameras",
@@ -577,6 +655,7 @@ def format_markdown(report: dict) -> str:
         lines.append(f"| {row} | " + " | ".join(_fmt(r["table2"][q]) for q in QUESTION_TYPES) + " |")
     lines += existence_by_category(report)
     lines += scene_by_view(report)
+    lines += scene_iou_by_second(report)
     long_rows = [(row, c) for row, r in report["rows"].items() for c in r.get("long_horizon", [])]
     if long_rows:
         w = report.get("config", {}).get("long_window_s", "?")
@@ -589,6 +668,26 @@ def format_markdown(report: dict) -> str:
     lines += chunk_jumps_per_clip(report)
     lines += quality_bars(report)
     return "\n".join(lines) + "\n"
+
+
+def scene_iou_by_second(report: dict) -> list[str]:
+    """Markdown: each row's scene IoU (road, marking, vehicle) per second, pooled over the clips
+    that last that long, and over the last window of the long clips: a rollout that loses its road
+    shows it here at the second it happens."""
+    rows = {row: r["scene_iou"] for row, r in report["rows"].items() if r.get("scene_iou")}
+    if not rows:
+        return []
+    seconds = max(len(v["per_second"]) for v in rows.values())
+    w = report.get("config", {}).get("long_window_s", "?")
+    out = ["", "### Scene IoU per second (segmenter on the generated views against the recording's labels)", ""]
+    out += ["| row | class | " + " | ".join(f"{k}s" for k in range(seconds)) + f" | last {w} s (long clips) |"]
+    out += ["|---" * (seconds + 3) + "|"]
+    for row, v in rows.items():
+        for c in HEADLINE_IOU:
+            per_s = [_fmt(s.get(c), 2) for s in v["per_second"]] + [""] * (seconds - len(v["per_second"]))
+            last = _fmt((v["last_window_long_clips"] or {}).get(c), 2)
+            out.append(f"| {row} | {c} | " + " | ".join(per_s) + f" | {last} |")
+    return out
 
 
 def chunk_jumps_per_clip(report: dict, reference: str = "student") -> list[str]:
@@ -654,6 +753,29 @@ QUALITY_RATIOS = {"existence": 0.8, "weather": 0.85, "time_of_day": 0.85}  # x O
 FIDELITY_MARGIN = 0.30  # visual/textual fidelity above the geometry-only baseline
 LONG_TOLERANCE = 0.20  # last vs first long-horizon window
 LIDAR_FIRST_S_MAX_M = 2.0
+# x the autoencoder row's scene IoU (the recording through the VAE), per second of every clip
+SCENE_IOU_RATIOS = {"road": 0.8, "vehicle": 0.5}
+
+
+def scene_iou_bar(rows: dict, model: str, scene_class: str, bar: float) -> tuple[str, bool | None]:
+    """The worst second, over every clip, of ``model``'s IoU of ``scene_class`` against the
+    autoencoder row's at the same second: (what was measured, met?). Seconds where the autoencoder
+    row never sees the class do not count; not measured without an autoencoder row."""
+    ceiling = rows.get("autoencoder", {}).get("scene_iou")
+    mine = rows[model].get("scene_iou")
+    if ceiling is None or mine is None:
+        return "", None
+    worst: tuple[float, str] | None = None
+    for ours, theirs in zip(mine["per_clip"], ceiling["per_clip"], strict=True):
+        for k, (a, b) in enumerate(zip(ours["per_second"], theirs["per_second"], strict=True)):
+            top = b.get(scene_class)
+            if top:
+                ratio = (a.get(scene_class) or 0.0) / top
+                if worst is None or ratio < worst[0]:
+                    worst = (ratio, f"{ours['clip']} second {k}")
+    if worst is None:
+        return "", None
+    return f"worst {_fmt(worst[0])} x ({worst[1]})", worst[0] >= bar
 
 
 def quality_bars(report: dict, model: str = "student") -> list[str]:
@@ -726,6 +848,8 @@ def quality_bars(report: dict, model: str = "student") -> list[str]:
         ok = abs(pr - 1) <= LONG_TOLERANCE and (fr is None or fr <= 1 + LONG_TOLERANCE)
         bar = f"{c['clip']}: last vs first window within {LONG_TOLERANCE:.0%} (PSNR, Fréchet)"
         add(bar, None, f"{_fmt(pr)}, {_fmt(fr)}", ok)
+    for c, bar in SCENE_IOU_RATIOS.items():
+        add(f"{c} IoU ≥ {bar} x autoencoder at every second of every clip", None, *scene_iou_bar(rows, model, c, bar))
     mae = rows[model]["table1"].get("lidar_range_mae_first_s_m")
     ok = None if mae is None else mae <= LIDAR_FIRST_S_MAX_M
     add(f"LiDAR range MAE first second ≤ {LIDAR_FIRST_S_MAX_M} m", None, _fmt(mae), ok)
