@@ -392,7 +392,7 @@ def score_row(
     obj_psnrs: list[float] = []  # per scored frame with objects in view: PSNR over their pixels
     obj_maes: list[float] = []  # per scored frame with object returns: range MAE over those rays
     road_maes: list[float] = []  # per scored frame: range MAE over the recording's other returns
-    scene: list[SceneIoU] = []  # per clip
+    scene: list[tuple[Clip, SceneIoU]] = []  # per clip of at least a second
     long_curves = []
     clip_jump_sums: list[dict[str, dict[str, JumpSums]]] = []  # per clip: sensor -> generated / recording
     clip_jump_scores = []
@@ -428,10 +428,9 @@ def score_row(
         obj_psnrs += clip_obj_psnrs
         obj_maes += clip_obj_maes
         road_maes += clip_road_maes
-        scene.append(
-            scene_iou(gen.cameras, truth.scene_labels[ci], clip.fps, truth.segmenter, config.long_window_s,
-                      config.scene_frame_stride)
-        )  # fmt: skip
+        if clip.num_frames >= round(clip.fps):  # the scene IoU pools whole seconds
+            scene.append((clip, scene_iou(gen.cameras, truth.scene_labels[ci], clip.fps, truth.segmenter,
+                                          config.long_window_s, config.scene_frame_stride)))  # fmt: skip
         clip_motion = motion_sums_of(gen, clip, config)
         for sensor, sides in clip_motion.items():
             for side, sums in sides.items():
@@ -455,14 +454,9 @@ def score_row(
         "lidar_object_mae_m": float(np.mean(obj_maes)) if obj_maes else None,
         "lidar_road_mae_m": float(np.mean(road_maes)) if road_maes else None,
     }
-    pooled = pool_scene_iou(scene)
-    overall = sum(pooled.per_second, ConfusionSums.zeros(len(SCENE_CLASSES)))
-    table1 |= {f"{c}_iou": v for c, v in zip(SCENE_CLASSES, overall.iou(), strict=True) if c in HEADLINE_IOU}
-    long_clips = [
-        (clip, r)
-        for clip, r in zip(clips, scene, strict=True)
-        if clip.num_frames / clip.fps >= 2 * config.long_window_s
-    ]
+    scene_json = scene_iou_scores(scene, config)
+    overall = scene_json["overall"] if scene_json else {}
+    table1 |= {f"{c}_iou": overall.get(c) for c in HEADLINE_IOU}
     if features:
         sl = slice(None, None, config.frame_stride)
         table1["frechet_judge_frame"] = frechet_features(
@@ -491,14 +485,24 @@ def score_row(
         "per_view": per_view(answers),
         "answers": len(answers),
         "long_horizon": long_curves,
-        "scene_iou": {
-            "overall": dict(zip(SCENE_CLASSES, overall.iou(), strict=True)),
-            "per_second": pooled.per_second_iou(),
-            "last_window_long_clips": pool_scene_iou([r for _, r in long_clips]).last_window_iou()
-            if long_clips
-            else None,
-            "per_clip": [{"clip": c.name, "per_second": r.per_second_iou()} for c, r in zip(clips, scene, strict=True)],
-        },
+        "scene_iou": scene_json,
+    }
+
+
+def scene_iou_scores(scene: Sequence[tuple[Clip, SceneIoU]], config: ReportConfig) -> dict | None:
+    """A row's ``scene_iou`` from its clips' (those of at least a second): per class overall, per
+    second pooled over the clips that last that long, over the last window of the long clips, and
+    per clip; None without a clip of a second."""
+    if not scene:
+        return None
+    pooled = pool_scene_iou([r for _, r in scene])
+    overall = sum(pooled.per_second, ConfusionSums.zeros(len(SCENE_CLASSES)))
+    long_clips = [r for clip, r in scene if clip.num_frames / clip.fps >= 2 * config.long_window_s]
+    return {
+        "overall": dict(zip(SCENE_CLASSES, overall.iou(), strict=True)),
+        "per_second": pooled.per_second_iou(),
+        "last_window_long_clips": pool_scene_iou(long_clips).last_window_iou() if long_clips else None,
+        "per_clip": [{"clip": c.name, "per_second": r.per_second_iou()} for c, r in scene],
     }
 
 
