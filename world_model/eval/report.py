@@ -356,10 +356,15 @@ def row_cache_key(
 def segmenter_identity(segmenter: Segmenter) -> str:
     """Digest of the segmenter's weights."""
     h = hashlib.sha256()
-    for name, tensor in sorted(segmenter.net.state_dict().items()):
+    _add_weights(h, segmenter.net)
+    return h.hexdigest()[:16]
+
+
+def _add_weights(h: hashlib._Hash, net: Any) -> None:
+    """Feed every named tensor of ``net``'s state dict (an ``nn.Module``) into the digest ``h``."""
+    for name, tensor in sorted(net.state_dict().items()):
         h.update(name.encode())
         h.update(tensor.detach().float().contiguous().numpy().tobytes())
-    return h.hexdigest()[:16]
 
 
 def judge_identity(judge: JudgeBackend) -> str:
@@ -368,9 +373,7 @@ def judge_identity(judge: JudgeBackend) -> str:
         return type(judge).__qualname__
     h = hashlib.sha256(json.dumps(judge.thresholds.__dict__, sort_keys=True, default=str).encode())
     for net in (judge.crop_net, judge.scene_net):
-        for name, tensor in sorted(net.state_dict().items()):
-            h.update(name.encode())
-            h.update(tensor.detach().float().contiguous().numpy().tobytes())
+        _add_weights(h, net)
     return h.hexdigest()[:16]
 
 
