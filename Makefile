@@ -14,7 +14,7 @@ $(PY):
 
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q $(TORCH_PIN)
-	$(PY) -m pip install -q -e ".[dev,text,lora,rl,video,nuscenes]"
+	$(PY) -m pip install -q -e ".[dev,text,lora,rl,video,cluster,nuscenes]"
 	$(PY) -m pip install -q --no-deps nuscenes-devkit==1.2.0
 	touch $(STAMP)
 
