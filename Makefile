@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 # CPU build of torch first: a plain `torch` requirement would pull several GB of CUDA wheels.
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare
+.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare segmenter
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -14,7 +14,7 @@ $(PY):
 
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install -q $(TORCH_PIN)
-	$(PY) -m pip install -q -e ".[dev,text,lora,rl,video,nuscenes]"
+	$(PY) -m pip install -q -e ".[dev,text,lora,rl,video,cluster,nuscenes]"
 	$(PY) -m pip install -q --no-deps nuscenes-devkit==1.2.0
 	touch $(STAMP)
 
@@ -66,6 +66,18 @@ gpu-check:
 gpu-check-prepare: install
 	$(VENV)/bin/m4world text-embeddings --scenario highway_sunny_day tree_truck_highway --episodes 64 --steps 60 \
 	  --out $(GPU_TEXT_EMBEDDINGS)
+
+# The scene-IoU segmenter (docs/evaluation.md): training clips (seed 0), held-out clips of other seeds
+# (500), the evaluation set for the oracle figure; weights and segmenter.json into the package's assets.
+SEG_DATA ?= data/segmenter
+segmenter: install
+	$(VENV)/bin/m4world record --scenario all --episodes 8 --preset default --duration 20 --seed 0 \
+	  --styles steady speed_changes lane_changes weaving --out $(SEG_DATA)/train
+	$(VENV)/bin/m4world record --scenario all --episodes 2 --preset default --duration 20 --seed 500 \
+	  --styles steady lane_changes --out $(SEG_DATA)/heldout
+	$(VENV)/bin/m4world evalset --out data/evalset
+	$(PY) -m world_model.eval.train_segmenter --data $(SEG_DATA)/train --heldout $(SEG_DATA)/heldout \
+	  --evalset data/evalset --work runs/segmenter --out world_model/assets/segmenter
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -173,22 +173,37 @@ def _check_out(path: str | None, kind: str, option: str = "--out") -> None:
 
 def _cmd_eval(args: argparse.Namespace) -> int:
     _check_out(args.out, "folder" if args.report else "file")
+    if args.report and args.ray is not None:
+        raise ValueError("--report scores the world model on one machine; --ray runs policy episodes only")
     if args.report:
         return _cmd_report(args)
     from m4world_env.evaluate import evaluate, format_table, write_report
     from m4world_env.scenario import list_scenarios
 
+    if args.workers is not None and args.ray is None:
+        raise ValueError("--workers spreads the episodes over Ray workers: add --ray [ADDRESS]")
     scenarios = list_scenarios() if args.scenarios == ["all"] else args.scenarios
-    report = evaluate(
-        args.policy,
-        scenarios,
-        episodes=args.episodes,
-        seed=args.seed,
-        backend=args.backend,
-        checkpoint=args.checkpoint,
-        max_steps=args.max_steps,
-    )
+    options = {
+        "episodes": args.episodes,
+        "seed": args.seed,
+        "backend": args.backend,
+        "checkpoint": args.checkpoint,
+        "max_steps": args.max_steps,
+    }
+    if args.ray is None:
+        report = evaluate(args.policy, scenarios, **options)
+    else:
+        from m4world_env.cluster import evaluate_on_ray, require_ray
+
+        try:
+            require_ray()
+        except ImportError as e:  # a user's missing extra: one line, as a bad option
+            raise ValueError(str(e)) from None
+        report = evaluate_on_ray(args.policy, scenarios, **options, workers=args.workers, address=args.ray or None)
     print(format_table(report))
+    if "cluster" in report:
+        c = report["cluster"]
+        print(f"Ray: {c['workers']} workers, {c['workers_lost']} lost, {c['episodes_rerun']} episodes re-run")
     if args.out:
         write_report(report, args.out)
         print(f"wrote {args.out}")
@@ -371,6 +386,21 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--checkpoint", default=None)
     e.add_argument("--max-steps", type=_positive_int, default=None, help="stop each episode after N steps")
     e.add_argument("--out", default=None, help="write the JSON report here (with --report: a folder)")
+    e.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDRESS",
+        help="run the episodes as tasks on Ray workers (the cluster extra): alone, the instance RAY_ADDRESS "
+        "names or a new local one; or auto, HOST:PORT, ray://HOST:10001. Same seeds and table as without it",
+    )
+    e.add_argument(
+        "--workers",
+        type=_positive_int,
+        default=None,
+        help="--ray: the number of Ray workers (actors of one CPU each; default: one per CPU of the instance)",
+    )
     e.add_argument(
         "--report",
         action="store_true",

@@ -126,29 +126,45 @@ def evaluate(
     import gymnasium as gym
     from tqdm import tqdm
 
-    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1):
-        raise ValueError(f"max_steps must be a positive integer or None (the whole episode), got {max_steps!r}")
-    per_scenario: dict[str, dict] = {}
-    records: list[dict] = []
+    check_max_steps(max_steps)
+    results: list[tuple[str, list[dict[str, float]]]] = []
     for name in scenarios:
         scenario = load_scenario(name)
         env = gym.make("M4World-v0", scenario=scenario, backend=backend, checkpoint=checkpoint, config=config)
-        if callable(policy):
-            custom = policy(env) if list(inspect.signature(policy).parameters) == ["env"] else policy
-        else:
-            custom = None if policy in BUILTIN_POLICIES else make_policy(policy, env)
-        eps = []
-        for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress):
-            metrics = run_episode(env, custom or policy, seed=seed + e, max_steps=max_steps)
-            eps.append(metrics)
-            records.append({"scenario": scenario.name, "episode": e, **metrics})
+        episode_policy = scenario_policy(policy, env)
+        eps = [
+            run_episode(env, episode_policy, seed=seed + e, max_steps=max_steps)
+            for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress)
+        ]
         env.close()
-        per_scenario[scenario.name] = aggregate(eps)
+        results.append((scenario.name, eps))
+    return build_report(policy, backend, seed, results)
+
+
+def check_max_steps(max_steps: int | None) -> None:
+    if max_steps is not None and (isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1):
+        raise ValueError(f"max_steps must be a positive integer or None (the whole episode), got {max_steps!r}")
+
+
+def scenario_policy(policy: str | Callable, env: gym.Env) -> Policy | str:
+    """What :func:`run_episode` runs on ``env`` for every episode of a scenario: a built-in name stays a
+    name (built per episode), a spec or factory is built once for the env, a policy is itself."""
+    if callable(policy):
+        return policy(env) if list(inspect.signature(policy).parameters) == ["env"] else policy
+    return policy if policy in BUILTIN_POLICIES else make_policy(policy, env)
+
+
+def build_report(
+    policy: str | Callable, backend: str, seed: int, results: Sequence[tuple[str, Sequence[dict[str, float]]]]
+) -> dict[str, Any]:
+    """The report of :func:`evaluate`: ``results`` holds each scenario's name and its episodes'
+    metrics in episode order."""
+    records = [{"scenario": name, "episode": e, **m} for name, eps in results for e, m in enumerate(eps)]
     return {
         "policy": policy if isinstance(policy, str) else getattr(policy, "__qualname__", repr(policy)),
         "backend": backend,
         "seed": seed,
-        "per_scenario": per_scenario,
+        "per_scenario": {name: aggregate(eps) for name, eps in results},
         "overall": aggregate(records),
         "episodes": records,
     }

@@ -6,6 +6,9 @@ every sub-env's chunk, so the world model runs one batched forward for all N rol
 
 Autoreset: :attr:`AutoresetMode.NEXT_STEP` (Gymnasium's default): the step after an episode ends
 resets that sub-env and returns its first observation with reward 0 and both flags False.
+``reset(options={"reset_mask": mask})`` restarts only the masked sub-envs (Gymnasium's convention;
+the others keep their episodes and observations), as autoreset would: adapters to libraries that
+expect a same-step reset (:mod:`m4world_env.sb3`) use it.
 Seeding: ``reset(seed=s)`` seeds sub-env ``i`` with ``s + i``, so the vector env equals N single envs
 reset with those seeds (bit for bit on CPU: the batched world model computes row-independently,
 :mod:`world_model.model.rows`). The sub-envs being (re)started, at ``reset`` or by autoreset,
@@ -29,6 +32,23 @@ from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
 
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
+
+
+def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dict[str, Any] | None, np.ndarray | None]:
+    """``reset`` options without ``reset_mask``, and the mask: a bool array of ``num_envs`` with a True
+    (``None`` when absent). The caller's dict is left as it was."""
+    if not options or "reset_mask" not in options:
+        return options, None
+    rest = {k: v for k, v in options.items() if k != "reset_mask"}
+    mask = options["reset_mask"]
+    if not isinstance(mask, np.ndarray) or mask.dtype != np.bool_ or mask.shape != (num_envs,):
+        described = f"shape {mask.shape}, dtype {mask.dtype}" if isinstance(mask, np.ndarray) else type(mask).__name__
+        raise InvalidOptionError(
+            f"options['reset_mask'] must be a bool numpy array of shape ({num_envs},), got {described}"
+        )
+    if not mask.any():
+        raise InvalidOptionError("options['reset_mask'] selects no sub-env; set at least one entry True")
+    return rest or None, mask
 
 
 class M4WorldVectorEnv(VectorEnv):
@@ -73,6 +93,7 @@ class M4WorldVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
         self._autoreset = np.zeros(num_envs, dtype=bool)
+        self._observations: dict[str, np.ndarray] | None = None  # the last batch, for a masked reset
 
     @property
     def camera_names(self) -> tuple[str, ...]:
@@ -87,6 +108,9 @@ class M4WorldVectorEnv(VectorEnv):
             seeds = list(seed)
             if len(seeds) != self.num_envs:
                 raise InvalidOptionError(f"reset(seed=list) needs {self.num_envs} seeds, got {len(seeds)}")
+        options, mask = split_reset_mask(options, self.num_envs)
+        if mask is not None:
+            return self._reset_masked(mask, seeds, options)
         if seed is not None:
             self._np_random_seed = seeds[0]
         results = self._reset_envs(list(range(self.num_envs)), seeds, options)
@@ -94,7 +118,27 @@ class M4WorldVectorEnv(VectorEnv):
         infos: dict[str, Any] = {}
         for i, (_obs, info) in enumerate(results):
             infos = self._add_info(infos, info, i)
-        return self._stack([obs for obs, _ in results]), infos
+        self._observations = self._stack([obs for obs, _ in results])
+        return self._observations, infos
+
+    def _reset_masked(
+        self, mask: np.ndarray, seeds: list[int | None], options: dict[str, Any] | None
+    ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        if self._observations is None:
+            raise ResetNeeded(
+                "reset(options={'reset_mask': ...}) restarts sub-envs of a running vector env; reset() it first"
+            )
+        indices = [int(i) for i in np.flatnonzero(mask)]
+        results = self._reset_envs(indices, [seeds[i] for i in indices], options)
+        self._autoreset[indices] = False
+        observations = {k: v.copy() for k, v in self._observations.items()}
+        infos: dict[str, Any] = {}
+        for i, (obs, info) in zip(indices, results, strict=True):
+            for k, batch in observations.items():
+                batch[i] = obs[k]
+            infos = self._add_info(infos, info, i)
+        self._observations = observations
+        return observations, infos
 
     def step(self, actions: Any) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         actions = self._split_actions(actions)
@@ -122,7 +166,8 @@ class M4WorldVectorEnv(VectorEnv):
             obs_list.append(obs)
             infos = self._add_info(infos, info, i)
         self._autoreset = terminated | truncated
-        return self._stack(obs_list), rewards, terminated, truncated, infos
+        self._observations = self._stack(obs_list)
+        return self._observations, rewards, terminated, truncated, infos
 
     def _reset_envs(
         self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None

@@ -12,6 +12,7 @@ from world_model.eval.metrics import (
     chamfer_distance,
     chunk_jumps,
     clip_window_features,
+    confusion_sums,
     frechet_distance,
     frechet_features,
     frechet_judge_clip,
@@ -19,6 +20,7 @@ from world_model.eval.metrics import (
     lagged_change,
     lidar_points,
     lidar_range_mae,
+    lidar_region_errors,
     long_horizon_ratio,
     masked_psnr,
     masked_range_mae,
@@ -298,3 +300,44 @@ def test_masked_psnr_and_range_mae_score_only_the_masked_pixels():
     assert masked_range_mae(far, r, np.zeros_like(lm)) is None
     with pytest.raises(ValueError, match="mask must be"):
         masked_range_mae(far, r, lm[:2])
+
+
+def test_class_iou_by_hand():
+    # 2 x 3 map, classes 0 (road), 1 (vehicle), 2 (sky; never present).
+    labels = np.array([[0, 0, 1], [0, 1, 1]])
+    predicted = np.array([[0, 1, 1], [0, 0, 1]])
+    sums = confusion_sums(predicted, labels, 3)
+    # road: labelled {a, b, d}, predicted {a, d, e}: intersection 2, union 4.
+    # vehicle: labelled {c, e, f}, predicted {b, c, f}: intersection 2, union 4.
+    assert sums.iou() == [0.5, 0.5, None]
+    assert sums.accuracy() == [pytest.approx(2 / 3), pytest.approx(2 / 3), None]
+    # Sums over frames weigh pixels, not frames: a perfect 1-pixel frame barely moves the IoU.
+    total = sums + confusion_sums(np.array([1]), np.array([1]), 3)
+    assert total.iou() == [0.5, pytest.approx(3 / 5), None]
+    assert confusion_sums(labels, labels, 3).iou() == [1.0, 1.0, None]
+    # Everything predicted road: road 3 / 6, vehicle never predicted right (0, not None: it is labelled).
+    assert confusion_sums(np.zeros_like(labels), labels, 3).iou() == [0.5, 0.0, None]
+    # A class predicted but never labelled has IoU 0 (union > 0), and accuracy None.
+    only_pred = confusion_sums(np.array([2, 0]), np.array([0, 0]), 3)
+    assert only_pred.iou() == [0.5, None, 0.0] and only_pred.accuracy() == [0.5, None, None]
+    with pytest.raises(ValueError, match="outside"):
+        confusion_sums(labels + 2, labels, 3)
+    with pytest.raises(ValueError, match="same shape"):
+        confusion_sums(labels[:1], labels, 3)
+    with pytest.raises(ValueError, match="cannot pool"):
+        sums + confusion_sums(labels, labels, 4)
+
+
+def test_lidar_region_errors_split_road_and_object_returns():
+    spec = LidarSpec(beams=2, azimuth=4)
+    truth = np.array([[10.0, 10.0, 0.0, 20.0], [5.0, 5.0, 5.0, 5.0]], dtype=np.float32)  # one no-return ray
+    objects = np.array([[False, True, False, False], [False, False, True, True]])
+    gen = truth + np.array([[1.0, 4.0, 7.0, 3.0], [1.0, 1.0, 2.0, 6.0]], dtype=np.float32)
+    e = lidar_region_errors(gen, truth, objects, spec)
+    # Road: rays (0,0) +1, (0,3) +3, (1,0) +1, (1,1) +1 -> 6 / 4; the no-return ray (0,2) counts nowhere.
+    assert e.road_m == pytest.approx(1.5)
+    # Objects: (0,1) +4, (1,2) +2, (1,3) +6 -> 12 / 3.
+    assert e.objects_m == pytest.approx(4.0)
+    assert lidar_region_errors(gen, truth, np.zeros_like(objects), spec).objects_m is None
+    with pytest.raises(ValueError, match="object_returns must be bool"):
+        lidar_region_errors(gen, truth, objects.astype(np.uint8), spec)

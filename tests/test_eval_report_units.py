@@ -1,11 +1,13 @@
 """The report's pure pieces on hand-made inputs: judge answers to yes-frequencies, clips pooled
 into a row, report.json round trips, cache keys, row lineup names and the markdown tables."""
 
+import copy
 import json
 from dataclasses import fields, replace
 
 import numpy as np
 import pytest
+import torch
 
 from world_model.eval.metrics import ChangeSums, JumpSums
 from world_model.eval.questions import QUESTION_TYPES
@@ -28,6 +30,7 @@ from world_model.eval.report.clip_scores import ClipScores, StreamPair
 from world_model.eval.report.judging import Answer, per_category, yes_frequencies
 from world_model.eval.report.lineup import RowIdentity
 from world_model.eval.report.row_scores import row_scores
+from world_model.eval.segmenter import Segmenter, SegmenterConfig, SegNet
 
 
 def test_yes_frequencies_and_per_category():
@@ -59,11 +62,13 @@ def _clip(name, psnrs, lidar_mae=None, jumps=None, answers=(), moved=1.0):
         chamfers=(),
         object_psnrs=(30.0,),
         object_maes=(),
+        road_maes=(0.5, 1.5),
         motion=motion,
         jumps=jumps,
         answers=tuple(answers),
         features=None,
         long_horizon=None,
+        scene_iou=None,
     )
 
 
@@ -76,6 +81,7 @@ def test_row_scores_pool_frames_sums_and_answers_over_clips():
     t1 = row.table1
     assert t1.psnr_db == pytest.approx((10 + 20 + 40) / 3)  # every 2nd frame of every clip, pooled
     assert t1.ssim == 0.5 and t1.object_psnr_db == 30.0 and t1.lidar_object_mae_m is None
+    assert t1.lidar_road_mae_m == 1.0 and t1.road_iou is None and row.scene_iou is None  # clips without scene IoU
     assert t1.lidar_range_mae_m == pytest.approx(2.0)  # frames 0 and 2 of the clip with LiDAR
     assert t1.lidar_range_mae_first_s_m == pytest.approx(3.0)  # its first second: 2 frames at 2 fps
     assert t1.lidar_chamfer_m is None and t1.frechet_judge_frame is None  # no LiDAR points, no judge features
@@ -123,7 +129,7 @@ def test_report_json_round_trips_with_the_report_keys():
     assert list(data) == ["rows", "clips", "config"] and data["config"]["long_window_s"] == 10
     row = data["rows"]["student"]
     assert list(row) == ["table1", "chunk_jumps", "chunk_jumps_per_clip", "table2", "per_category", "per_view",
-                         "answers", "long_horizon"]  # fmt: skip
+                         "answers", "long_horizon", "scene_iou"]  # fmt: skip
     assert list(row["table1"])[:4] == ["frechet_judge_frame", "frechet_judge_clip", "psnr_db", "ssim"]
     assert row["chunk_jumps"] == {"cameras": {"generated": 2.5, "recording": 2.0}}
     full, bare = row["long_horizon"]
@@ -136,7 +142,8 @@ def test_report_json_round_trips_with_the_report_keys():
 
 def test_markdown_of_a_hand_made_report():
     md = format_markdown(_hand_made_report())
-    assert "| student | n/a | n/a | 21.500 | 0.610 | n/a | n/a | n/a | n/a | n/a | 1.250 | n/a | n/a | n/a |" in md
+    student_table1 = "| student | n/a | n/a | 21.500 | 0.610 | " + "n/a | " * 9 + "1.250 | n/a | n/a | n/a |"
+    assert student_table1 in md
     assert "| oracle | 1.000 | n/a | n/a |" in md  # Table 2: weather, time_of_day, existence, ...
     assert "| student | car |" not in md and "| student | 0.500 |" in md  # existence per category
     assert "| student | weather | 1.000 | 0.500 |" in md  # per camera view
@@ -149,6 +156,9 @@ def test_markdown_of_a_hand_made_report():
 
 class _Judge:  # a stand-in backend: its identity in a cache key is its class name
     pass
+
+
+_SEGMENTER = Segmenter(SegNet(SegmenterConfig(channels=(4,), head_channels=2)))  # its weights' digest is keyed
 
 
 def test_cache_key_changes_with_every_streaming_setting(tmp_path):
@@ -166,7 +176,7 @@ def test_cache_key_changes_with_every_streaming_setting(tmp_path):
     cfg = ReportConfig()
 
     def key(row_id, config=cfg):
-        return row_cache_key(row_id, [], config, _Judge())
+        return row_cache_key(row_id, [], config, _Judge(), _SEGMENTER)
 
     keys = {key(ident.student(str(tmp_path), s)) for s in settings}
     assert len(keys) == len(settings)
@@ -178,6 +188,10 @@ def test_cache_key_changes_with_every_streaming_setting(tmp_path):
     assert key(RowIdentity(replace(ident.request, seed=1), "float32").student(str(tmp_path))) != key(plain)
     (tmp_path / "manifest.json").write_text('{"other": "weights"}')
     assert key(ident.student(str(tmp_path))) != key(plain)  # another bundle
+    retrained = copy.deepcopy(_SEGMENTER)
+    with torch.no_grad():
+        next(retrained.net.parameters()).add_(0.5)
+    assert row_cache_key(plain, [], cfg, _Judge(), retrained) != key(plain)  # another segmenter
 
 
 def test_lineup_names_and_request_checks():

@@ -5,7 +5,10 @@
   (:func:`frechet_judge_frame`, "FID-like") and of short clip windows (:func:`frechet_judge_clip`,
   "FVD-like"). These use our small judge networks' features, not Inception / I3D: the numbers are
   comparable between rows of one report, never with published FID/FVD.
-* LiDAR: range MAE on ground-truth returns and the Chamfer distance of back-projected points.
+* Segmentation: per-class pixel counts summed over frames (:class:`ConfusionSums`), their IoU and
+  accuracy (the scene IoU of :mod:`world_model.eval.scene_iou`).
+* LiDAR: range MAE on ground-truth returns (also split into road and object returns,
+  :func:`lidar_region_errors`) and the Chamfer distance of back-projected points.
 * Long horizon: any per-frame metric averaged per second of a rollout, and the ratio of its last
   10 s to its first 10 s (:func:`long_horizon_ratio`).
 * Inter-chunk consistency: how much more a stream changes where a new generation pass begins (a
@@ -165,6 +168,54 @@ def frechet_judge_clip(
     return frechet_features(gen, tgt)
 
 
+# ---------------------------------------------------------------------------------- segmentation
+
+
+@dataclass(frozen=True)
+class ConfusionSums:
+    """Per-class pixel counts of a segmentation against its labels, summed over frames (so that a
+    class's IoU weighs every pixel of the set alike, not every frame). Adding two sums pools them."""
+
+    intersection: np.ndarray  # (C,) int64: pixels predicted c where the label is c
+    predicted: np.ndarray  # (C,) int64: pixels predicted c
+    labelled: np.ndarray  # (C,) int64: pixels labelled c
+
+    @classmethod
+    def zeros(cls, num_classes: int) -> ConfusionSums:
+        return cls(*(np.zeros(num_classes, dtype=np.int64) for _ in range(3)))
+
+    def __add__(self, other: ConfusionSums) -> ConfusionSums:
+        if len(self.labelled) != len(other.labelled):
+            raise ValueError(f"cannot pool sums of {len(self.labelled)} and {len(other.labelled)} classes")
+        return ConfusionSums(
+            self.intersection + other.intersection, self.predicted + other.predicted, self.labelled + other.labelled
+        )
+
+    def iou(self) -> list[float | None]:
+        """Per class: intersection over union; None where neither side has the class."""
+        union = self.predicted + self.labelled - self.intersection
+        return [float(i / u) if u > 0 else None for i, u in zip(self.intersection, union, strict=True)]
+
+    def accuracy(self) -> list[float | None]:
+        """Per class: the fraction of its labelled pixels predicted right (None: never labelled)."""
+        return [float(i / n) if n > 0 else None for i, n in zip(self.intersection, self.labelled, strict=True)]
+
+
+def confusion_sums(predicted: np.ndarray, labels: np.ndarray, num_classes: int) -> ConfusionSums:
+    """Per-class counts of integer class maps ``predicted`` vs ``labels`` (same shape, values in
+    ``[0, num_classes)``)."""
+    _check_pair(predicted, labels, "confusion_sums")
+    p, t = np.asarray(predicted).ravel(), np.asarray(labels).ravel()
+    for name, a in (("predicted", p), ("labels", t)):
+        if a.size and (a.min() < 0 or a.max() >= num_classes):
+            raise ValueError(f"confusion_sums: {name} holds classes outside [0, {num_classes}): {a.min()}..{a.max()}")
+    return ConfusionSums(
+        intersection=np.bincount(t[p == t], minlength=num_classes).astype(np.int64),
+        predicted=np.bincount(p, minlength=num_classes).astype(np.int64),
+        labelled=np.bincount(t, minlength=num_classes).astype(np.int64),
+    )
+
+
 # ----------------------------------------------------------------------------------------- LiDAR
 
 
@@ -190,6 +241,33 @@ def masked_range_mae(generated: np.ndarray, target: np.ndarray, mask: np.ndarray
         return None
     g, t = np.asarray(generated, dtype=np.float64), np.asarray(target, dtype=np.float64)
     return float(np.mean(np.abs(g[mask] - t[mask])))
+
+
+@dataclass(frozen=True)
+class LidarRegionErrors:
+    """Range MAE (m) of one frame split by what the ground truth's ray hit; None where it hit none."""
+
+    road_m: float | None  # returns outside every object: the road and the ground around it
+    objects_m: float | None  # returns on the objects
+
+
+def lidar_region_errors(
+    generated: np.ndarray, target: np.ndarray, object_returns: np.ndarray, spec: LidarSpec | None = None
+) -> LidarRegionErrors:
+    """Range MAE over the ground truth's object returns and, separately, over its other returns, of
+    range maps (beams, azimuth). ``object_returns`` (beams, azimuth) bool marks the rays that hit an
+    object (``ProceduralSimulator.object_masks``). A row that keeps the vehicles but loses the road
+    plane scores badly on ``road_m`` only; one that paints road over the vehicles, on ``objects_m``."""
+    _check_pair(generated, target, "lidar_region_errors")
+    if object_returns.shape != target.shape or object_returns.dtype != bool:
+        got = f"{object_returns.dtype} {object_returns.shape}"
+        raise ValueError(f"object_returns must be bool {target.shape} (the range map), got {got}")
+    spec = spec or LidarSpec()
+    road = ~object_returns & (np.asarray(target) != spec.no_return)
+    return LidarRegionErrors(
+        road_m=masked_range_mae(generated, target, road),
+        objects_m=masked_range_mae(generated, target, object_returns),
+    )
 
 
 def lidar_points(ranges: np.ndarray, spec: LidarSpec | None = None) -> np.ndarray:

@@ -96,26 +96,28 @@ class _SplitRows(TorchFunctionMode):
         return torch.cat([func(*(p[i] for p in parts), **kwargs) for i in range(b)])
 
 
-def _reduces_dim0(func: object, args: tuple, kwargs: dict) -> bool:
-    """A reduction over dim 0 (or over everything) mixes the rows: it cannot be cut."""
+def _reduced_dims(func: object, args: tuple, kwargs: dict) -> tuple[int, ...] | None:
+    """The dims a reduction of :data:`_REDUCTIONS` reduces, each in [0, ndim); () when it reduces
+    everything; None for any other op."""
     if func not in _REDUCTIONS:
-        return False
+        return None
     pos = _REDUCTIONS[func]
     dim = kwargs.get("dim", args[pos] if len(args) > pos else None)
     if dim is None:
-        return True
-    dims = (dim,) if isinstance(dim, int) else tuple(dim)
-    return any(d % args[0].ndim == 0 for d in dims)
+        return ()
+    ndim = args[0].ndim
+    return tuple(d % ndim for d in ((dim,) if isinstance(dim, int) else dim))
+
+
+def _reduces_dim0(func: object, args: tuple, kwargs: dict) -> bool:
+    """A reduction over dim 0 (or over everything) mixes the rows: it cannot be cut."""
+    dims = _reduced_dims(func, args, kwargs)
+    return dims is not None and (not dims or 0 in dims)
 
 
 def _reduces_last_dim_only(func: object, args: tuple, kwargs: dict) -> bool:
     """A reduction over the last dim alone: each row of every vector is reduced by itself."""
-    if func not in _REDUCTIONS:
-        return False
-    pos = _REDUCTIONS[func]
-    dim = kwargs.get("dim", args[pos] if len(args) > pos else None)
-    dims = (dim,) if isinstance(dim, int) else tuple(dim or ())
-    return len(dims) == 1 and dims[0] % args[0].ndim == args[0].ndim - 1
+    return _reduced_dims(func, args, kwargs) == (args[0].ndim - 1,)
 
 
 @contextmanager

@@ -7,26 +7,30 @@ yes-frequencies), as markdown and report.json. One module per concern:
 * :mod:`.lineup`: which rows a bundle's report runs, under which streaming settings, with the
   ids their cached scores are keyed by; :func:`report_bundle` runs it all (``m4world eval --report``).
 * :mod:`.judging`: Table 2's questions asked of a row's frames, and their yes-frequencies.
-* :mod:`.clip_scores`: one clip's measurements (:class:`ClipScores`); :mod:`.row_scores` pools them
-  into a row's :class:`RowScores`; :mod:`.seeds` averages a row over noise seeds.
+* :mod:`.clip_scores`: one clip's measurements (:class:`ClipScores`, the scene IoU included)
+  against the recording's side (:class:`ClipTruth`); :mod:`.row_scores` pools them into a row's
+  :class:`RowScores`; :mod:`.seeds` averages a row over noise seeds.
 * :mod:`.results`: the typed results and their report.json form.
-* :mod:`.cache`: finished rows on disk, keyed by row id, clips, config, judge and version.
+* :mod:`.cache`: finished rows on disk, keyed by row id, clips, config, judge, segmenter and version.
 * :mod:`.run`: :func:`evaluate_rows` (rows x clips -> :class:`Report`) and :func:`write_report`.
 * :mod:`.markdown`: the tables; :mod:`.bars`: the quality bars' thresholds and pass/fail.
 """
 
-from world_model.eval.report.bars import BarCheck, QualityBars, check_bars
+from world_model.eval.report.bars import BarCheck, QualityBars, check_bars, scene_iou_bar
 from world_model.eval.report.config import ReportConfig
 from world_model.eval.report.lineup import BundleReport, ReportRequest, StudentStreaming, report_bundle
 from world_model.eval.report.markdown import format_markdown
 from world_model.eval.report.results import (
+    HEADLINE_IOU,
     ClipChunkJumps,
+    ClipSceneIoU,
     GenerationScores,
     JumpRatios,
     LongHorizon,
     Report,
     RowScores,
     RowSpread,
+    SceneIoUScores,
     WindowFrechet,
     YesFrequencies,
 )
@@ -34,9 +38,11 @@ from world_model.eval.report.rows import Generated, RowFn, first_frame_row, orac
 from world_model.eval.report.run import evaluate_rows, write_report
 
 __all__ = [
+    "HEADLINE_IOU",
     "BarCheck",
     "BundleReport",
     "ClipChunkJumps",
+    "ClipSceneIoU",
     "Generated",
     "GenerationScores",
     "JumpRatios",
@@ -48,6 +54,7 @@ __all__ = [
     "RowFn",
     "RowScores",
     "RowSpread",
+    "SceneIoUScores",
     "StudentStreaming",
     "WindowFrechet",
     "YesFrequencies",
@@ -58,5 +65,6 @@ __all__ = [
     "oracle_row",
     "report_bundle",
     "road_only_row",
+    "scene_iou_bar",
     "write_report",
 ]

@@ -3,9 +3,9 @@ pass/fail on a report (:func:`check_bars` -> :class:`BarCheck`).
 
 Judge bars compare the model row's yes-frequencies with the ``oracle`` row (a ratio) or with the
 ``geometry_only`` baseline (a margin); stability bars read its long-horizon windows and its
-first-second LiDAR error. With an ``autoencoder`` row each judge bar also says whether that
-ceiling (the recording through the VAE) passes it: a bar the ceiling misses is out of reach of any
-model generating through this VAE.
+first-second LiDAR error; scene IoU bars compare its every second with the ``autoencoder`` row's
+(the recording through the VAE). With an ``autoencoder`` row each judge bar also says whether that
+ceiling passes it: a bar the ceiling misses is out of reach of any model generating through this VAE.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from world_model.eval.report.results import Report, YesFrequencies
+from world_model.eval.report.results import Report, RowScores, YesFrequencies
 
 JudgeBar = Callable[[YesFrequencies], tuple[str, bool | None]]  # yes-frequencies -> (how measured, met)
 
@@ -26,6 +26,8 @@ class QualityBars:
     fidelity_margin: float = 0.30  # visual/textual fidelity above the geometry-only baseline
     long_tolerance: float = 0.20  # last vs first long-horizon window, PSNR and Fréchet ratios
     lidar_first_s_max_m: float = 2.0
+    # x the autoencoder row's scene IoU at the same second, at every second of every clip
+    scene_iou_ratios: tuple[tuple[str, float], ...] = (("road", 0.8), ("vehicle", 0.5))
 
 
 @dataclass(frozen=True)
@@ -99,10 +101,34 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
         met = abs(pr - 1) <= tol and (fr is None or fr <= 1 + tol)
         bar = f"{c.clip}: last vs first window within {tol:.0%} (PSNR, Fréchet)"
         out.append(BarCheck(bar, f"{format_score(pr)}, {format_score(fr)}", met))
+    for c, bar in bars.scene_iou_ratios:
+        measured, met = scene_iou_bar(scores, ceiling, c, bar)
+        out.append(BarCheck(f"{c} IoU ≥ {bar} x autoencoder at every second of every clip", measured, met))
     mae = scores.table1.lidar_range_mae_first_s_m
     met = None if mae is None else mae <= bars.lidar_first_s_max_m
     out.append(BarCheck(f"LiDAR range MAE first second ≤ {bars.lidar_first_s_max_m} m", format_score(mae), met))
     return out
+
+
+def scene_iou_bar(
+    scores: RowScores, ceiling: RowScores | None, scene_class: str, bar: float
+) -> tuple[str, bool | None]:
+    """The worst second, over every clip, of ``scores``' IoU of ``scene_class`` against the
+    ``ceiling`` row's (the autoencoder's) at the same second: (what was measured, met?). Seconds
+    where the ceiling never sees the class do not count; not measured without a ceiling or scene IoU."""
+    mine, top = scores.scene_iou, None if ceiling is None else ceiling.scene_iou
+    if mine is None or top is None:
+        return "", None
+    worst: tuple[float, str] | None = None
+    for ours, theirs in zip(mine.per_clip, top.per_clip, strict=True):
+        for k, (a, b) in enumerate(zip(ours.per_second, theirs.per_second, strict=True)):
+            if reachable := b.get(scene_class):
+                ratio = (a.get(scene_class) or 0.0) / reachable
+                if worst is None or ratio < worst[0]:
+                    worst = (ratio, f"{ours.clip} second {k}")
+    if worst is None:
+        return "", None
+    return f"worst {format_score(worst[0])} x ({worst[1]})", worst[0] >= bar
 
 
 def format_score(v: float | None, digits: int = 3) -> str:

@@ -3,7 +3,7 @@
 A row's scores are cached under a key made of what they depend on: the row's id (what generates
 it: bundle digest, noise seed, streaming settings, precision; see
 :mod:`~world_model.eval.report.lineup`), the clips (name and recording fingerprint), the
-:class:`ReportConfig`, the judge's weights and :data:`REPORT_VERSION`. A file whose key differs
+:class:`ReportConfig`, the judge's and the segmenter's weights and :data:`REPORT_VERSION`. A file whose key differs
 is regenerated, never reused.
 """
 
@@ -15,20 +15,25 @@ import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from world_model.data import Clip
 from world_model.data.clips import clip_fingerprint, write_json_atomic
 from world_model.eval.judge import CnnJudge, JudgeBackend
 from world_model.eval.report.config import ReportConfig
 from world_model.eval.report.results import RowScores
+from world_model.eval.segmenter import Segmenter
 
 log = logging.getLogger(__name__)
 # Part of every cached row's key: bump when rows or scoring change what a row's scores are.
-REPORT_VERSION = 7
+REPORT_VERSION = 8
 
 
-def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend) -> str:
-    """Identity of one row's scores: generator id, clips (name + recording fingerprint), config, judge."""
+def row_cache_key(
+    row_id: str, clips: Sequence[Clip], config: ReportConfig, judge: JudgeBackend, segmenter: Segmenter
+) -> str:
+    """Identity of one row's scores: generator id, clips (name + recording fingerprint), config,
+    judge and segmenter."""
     blob = json.dumps(
         [
             REPORT_VERSION,
@@ -36,6 +41,7 @@ def row_cache_key(row_id: str, clips: Sequence[Clip], config: ReportConfig, judg
             [(c.name, clip_fingerprint(c)) for c in clips],
             config.to_json(),
             judge_identity(judge),
+            segmenter_identity(segmenter),
         ],
         sort_keys=True,
     )
@@ -48,10 +54,22 @@ def judge_identity(judge: JudgeBackend) -> str:
         return type(judge).__qualname__
     h = hashlib.sha256(json.dumps(judge.thresholds.__dict__, sort_keys=True, default=str).encode())
     for net in (judge.crop_net, judge.scene_net):
-        for name, tensor in sorted(net.state_dict().items()):
-            h.update(name.encode())
-            h.update(tensor.detach().float().contiguous().numpy().tobytes())
+        _add_weights(h, net)
     return h.hexdigest()[:16]
+
+
+def segmenter_identity(segmenter: Segmenter) -> str:
+    """Digest of the segmenter's weights."""
+    h = hashlib.sha256()
+    _add_weights(h, segmenter.net)
+    return h.hexdigest()[:16]
+
+
+def _add_weights(h: hashlib._Hash, net: Any) -> None:
+    """Feed every named tensor of ``net``'s state dict (an ``nn.Module``) into the digest ``h``."""
+    for name, tensor in sorted(net.state_dict().items()):
+        h.update(name.encode())
+        h.update(tensor.detach().float().contiguous().numpy().tobytes())
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,9 @@ from world_model.eval.metrics import (
     frechet_features,
     lagged_change,
     lidar_range_mae,
+    lidar_region_errors,
     long_horizon_ratio,
     masked_psnr,
-    masked_range_mae,
     motion_ratio,
     per_second_curve,
     psnr,
@@ -36,6 +36,8 @@ from world_model.eval.report.config import ReportConfig
 from world_model.eval.report.judging import Answer, judge_clip
 from world_model.eval.report.results import LongHorizon, WindowFrechet
 from world_model.eval.report.rows import Generated
+from world_model.eval.scene_iou import SceneIoU, scene_iou, scene_labels
+from world_model.eval.segmenter import Segmenter
 from world_model.sim import ProceduralSimulator
 
 S = TypeVar("S", ChangeSums, JumpSums)
@@ -56,6 +58,28 @@ SensorPairs = Mapping[str, StreamPair[S]]  # sensor ("cameras", "lidar") -> gene
 
 
 @dataclass(frozen=True, eq=False)
+class ClipTruth:
+    """What a clip's rows are scored against, computed once per report (:func:`clip_truth`): the
+    judge's frame features of the recording (None when the judge has none) and the recording's scene
+    label maps at the frames the scene IoU reads."""
+
+    features: np.ndarray | None  # (T, D)
+    scene_labels: np.ndarray  # (T, V, H, W) uint8 scene class ids; 0 at the frames not read
+
+
+def clip_truth(clip: Clip, judge: JudgeBackend, config: ReportConfig) -> ClipTruth:
+    """The recording's side of ``clip``'s scores: judge features and the label maps of every
+    ``scene_frame_stride``-th frame (the frames :func:`~world_model.eval.scene_iou.scene_iou` reads)."""
+    cameras = np.asarray(clip.cameras)
+    features = getattr(judge, "frame_features", None)
+    t, v, h, w = cameras.shape[:4]
+    labels = np.zeros((t, v, h, w), np.uint8)
+    read = list(range(0, t, config.scene_frame_stride))
+    labels[read] = scene_labels([clip.frames[i] for i in read], h, w)
+    return ClipTruth(features(cameras) if features else None, labels)
+
+
+@dataclass(frozen=True, eq=False)
 class ClipScores:
     """Everything measured on one row's frames of one clip, before pooling over clips."""
 
@@ -67,23 +91,26 @@ class ClipScores:
     chamfers: tuple[float, ...]  # every lidar_stride-th frame
     object_psnrs: tuple[float, ...]  # see object_scores
     object_maes: tuple[float, ...]
+    road_maes: tuple[float, ...]  # see object_scores
     motion: SensorPairs[ChangeSums]  # lagged_change over motion_lag_s
     jumps: SensorPairs[JumpSums] | None  # chunk_jumps at the pass starts; None: not generated in passes
     answers: tuple[Answer, ...]
     features: np.ndarray | None  # (T, D) judge frame features of the generated frames; None without them
     long_horizon: LongHorizon | None  # clips of at least twice long_window_s
+    scene_iou: SceneIoU | None  # clips of at least a second (the scene IoU pools whole seconds)
 
 
 def score_clip(
     gen: Generated,
     clip: Clip,
     judge: JudgeBackend,
+    segmenter: Segmenter,
+    truth: ClipTruth,
     config: ReportConfig,
-    gt_features: np.ndarray | None = None,
     sim: ProceduralSimulator | None = None,
 ) -> ClipScores:
-    """Score ``gen``, a row's sensors for ``clip``. ``gt_features``: the judge's frame features of
-    the recording (T, D), when the judge has ``frame_features``."""
+    """Score ``gen``, a row's sensors for ``clip``, against ``truth`` (:func:`clip_truth`);
+    ``segmenter`` labels the row's camera pixels for the scene IoU."""
     sim = sim or ProceduralSimulator()
     crop_config = judge.crop_config if isinstance(judge, CnnJudge) else CropConfig()
     answers = judge_clip(judge, clip, gen.cameras, sim, config, crop_config)
@@ -102,11 +129,15 @@ def score_clip(
         chamfers = tuple(chamfer_distance(_ranges(gen.lidar, i), _ranges(clip.lidar, i), spec,
                                           max_points=config.chamfer_max_points)
                          for i in range(0, clip.num_frames, config.lidar_stride))  # fmt: skip
-    object_psnrs, object_maes = object_scores(gen, clip, sim, config)
+    object_psnrs, object_maes, road_maes = object_scores(gen, clip, sim, config)
+    scene = None
+    if clip.num_frames >= round(clip.fps):
+        scene = scene_iou(gen.cameras, truth.scene_labels, clip.fps, segmenter, config.long_window_s,
+                          config.scene_frame_stride)  # fmt: skip
     motion = motion_sums(gen, clip, config)
     long = None
     if clip.num_frames / clip.fps >= 2 * config.long_window_s:
-        long = long_horizon(clip, per_frame, lidar_mae, gen_features, gt_features, motion, config)
+        long = long_horizon(clip, per_frame, lidar_mae, gen_features, truth.features, motion, config)
     return ClipScores(
         clip=clip.name,
         fps=clip.fps,
@@ -116,24 +147,28 @@ def score_clip(
         chamfers=chamfers,
         object_psnrs=tuple(object_psnrs),
         object_maes=tuple(object_maes),
+        road_maes=tuple(road_maes),
         motion=motion,
         jumps=pass_jumps(gen, clip) if gen.pass_starts else None,
         answers=tuple(answers),
         features=gen_features,
         long_horizon=long,
+        scene_iou=scene,
     )
 
 
 def object_scores(
     gen: Generated, clip: Clip, sim: ProceduralSimulator, config: ReportConfig
-) -> tuple[list[float], list[float]]:
+) -> tuple[list[float], list[float], list[float]]:
     """Does the row keep the recording's objects? Per scored frame of one clip: the PSNR over the
     pixels where the recording's objects are visible (every ``frame_stride``-th frame with one in
-    view) and the range MAE over its object returns (every ``lidar_stride``-th frame with any). A
-    row that paints road where the vehicles were scores low on both though the whole frame barely
-    changes (objects cover ~3 % of the pixels and ~4 % of the rays)."""
+    view), the range MAE over its object returns and, apart, over its other returns (the road and
+    the ground; every ``lidar_stride``-th frame). A row that paints road where the vehicles were
+    scores low on the object scores though the whole frame barely changes (objects cover ~3 % of
+    the pixels and ~4 % of the rays); one that loses the road plane, on the road MAE."""
     psnrs: list[float] = []
     maes: list[float] = []
+    road_maes: list[float] = []
     cams = np.asarray(clip.cameras)
     for f in range(clip.num_frames):
         on_cams, on_lidar = f % config.frame_stride == 0, gen.lidar is not None and f % config.lidar_stride == 0
@@ -142,9 +177,13 @@ def object_scores(
         cam_mask, lidar_mask = sim.object_masks(clip.frames[f])
         if on_cams and (p := masked_psnr(gen.cameras[f], cams[f], cam_mask)) is not None:
             psnrs.append(min(p, config.psnr_cap_db))
-        if on_lidar and (m := masked_range_mae(_ranges(gen.lidar, f), _ranges(clip.lidar, f), lidar_mask)) is not None:
-            maes.append(m)
-    return psnrs, maes
+        if on_lidar:
+            errors = lidar_region_errors(
+                _ranges(gen.lidar, f), _ranges(clip.lidar, f), lidar_mask, clip.frames[f].lidar
+            )
+            maes += [] if errors.objects_m is None else [errors.objects_m]
+            road_maes += [] if errors.road_m is None else [errors.road_m]
+    return psnrs, maes, road_maes
 
 
 def per_sensor(gen: Generated, clip: Clip, total: Callable[[np.ndarray], S]) -> SensorPairs[S]:

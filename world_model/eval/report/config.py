@@ -16,9 +16,10 @@ class ReportConfig:
     psnr_cap_db: float = 100.0  # identical frames (PSNR inf) count as this when averaged
     long_window_s: int = 10  # long-horizon ratio: last vs first window, seconds
     motion_lag_s: float = 1.0  # motion scores: change between frames this far apart, seconds
+    scene_frame_stride: int = 5  # scene IoU: the segmenter labels every k-th frame
 
     def __post_init__(self) -> None:
-        for name in ("frame_stride", "lidar_stride", "chamfer_max_points", "long_window_s"):
+        for name in ("frame_stride", "lidar_stride", "chamfer_max_points", "long_window_s", "scene_frame_stride"):
             if getattr(self, name) < 1:
                 raise ValueError(f"ReportConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.clip_window < 2:  # a window's features include the change between its frames

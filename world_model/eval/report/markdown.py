@@ -8,7 +8,7 @@ from dataclasses import fields
 import numpy as np
 
 from world_model.eval.report.bars import check_bars, format_score
-from world_model.eval.report.results import GenerationScores, LongHorizon, Report, YesFrequencies
+from world_model.eval.report.results import HEADLINE_IOU, GenerationScores, LongHorizon, Report, YesFrequencies
 
 LONG_HORIZON_COLUMNS = (
     "seconds",
@@ -33,6 +33,7 @@ def format_markdown(report: Report) -> str:
                                for row, r in report.rows.items()])  # fmt: skip
     lines += existence_by_category(report)
     lines += scene_by_view(report)
+    lines += scene_iou_by_second(report)
     lines += long_horizon_table(report)
     lines += chunk_jumps_per_clip(report)
     lines += quality_bars(report)
@@ -45,6 +46,25 @@ def table(columns: Sequence[str], rows: Sequence[Sequence[str]], first: Sequence
     return ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"] + [
         "| " + " | ".join(cells) + " |" for cells in rows
     ]
+
+
+def scene_iou_by_second(report: Report) -> list[str]:
+    """Markdown lines: each row's scene IoU (road, marking, vehicle) per second, pooled over the
+    clips that last that long, and over the last window of the long clips: a rollout that loses its
+    road shows it here at the second it happens. Empty without a clip of a second."""
+    rows = {row: r.scene_iou for row, r in report.rows.items() if r.scene_iou is not None}
+    if not rows:
+        return []
+    seconds = max(len(v.per_second) for v in rows.values())
+    w = report.config.long_window_s
+    cells = []
+    for row, v in rows.items():
+        for c in HEADLINE_IOU:
+            per_s = [format_score(s.get(c), 2) for s in v.per_second] + [""] * (seconds - len(v.per_second))
+            cells.append([row, c, *per_s, format_score((v.last_window_long_clips or {}).get(c), 2)])
+    lines = ["", "### Scene IoU per second (segmenter on the generated views against the recording's labels)", ""]
+    columns = [f"{k}s" for k in range(seconds)] + [f"last {w} s (long clips)"]
+    return lines + table(columns, cells, first=("row", "class"))
 
 
 def long_horizon_table(report: Report) -> list[str]:

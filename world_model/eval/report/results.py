@@ -2,7 +2,8 @@
 
 A :class:`Report` holds one :class:`RowScores` per row: Table 1 (:class:`GenerationScores`),
 Table 2 (:class:`YesFrequencies`), the breakdowns (per object category, per camera view, per
-clip's chunk jumps) and one :class:`LongHorizon` per long clip. ``to_json`` writes the keys of
+clip's chunk jumps), one :class:`LongHorizon` per long clip and the scene IoU per second
+(:class:`SceneIoUScores`). ``to_json`` writes the keys of
 report.json; ``from_json`` reads them back (the row cache stores rows this way).
 """
 
@@ -52,6 +53,10 @@ class GenerationScores(_FlatScores):
     lidar_chamfer_m: float | None = None
     object_psnr_db: float | None = None  # over the recording's object pixels only
     lidar_object_mae_m: float | None = None  # over the recording's object returns only
+    lidar_road_mae_m: float | None = None  # over the recording's other returns (road and ground)
+    road_iou: float | None = None  # scene IoU of the headline classes (SceneIoUScores.overall)
+    marking_iou: float | None = None
+    vehicle_iou: float | None = None
     chunk_jump_cameras: float | None = None
     chunk_jump_lidar: float | None = None
     motion_cameras: float | None = None
@@ -158,29 +163,79 @@ class LongHorizon:
 
 
 PerView = Mapping[str, tuple[float | None, ...]]  # scene question -> yes-frequency of each camera view
+ClassIoU = Mapping[str, float | None]  # scene class -> IoU (None where neither labelled nor predicted)
+# The scene classes whose IoU Table 1 shows (every class is in the row's ``scene_iou``).
+HEADLINE_IOU = ("road", "marking", "vehicle")
+
+
+@dataclass(frozen=True)
+class ClipSceneIoU:
+    """One clip's scene IoU per whole second."""
+
+    clip: str
+    per_second: tuple[ClassIoU, ...]
+
+
+@dataclass(frozen=True)
+class SceneIoUScores:
+    """A row's scene IoU (report.json's ``scene_iou``) over its clips of at least a second: per
+    class overall, per second pooled over the clips that last that long, over the last window of
+    the long clips (None without one) and per clip."""
+
+    overall: ClassIoU
+    per_second: tuple[ClassIoU, ...]
+    last_window_long_clips: ClassIoU | None
+    per_clip: tuple[ClipSceneIoU, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        last = self.last_window_long_clips
+        return {
+            "overall": dict(self.overall),
+            "per_second": [dict(s) for s in self.per_second],
+            "last_window_long_clips": None if last is None else dict(last),
+            "per_clip": [{"clip": c.clip, "per_second": [dict(s) for s in c.per_second]} for c in self.per_clip],
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> SceneIoUScores:
+        def get(key: str) -> Any:
+            return _require(data, key, "scene_iou")
+
+        last = get("last_window_long_clips")
+        return cls(
+            overall=dict(get("overall")),
+            per_second=tuple(dict(s) for s in get("per_second")),
+            last_window_long_clips=None if last is None else dict(last),
+            per_clip=tuple(ClipSceneIoU(c["clip"], tuple(dict(s) for s in c["per_second"])) for c in get("per_clip")),
+        )
 
 
 @dataclass(frozen=True)
 class RowSpread:
-    """Standard deviation over noise seeds of a seeded row's Table 1, Table 2 and per-view scores."""
+    """Standard deviation over noise seeds of a seeded row's Table 1, Table 2, per-view scores and
+    scene IoU (None when a seed has none)."""
 
     table1: GenerationScores
     table2: YesFrequencies
     per_view: PerView
+    scene_iou: SceneIoUScores | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out = {
             "table1": self.table1.to_json(),
             "table2": self.table2.to_json(),
             "per_view": _views_json(self.per_view),
         }
+        return out if self.scene_iou is None else out | {"scene_iou": self.scene_iou.to_json()}
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> RowSpread:
+        scene = data.get("scene_iou")
         return cls(
             GenerationScores.from_json(_require(data, "table1", "spread")),
             YesFrequencies.from_json(_require(data, "table2", "spread")),
             _views(_require(data, "per_view", "spread")),
+            None if scene is None else SceneIoUScores.from_json(scene),
         )
 
 
@@ -201,6 +256,7 @@ class RowScores:
     per_view: PerView = field(default_factory=dict)
     answers: int = 0
     long_horizon: tuple[LongHorizon, ...] = ()  # clips of at least twice long_window_s
+    scene_iou: SceneIoUScores | None = None  # None without a clip of at least a second
     seeds: int | None = None
     spread: RowSpread | None = None
 
@@ -214,6 +270,7 @@ class RowScores:
             "per_view": _views_json(self.per_view),
             "answers": self.answers,
             "long_horizon": [c.to_json() for c in self.long_horizon],
+            "scene_iou": None if self.scene_iou is None else self.scene_iou.to_json(),
         }
         if self.seeds is not None:
             out["seeds"] = self.seeds
@@ -226,7 +283,7 @@ class RowScores:
         def get(key: str) -> Any:
             return _require(data, key, "report row")
 
-        spread = data.get("spread")
+        spread, scene = data.get("spread"), get("scene_iou")
         return cls(
             table1=GenerationScores.from_json(get("table1")),
             table2=YesFrequencies.from_json(get("table2")),
@@ -236,6 +293,7 @@ class RowScores:
             per_view=_views(get("per_view")),
             answers=get("answers"),
             long_horizon=tuple(LongHorizon.from_json(c) for c in get("long_horizon")),
+            scene_iou=None if scene is None else SceneIoUScores.from_json(scene),
             seeds=data.get("seeds"),
             spread=None if spread is None else RowSpread.from_json(spread),
         )

@@ -6,11 +6,21 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from world_model.eval.metrics import ChangeSums, JumpSums, clip_window_features, frechet_features
+from world_model.eval.metrics import ChangeSums, ConfusionSums, JumpSums, clip_window_features, frechet_features
 from world_model.eval.report.clip_scores import ClipScores, SensorPairs, StreamPair, chunk_jump_scores, motion_scores
 from world_model.eval.report.config import ReportConfig
 from world_model.eval.report.judging import per_category, per_view, yes_frequencies
-from world_model.eval.report.results import ClipChunkJumps, GenerationScores, JumpRatios, RowScores
+from world_model.eval.report.results import (
+    HEADLINE_IOU,
+    ClipChunkJumps,
+    ClipSceneIoU,
+    GenerationScores,
+    JumpRatios,
+    RowScores,
+    SceneIoUScores,
+)
+from world_model.eval.scene_iou import pool_scene_iou
+from world_model.eval.segmenter import SCENE_CLASSES
 
 
 def row_scores(clips: Sequence[ClipScores], config: ReportConfig, gt_features: Sequence[np.ndarray] = ()) -> RowScores:
@@ -24,6 +34,7 @@ def row_scores(clips: Sequence[ClipScores], config: ReportConfig, gt_features: S
     with_lidar = [c for c in clips if c.lidar_mae_per_frame is not None]
     answers = [a for c in clips for a in c.answers]
     jumps = pooled_jumps(clips)
+    scene = scene_iou_scores(clips)
     table1 = GenerationScores(
         **frechet_scores(clips, gt_features, config),
         psnr_db=float(np.mean(np.concatenate([c.psnr_per_frame[scored] for c in clips]))),
@@ -33,6 +44,8 @@ def row_scores(clips: Sequence[ClipScores], config: ReportConfig, gt_features: S
         lidar_chamfer_m=_mean([d for c in clips for d in c.chamfers]),
         object_psnr_db=_mean([p for c in clips for p in c.object_psnrs]),
         lidar_object_mae_m=_mean([m for c in clips for m in c.object_maes]),
+        lidar_road_mae_m=_mean([m for c in clips for m in c.road_maes]),
+        **{f"{c}_iou": None if scene is None else scene.overall[c] for c in HEADLINE_IOU},
         **chunk_jump_scores(jumps),
         **motion_scores(pooled_motion(clips)),
     )
@@ -47,6 +60,25 @@ def row_scores(clips: Sequence[ClipScores], config: ReportConfig, gt_features: S
         per_view=per_view(answers),
         answers=len(answers),
         long_horizon=tuple(c.long_horizon for c in clips if c.long_horizon is not None),
+        scene_iou=scene,
+    )
+
+
+def scene_iou_scores(clips: Sequence[ClipScores]) -> SceneIoUScores | None:
+    """A row's scene IoU from its clips of at least a second: per class overall, per second pooled
+    over the clips that last that long, over the last window of the long clips (those with a
+    long-horizon score) and per clip; None without a clip of a second."""
+    scored = [c for c in clips if c.scene_iou is not None]
+    if not scored:
+        return None
+    pooled = pool_scene_iou([c.scene_iou for c in scored])
+    overall = sum(pooled.per_second, ConfusionSums.zeros(len(SCENE_CLASSES)))
+    long_clips = [c.scene_iou for c in scored if c.long_horizon is not None]
+    return SceneIoUScores(
+        overall=dict(zip(SCENE_CLASSES, overall.iou(), strict=True)),
+        per_second=tuple(pooled.per_second_iou()),
+        last_window_long_clips=pool_scene_iou(long_clips).last_window_iou() if long_clips else None,
+        per_clip=tuple(ClipSceneIoU(c.clip, tuple(c.scene_iou.per_second_iou())) for c in scored),
     )
 
 

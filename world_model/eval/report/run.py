@@ -8,18 +8,17 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from world_model.data import Clip
 from world_model.eval.judge import JudgeBackend, load_default_judge
 from world_model.eval.report.cache import RowCache, row_cache_key
-from world_model.eval.report.clip_scores import ClipScores, score_clip
+from world_model.eval.report.clip_scores import ClipScores, ClipTruth, clip_truth, score_clip
 from world_model.eval.report.config import ReportConfig
 from world_model.eval.report.markdown import format_markdown
 from world_model.eval.report.results import Report, RowScores
 from world_model.eval.report.row_scores import row_scores
 from world_model.eval.report.rows import RowFn, check_generated
 from world_model.eval.report.seeds import average_seeds
+from world_model.eval.segmenter import Segmenter, load_default_segmenter
 from world_model.sim import ProceduralSimulator
 
 log = logging.getLogger(__name__)
@@ -32,12 +31,14 @@ def evaluate_rows(
     config: ReportConfig | None = None,
     cache_dir: str | Path | None = None,
     row_ids: dict[str, str] | None = None,
+    segmenter: Segmenter | None = None,
 ) -> Report:
     """Score every row on every clip.
 
     ``config``: the sampling (default :class:`ReportConfig`). ``judge`` answers the questions
     (default: the shipped CNN judge); its ``frame_features`` feed the Fréchet distances (a backend
-    without them gets None there). A row given as a sequence of
+    without them gets None there). ``segmenter`` labels the rows' camera pixels for the scene IoU
+    against the recordings' label maps (default: the shipped one). A row given as a sequence of
     generators is one model under several noise seeds: each is scored and the row holds their mean
     (:func:`~world_model.eval.report.seeds.average_seeds`).
 
@@ -49,19 +50,20 @@ def evaluate_rows(
     if not rows or not clips:
         raise ValueError("evaluate_rows needs at least one row and one clip")
     judge = judge if judge is not None else load_default_judge()
+    segmenter = segmenter if segmenter is not None else load_default_segmenter()
     config = config if config is not None else ReportConfig()
-    features = getattr(judge, "frame_features", None)
-    gt_features = [features(np.asarray(c.cameras)) for c in clips] if features else []
+    truths = [clip_truth(c, judge, config) for c in clips]
     cache = RowCache(Path(cache_dir)) if cache_dir is not None else None
     scored: dict[str, RowScores] = {}
 
     def cached(name: str, fn: RowFn, row_id: str | None) -> RowScores:
-        key = row_cache_key(row_id, clips, config, judge) if cache is not None and row_id is not None else None
+        keyed = cache is not None and row_id is not None
+        key = row_cache_key(row_id, clips, config, judge, segmenter) if keyed else None
         if key is not None and (hit := cache.load(name, key)) is not None:
             return hit
         t0 = time.perf_counter()
         log.info("report row %s: generating and scoring %d clips", name, len(clips))
-        result = score_row(name, fn, clips, judge, config, gt_features)
+        result = score_row(name, fn, clips, judge, segmenter, truths, config)
         log.info("report row %s: done in %.0f s", name, time.perf_counter() - t0)
         if key is not None:
             cache.save(name, key, row_id, result)
@@ -84,10 +86,12 @@ def score_row(
     fn: RowFn,
     clips: Sequence[Clip],
     judge: JudgeBackend,
+    segmenter: Segmenter,
+    truths: Sequence[ClipTruth],
     config: ReportConfig,
-    gt_features: Sequence[np.ndarray] = (),
 ) -> RowScores:
-    """Generate ``row``'s sensors for every clip and score them. A row that can generate every clip
+    """Generate ``row``'s sensors for every clip and score them against the clips' ``truths``
+    (:func:`~world_model.eval.report.clip_scores.clip_truth`). A row that can generate every clip
     at once (``generate_all``: batched rollouts) does so up front; each clip is let go once scored."""
     sim = ProceduralSimulator()
     generated = fn.generate_all(clips) if hasattr(fn, "generate_all") else None
@@ -97,7 +101,8 @@ def score_row(
         if generated is not None:
             generated[i] = None
         check_generated(gen, clip, row)
-        per_clip.append(score_clip(gen, clip, judge, config, gt_features[i] if gt_features else None, sim))
+        per_clip.append(score_clip(gen, clip, judge, segmenter, truths[i], config, sim))
+    gt_features = [t.features for t in truths] if all(t.features is not None for t in truths) else []
     return row_scores(per_clip, config, gt_features)
 
 

@@ -1,0 +1,232 @@
+"""``m4world eval --ray``: the evaluation harness with its episodes run as tasks on Ray actors.
+
+Each episode is one task, identified by :class:`EpisodeKey` (its scenario's position and its index;
+its seed is ``seed + index`` as in :func:`m4world_env.evaluate.evaluate`). Workers are Ray actors that
+keep one scenario's env and policy between episodes and have at most :data:`QUEUE_PER_WORKER` episodes
+queued. When a worker is lost (actor killed, node gone), its unfinished episodes go back to the queue
+and a fresh worker takes its place; results are kept by key, so every episode counts exactly once and
+the report, table and per-episode seeds are the local harness's own. A policy whose state carries
+from one episode to the next of a scenario (none of the built-ins) can differ, since a worker runs
+some of a scenario's episodes, not all of them in order.
+"""
+
+from __future__ import annotations
+
+import uuid
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from m4world_env.cluster.runtime import connect, require_ray
+from m4world_env.config import EnvConfig
+from m4world_env.evaluate import build_report, check_max_steps, run_episode, scenario_policy
+from m4world_env.scenario import Scenario, load_scenario
+
+QUEUE_PER_WORKER = 2  # episodes queued on a worker: the next one is there when one finishes
+
+
+@dataclass(frozen=True, order=True)
+class EpisodeKey:
+    """An episode's identity: its scenario's position in the evaluation's list, and its index there."""
+
+    scenario: int
+    episode: int
+
+
+@dataclass(frozen=True)
+class EpisodeDone:
+    """An episode counted in the report: which, on which worker (the Ray actor's name), its metrics."""
+
+    key: EpisodeKey
+    scenario: str
+    seed: int
+    worker: str
+    metrics: dict[str, float]
+
+
+class EpisodeLedger:
+    """Which episodes wait, which run on which worker, which are done (each once, by key)."""
+
+    def __init__(self, keys: Iterable[EpisodeKey]) -> None:
+        self._waiting = deque(keys)
+        self._total = len(set(self._waiting))
+        self._running: dict[str, list[EpisodeKey]] = {}
+        self.done: dict[EpisodeKey, dict[str, float]] = {}
+        self.reruns = 0  # episodes that went back to the queue from a lost worker
+
+    @property
+    def complete(self) -> bool:
+        return len(self.done) == self._total
+
+    def running(self, worker: str) -> int:
+        return len(self._running.get(worker, ()))
+
+    def take(self, worker: str) -> EpisodeKey | None:
+        """The next waiting episode, now running on ``worker``; None when none waits."""
+        while self._waiting:
+            key = self._waiting.popleft()
+            if key not in self.done:
+                self._running.setdefault(worker, []).append(key)
+                return key
+        return None
+
+    def finish(self, worker: str, key: EpisodeKey, metrics: dict[str, float]) -> bool:
+        """Record ``key``'s result from ``worker``; False (and nothing recorded) if it was done already."""
+        running = self._running.get(worker, [])
+        if key in running:
+            running.remove(key)
+        if key in self.done:
+            return False
+        self.done[key] = metrics
+        return True
+
+    def lose(self, worker: str) -> list[EpisodeKey]:
+        """``worker`` is gone: its unfinished episodes wait again, first in the queue; returns them."""
+        unfinished = [k for k in self._running.pop(worker, []) if k not in self.done]
+        self._waiting.extendleft(reversed(unfinished))
+        self.reruns += len(unfinished)
+        return unfinished
+
+
+class EpisodeRunner:
+    """What one Ray actor holds: the env and policy of the scenario it last ran. Built lazily, in
+    :meth:`run`, so that a bad option fails the task with its own error instead of the actor."""
+
+    def __init__(
+        self,
+        policy: str | Callable,
+        backend: str,
+        checkpoint: str | None,
+        config: EnvConfig,
+        max_steps: int | None,
+        threads: int,
+    ) -> None:
+        import torch
+
+        torch.set_num_threads(threads)
+        self.policy, self.backend, self.checkpoint, self.config, self.max_steps = (
+            policy,
+            backend,
+            checkpoint,
+            config,
+            max_steps,
+        )
+        self._scenario: int | None = None
+        self._env: Any = None
+        self._episode_policy: Any = None
+
+    def ready(self) -> bool:
+        return True
+
+    def run(self, scenario_index: int, scenario: Scenario, seed: int) -> dict[str, float]:
+        if scenario_index != self._scenario:
+            import gymnasium as gym
+
+            if self._env is not None:
+                self._env.close()
+            self._env = gym.make(
+                "M4World-v0", scenario=scenario, backend=self.backend, checkpoint=self.checkpoint, config=self.config
+            )
+            self._episode_policy = scenario_policy(self.policy, self._env)
+            self._scenario = scenario_index
+        return run_episode(self._env, self._episode_policy, seed=seed, max_steps=self.max_steps)
+
+
+def evaluate_on_ray(
+    policy: str | Callable,
+    scenarios: Sequence[str],
+    episodes: int = 1,
+    seed: int = 0,
+    backend: str = "procedural",
+    checkpoint: str | None = None,
+    config: dict | None = None,
+    max_steps: int | None = None,
+    progress: bool = True,
+    workers: int | None = None,
+    address: str | None = None,
+    cpus_per_worker: float = 1.0,
+    max_worker_losses: int | None = None,
+    on_episode: Callable[[EpisodeDone], None] | None = None,
+) -> dict[str, Any]:
+    """:func:`m4world_env.evaluate.evaluate` on ``workers`` Ray actors (default: one per CPU of the
+    instance), joined at ``address`` (:func:`~m4world_env.cluster.connect`). Returns the same report
+    plus ``report["cluster"]``: workers, workers lost, episodes re-run. Lost workers are replaced up to
+    ``max_worker_losses`` times (default ``workers``), then the evaluation stops with an error.
+    ``on_episode`` is called with each episode counted, as it is counted."""
+    from tqdm import tqdm
+
+    check_max_steps(max_steps)
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be a positive integer, got {episodes!r}")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"workers must be a positive integer or None (one per CPU), got {workers!r}")
+    cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
+    loaded = [load_scenario(s) for s in scenarios]  # here: a file path need not exist on the workers
+    ray = require_ray()
+    owns_ray = connect(address)
+    runner = ray.remote(EpisodeRunner)
+    threads = max(1, int(cpus_per_worker))
+    prefix = f"m4world-eval-{uuid.uuid4().hex[:8]}"
+    handles: dict[str, Any] = {}
+    calls: dict[Any, tuple[str, EpisodeKey | None]] = {}  # object ref -> (worker, episode; None: ready)
+    started = 0
+
+    def start() -> None:
+        nonlocal started
+        name = f"{prefix}-{started}"
+        started += 1
+        handles[name] = runner.options(name=name, num_cpus=cpus_per_worker).remote(
+            policy, backend, checkpoint, cfg, max_steps, threads
+        )
+        calls[handles[name].ready.remote()] = (name, None)
+
+    def feed(name: str) -> None:
+        while ledger.running(name) < QUEUE_PER_WORKER and (key := ledger.take(name)) is not None:
+            ref = handles[name].run.remote(key.scenario, loaded[key.scenario], seed + key.episode)
+            calls[ref] = (name, key)
+
+    ledger = EpisodeLedger(EpisodeKey(s, e) for s in range(len(loaded)) for e in range(episodes))
+    losses = 0
+    try:
+        count = workers or max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_worker))
+        limit = count if max_worker_losses is None else max_worker_losses
+        for _ in range(count):
+            start()
+        bar = tqdm(total=len(loaded) * episodes, desc="episodes", unit="ep", disable=not progress)
+        while not ledger.complete:
+            [ref], _ = ray.wait(list(calls), num_returns=1)
+            name, key = calls.pop(ref)
+            if name not in handles:
+                continue  # a call of a worker already counted lost
+            try:
+                metrics = ray.get(ref)
+            except ray.exceptions.RayActorError as e:
+                losses += 1
+                ray.kill(handles.pop(name))
+                for other in [r for r, (n, _) in calls.items() if n == name]:
+                    del calls[other]
+                ledger.lose(name)
+                if losses > limit:
+                    raise RuntimeError(
+                        f"{losses} Ray workers lost (more than max_worker_losses={limit}); the last: {e}"
+                    ) from e
+                start()
+                continue
+            done = None
+            if key is not None and ledger.finish(name, key, metrics):
+                bar.update()
+                done = EpisodeDone(key, loaded[key.scenario].name, seed + key.episode, name, metrics)
+            feed(name)
+            if done is not None and on_episode is not None:
+                on_episode(done)
+        bar.close()
+    finally:
+        for handle in handles.values():
+            ray.kill(handle)
+        if owns_ray:
+            ray.shutdown()
+    results = [(sc.name, [ledger.done[EpisodeKey(i, e)] for e in range(episodes)]) for i, sc in enumerate(loaded)]
+    report = build_report(policy, backend, seed, results)
+    report["cluster"] = {"workers": count, "workers_lost": losses, "episodes_rerun": ledger.reruns}
+    return report
