@@ -48,7 +48,7 @@ class TrainJudgeConfig:
     crop_steps: int = 1200
     tracks_per_batch: int = 48  # two crops of each -> pairs for the same-object head
     background_per_batch: int = 32
-    scene_steps: int = 500
+    scene_steps: int = 1500
     scene_batch: int = 12
     lr: float = 2e-3
     weight_decay: float = 1e-4
