@@ -53,7 +53,7 @@ def test_bars_against_oracle_baseline_and_autoencoder_ceiling():
 
 def test_thresholds_decide_pass_or_fail():
     rows = {"oracle": _row(existence=1.0), "student": _row(existence=0.85, lidar_first_s=2.5)}
-    assert _check(check_bars(_report(**rows)), "existence").met
+    assert _check(check_bars(_report(**rows)), "existence ≥ 0.8").met
     strict = QualityBars(oracle_ratios=(("existence", 0.9),), lidar_first_s_max_m=3.0)
     checks = check_bars(_report(**rows), bars=strict)
     assert _check(checks, "existence ≥ 0.9 x oracle").status == "missed"
@@ -90,3 +90,22 @@ def test_existence_by_category_table_lists_every_judged_category_per_row():
     assert "| row | car | tree_truck |" in lines
     assert "| student | 0.250 | n/a |" in lines and "| student_adapted | 0.250 | 0.500 |" in lines
     assert existence_by_category(_report(student=RowScores())) == []
+
+
+def test_absolute_and_per_view_bars():
+    student = _row(existence=0.55)
+    per_view = {"time_of_day": (1.0, 0.95, 0.4, 1.0), "weather": (0.9, 0.85, 0.8, None)}
+    rows = {
+        "oracle": _row(existence=1.0),
+        "autoencoder": RowScores(per_view={"time_of_day": (1.0,) * 4, "weather": (0.9, 0.7, 0.9, 0.9)}),
+        "student": RowScores(student.table1, student.table2, per_view=per_view),
+    }
+    checks = check_bars(_report(**rows))
+    assert _check(checks, "existence ≥ 0.6").status == "missed"
+    time_of_day = _check(checks, "time_of_day ≥ 0.9 in every camera view")
+    assert time_of_day.measured == "0.400 (view 2)" and time_of_day.met is False
+    assert time_of_day.ceiling == "1.000 (view 0): reachable"
+    weather = _check(checks, "weather ≥ 0.8 in every camera view")
+    assert weather.met and weather.ceiling.endswith("out of reach")  # the VAE's view 1 says 0.7
+    rows["student"] = _row()  # no per-view answers: not measured
+    assert _check(check_bars(_report(**rows)), "weather ≥ 0.8 in every camera view").status == "not measured"

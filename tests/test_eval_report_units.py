@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from world_model.eval.metrics import ChangeSums, JumpSums
+from world_model.eval.metrics import ChangeSums, ConfusionSums, JumpSums
 from world_model.eval.questions import QUESTION_TYPES
 from world_model.eval.report import (
     ClipChunkJumps,
@@ -30,7 +30,8 @@ from world_model.eval.report.clip_scores import ClipScores, StreamPair
 from world_model.eval.report.judging import Answer, per_category, yes_frequencies
 from world_model.eval.report.lineup import RowIdentity
 from world_model.eval.report.row_scores import row_scores
-from world_model.eval.segmenter import Segmenter, SegmenterConfig, SegNet
+from world_model.eval.scene_iou import SceneIoU
+from world_model.eval.segmenter import SCENE_CLASSES, Segmenter, SegmenterConfig, SegNet
 
 
 def test_yes_frequencies_and_per_category():
@@ -207,3 +208,25 @@ def test_lineup_names_and_request_checks():
         ReportRequest(dtype="fp8")
     with pytest.raises(ValueError, match="ReportConfig.clip_window must be >= 2"):
         ReportConfig(clip_window=1)
+
+
+def _road_seconds(*hits):
+    """Per-second sums where the road (class 1) is labelled on 4 pixels and predicted on ``hit`` of them."""
+    classes = len(SCENE_CLASSES)
+    out = []
+    for hit in hits:
+        road = np.zeros(classes, np.int64)
+        road[SCENE_CLASSES.index("road")] = 1
+        out.append(ConfusionSums(road * hit, road * hit, road * 4))
+    return tuple(out)
+
+
+def test_scene_iou_pools_clips_of_any_length_per_second():
+    short, long = _road_seconds(4, 2), _road_seconds(4, 0, 0)  # a 2 s and a 3 s clip: last windows of 2 and 3 s
+    zero = ConfusionSums.zeros(len(SCENE_CLASSES))
+    a = replace(_clip("a", [20.0] * 4), scene_iou=SceneIoU(short, sum(short, zero), 2))
+    b = replace(_clip("b", [20.0] * 6), scene_iou=SceneIoU(long, sum(long, zero), 3))
+    scene = row_scores([a, b], ReportConfig()).scene_iou
+    assert [s["road"] for s in scene.per_second] == [1.0, 2 / 8, 0.0]  # second 2: only the 3 s clip
+    assert scene.overall["road"] == pytest.approx(10 / 20) and scene.last_window_long_clips is None
+    assert [c.clip for c in scene.per_clip] == ["a", "b"] and scene.per_clip[1].per_second[1]["road"] == 0.0

@@ -1,8 +1,9 @@
 """The shipped checkpoint's quality bars: thresholds (:class:`QualityBars`) and each bar's
 pass/fail on a report (:func:`check_bars` -> :class:`BarCheck`).
 
-Judge bars compare the model row's yes-frequencies with the ``oracle`` row (a ratio) or with the
-``geometry_only`` baseline (a margin); stability bars read its long-horizon windows and its
+Judge bars compare the model row's yes-frequencies with the ``oracle`` row (a ratio), with a
+minimum, view by view for weather and time of day (a view dark as night fails on its own), or with
+the ``geometry_only`` baseline (a margin); stability bars read its long-horizon windows and its
 first-second LiDAR error; scene IoU bars compare its every second with the ``autoencoder`` row's
 (the recording through the VAE). With an ``autoencoder`` row each judge bar also says whether that
 ceiling passes it: a bar the ceiling misses is out of reach of any model generating through this VAE.
@@ -23,6 +24,8 @@ class QualityBars:
     """Thresholds of the quality bars (every default visible)."""
 
     oracle_ratios: tuple[tuple[str, float], ...] = (("existence", 0.8), ("weather", 0.85), ("time_of_day", 0.85))
+    minimums: tuple[tuple[str, float], ...] = (("existence", 0.6),)  # yes-frequency over every question
+    view_minimums: tuple[tuple[str, float], ...] = (("time_of_day", 0.9), ("weather", 0.8))  # in every view
     fidelity_margin: float = 0.30  # visual/textual fidelity above the geometry-only baseline
     long_tolerance: float = 0.20  # last vs first long-horizon window, PSNR and Fréchet ratios
     lidar_first_s_max_m: float = 2.0
@@ -89,8 +92,22 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
 
         return judge
 
+    def at_least(q: str, bar: float) -> JudgeBar:
+        def judge(t2: YesFrequencies) -> tuple[str, bool | None]:
+            v = t2.of(q)
+            return format_score(v), None if v is None else v >= bar
+
+        return judge
+
     for q, bar in bars.oracle_ratios:
         out.append(judged(f"{q} ≥ {bar} x oracle", ratio(q, bar)))
+    for q, bar in bars.minimums:
+        out.append(judged(f"{q} ≥ {bar}", at_least(q, bar)))
+    for q, bar in bars.view_minimums:
+        measured, met = worst_view(scores, q, bar)
+        top = "" if ceiling is None else worst_view(ceiling, q, bar)
+        reach = "" if not top or top[1] is None else f"{top[0]}: {'reachable' if top[1] else 'out of reach'}"
+        out.append(BarCheck(f"{q} ≥ {bar} in every camera view", measured, met, reach))
     for q in ("visual_fidelity", "textual_fidelity"):
         out.append(judged(f"{q} ≥ geometry_only + {bars.fidelity_margin:.2f}", margin(q)))
     # No ceiling here: blurrier crops look *more* alike across views, so the VAE does not cap it.
@@ -108,6 +125,16 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
     met = None if mae is None else mae <= bars.lidar_first_s_max_m
     out.append(BarCheck(f"LiDAR range MAE first second ≤ {bars.lidar_first_s_max_m} m", format_score(mae), met))
     return out
+
+
+def worst_view(scores: RowScores, question: str, bar: float) -> tuple[str, bool | None]:
+    """The lowest yes-frequency of ``question`` over the row's camera views: (what was measured,
+    at least ``bar``?); not measured without per-view answers."""
+    views = [(v, k) for k, v in enumerate(scores.per_view.get(question, ())) if v is not None]
+    if not views:
+        return "", None
+    low, k = min(views)
+    return f"{format_score(low)} (view {k})", low >= bar
 
 
 def scene_iou_bar(

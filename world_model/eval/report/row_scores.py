@@ -19,7 +19,7 @@ from world_model.eval.report.results import (
     RowScores,
     SceneIoUScores,
 )
-from world_model.eval.scene_iou import pool_scene_iou
+from world_model.eval.scene_iou import pool_scene_iou, pool_seconds
 from world_model.eval.segmenter import SCENE_CLASSES
 
 
@@ -71,12 +71,12 @@ def scene_iou_scores(clips: Sequence[ClipScores]) -> SceneIoUScores | None:
     scored = [c for c in clips if c.scene_iou is not None]
     if not scored:
         return None
-    pooled = pool_scene_iou([c.scene_iou for c in scored])
-    overall = sum(pooled.per_second, ConfusionSums.zeros(len(SCENE_CLASSES)))
+    seconds = pool_seconds([c.scene_iou for c in scored])  # clips of any length: their last windows differ
+    overall = sum(seconds, ConfusionSums.zeros(len(SCENE_CLASSES)))
     long_clips = [c.scene_iou for c in scored if c.long_horizon is not None]
     return SceneIoUScores(
         overall=dict(zip(SCENE_CLASSES, overall.iou(), strict=True)),
-        per_second=tuple(pooled.per_second_iou()),
+        per_second=tuple(dict(zip(SCENE_CLASSES, s.iou(), strict=True)) for s in seconds),
         last_window_long_clips=pool_scene_iou(long_clips).last_window_iou() if long_clips else None,
         per_clip=tuple(ClipSceneIoU(c.clip, tuple(c.scene_iou.per_second_iou())) for c in scored),
     )
