@@ -325,7 +325,7 @@ class SimulationWorkers:
     def request(self, messages: dict[int, tuple[str, tuple]]) -> dict[int, Any]:
         """Send each worker its (command, args), then collect every reply (they run in parallel).
         A worker's exception is raised here (the lowest sub-env's first) once all have answered."""
-        self._check_usable()
+        self.check_usable()
         t0 = time.perf_counter()
         for k, message in messages.items():
             try:
@@ -405,7 +405,7 @@ class SimulationWorkers:
         self._finalize()
         raise SimulationWorkerError(f"{self._broken}; the vector env is closed, make a new one")
 
-    def _check_usable(self) -> None:
+    def check_usable(self) -> None:
         if self._broken is not None:
             raise SimulationWorkerError(f"{self._broken}; make a new vector env")
 
@@ -511,6 +511,7 @@ class WorkerSubEnvs:
         return [(first[i], reports[i].info) for i in indices]
 
     def step(self, actions: list[Any], restarting: np.ndarray) -> list[SubEnvStep]:
+        self.workers.check_usable()
         stale = np.flatnonzero(self.needs_reset & ~restarting)
         if len(stale):
             raise ResetNeeded(
