@@ -35,7 +35,7 @@ from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
-from m4world_env.workers import SubEnvStep, WorkerSubEnvs
+from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs
 
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
 
@@ -160,6 +160,11 @@ class M4WorldVectorEnv(VectorEnv):
     @property
     def camera_names(self) -> tuple[str, ...]:
         return self._camera_names
+
+    @property
+    def simulation_workers(self) -> SimulationWorkers | None:
+        """The worker processes running the sub-envs (``config.workers`` > 0), else None."""
+        return self._subenvs.workers if isinstance(self._subenvs, WorkerSubEnvs) else None
 
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None

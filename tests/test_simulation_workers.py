@@ -130,7 +130,7 @@ def test_worker_errors_edits_death_and_shared_memory(tiny_bundle):
     before = _shm_names()
     venv = _vector(tiny_bundle, 2)
     base = venv.unwrapped
-    workers = base._subenvs.workers
+    workers = base.simulation_workers
     (name,) = _shm_names() - before
     with pytest.raises(ResetNeeded, match="sub-env 0"):
         venv.step(ACTIONS)
@@ -165,7 +165,7 @@ def test_worker_errors_edits_death_and_shared_memory(tiny_bundle):
 def test_closing_joins_the_workers_and_unlinks_shared_memory(tiny_bundle):
     before = _shm_names()
     venv = _vector(tiny_bundle, 1, n=2)
-    workers = venv.unwrapped._subenvs.workers
+    workers = venv.unwrapped.simulation_workers
     assert len(_shm_names() - before) == 1
     venv.reset(seed=1)
     venv.close()
