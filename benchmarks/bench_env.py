@@ -22,6 +22,16 @@ shares its process with the world model's torch threads or an earlier round's en
     python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 
 ``--device`` runs the world-model backends there (``config.model.device``: cpu, cuda[:N], auto).
+
+Simulation workers (``config.workers``, docs/scaling.md) instead of the backends:
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_env.py --workers 0 2 --num-envs 64 --rounds 2 \
+        --vector-steps 4 --out F.json [--compare-tree OTHER_CHECKOUT]
+
+times one world-model vector env per worker count, each in a fresh process, in interleaved rounds
+(:func:`bench_workers`), and reports the non-model throughput of each count over 0 workers' and
+whether all of them observed the same; ``--compare-tree`` adds 0 workers of another checkout's
+packages (e.g. ``git archive main | tar -x -C DIR``) to every round.
 """
 
 from __future__ import annotations

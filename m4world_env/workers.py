@@ -163,14 +163,18 @@ class SimulationWorker:
             for i in range(hi - lo)
         ]
         self._checked: tuple[list[Any], np.ndarray] | None = None  # the actions of the step to advance
-        self.traffic_s = 0.0
+        self.traffic_s = self.busy_s = 0.0
 
     def seconds(self) -> dict[str, float]:
-        """Wall seconds of the sub-envs' traffic, crops and condition arrays so far."""
-        return {"traffic": self.traffic_s, **self.conditions.seconds}
+        """Wall seconds of the sub-envs' traffic, crops and condition arrays so far, and of whole
+        steps and resets (``busy``: those, rewards, infos, shared-memory writes)."""
+        return {"traffic": self.traffic_s, **self.conditions.seconds, "busy": self.busy_s}
 
     def reset(self, local: Sequence[int], seeds: Sequence[int | None], options: dict | None) -> list[SubEnvReport]:
-        return [self._start(i, seed, options) for i, seed in zip(local, seeds, strict=True)]
+        t0 = time.perf_counter()
+        reports = [self._start(i, seed, options) for i, seed in zip(local, seeds, strict=True)]
+        self.busy_s += time.perf_counter() - t0
+        return reports
 
     def check(self, actions: Sequence[Any], restarting: np.ndarray) -> None:
         self._checked = None
@@ -184,6 +188,7 @@ class SimulationWorker:
         if self._checked is None:
             raise RuntimeError("advance without a checked step")
         (actions, restarting), self._checked = self._checked, None
+        t_start = time.perf_counter()
         reports = []
         for i, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
             with _blame(i):
@@ -198,6 +203,7 @@ class SimulationWorker:
                 reward, terminated, truncated, info = env.settle_step(frames)
                 self._write_state(i, env)
                 reports.append(SubEnvReport(reward, terminated, truncated, info, None))
+        self.busy_s += time.perf_counter() - t_start
         return reports
 
     def call(self, local: int, method: str, args: tuple, kwargs: dict) -> Any:
