@@ -51,10 +51,15 @@ from world_model.scene import SceneFrame
 START_TIMEOUT_S = 300.0  # a worker imports torch and builds its encoders
 REPLY_TIMEOUT_S = 1800.0  # a live worker that has not answered by then is stuck
 OBJECT_METHODS = ("insert_object", "remove_object", "edit_object")
+WORKER_COMMANDS = ("reset", "check", "advance", "call", "seconds")  # SimulationWorker methods main may call
 
 
 class SimulationWorkerError(RuntimeError):
     """A simulation worker died, hung or could not start; the vector env cannot go on."""
+
+
+class RemoteTraceback(Exception):
+    """The traceback of an exception raised in a simulation worker (the cause of the one raised)."""
 
 
 @dataclass(frozen=True)
@@ -163,17 +168,19 @@ class SimulationWorker:
             for i in range(hi - lo)
         ]
         self._checked: tuple[list[Any], np.ndarray] | None = None  # the actions of the step to advance
-        self.traffic_s = self.busy_s = 0.0
+        self.traffic_s = self.busy_s = self.busy_cpu_s = 0.0
 
     def seconds(self) -> dict[str, float]:
-        """Wall seconds of the sub-envs' traffic, crops and condition arrays so far, and of whole
-        steps and resets (``busy``: those, rewards, infos, shared-memory writes)."""
-        return {"traffic": self.traffic_s, **self.conditions.seconds, "busy": self.busy_s}
+        """Wall seconds of the sub-envs' traffic, crops and condition arrays so far, of whole steps
+        and resets (``busy``: those, rewards, infos, shared-memory writes), and the CPU seconds this
+        process got meanwhile (``busy_cpu``: below ``busy`` when other processes took its core)."""
+        return {"traffic": self.traffic_s, **self.conditions.seconds, "busy": self.busy_s, "busy_cpu": self.busy_cpu_s}
 
     def reset(self, local: Sequence[int], seeds: Sequence[int | None], options: dict | None) -> list[SubEnvReport]:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         reports = [self._start(i, seed, options) for i, seed in zip(local, seeds, strict=True)]
         self.busy_s += time.perf_counter() - t0
+        self.busy_cpu_s += time.process_time() - c0
         return reports
 
     def check(self, actions: Sequence[Any], restarting: np.ndarray) -> None:
@@ -188,7 +195,7 @@ class SimulationWorker:
         if self._checked is None:
             raise RuntimeError("advance without a checked step")
         (actions, restarting), self._checked = self._checked, None
-        t_start = time.perf_counter()
+        t_start, c_start = time.perf_counter(), time.process_time()
         reports = []
         for i, (env, action) in enumerate(zip(self.envs, actions, strict=True)):
             with _blame(i):
@@ -204,6 +211,7 @@ class SimulationWorker:
                 self._write_state(i, env)
                 reports.append(SubEnvReport(reward, terminated, truncated, info, None))
         self.busy_s += time.perf_counter() - t_start
+        self.busy_cpu_s += time.process_time() - c_start
         return reports
 
     def call(self, local: int, method: str, args: tuple, kwargs: dict) -> Any:
@@ -261,6 +269,8 @@ def run_worker(conn: Connection, spec: WorkerSpec) -> None:
             if command == "close":
                 return
             try:
+                if command not in WORKER_COMMANDS:
+                    raise ValueError(f"unknown simulation worker command {command!r}; known: {WORKER_COMMANDS}")
                 conn.send(("ok", getattr(worker, command)(*args)))
             except Exception as e:  # noqa: BLE001 (sent to the main process, which raises it)
                 conn.send(("error", _portable(e), traceback.format_exc()))
@@ -402,8 +412,8 @@ class SimulationWorkers:
         except Exception:  # noqa: BLE001 (an exception type that takes other arguments)
             tagged = error
         tagged.m4world_sub_env = lo + (local or 0)
-        tagged.add_note(f"raised in simulation worker {k}:\n{remote_traceback}")
-        raise tagged from error if tagged is not error else None
+        # The worker's traceback rides along as the cause (exception notes need Python 3.11).
+        raise tagged from RemoteTraceback(f"in simulation worker {k}:\n{remote_traceback}")
 
     def _fail(self, k: int, why: str) -> None:
         lo, hi = self.rows[k]
