@@ -17,22 +17,14 @@ from m4world_env.shared_arrays import ALIGN_BYTES, SharedArrays, plan_layout
 from m4world_env.traffic import ActionError
 from m4world_env.workers import SimulationWorkerError, worker_rows
 
-from .test_env_world_model import assert_rows_equal_singles
+from .test_env_world_model import _wm_vector, assert_rows_equal_singles
 
 KEYS = ["cameras", "lidar", "bev", "state"]
 ACTIONS = np.array([[0.5, 0.0], [-0.5, 0.2], [0.0, 0.0]], np.float32)
 
 
-def _vector(bundle, workers: int, scenario="merge_cut_in", n: int = 3, **config):
-    return gym.make_vec(
-        "M4World-v0",
-        num_envs=n,
-        vectorization_mode="vector_entry_point",
-        scenario=scenario,
-        backend="world_model",
-        checkpoint=str(bundle),
-        config={"observation_keys": KEYS, "workers": workers, **config},
-    )
+def _vector(bundle, workers: int, scenario="merge_cut_in", n: int = 3):
+    return _wm_vector(scenario, bundle, {"observation_keys": KEYS, "workers": workers}, n)
 
 
 def _shm_names() -> set[str]:
