@@ -88,9 +88,8 @@ def main(argv: list[str] | None = None) -> dict:
         "seeds": args.seeds,
         "seconds": time.perf_counter() - t0,
         "rows": {
-            name: {"table2": r["table2"], "psnr_db": t1["psnr_db"], "lidar_mae_m": t1["lidar_range_mae_m"]}
-            for name, r in report["rows"].items()
-            for t1 in [r["table1"]]
+            name: {"table2": r.table2.to_json(), "psnr_db": r.table1.psnr_db, "lidar_mae_m": r.table1.lidar_range_mae_m}
+            for name, r in report.rows.items()
         },
     }
     cols = ["weather", "time_of_day", "existence", "clarity", "visual_fidelity", "textual_fidelity"]

@@ -8,9 +8,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import replace
-from functools import partial
 from pathlib import Path
 
 from m4world_env.config import ACTION_TYPES
@@ -122,92 +120,29 @@ def _cmd_import_nuscenes(args: argparse.Namespace) -> int:
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from world_model.bundle import resolve_bundle, sha256_file
-    from world_model.data import iter_clips
-    from world_model.eval.report import (
-        RowFn,
-        evaluate_rows,
-        first_frame_row,
-        format_markdown,
-        oracle_row,
-        road_only_row,
-        write_report,
-    )
-    from world_model.eval.rows import autoencoder_row, teacher_row, world_model_row
-    from world_model.runtime import load_world_model
+    from world_model.eval.report import ReportRequest, report_bundle
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    clips = [c for c in iter_clips(args.evalset) if c.name.startswith(args.clips_prefix)][: args.max_clips or None]
-    if not clips:
-        which = f"no clips named {args.clips_prefix}*" if args.clips_prefix else "no clips"
-        raise ValueError(f"{which} in {args.evalset}; record them with `m4world evalset --out {args.evalset}`")
-
-    def bundle_id(path: str | None) -> str:
-        return sha256_file(resolve_bundle(path) / "manifest.json")[:16]
-
-    load = partial(load_world_model, dtype=args.dtype, context_frames=args.context_frames)
-    wm = load(args.checkpoint)
-    window = f",window={args.context_frames}" if args.context_frames else ""  # not the checkpoint's own
-
-    def student_id(path: str | None, refresh: bool = True) -> str:  # what a student row's scores depend on
-        return f"student,bundle={bundle_id(path)},seed={args.seed},refresh={int(refresh)},dtype={wm.dtype}{window}"
-
-    refresh_rows = [_step_list(s) for s in args.refresh_steps]  # parsed before any row is generated
-
-    def seeded(make_row: Callable[[int], RowFn]) -> list[RowFn]:  # one model row under --seeds noise seeds
-        return [make_row(args.seed + k) for k in range(args.seeds)]
-
-    rows, ids = {"oracle": oracle_row}, {"oracle": "oracle"}
-    rows["autoencoder"] = autoencoder_row(wm)  # the VAE's ceiling for every latent model below
-    vae = sha256_file(resolve_bundle(args.checkpoint) / "vae.safetensors")[:16]
-    ids["autoencoder"] = f"autoencoder,vae={vae},dtype={wm.dtype}"  # cameras decode in the DiTs' dtype
-    rows["road_only"], ids["road_only"] = road_only_row, "road_only"  # the floor of the object scores
-    rows["first_frame"], ids["first_frame"] = first_frame_row, "first_frame"  # the floor of the motion scores
-    if args.baseline:  # the geometry-only model (m4world train --geometry-only), streamed the same way
-        baseline = load(args.baseline)
-        rows["geometry_only"] = seeded(lambda s: world_model_row(baseline, seed=s))
-        ids["geometry_only"] = student_id(args.baseline)
-    rows["student"] = seeded(lambda s: world_model_row(wm, seed=s))  # exactly what the env runs
-    ids["student"] = student_id(args.checkpoint)
-    rows["student_no_refresh"] = seeded(lambda s: world_model_row(wm, seed=s, context_refresh=False))
-    ids["student_no_refresh"] = student_id(args.checkpoint, refresh=False)
-    for steps in refresh_rows:
-        name = "student_refresh_" + "_".join(map(str, steps))
-        rows[name] = seeded(lambda s, steps=steps: world_model_row(wm, seed=s, refresh_steps=steps))
-        ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps}"
-    for sinks in args.sink_frames:  # each with the bundle's own refresh and with every --refresh-steps row
-        if sinks < 1:
-            raise ValueError(f"--sink-frames takes a number of frames >= 1, got {sinks}")
-        for steps in (None, *refresh_rows):
-            name = "student" + ("_refresh_" + "_".join(map(str, steps)) if steps else "") + f"_sink_{sinks}"
-            rows[name] = seeded(
-                lambda s, steps=steps, sinks=sinks: world_model_row(wm, seed=s, refresh_steps=steps, sink_frames=sinks)
-            )
-            ids[name] = f"{student_id(args.checkpoint)},refresh_steps={steps},sink_frames={sinks}"
-    if args.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
-        from world_model.lora import META, WEIGHTS
-
-        adapted = load(args.checkpoint)
-        adapted.apply_adapters(args.adapters)  # into the student or the reference model, as the env does
-        # The JSON too: it decides how an adapter acts (a completion adapter only redraws its category).
-        digests = [sha256_file(d / f)[:16] for d in adapted.adapter_dirs for f in (WEIGHTS, META)]
-        rows["student_adapted"] = seeded(lambda s: world_model_row(adapted, seed=s))
-        ids["student_adapted"] = f"{student_id(args.checkpoint)},adapters={'+'.join(digests)}"
-    if args.teacher:
-        from world_model.precision import dit_precision
-        from world_model.train.exports import load_teacher
-
-        with dit_precision(wm.cfg.dit.autocast_bf16):  # the teacher in the student's precision
-            teacher_model = load_teacher(args.teacher)
-        rows["teacher"] = seeded(lambda s: teacher_row(wm, teacher_model, seed=s))
-        weights = Path(args.teacher).with_suffix(".safetensors")  # RUN/teacher/model
-        teacher = sha256_file(weights)[:16] if weights.exists() else args.teacher
-        ids["teacher"] = f"teacher={teacher},bundle={bundle_id(args.checkpoint)},seed={args.seed},dtype={wm.dtype}"
-    cache = Path(args.out) / "rows" if args.out else None
-    report = evaluate_rows(rows, clips, cache_dir=cache, row_ids=ids)
-    print(format_markdown(report))
-    if args.out:
-        md, js = write_report(report, args.out)
+    request = ReportRequest(
+        checkpoint=args.checkpoint,
+        evalset=args.evalset,
+        out=args.out,
+        seed=args.seed,
+        seeds=args.seeds,
+        dtype=args.dtype,
+        context_frames=args.context_frames,
+        clips_prefix=args.clips_prefix,
+        max_clips=args.max_clips,
+        baseline=args.baseline,
+        teacher=args.teacher,
+        adapters=tuple(args.adapters or ()),
+        refresh_steps=tuple(_step_list(s) for s in args.refresh_steps),
+        sink_frames=tuple(args.sink_frames),
+    )
+    result = report_bundle(request)
+    print(result.markdown)
+    if result.written:
+        md, js = result.written
         print(f"wrote {md} and {js}")
     return 0
 

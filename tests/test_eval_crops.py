@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from world_model.eval.crops import CropConfig, ObjectCrop, crop_boxes, extract_crops, group_by_track_time
-from world_model.eval.report import Answer, per_category, yes_frequencies
 from world_model.eval.text import parse_description
 from world_model.scene import CATEGORY_SIZES, Box3D, EgoState, MapGeometry, SceneFrame, SceneObject
 from world_model.sensors import default_rig
@@ -80,17 +79,3 @@ def test_description_parsing_prefers_specific_phrases():
     assert (p.category, p.color) == ("cement_mixer", "orange")
     assert parse_description("a black coach").category == "bus"
     assert parse_description("something odd").empty
-
-
-def test_yes_frequencies_and_per_category():
-    answers = [
-        Answer("weather", True, None),
-        Answer("weather", False, None),
-        Answer("existence", True, "car"),
-        Answer("existence", True, "car"),
-        Answer("existence", False, "bus"),
-    ]
-    freq = yes_frequencies(answers)
-    assert freq["weather"] == 0.5 and freq["existence"] == pytest.approx(2 / 3)
-    assert freq["clarity"] is None
-    assert per_category(answers) == {"existence": {"bus": 0.0, "car": 1.0}}

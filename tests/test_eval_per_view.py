@@ -4,7 +4,9 @@ import numpy as np
 import pytest
 
 from world_model.eval import load_default_judge
-from world_model.eval.report import judge_scene_per_view, per_view, scene_by_view
+from world_model.eval.report import Report, RowScores
+from world_model.eval.report.judging import judge_scene_per_view, per_view
+from world_model.eval.report.markdown import scene_by_view
 from world_model.sim import ProceduralSimulator
 from world_model.sim.demo import demo_frame, straight_road
 
@@ -34,10 +36,10 @@ class BrightIsDay:
 def test_each_view_gets_its_own_answer(day_with_two_night_views):
     answers = judge_scene_per_view(BrightIsDay(), day_with_two_night_views, "sunny", "day")
     views = per_view(answers)
-    assert views["weather"] == [1.0] * 6
-    assert views["time_of_day"] == [0.0, 1.0, 1.0, 1.0, 0.0, 1.0]
+    assert views["weather"] == (1.0,) * 6
+    assert views["time_of_day"] == (0.0, 1.0, 1.0, 1.0, 0.0, 1.0)
     assert np.mean([a.yes for a in answers if a.question == "time_of_day"]) == pytest.approx(4 / 6)
-    lines = scene_by_view({"rows": {"student": {"per_view": views}}})
+    lines = scene_by_view(Report({"student": RowScores(per_view=views)}, clips=()))
     assert any("| student | time_of_day | 0.000 | 1.000" in line for line in lines)
 
 

@@ -12,7 +12,8 @@ from world_model.data import read_clip
 from world_model.eval import Generated, evaluate_rows, format_markdown, load_default_judge, oracle_row, write_report
 from world_model.eval.corrupt import blur, color_shift
 from world_model.eval.crops import extract_crops
-from world_model.eval.report import ReportConfig, chunk_jumps_per_clip
+from world_model.eval.report import ReportConfig
+from world_model.eval.report.markdown import chunk_jumps_per_clip
 from world_model.scene import CATEGORIES
 from world_model.sim import ProceduralSimulator
 
@@ -61,33 +62,34 @@ def test_oracle_beats_corrupted_rows(clips, judge, tmp_path):
     # 3 s clips with a 1 s long-horizon window: every clip also gets the long-horizon curves
     cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=15, chamfer_max_points=2048, long_window_s=1)
     report = evaluate_rows(rows, clips, judge=judge, config=cfg)
-    o, b, s = (report["rows"][k] for k in rows)
-    t1 = o["table1"]
-    assert t1["frechet_judge_frame"] == pytest.approx(0.0, abs=1e-6)
-    assert t1["frechet_judge_clip"] == pytest.approx(0.0, abs=1e-6)
-    assert t1["psnr_db"] == cfg.psnr_cap_db and t1["ssim"] == pytest.approx(1.0)
-    assert t1["lidar_range_mae_m"] == 0.0 and t1["lidar_chamfer_m"] == 0.0
+    o, b, s = (report.rows[k] for k in rows)
+    t1 = o.table1
+    assert t1.frechet_judge_frame == pytest.approx(0.0, abs=1e-6)
+    assert t1.frechet_judge_clip == pytest.approx(0.0, abs=1e-6)
+    assert t1.psnr_db == cfg.psnr_cap_db and t1.ssim == pytest.approx(1.0)
+    assert t1.lidar_range_mae_m == 0.0 and t1.lidar_chamfer_m == 0.0
     for bad in (b, s):
-        assert bad["table1"]["frechet_judge_frame"] > 0 and bad["table1"]["frechet_judge_clip"] > 0
-        assert bad["table1"]["psnr_db"] < 40
-        assert np.mean(list(bad["table2"].values())) < np.mean(list(o["table2"].values()))
-    assert b["table1"]["lidar_range_mae_m"] == pytest.approx(2.0, abs=1e-3)
-    assert b["table1"]["lidar_range_mae_first_s_m"] == pytest.approx(2.0, abs=1e-3)
-    assert t1["lidar_range_mae_first_s_m"] == 0.0
-    for lo, lb in zip(o["long_horizon"], b["long_horizon"], strict=True):
-        assert lo["seconds"] == 3 and lo["ratio_last_first"] == 1.0 and lo["frechet_judge_frame_first"] < 1e-6
-        assert lo["lidar_mae_per_second"] == [0.0] * 3
-        assert lb["frechet_judge_frame_first"] > 0 and lb["frechet_ratio_last_first"] > 0
-        assert lb["lidar_mae_per_second"] == pytest.approx([2.0] * 3, abs=1e-3)
-    assert s["table1"]["lidar_range_mae_m"] is None
-    assert b["table2"]["clarity"] < o["table2"]["clarity"]
-    assert s["table2"]["textual_fidelity"] < o["table2"]["textual_fidelity"]
-    assert o["per_category"]["existence"]  # grouped by category
+        assert bad.table1.frechet_judge_frame > 0 and bad.table1.frechet_judge_clip > 0
+        assert bad.table1.psnr_db < 40
+        assert np.mean(list(bad.table2.to_json().values())) < np.mean(list(o.table2.to_json().values()))
+    assert b.table1.lidar_range_mae_m == pytest.approx(2.0, abs=1e-3)
+    assert b.table1.lidar_range_mae_first_s_m == pytest.approx(2.0, abs=1e-3)
+    assert t1.lidar_range_mae_first_s_m == 0.0
+    for lo, lb in zip(o.long_horizon, b.long_horizon, strict=True):
+        assert lo.seconds == 3 and lo.ratio_last_first == 1.0 and lo.frechet.first < 1e-6
+        assert lo.lidar_mae_per_second == (0.0,) * 3
+        assert lb.frechet.first > 0 and lb.frechet.ratio > 0
+        assert lb.lidar_mae_per_second == pytest.approx([2.0] * 3, abs=1e-3)
+    assert s.table1.lidar_range_mae_m is None
+    assert b.table2.clarity < o.table2.clarity
+    assert s.table2.textual_fidelity < o.table2.textual_fidelity
+    assert o.per_category["existence"]  # grouped by category
 
     md = format_markdown(report)
     assert "| oracle |" in md and "| blurred |" in md and "Table 2" in md
     md_path, json_path = write_report(report, tmp_path)
-    assert json.loads(json_path.read_text())["rows"].keys() == rows.keys()
+    written = json.loads(json_path.read_text())
+    assert written["rows"].keys() == rows.keys() and written == report.to_json()
     assert md_path.read_text() == md
 
 
@@ -108,7 +110,7 @@ def test_finished_rows_are_cached_by_key(clips, judge, tmp_path):
     first = evaluate_rows({"a": counted, "b": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A"})
     assert len(calls) == 4 and (tmp_path / "a.json").exists() and not (tmp_path / "b.json").exists()
     again = evaluate_rows({"a": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A"})
-    assert len(calls) == 4 and again["rows"]["a"] == first["rows"]["a"]  # reused, not regenerated
+    assert len(calls) == 4 and again.rows["a"] == first.rows["a"]  # reused, not regenerated
     # Another generator id, other clips or another config: generated again.
     evaluate_rows({"a": counted}, two, judge, cfg, cache_dir=tmp_path, row_ids={"a": "A2"})
     evaluate_rows({"a": counted}, clips[:1], judge, cfg, cache_dir=tmp_path, row_ids={"a": "A2"})
@@ -134,16 +136,16 @@ def test_chunk_jump_scores_rows_generated_in_passes(clips, judge):
     }
     cfg = ReportConfig(frame_stride=6, lidar_stride=30, chamfer_max_points=512)
     report = evaluate_rows(rows, clips, judge=judge, config=cfg)
-    t1 = {k: r["table1"] for k, r in report["rows"].items()}
-    assert t1["oracle"]["chunk_jump_cameras"] is None and t1["oracle"]["chunk_jump_lidar"] is None
-    assert t1["oracle_in_passes"]["chunk_jump_cameras"] == pytest.approx(1.0)  # the recording's own motion
-    assert t1["oracle_in_passes"]["chunk_jump_lidar"] == pytest.approx(1.0)
-    assert t1["flicker"]["chunk_jump_cameras"] > 2.0 and t1["flicker"]["chunk_jump_lidar"] == pytest.approx(1.0)
-    jumps = report["rows"]["flicker"]["chunk_jumps"]["cameras"]
-    assert jumps["generated"] > jumps["recording"] > 0
-    per_clip = report["rows"]["flicker"]["chunk_jumps_per_clip"]
-    assert [c["clip"] for c in per_clip] == report["clips"] and all(c["chunk_jump_cameras"] > 1.5 for c in per_clip)
-    assert report["rows"]["oracle"]["chunk_jumps_per_clip"] == []
+    t1 = {k: r.table1 for k, r in report.rows.items()}
+    assert t1["oracle"].chunk_jump_cameras is None and t1["oracle"].chunk_jump_lidar is None
+    assert t1["oracle_in_passes"].chunk_jump_cameras == pytest.approx(1.0)  # the recording's own motion
+    assert t1["oracle_in_passes"].chunk_jump_lidar == pytest.approx(1.0)
+    assert t1["flicker"].chunk_jump_cameras > 2.0 and t1["flicker"].chunk_jump_lidar == pytest.approx(1.0)
+    jumps = report.rows["flicker"].chunk_jumps["cameras"]
+    assert jumps.generated > jumps.recording > 0
+    per_clip = report.rows["flicker"].chunk_jumps_per_clip
+    assert tuple(c.clip for c in per_clip) == report.clips and all(c.chunk_jump_cameras > 1.5 for c in per_clip)
+    assert report.rows["oracle"].chunk_jumps_per_clip == ()
     md = format_markdown(report)
     assert "chunk_jump_cameras" in md and "### Chunk jumps per clip" in md
     n = len(clips)
@@ -160,11 +162,11 @@ def test_object_scores_see_a_row_that_drops_the_objects(clips, judge):
 
     cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=3, chamfer_max_points=2048)
     report = evaluate_rows({"oracle": oracle_row, "road_only": road_only_row}, clips, judge=judge, config=cfg)
-    o, n = (report["rows"][k]["table1"] for k in ("oracle", "road_only"))
-    assert o["object_psnr_db"] == cfg.psnr_cap_db and o["lidar_object_mae_m"] == 0.0
-    assert n["psnr_db"] - n["object_psnr_db"] > 10.0, n
-    assert n["lidar_object_mae_m"] > 3.0 * n["lidar_range_mae_m"], n
-    assert report["rows"]["road_only"]["table2"]["existence"] < 0.5 * report["rows"]["oracle"]["table2"]["existence"]
+    o, n = (report.rows[k].table1 for k in ("oracle", "road_only"))
+    assert o.object_psnr_db == cfg.psnr_cap_db and o.lidar_object_mae_m == 0.0
+    assert n.psnr_db - n.object_psnr_db > 10.0, n
+    assert n.lidar_object_mae_m > 3.0 * n.lidar_range_mae_m, n
+    assert report.rows["road_only"].table2.existence < 0.5 * report.rows["oracle"].table2.existence
     assert "object_psnr_db" in format_markdown(report)
 
 
@@ -180,11 +182,11 @@ def test_motion_scores_tell_a_frozen_row_from_the_recording(clips, judge):
     cfg = ReportConfig(frame_stride=2, clip_window=5, lidar_stride=3, chamfer_max_points=2048, motion_lag_s=0.5)
     rows = {"oracle": oracle_row, "first_frame": first_frame_row, "halfway": halfway}
     report = evaluate_rows(rows, clips, judge=judge, config=cfg)
-    t1 = {k: r["table1"] for k, r in report["rows"].items()}
-    assert t1["oracle"]["motion_cameras"] == 1.0 and t1["oracle"]["motion_lidar"] == 1.0
-    assert t1["first_frame"]["motion_cameras"] == 0.0 and t1["first_frame"]["motion_lidar"] == 0.0
-    assert t1["halfway"]["motion_lidar"] == pytest.approx(0.5, rel=1e-5)
-    assert t1["halfway"]["motion_cameras"] == pytest.approx(0.5, abs=0.05)  # rounded to uint8
+    t1 = {k: r.table1 for k, r in report.rows.items()}
+    assert t1["oracle"].motion_cameras == 1.0 and t1["oracle"].motion_lidar == 1.0
+    assert t1["first_frame"].motion_cameras == 0.0 and t1["first_frame"].motion_lidar == 0.0
+    assert t1["halfway"].motion_lidar == pytest.approx(0.5, rel=1e-5)
+    assert t1["halfway"].motion_cameras == pytest.approx(0.5, abs=0.05)  # rounded to uint8
     assert "motion_cameras" in format_markdown(report)
 
 
@@ -215,9 +217,9 @@ def test_a_row_of_several_seeds_is_their_mean(clips, judge, tmp_path):
         cache_dir=tmp_path,
         row_ids={"shift": "shift-test"},
     )
-    rows = report["rows"]
-    assert rows["shift"]["seeds"] == 2
-    psnrs = [rows[r]["table1"]["psnr_db"] for r in ("shift0", "shift1")]
-    assert rows["shift"]["table1"]["psnr_db"] == pytest.approx(sum(psnrs) / 2)
-    assert rows["shift"]["spread"]["table1"]["psnr_db"] == pytest.approx(abs(psnrs[0] - psnrs[1]) / 2)
+    rows = report.rows
+    assert rows["shift"].seeds == 2 and rows["shift0"].seeds is None
+    psnrs = [rows[r].table1.psnr_db for r in ("shift0", "shift1")]
+    assert rows["shift"].table1.psnr_db == pytest.approx(sum(psnrs) / 2)
+    assert rows["shift"].spread.table1.psnr_db == pytest.approx(abs(psnrs[0] - psnrs[1]) / 2)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["shift.seed0.json", "shift.seed1.json"]

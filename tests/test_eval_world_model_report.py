@@ -101,14 +101,14 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     sink_keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if "sink" in r}
     assert len(sink_keys) == 2 and not sink_keys & keys
     assert main([*args, "--sink-frames", "0"]) == 2
-    assert "--sink-frames takes a number of frames >= 1" in capsys.readouterr().err
+    assert "sink_frames takes a number of frames >= 1, got 0" in capsys.readouterr().err
 
 
 def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
     import numpy as np
 
     from world_model.data import iter_clips
-    from world_model.eval.rows import world_model_row
+    from world_model.eval.report.rows import world_model_row
     from world_model.runtime import load_world_model
 
     for i, duration in enumerate(("0.6", "0.3")):  # clips of different lengths share a batch
@@ -191,7 +191,7 @@ def test_student_row_marks_each_causal_chunk_for_the_chunk_jump_scores(tiny_bund
     from world_model.data import iter_clips
     from world_model.eval import evaluate_rows, load_default_judge
     from world_model.eval.report import ReportConfig
-    from world_model.eval.rows import world_model_row
+    from world_model.eval.report.rows import world_model_row
     from world_model.runtime import load_world_model
     from world_model.student.engine import StreamingEngine
 
@@ -216,5 +216,5 @@ def test_student_row_marks_each_causal_chunk_for_the_chunk_jump_scores(tiny_bund
     assert passes == [2] * len(gen.pass_starts) and gen.pass_starts[:2] == (1, 3)
     assert 2 * len(passes) >= clip.num_frames - 1 > 2 * (len(passes) - 1)
     cfg = ReportConfig(frame_stride=3, lidar_stride=30, chamfer_max_points=256)
-    t1 = evaluate_rows({"student": row}, [clip], judge=load_default_judge(), config=cfg)["rows"]["student"]["table1"]
-    assert t1["chunk_jump_cameras"] > 0 and t1["chunk_jump_lidar"] > 0
+    t1 = evaluate_rows({"student": row}, [clip], judge=load_default_judge(), config=cfg).rows["student"].table1
+    assert t1.chunk_jump_cameras > 0 and t1.chunk_jump_lidar > 0

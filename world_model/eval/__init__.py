@@ -8,7 +8,8 @@
 * :mod:`~world_model.eval.segmenter`: the scene classes and the small segmentation network
   (:func:`load_default_segmenter`); :mod:`~world_model.eval.train_segmenter` trains it and
   :mod:`~world_model.eval.scene_iou` scores generated frames with it against label maps.
-* :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2.
+* :mod:`~world_model.eval.report`: rows (callables ``Clip -> Generated``) to Table 1 / Table 2, the
+  scene IoU and the quality bars, one module per concern (rows, scoring, cache, markdown, bars).
 """
 
 from world_model.eval.crops import CropConfig, ObjectCrop, crop_boxes, extract_crops, group_by_track_time

@@ -4,7 +4,8 @@ the thresholds of the CNN judge (calibration) and measure any :class:`JudgeBacke
 Each question type gets positives (the true attribute / the same object) and as many negatives
 (a wrong weather, time, category or colour; a degraded crop; another track's crop; another
 object's description). Accuracy is reported as balanced accuracy (mean of the yes-rate on
-positives and the no-rate on negatives), overall and per category of the asked-about object.
+positives and the no-rate on negatives), overall and per category of the asked-about object
+(per camera view for weather and time of day, which are asked of each view on its own).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ class QuestionSet:
 
     a: list | np.ndarray
     label: np.ndarray  # bool (N,)
-    group: list[str]  # category of the asked-about object ("scene" for scene questions)
+    group: list[str]  # category of the asked-about object (the camera view for scene questions)
     b: list | None = None  # second crop of pair questions
     asked: list[str] | None = None  # the weather / time / category / description asked about
     extra: dict = field(default_factory=dict)
@@ -68,16 +69,21 @@ def build_questions(
         return CROP_CLASSES[arr["category"][i]]
 
     qs: dict[str, QuestionSet] = {}
+    # Scene questions are asked of one camera view at a time, as the report asks them: each view
+    # of a sampled frame is a question of its own, grouped by view.
     frames = np.stack(data.scene_frames) if data.scene_frames else np.zeros((0, 1, 1, 1, 3), np.uint8)
+    views = frames.shape[1]
     fidx = sub(np.arange(len(frames)))
+    single = frames[fidx].reshape(len(fidx) * views, 1, *frames.shape[2:])
+    view_names = [f"view {k}" for k in range(views)] * len(fidx)
     for name, labels, vocab in (("weather", data.weather, WEATHERS), ("time_of_day", data.time_of_day, TIMES_OF_DAY)):
-        true = [vocab[labels[i]] for i in fidx]
+        true = [vocab[labels[i]] for i in fidx for _ in range(views)]
         asked = true + [_pick_other(rng, vocab, t) for t in true]
         qs[name] = QuestionSet(
-            a=np.concatenate([frames[fidx], frames[fidx]]),
+            a=np.concatenate([single, single]),
             asked=asked,
-            label=np.r_[np.ones(len(fidx), bool), np.zeros(len(fidx), bool)],
-            group=["scene"] * (2 * len(fidx)),
+            label=np.r_[np.ones(len(single), bool), np.zeros(len(single), bool)],
+            group=view_names * 2,
         )
 
     o, g = sub(obj), sub(background)
@@ -191,7 +197,8 @@ def balanced_accuracy(pred: np.ndarray, label: np.ndarray) -> dict[str, float]:
 
 
 def judge_accuracy(backend: JudgeBackend, questions: dict[str, QuestionSet]) -> dict[str, dict]:
-    """Accuracy per question type, overall and per category of the asked-about object."""
+    """Accuracy per question type, overall and per group (``per_category``): the category of the
+    asked-about object, or the camera view of a scene question."""
     report = {}
     for qtype in QUESTION_TYPES:
         q = questions[qtype]
@@ -199,7 +206,7 @@ def judge_accuracy(backend: JudgeBackend, questions: dict[str, QuestionSet]) -> 
         entry = balanced_accuracy(pred, q.label)
         groups = np.array(q.group)
         entry["per_category"] = {
-            g: balanced_accuracy(pred[groups == g], q.label[groups == g]) for g in sorted(set(q.group)) if g != "scene"
+            g: balanced_accuracy(pred[groups == g], q.label[groups == g]) for g in sorted(set(q.group))
         }
         report[qtype] = entry
     return report

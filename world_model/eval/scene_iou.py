@@ -87,23 +87,30 @@ def scene_iou(
     return SceneIoU(tuple(per_second), last, window)
 
 
+def pool_seconds(results: Sequence[SceneIoU]) -> tuple[ConfusionSums, ...]:
+    """Several clips' per-second sums pooled by pixels: second k sums every clip that has a second k
+    (clips of any length and last window)."""
+    if not results:
+        raise ValueError("pool_seconds needs at least one result")
+    pooled = []
+    for k in range(max(len(r.per_second) for r in results)):
+        sums = ConfusionSums.zeros(NUM_SCENE_CLASSES)
+        for r in results:
+            if k < len(r.per_second):
+                sums = sums + r.per_second[k]
+        pooled.append(sums)
+    return tuple(pooled)
+
+
 def pool_scene_iou(results: Sequence[SceneIoU]) -> SceneIoU:
-    """Several clips' scene IoU pooled by pixels: second k sums every clip that has a second k, the
-    last windows add up. All results must cover the same ``window_s``."""
+    """Several clips' scene IoU pooled by pixels: the seconds as :func:`pool_seconds`, and the last
+    windows added up. All results must cover the same ``window_s``."""
     if not results:
         raise ValueError("pool_scene_iou needs at least one result")
     windows = {r.window_s for r in results}
     if len(windows) != 1:
         raise ValueError(f"cannot pool last windows of different lengths {sorted(windows)} s")
-    longest = max(len(r.per_second) for r in results)
-    per_second = []
-    for k in range(longest):
-        sums = ConfusionSums.zeros(NUM_SCENE_CLASSES)
-        for r in results:
-            if k < len(r.per_second):
-                sums = sums + r.per_second[k]
-        per_second.append(sums)
     last = ConfusionSums.zeros(NUM_SCENE_CLASSES)
     for r in results:
         last = last + r.last_window
-    return SceneIoU(tuple(per_second), last, windows.pop())
+    return SceneIoU(pool_seconds(results), last, windows.pop())

@@ -5,6 +5,12 @@ into train / validation (every ``val_every``-th clip); the networks train on the
 thresholds are calibrated on the second (balanced accuracy), and the validation accuracy per
 question is stored in ``judge.json`` (``info.validation``). Deterministic for a fixed machine and
 thread count: seeded sampling, deterministic torch algorithms.
+
+The scene network answers weather and time of day for one camera view at a time (the report asks
+every view on its own), so it trains on single views, each labelled with its frame's weather and
+time. ``--keep-crop-net JUDGE`` trains only the scene network and keeps that judge's object
+network with its thresholds: the object questions (existence, clarity, fidelity, consistency)
+answer exactly as before.
 """
 
 from __future__ import annotations
@@ -12,7 +18,7 @@ from __future__ import annotations
 import argparse
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +28,7 @@ from torch.nn import functional as F
 
 from world_model.data import list_clips
 from world_model.eval.crops import crop_statistics, normalize_crops
-from world_model.eval.judge import CnnJudge, JudgeThresholds
+from world_model.eval.judge import CnnJudge, JudgeThresholds, load_judge
 from world_model.eval.judge_data import CollectConfig, DegradeConfig, JudgeData, collect, degrade
 from world_model.eval.nets import BACKGROUND, COLOR_CLASSES, CROP_CLASSES, CropNet, JudgeNetConfig, SceneNet
 from world_model.eval.questions import build_questions, judge_accuracy
@@ -42,7 +48,7 @@ class TrainJudgeConfig:
     crop_steps: int = 1200
     tracks_per_batch: int = 48  # two crops of each -> pairs for the same-object head
     background_per_batch: int = 32
-    scene_steps: int = 500
+    scene_steps: int = 1500
     scene_batch: int = 12
     lr: float = 2e-3
     weight_decay: float = 1e-4
@@ -139,8 +145,11 @@ def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str],
 
 
 def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str], None]) -> SceneNet:
+    """Weather and time of day of single camera views: every view of ``scene_batch`` sampled frames
+    is one example with its frame's labels."""
     rng = np.random.default_rng([cfg.seed, 2])
     frames = np.stack(data.scene_frames)
+    views = frames.shape[1]
     weather, tod = torch.tensor(data.weather), torch.tensor(data.time_of_day)
     net = SceneNet(cfg.net)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -148,10 +157,12 @@ def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str]
     for step in range(cfg.scene_steps):
         idx = rng.choice(len(frames), cfg.scene_batch, replace=False)
         x = torch.from_numpy(frames[idx]).permute(0, 1, 4, 2, 3).float() / 255.0
-        if rng.random() < 0.5:  # mirror the whole rig: weather and time do not care
+        x = x.flatten(0, 1).unsqueeze(1)  # (B * V, 1, 3, H, W): each view alone
+        if rng.random() < 0.5:  # mirror the views: weather and time do not care
             x = x.flip(4)
         out = net(x)
-        loss = F.cross_entropy(out["weather"], weather[idx]) + F.cross_entropy(out["time_of_day"], tod[idx])
+        w, t = weather[idx].repeat_interleave(views), tod[idx].repeat_interleave(views)
+        loss = F.cross_entropy(out["weather"], w) + F.cross_entropy(out["time_of_day"], t)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -206,8 +217,11 @@ def train_judge(
     out_dir: str | Path,
     config: TrainJudgeConfig = TrainJudgeConfig(),
     log: Callable[[str], None] = print,
+    keep_crop_net: str | Path | None = None,
 ) -> CnnJudge:
     """Train, calibrate and save the judge; returns it. ``judge.json`` records the validation accuracy.
+    ``keep_crop_net``: a saved judge whose object network and object thresholds are kept (only the
+    scene network trains; its crop sampling settings are that judge's).
 
     Torch's thread count and deterministic-algorithms flag are set for the run and restored after.
     """
@@ -215,14 +229,19 @@ def train_judge(
     torch.set_num_threads(config.threads)
     torch.use_deterministic_algorithms(True)
     try:
-        return _train_judge(data_dirs, out_dir, config, log)
+        kept = None if keep_crop_net is None else load_judge(keep_crop_net)
+        return _train_judge(data_dirs, out_dir, config, log, kept)
     finally:
         torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
 
 
 def _train_judge(
-    data_dirs: Sequence[str | Path], out_dir: str | Path, config: TrainJudgeConfig, log: Callable[[str], None]
+    data_dirs: Sequence[str | Path],
+    out_dir: str | Path,
+    config: TrainJudgeConfig,
+    log: Callable[[str], None],
+    kept: CnnJudge | None,
 ) -> CnnJudge:
     start = time.time()
     torch.manual_seed(config.seed)
@@ -233,12 +252,17 @@ def _train_judge(
     log(f"collecting crops from {len(train_items)} training and {len(val_items)} validation clips")
     train_data, val_data = _collect_many(train_items, config.collect), _collect_many(val_items, config.collect)
     log(f"train: {len(train_data.crops)} crops, {len(train_data.scene_frames)} frames")
-    crop_net = _train_crop_net(train_data, config, log)
+    crop_net = _train_crop_net(train_data, config, log) if kept is None else kept.crop_net
     scene_net = _train_scene_net(train_data, config, log)
-    judge = CnnJudge(crop_net, scene_net, crop_config=config.collect.crop)
-    judge.thresholds = calibrate(judge, val_data, seed=config.seed)
+    judge = CnnJudge(crop_net, scene_net, crop_config=config.collect.crop if kept is None else kept.crop_config)
+    calibrated = calibrate(judge, val_data, seed=config.seed)
+    if kept is None:
+        judge.thresholds = calibrated
+    else:  # the kept object network answers with its own thresholds
+        judge.thresholds = replace(kept.thresholds, weather=calibrated.weather, time_of_day=calibrated.time_of_day)
     validation = judge_accuracy(judge, build_questions(val_data, seed=config.seed + 1))
     judge.info = {
+        **({} if kept is None else {"crop_net_from": kept.info}),
         "train_config": _config_dict(config),
         "train_clips": len(train_items),
         "validation_clips": len(val_items),
@@ -270,13 +294,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--crop-steps", type=int, default=TrainJudgeConfig.crop_steps)
     p.add_argument("--scene-steps", type=int, default=TrainJudgeConfig.scene_steps)
     p.add_argument("--max-clips", type=int, default=None, help="use only the first N clips of each directory")
+    p.add_argument(
+        "--keep-crop-net",
+        metavar="JUDGE",
+        help="a saved judge (e.g. world_model/assets/judge) whose object network and thresholds are kept; "
+        "only the scene network (weather, time of day) trains",
+    )
     args = p.parse_args(argv)
     cfg = TrainJudgeConfig(
         crop_steps=args.crop_steps,
         scene_steps=args.scene_steps,
         collect=CollectConfig(max_clips=args.max_clips),
     )
-    train_judge(args.data, args.out, cfg)
+    train_judge(args.data, args.out, cfg, keep_crop_net=args.keep_crop_net)
     return 0
 
 

@@ -91,11 +91,13 @@ class MiniLMTextEncoder(TextEncoder):
         return self._model
 
     def _encode_tokens(self, text: str) -> np.ndarray:
-        out = self._load().encode([text], output_value="token_embeddings", convert_to_numpy=False)[0]
+        out = self._load().encode(
+            [text], output_value="token_embeddings", convert_to_numpy=False, show_progress_bar=False
+        )[0]
         return out.float().cpu().numpy()
 
     def _encode_pooled(self, texts: list[str]) -> np.ndarray:
-        return self._load().encode(texts, convert_to_numpy=True, normalize_embeddings=True)
+        return self._load().encode(texts, convert_to_numpy=True, normalize_embeddings=True, show_progress_bar=False)
 
 
 class HashTextEncoder(TextEncoder):

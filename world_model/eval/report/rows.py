@@ -1,24 +1,83 @@
-"""Report rows backed by a world model: each regenerates an evaluation clip under its recorded controls.
+"""Rows of the report: what is evaluated. A row is any generator of sensors for a recorded clip at
+equal controls, a callable ``Clip -> Generated``:
 
-A row streams the clip with the causal student exactly as the env does (first frame from the
-reference-conditioned model, then one causal chunk at a time with the KV cache) and returns every
-frame, so the report compares it frame by frame with the procedural ground truth (the Oracle).
+* reference rows: the Oracle (the recording itself), road-only (the recording without its
+  objects) and first-frame (the recording frozen on its first frame) bound the scores;
+* model rows: the causal student streaming each clip exactly as the env does (first frame from the
+  reference-conditioned model, then one causal chunk at a time with the KV cache), the
+  autoencoder's ceiling and the bidirectional teacher.
+
+Which rows a bundle's report runs, under which streaming settings, is :mod:`~world_model.eval.report.lineup`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import replace
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
 from world_model.data.clips import Clip
-from world_model.eval.report import Generated, RowFn
 from world_model.model.conditions import Conditions
 from world_model.model.dit import MultiViewDiT
 from world_model.model.sampler import sample_latents
 from world_model.runtime import RolloutBatch, WorldModel
+from world_model.sim import ProceduralSimulator
+
+
+@dataclass
+class Generated:
+    """A row's sensors for one clip: cameras uint8 (T, V, H, W, 3), optional LiDAR (T, beams, azimuth) m.
+
+    ``pass_starts``: the frames (>= 1) that begin a new generation pass (the student's causal
+    chunks, the teacher's windows), for the inter-chunk consistency scores; None for rows that
+    are not generated in passes (the recording, the autoencoder)."""
+
+    cameras: np.ndarray
+    lidar: np.ndarray | None = None
+    pass_starts: tuple[int, ...] | None = None
+
+
+RowFn = Callable[[Clip], Generated]
+
+
+def check_generated(gen: Generated, clip: Clip, row: str) -> None:
+    """Refuse a row's output that does not match the clip it was asked for."""
+    if not isinstance(gen, Generated):
+        raise TypeError(f"row {row!r} must return a Generated, got {type(gen).__name__}")
+    if gen.cameras.dtype != np.uint8 or gen.cameras.shape != clip.cameras.shape:
+        raise ValueError(
+            f"row {row!r} on clip {clip.name}: cameras must be uint8 {clip.cameras.shape}, "
+            f"got {gen.cameras.dtype} {gen.cameras.shape}"
+        )
+    if gen.lidar is not None and gen.lidar.shape != clip.lidar.shape:
+        raise ValueError(f"row {row!r} on clip {clip.name}: lidar must be {clip.lidar.shape}, got {gen.lidar.shape}")
+
+
+def oracle_row(clip: Clip) -> Generated:
+    """The ground truth itself: the upper bound of every judge score, Fréchet 0."""
+    return Generated(cameras=np.asarray(clip.cameras), lidar=np.asarray(clip.lidar, dtype=np.float32))
+
+
+def road_only_row(clip: Clip) -> Generated:
+    """The recording re-rendered without its objects (the procedural simulator, same frames): the
+    floor of the object scores (``object_psnr_db``, ``lidar_object_mae_m``, existence). A model
+    whose object scores are no better than this does not keep the recording's objects."""
+    sim = ProceduralSimulator()
+    obs = [sim.render(replace(frame, objects=()), with_bev=False) for frame in clip.frames]
+    return Generated(np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs]).astype(np.float32))
+
+
+def first_frame_row(clip: Clip) -> Generated:
+    """The recording's first frame held for the whole clip: the floor of the motion scores (0) and
+    what a rollout stuck on its start would score elsewhere. On a straight road its errors are low
+    (the scene barely changes), so a model is only shown to follow the recording where it beats
+    this row, not by low errors alone."""
+    n = clip.num_frames
+    return Generated(
+        np.repeat(np.asarray(clip.cameras[:1]), n, axis=0), np.repeat(np.asarray(clip.lidar[:1], np.float32), n, axis=0)
+    )
 
 
 def world_model_row(
