@@ -57,6 +57,21 @@ def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dic
     return rest or None, mask
 
 
+def batched_actions(actions: Any, num_envs: int) -> np.ndarray:
+    """``actions`` as one array with a leading dimension of ``num_envs`` (one action per sub-env)."""
+    try:
+        arr = np.asarray(actions)
+    except ValueError as e:  # ragged nested lists
+        raise InvalidOptionError(
+            f"vector env expects an array of {num_envs} actions of equal shape (one per sub-env): {e}"
+        ) from e
+    if arr.shape[:1] != (num_envs,):
+        raise InvalidOptionError(
+            f"vector env expects one action per sub-env (leading dimension {num_envs}), got shape {arr.shape}"
+        )
+    return arr
+
+
 class LocalSubEnvs:
     """The sub-envs in the vector env's process, their sensors from the shared ``backend``."""
 
@@ -228,17 +243,7 @@ class M4WorldVectorEnv(VectorEnv):
         self._subenvs.close()
 
     def _split_actions(self, actions: Any) -> list[Any]:
-        try:
-            arr = np.asarray(actions)
-        except ValueError as e:  # ragged nested lists
-            raise InvalidOptionError(
-                f"vector env expects an array of {self.num_envs} actions of equal shape (one per sub-env): {e}"
-            ) from e
-        if arr.shape[:1] != (self.num_envs,):
-            raise InvalidOptionError(
-                f"vector env expects one action per sub-env (leading dimension {self.num_envs}), got shape {arr.shape}"
-            )
-        return list(arr)
+        return list(batched_actions(actions, self.num_envs))
 
     def _stack(self, obs_list: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         return {k: np.stack([o[k] for o in obs_list]) for k in obs_list[0]}
