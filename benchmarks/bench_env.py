@@ -22,6 +22,16 @@ shares its process with the world model's torch threads or an earlier round's en
     python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 
 ``--device`` runs the world-model backends there (``config.model.device``: cpu, cuda[:N], auto).
+
+Simulation workers (``config.workers``, docs/scaling.md) instead of the backends:
+
+    OMP_NUM_THREADS=1 python benchmarks/bench_env.py --workers 0 2 --num-envs 64 --rounds 2 \
+        --vector-steps 4 --out F.json [--compare-tree OTHER_CHECKOUT]
+
+times one world-model vector env per worker count, each in a fresh process, in interleaved rounds
+(:func:`bench_workers`), and reports the non-model throughput of each count over 0 workers' and
+whether all of them observed the same; ``--compare-tree`` adds 0 workers of another checkout's
+packages (e.g. ``git archive main | tar -x -C DIR``) to every round.
 """
 
 from __future__ import annotations
@@ -29,6 +39,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -289,6 +300,137 @@ def median_rounds(rounds: list[dict]) -> dict:
     return {k: statistics.median(r[k] for r in rounds) if isinstance(v, float) else v for k, v in rounds[0].items()}
 
 
+def _digest(h, arrays) -> None:  # noqa: ANN001 (hashlib object, arrays)
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+
+
+def bench_workers(
+    workers: int, scenario: str, num_envs: int, vector_steps: int, warmup: int, seed: int, checkpoint: str | None
+) -> dict:
+    """One vector env of ``num_envs`` world-model sub-envs with ``config.workers`` = ``workers``
+    (the key left out at 0, so a checkout without it runs too): ``warmup`` untimed and
+    ``vector_steps`` timed steps of fixed actions (no acceleration, no steering: the same for every
+    checkout and worker count). Per env step: the parts of a vector step (0 workers: traffic,
+    crops, conditions in this process; K workers: their traffic, crops and conditions summed over
+    the workers, i.e. work on any core, and ``workers_wait``, main's wall time waiting for them),
+    student, decode and ``other`` (the rest of the non-model time); ``non_model_env_steps_per_s``:
+    env steps per second of everything but student and decode; ``digest``: a hash of every
+    observation, reward and flag."""
+    import hashlib
+
+    config: dict = {**CONFIG, **({"workers": workers} if workers else {})}
+    kw = {"backend": "world_model", "config": config, **({"checkpoint": checkpoint} if checkpoint else {})}
+    venv = gym.make_vec(
+        "M4World-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=scenario, **kw
+    )
+    base = venv.unwrapped
+    t0 = time.perf_counter()
+    obs, _ = venv.reset(seed=seed)
+    reset_s = time.perf_counter() - t0
+    h = hashlib.sha256()
+    _digest(h, obs.values())
+    rollouts = base.backend.rollouts
+    pool = getattr(base, "simulation_workers", None)  # None at 0 workers (or in a checkout without them)
+
+    def cpu_parts() -> dict[str, float]:
+        if pool is not None:
+            return {**pool.seconds(), "workers_wait": pool.wait_s}
+        conditions = getattr(base.backend, "conditions", None)  # a checkout's in-process crops/conditions
+        own = dict(conditions.seconds) if conditions is not None else {}
+        return {
+            "traffic": traffic_s[0],
+            **own,
+            "conditions": own.get("conditions", 0.0) + rollouts.seconds["conditions"],
+        }
+
+    traffic_s = [0.0]
+    if pool is None:
+        for env in base.envs:
+            env.advance = _timed(env.advance, traffic_s)
+    actions = np.zeros((num_envs, 2), np.float32)
+    walls, parts = [], []
+    for i in range(warmup + vector_steps):
+        before = {**cpu_parts(), "student": rollouts.seconds["student"], "decode": rollouts.seconds["decode"]}
+        t0 = time.perf_counter()
+        obs, rewards, terminated, truncated, _ = venv.step(actions)
+        wall = time.perf_counter() - t0
+        after = {**cpu_parts(), "student": rollouts.seconds["student"], "decode": rollouts.seconds["decode"]}
+        _digest(h, [*obs.values(), rewards, terminated, truncated])
+        if i < warmup:
+            continue
+        part = {k: after[k] - before[k] for k in after}
+        non_model = wall - part["student"] - part["decode"]
+        counted = part.get("workers_wait", sum(part.get(k, 0.0) for k in ("traffic", "crops", "conditions")))
+        part["other"] = non_model - counted
+        part["non_model"] = non_model
+        walls.append(wall)
+        parts.append(part)
+    venv.close()
+    per_env = {k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]}
+    return {
+        "workers": workers,
+        "num_envs": num_envs,
+        "vector_steps": vector_steps,
+        "vector_median_step_ms": 1e3 * statistics.median(walls),
+        "vector_reset_ms": 1e3 * reset_s,
+        "breakdown_ms_per_env_step": per_env,
+        "non_model_env_steps_per_s": 1e3 / per_env["non_model"],
+        "digest": h.hexdigest(),
+    }
+
+
+def bench_workers_isolated(workers: int, args: argparse.Namespace, root: Path) -> dict:
+    """:func:`bench_workers` in a fresh process whose ``m4world_env``/``world_model`` come from ``root``."""
+    cmd = [sys.executable, __file__, "--workers-probe", str(workers), "--scenario", args.scenario, "--out", "-"]
+    cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--vector-steps", str(args.vector_steps)]
+    cmd += ["--warmup", str(args.warmup if args.warmup is not None else 1)]
+    cmd += ["--checkpoint", args.checkpoint] if args.checkpoint else []
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def compare_workers(args: argparse.Namespace) -> dict:
+    """``--workers``: every worker count (and ``--compare-tree``'s 0) in interleaved rounds, each in
+    a fresh process; the medians over rounds, the non-model throughput of each worker count over
+    0 workers' (per round, then the median), and whether every run of this checkout observed the
+    same."""
+    here = Path(__file__).resolve().parents[1]
+    configs = [(f"workers={k}", k, here) for k in args.workers]
+    if args.compare_tree:
+        configs.append(("compare_tree workers=0", 0, Path(args.compare_tree).resolve()))
+    rounds = []
+    for _ in range(args.rounds):
+        rounds.append({name: bench_workers_isolated(k, args, root) for name, k, root in configs})
+    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "configs": {}}
+    for name, _, _ in configs:
+        runs = [rnd[name] for rnd in rounds]
+        merged = median_rounds([{k: v for k, v in r.items() if k != "breakdown_ms_per_env_step"} for r in runs])
+        merged["breakdown_ms_per_env_step"] = median_rounds([r["breakdown_ms_per_env_step"] for r in runs])
+        merged["digest"] = sorted({r["digest"] for r in runs})
+        result["configs"][name] = merged
+    base = "workers=0"
+    if base in result["configs"]:
+        for name, k, root in configs:
+            if k and root == here:
+                ratios = [
+                    rnd[name]["non_model_env_steps_per_s"] / rnd[base]["non_model_env_steps_per_s"] for rnd in rounds
+                ]
+                result[f"non_model_throughput_{name}_vs_workers=0"] = statistics.median(ratios)
+        if args.compare_tree:
+            ratios = [
+                rnd[base]["breakdown_ms_per_env_step"]["non_model"]
+                / rnd["compare_tree workers=0"]["breakdown_ms_per_env_step"]["non_model"]
+                for rnd in rounds
+            ]
+            result["non_model_cost_workers=0_vs_compare_tree"] = statistics.median(ratios)
+    ours = {d for name, _, root in configs if root == here for d in result["configs"][name]["digest"]}
+    result["observations_identical"] = len(ours) == 1
+    result["per_round"] = rounds
+    return result
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
@@ -320,11 +462,41 @@ def main() -> None:
         action="store_false",
         help="time the backends in this process (default: a fresh process per backend and round)",
     )
+    ap.add_argument(
+        "--workers",
+        type=int,
+        nargs="+",
+        default=None,
+        help="world model only: time a vector env of --num-envs sub-envs with each of these config.workers "
+        "counts (e.g. 0 2) in interleaved rounds instead of the backends (see bench_workers)",
+    )
+    ap.add_argument("--vector-steps", type=int, default=5, help="--workers: timed vector steps per run")
+    ap.add_argument(
+        "--compare-tree",
+        default=None,
+        help="--workers: also time workers=0 with the packages of this checkout (e.g. another branch's worktree)",
+    )
+    ap.add_argument("--workers-probe", type=int, default=None, help=argparse.SUPPRESS)  # internal: one run
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
     ap.add_argument("--backend-probe", default=None, help=argparse.SUPPRESS)  # internal: one isolated round
     args = ap.parse_args()
     if args.memory_probe:
         _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint, args.device)
+        return
+    if args.workers_probe is not None:
+        warmup = args.warmup if args.warmup is not None else 1
+        r = bench_workers(
+            args.workers_probe, args.scenario, args.num_envs, args.vector_steps, warmup, args.seed, args.checkpoint
+        )
+        print(json.dumps(r))
+        return
+    if args.workers is not None:
+        if args.rounds < 1:
+            raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
+        result = compare_workers(args)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=2))
+        print(json.dumps({k: v for k, v in result.items() if k != "per_round"}, indent=2))
         return
     if args.backend_probe:
         r = bench_backend(

@@ -9,11 +9,16 @@ env is a batch of one.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
 
+import numpy as np
+
 from m4world_env.config import BACKENDS, REFRESH_ALL, EnvConfig, InvalidOptionError
+from world_model.conditioning import ConditionBuilder
+from world_model.model.conditions import ConditionArrays
 from world_model.observation import Observation
 from world_model.precision import resolve_device
 from world_model.scene import SceneFrame
@@ -103,6 +108,50 @@ def make_backend(
     raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
+class RolloutConditions:
+    """The CPU side of the world-model backend for a batch of rollouts: each rollout's first frame,
+    its reference crops (image descriptions cut from the procedural simulator's views by the rule
+    the recorder uses, :class:`~world_model.sim.reference_crops.ReferenceCrops`, so the model sees
+    in the env the conditions it was trained on) and its condition arrays, one step at a time.
+    :class:`WorldModelBackend` holds one for all its rollouts; each simulation worker of a vector
+    env holds one for its sub-envs (:mod:`m4world_env.workers`)."""
+
+    def __init__(self, builder: ConditionBuilder, num_rollouts: int) -> None:
+        self.builder = builder
+        self._sim = ProceduralSimulator(
+            config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
+        )
+        self._crops = [ReferenceCrops(self._sim) for _ in range(num_rollouts)]
+        self._first: list[SceneFrame | None] = [None] * num_rollouts
+        # Wall seconds cutting crops and building arrays (benchmarks read them).
+        self.seconds = {"crops": 0.0, "conditions": 0.0}
+
+    def restart(self, index: int, frame: SceneFrame) -> ConditionArrays:
+        """Rollout ``index`` (re)starts at ``frame``: its crops start afresh; the arrays of ``frame``."""
+        t0 = time.perf_counter()
+        self._first[index] = frame
+        crops = self._crops[index] = ReferenceCrops(self._sim)
+        crops.update(frame)
+        t1 = time.perf_counter()
+        arrays = self.builder.arrays([frame], frame, crops.crops, crops.since)
+        self.seconds["crops"] += t1 - t0
+        self.seconds["conditions"] += time.perf_counter() - t1
+        return arrays
+
+    def advance(self, index: int, frames: Sequence[SceneFrame]) -> list[ConditionArrays]:
+        """Rollout ``index`` moves on by a step's ``frames``: crops of objects that came into view (or
+        were inserted), then the arrays of each causal chunk (:meth:`ConditionBuilder.chunk_arrays`)."""
+        t0 = time.perf_counter()
+        crops = self._crops[index]
+        for frame in frames:
+            crops.update(frame)
+        t1 = time.perf_counter()
+        arrays = self.builder.chunk_arrays(frames, self._first[index], crops.crops, crops.since)
+        self.seconds["crops"] += t1 - t0
+        self.seconds["conditions"] += time.perf_counter() - t1
+        return arrays
+
+
 class WorldModelBackend:
     """The causal student of a checkpoint bundle (default: the shipped one) as the env's dynamics.
 
@@ -110,9 +159,8 @@ class WorldModelBackend:
     user's images when ``options["reference"]`` is given) and seeds the student's KV cache; each
     ``step`` runs one batched causal chunk for every rollout and decodes the newest frame.
     The BEV observation, when asked for, is the map raster the model is conditioned on.
-    Objects' reference crops (image descriptions) are cut from the procedural simulator's views
-    by the rule the recorder uses (:class:`~world_model.sim.reference_crops.ReferenceCrops`), so
-    the model sees in the env the conditions it was trained on.
+    The conditions come from a :class:`RolloutConditions` (in process); :meth:`start_many` and
+    :meth:`step_arrays` take them built elsewhere (simulation workers, :mod:`m4world_env.workers`).
     """
 
     def __init__(
@@ -147,53 +195,58 @@ class WorldModelBackend:
             self.wm.student.compile_blocks()
         self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame)
         self.rig = self.wm.rig
+        self.model_cfg = self.wm.cfg
         self.with_bev = with_bev
-        self._sim = ProceduralSimulator(
-            config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
-        )
-        self._crops = [ReferenceCrops(self._sim) for _ in range(num_rollouts)]
+        self.conditions = RolloutConditions(self.wm.conditions, num_rollouts)
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
         """Load a scenario's LoRA adapters (§5): :meth:`world_model.runtime.WorldModel.apply_adapters`."""
         return self.wm.apply_adapters(names)
 
-    def _with_bev(self, obs: Observation, frame: SceneFrame) -> Observation:
-        if self.with_bev:
-            obs.bev = self.wm.condition_bev(frame)
-        return obs
-
     def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:
-        reference = (options or {}).get("reference")
-        crops = self._crops[index] = ReferenceCrops(self._sim)
-        crops.update(frame)
-        obs = self.rollouts.reset_row(
-            index, frame, seed, reference=reference, crops=crops.crops, crop_since=crops.since
-        )
-        return self._with_bev(obs, frame)
+        return self.reset_many([index], [frame], options, [seed])[0]
 
     def reset_many(
         self, indices: Sequence[int], frames: Sequence[SceneFrame], options: dict | None, seeds: Sequence[int]
     ) -> list[Observation]:
-        """First frames of several rollouts in one batched reference-model call; anchored on a
-        user's ``reference`` images, one call each."""
-        if (options or {}).get("reference") is not None or len(indices) == 1:
-            return [self.reset(i, f, options, s) for i, f, s in zip(indices, frames, seeds, strict=True)]
-        for i, frame in zip(indices, frames, strict=True):
-            self._crops[i] = ReferenceCrops(self._sim)
-            self._crops[i].update(frame)
-        observations = self.rollouts.reset_rows(
-            indices, frames, seeds, [self._crops[i].crops for i in indices], [self._crops[i].since for i in indices]
-        )
-        return [self._with_bev(o, f) for o, f in zip(observations, frames, strict=True)]
+        arrays = [self.conditions.restart(i, f) for i, f in zip(indices, frames, strict=True)]
+        return self.start_many(indices, frames, arrays, options, seeds)
+
+    def start_many(
+        self,
+        indices: Sequence[int],
+        frames: Sequence[SceneFrame],
+        arrays: Sequence[ConditionArrays],
+        options: dict | None,
+        seeds: Sequence[int],
+    ) -> list[Observation]:
+        """:meth:`reset_many` given each first frame's condition arrays: the first frames of several
+        rollouts in one batched reference-model call; anchored on a user's ``reference`` images, one
+        call each."""
+        reference = (options or {}).get("reference")
+        if reference is not None or len(indices) == 1:
+            observations = [
+                self.rollouts.start_row(i, f, s, a, reference)
+                for i, f, a, s in zip(indices, frames, arrays, seeds, strict=True)
+            ]
+        else:
+            observations = self.rollouts.start_rows(indices, frames, seeds, arrays)
+        return [self._with_bev([o], [a])[0] for o, a in zip(observations, arrays, strict=True)]
 
     def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
-        for i, chunk in enumerate(chunks):  # crops of objects that came into view (or were inserted)
-            if chunk is not None:
-                for frame in chunk:
-                    self._crops[i].update(frame)
-                self.rollouts.crops[i], self.rollouts.crop_since[i] = self._crops[i].crops, self._crops[i].since
-        outs = self.rollouts.step(chunks)
-        return [  # observations are of the chunk's last len(out) frames (all of them with every_frame)
-            None if out is None else [self._with_bev(o, f) for o, f in zip(out, chunk[-len(out) :], strict=True)]
-            for out, chunk in zip(outs, chunks, strict=True)
-        ]
+        arrays = [None if c is None else self.conditions.advance(i, c) for i, c in enumerate(chunks)]
+        return self.step_arrays(arrays)
+
+    def step_arrays(self, arrays: Sequence[Sequence[ConditionArrays] | None]) -> list[list[Observation] | None]:
+        """:meth:`step` given each rollout's condition arrays of the step (``None``: idle)."""
+        outs = self.rollouts.step_arrays(arrays)
+        return [None if out is None else self._with_bev(out, a) for out, a in zip(outs, arrays, strict=True)]
+
+    def _with_bev(self, observations: list[Observation], arrays: Sequence[ConditionArrays]) -> list[Observation]:
+        """``observations`` (of the last frames of ``arrays``) with the BEV map raster they were
+        conditioned on, when the env observes it."""
+        if self.with_bev:
+            bev = np.concatenate([a.bev for a in arrays])
+            for obs, raster in zip(observations, bev[len(bev) - len(observations) :], strict=True):
+                obs.bev = raster
+        return observations

@@ -31,6 +31,7 @@ DEVICE_TYPES = ("cpu", "cuda", "auto")
 MAX_TORCH_THREADS = 256
 DEFAULT_TORCH_THREADS = 1  # ModelBackendConfig.threads
 REFRESH_ALL = "all"  # ModelBackendConfig.refresh_steps: refresh the context at every denoising step
+MAX_WORKERS = 256  # EnvConfig.workers: simulation worker processes of a vector env
 
 
 class UnknownOptionError(KeyError):
@@ -97,6 +98,10 @@ class EnvConfig:
     offroad_terminal: bool = True
     reward: RewardConfig = field(default_factory=RewardConfig)
     model: ModelBackendConfig = field(default_factory=ModelBackendConfig)
+    # Vector env, world-model backend: worker processes that run the sub-envs' traffic, reference
+    # crops and condition arrays beside the batched model (m4world_env.workers, docs/scaling.md);
+    # 0 runs them in the vector env's process.
+    workers: int = 0
 
     def __post_init__(self) -> None:
         if self.action_type not in ACTION_TYPES:
@@ -110,6 +115,7 @@ class EnvConfig:
         for name in ("height", "width"):
             _check_int_range(getattr(self, name), MIN_VIEW_PX, MAX_VIEW_PX, f"config.{name}")
         _check_int_range(self.state_objects, 1, MAX_STATE_OBJECTS, "config.state_objects")
+        _check_int_range(self.workers, 0, MAX_WORKERS, "config.workers")
         r = self.reward
         for name in ("collision", "high_speed", "right_lane", "on_road", "progress"):
             if abs(getattr(r, name)) > MAX_REWARD_WEIGHT:

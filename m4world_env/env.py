@@ -75,6 +75,13 @@ def state_from_frame(frame: SceneFrame, n_objects: int) -> np.ndarray:
     return out
 
 
+def observation_dict(keys: tuple[str, ...], obs: Observation, state: np.ndarray | None) -> dict[str, np.ndarray]:
+    """The env's observation of ``keys`` from the sensors ``obs`` and the ``state`` array (None
+    when ``keys`` lacks "state")."""
+    sensors = {"cameras": obs.cameras, "lidar": obs.lidar, "bev": obs.bev, "state": state}
+    return {k: v for k, v in sensors.items() if k in keys}
+
+
 class M4WorldEnv(gym.Env):
     """The M4World driving env. See the README for options; ``config`` keys in :class:`EnvConfig`."""
 
@@ -101,6 +108,11 @@ class M4WorldEnv(gym.Env):
                 f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
             )
         self.cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
+        if self.cfg.workers and shared_backend is None:
+            raise InvalidOptionError(
+                f"config.workers={self.cfg.workers} runs a vector env's sub-envs in worker processes; a single env "
+                "has none: use gym.make_vec(..., vectorization_mode='vector_entry_point') or leave workers at 0"
+            )
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
         self.render_mode = render_mode
         every_frame = render_mode == "rgb_array_list"  # the backend then observes each frame of a chunk
@@ -119,7 +131,7 @@ class M4WorldEnv(gym.Env):
             # ground truth and needs none.
             self.backend.apply_adapters(self.scenario.adapters)
         # The world model fixes its own sensors (the checkpoint's); the procedural rig is configurable.
-        model_cfg = getattr(getattr(self.backend, "wm", None), "cfg", None)
+        model_cfg = getattr(self.backend, "model_cfg", None)
         if model_cfg is not None:
             self.rig, self.lidar_spec, self.bev_spec = self.backend.rig, model_cfg.sensors.lidar, model_cfg.sensors.bev
             chunk = model_cfg.clip.chunk_frames
@@ -207,6 +219,13 @@ class M4WorldEnv(gym.Env):
         """Second half of :meth:`reset`, given the backend's first observation."""
         self._obs = first
         self._unrendered = [(self._frame, self._obs)] if self.render_mode == "rgb_array_list" else []
+        info = self.start_episode()
+        return self._observation(), info
+
+    def start_episode(self) -> dict[str, Any]:
+        """The sensor-free part of :meth:`finish_reset`: the episode starts at the frame
+        :meth:`begin_reset` returned; returns the reset's info. (A simulation worker calls it where
+        the sensors come from another process, :mod:`m4world_env.workers`.)"""
         road = self.scenario.road
         self._metrics = EpisodeMetrics(
             dt=1.0 / self.scenario.sensor_frequency,
@@ -215,7 +234,7 @@ class M4WorldEnv(gym.Env):
         )
         self._metrics.add_frame(self._frame)
         self._needs_reset = False
-        return self._observation(), self._info({})
+        return self._info({})
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         frames = self.advance(action)
@@ -243,10 +262,17 @@ class M4WorldEnv(gym.Env):
         self, frames: list[SceneFrame], observations: list[Observation]
     ) -> tuple[dict[str, np.ndarray], float, bool, bool, dict[str, Any]]:
         """Second half of a step: given the chunk's observations, compute reward, flags and info."""
-        previous = self._frame
-        self._frame, self._obs = frames[-1], observations[-1]
+        self._obs = observations[-1]
         if self.render_mode == "rgb_array_list":
             self._unrendered += zip(frames, observations, strict=True)
+        reward, terminated, truncated, info = self.settle_step(frames)
+        return self._observation(), reward, terminated, truncated, info
+
+    def settle_step(self, frames: list[SceneFrame]) -> tuple[float, bool, bool, dict[str, Any]]:
+        """The sensor-free part of :meth:`finish_step`: the step's reward, terminated, truncated and
+        info from the traffic's ``frames`` (what :meth:`advance` returned)."""
+        previous = self._frame
+        self._frame = frames[-1]
         for fr in frames:
             self._metrics.add_frame(fr)
         terms = self._reward_terms(previous, frames)
@@ -258,7 +284,7 @@ class M4WorldEnv(gym.Env):
         terminated = crashed or (self.cfg.offroad_terminal and not on_road)
         truncated = bool(self.bridge.truncated) and not terminated
         self._needs_reset = terminated or truncated
-        return self._observation(), reward, terminated, truncated, self._info(terms)
+        return reward, terminated, truncated, self._info(terms)
 
     def render(self) -> np.ndarray | list[np.ndarray] | None:
         """The mosaic (all views, LiDAR, BEV) of the newest sensor frame; with
@@ -307,18 +333,13 @@ class M4WorldEnv(gym.Env):
             cfg=self.cfg.reward,
         )
 
+    def state_observation(self) -> np.ndarray:
+        """The ``state`` observation of the newest frame (:func:`state_from_frame`, clipped)."""
+        return np.clip(state_from_frame(self._frame, self.cfg.state_objects), -STATE_BOUND, STATE_BOUND)
+
     def _observation(self) -> dict[str, np.ndarray]:
-        out: dict[str, np.ndarray] = {}
-        keys = self.cfg.observation_keys
-        if "cameras" in keys:
-            out["cameras"] = self._obs.cameras
-        if "lidar" in keys:
-            out["lidar"] = self._obs.lidar
-        if "bev" in keys:
-            out["bev"] = self._obs.bev
-        if "state" in keys:
-            out["state"] = np.clip(state_from_frame(self._frame, self.cfg.state_objects), -STATE_BOUND, STATE_BOUND)
-        return out
+        state = self.state_observation() if "state" in self.cfg.observation_keys else None
+        return observation_dict(self.cfg.observation_keys, self._obs, state)
 
     def _info(self, terms: dict[str, float]) -> dict[str, Any]:
         ego = self.bridge.ego

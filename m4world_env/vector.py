@@ -13,6 +13,11 @@ Seeding: ``reset(seed=s)`` seeds sub-env ``i`` with ``s + i``, so the vector env
 reset with those seeds (bit for bit on CPU: the batched world model computes row-independently,
 :mod:`world_model.model.rows`). The sub-envs being (re)started, at ``reset`` or by autoreset,
 get their first frames from one batched backend call.
+
+``config={"workers": K}`` (world-model backend) runs the sub-envs' traffic, reference crops and
+condition arrays in K worker processes beside the batched model (:mod:`m4world_env.workers`), with
+the same results; sub-envs are then reached only through ``envs[i].insert_object`` /
+``remove_object`` / ``edit_object``, and ``render_mode`` is refused.
 """
 
 from __future__ import annotations
@@ -25,11 +30,12 @@ from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from m4world_env.backends import make_backend
+from m4world_env.backends import SensorBackend, make_backend
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
+from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs
 
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
 
@@ -51,6 +57,64 @@ def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dic
     return rest or None, mask
 
 
+def batched_actions(actions: Any, num_envs: int) -> np.ndarray:
+    """``actions`` as one array with a leading dimension of ``num_envs`` (one action per sub-env)."""
+    try:
+        arr = np.asarray(actions)
+    except ValueError as e:  # ragged nested lists
+        raise InvalidOptionError(
+            f"vector env expects an array of {num_envs} actions of equal shape (one per sub-env): {e}"
+        ) from e
+    if arr.shape[:1] != (num_envs,):
+        raise InvalidOptionError(
+            f"vector env expects one action per sub-env (leading dimension {num_envs}), got shape {arr.shape}"
+        )
+    return arr
+
+
+class LocalSubEnvs:
+    """The sub-envs in the vector env's process, their sensors from the shared ``backend``."""
+
+    def __init__(self, envs: list[M4WorldEnv], backend: SensorBackend) -> None:
+        self.envs, self.backend = envs, backend
+
+    def reset(
+        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
+    ) -> list[tuple[dict[str, np.ndarray], dict[str, Any]]]:
+        """Reset sub-envs ``indices``: their first frames in one backend call (one batched
+        reference-model call on the world model), each as its own ``reset`` would give."""
+        if not indices:
+            return []
+        begun = [self.envs[i].begin_reset(seed=s, options=options) for i, s in zip(indices, seeds, strict=True)]
+        firsts = self.backend.reset_many(indices, [b[0] for b in begun], begun[0][1], [b[2] for b in begun])
+        return [self.envs[i].finish_reset(first) for i, first in zip(indices, firsts, strict=True)]
+
+    def step(self, actions: list[Any], restarting: np.ndarray) -> list[SubEnvStep]:
+        """One step of every sub-env; those in ``restarting`` restart (autoreset) instead."""
+        for i, env in enumerate(self.envs):  # all checked first: a bad action leaves every sub-env as it was
+            if not restarting[i]:
+                try:
+                    env.check_action(actions[i])
+                except (ActionError, ResetNeeded) as e:
+                    raise type(e)(f"sub-env {i}: {e}") from e
+        chunks = [None if restarting[i] else env.advance(actions[i]) for i, env in enumerate(self.envs)]
+        observations = self.backend.step(chunks)
+        indices = [i for i in range(len(self.envs)) if restarting[i]]
+        restarted = dict(zip(indices, self.reset(indices, [None] * len(indices), None), strict=True))
+        steps = []
+        for i, env in enumerate(self.envs):
+            if i in restarted:
+                obs, info = restarted[i]
+                steps.append(SubEnvStep(obs, 0.0, False, False, info))
+            else:
+                steps.append(SubEnvStep(*env.finish_step(chunks[i], observations[i])))
+        return steps
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
 class M4WorldVectorEnv(VectorEnv):
     """N :class:`M4WorldEnv` sharing one batched sensor backend."""
 
@@ -69,6 +133,8 @@ class M4WorldVectorEnv(VectorEnv):
         if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= MAX_ENVS:
             raise InvalidOptionError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {num_envs!r}")
         cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
+        if cfg.workers:
+            _check_workers(cfg.workers, num_envs, backend, render_mode)
         needs_bev = "bev" in cfg.observation_keys or render_mode is not None
         self.backend = make_backend(
             backend,
@@ -80,11 +146,22 @@ class M4WorldVectorEnv(VectorEnv):
         )
         # One scenario object for all sub-envs (loaded once); each sub-env has its own traffic.
         scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
-        self.envs = [
-            M4WorldEnv(scenario, backend, checkpoint, render_mode, cfg, shared_backend=self.backend, backend_index=i)
-            for i in range(num_envs)
-        ]
-        first = self.envs[0]
+        if cfg.workers:
+            # The sub-envs live in the workers; this one gives the spaces, checks the scenario against
+            # the checkpoint and loads the scenario's adapters into the model. It is never stepped.
+            first = M4WorldEnv(scenario, backend, checkpoint, None, cfg, shared_backend=self.backend)
+            self._subenvs = WorkerSubEnvs(self.backend, scenario, cfg, num_envs, scenario.frames_per_step)
+            self.envs = self._subenvs.proxies
+        else:
+            self.envs = [
+                M4WorldEnv(
+                    scenario, backend, checkpoint, render_mode, cfg, shared_backend=self.backend, backend_index=i
+                )
+                for i in range(num_envs)
+            ]
+            first = self.envs[0]
+            self._subenvs = LocalSubEnvs(self.envs, self.backend)
+        self._camera_names = first.camera_names
         self.num_envs = num_envs
         self.render_mode = render_mode
         self.metadata = {**first.metadata, "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -97,7 +174,12 @@ class M4WorldVectorEnv(VectorEnv):
 
     @property
     def camera_names(self) -> tuple[str, ...]:
-        return self.envs[0].camera_names
+        return self._camera_names
+
+    @property
+    def simulation_workers(self) -> SimulationWorkers | None:
+        """The worker processes running the sub-envs (``config.workers`` > 0), else None."""
+        return self._subenvs.workers if isinstance(self._subenvs, WorkerSubEnvs) else None
 
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
@@ -113,7 +195,7 @@ class M4WorldVectorEnv(VectorEnv):
             return self._reset_masked(mask, seeds, options)
         if seed is not None:
             self._np_random_seed = seeds[0]
-        results = self._reset_envs(list(range(self.num_envs)), seeds, options)
+        results = self._subenvs.reset(list(range(self.num_envs)), seeds, options)
         self._autoreset[:] = False
         infos: dict[str, Any] = {}
         for i, (_obs, info) in enumerate(results):
@@ -129,7 +211,7 @@ class M4WorldVectorEnv(VectorEnv):
                 "reset(options={'reset_mask': ...}) restarts sub-envs of a running vector env; reset() it first"
             )
         indices = [int(i) for i in np.flatnonzero(mask)]
-        results = self._reset_envs(indices, [seeds[i] for i in indices], options)
+        results = self._subenvs.reset(indices, [seeds[i] for i in indices], options)
         self._autoreset[indices] = False
         observations = {k: v.copy() for k, v in self._observations.items()}
         infos: dict[str, Any] = {}
@@ -141,44 +223,16 @@ class M4WorldVectorEnv(VectorEnv):
         return observations, infos
 
     def step(self, actions: Any) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        actions = self._split_actions(actions)
-        for i, env in enumerate(self.envs):  # all checked first: a bad action leaves every sub-env as it was
-            if not self._autoreset[i]:
-                try:
-                    env.check_action(actions[i])
-                except (ActionError, ResetNeeded) as e:
-                    raise type(e)(f"sub-env {i}: {e}") from e
-        chunks: list[list | None] = []
-        for i, env in enumerate(self.envs):
-            chunks.append(None if self._autoreset[i] else env.advance(actions[i]))
-        observations = self.backend.step(chunks)
-        obs_list, rewards = [], np.zeros(self.num_envs, dtype=np.float64)
-        terminated = np.zeros(self.num_envs, dtype=bool)
-        truncated = np.zeros(self.num_envs, dtype=bool)
+        steps = self._subenvs.step(self._split_actions(actions), self._autoreset.copy())
+        rewards = np.array([s.reward for s in steps], dtype=np.float64)
+        terminated = np.array([s.terminated for s in steps], dtype=bool)
+        truncated = np.array([s.truncated for s in steps], dtype=bool)
         infos: dict[str, Any] = {}
-        restarting = [i for i in range(self.num_envs) if chunks[i] is None]
-        restarted = dict(zip(restarting, self._reset_envs(restarting, [None] * len(restarting), None), strict=True))
-        for i, env in enumerate(self.envs):
-            if i in restarted:
-                obs, info = restarted[i]
-            else:
-                obs, rewards[i], terminated[i], truncated[i], info = env.finish_step(chunks[i], observations[i])
-            obs_list.append(obs)
-            infos = self._add_info(infos, info, i)
+        for i, s in enumerate(steps):
+            infos = self._add_info(infos, s.info, i)
         self._autoreset = terminated | truncated
-        self._observations = self._stack(obs_list)
+        self._observations = self._stack([s.obs for s in steps])
         return self._observations, rewards, terminated, truncated, infos
-
-    def _reset_envs(
-        self, indices: list[int], seeds: list[int | None], options: dict[str, Any] | None
-    ) -> list[tuple[dict[str, np.ndarray], dict[str, Any]]]:
-        """Reset sub-envs ``indices``: their first frames in one backend call (one batched
-        reference-model call on the world model), each as its own ``reset`` would give."""
-        if not indices:
-            return []
-        begun = [self.envs[i].begin_reset(seed=s, options=options) for i, s in zip(indices, seeds, strict=True)]
-        firsts = self.backend.reset_many(indices, [b[0] for b in begun], begun[0][1], [b[2] for b in begun])
-        return [self.envs[i].finish_reset(first) for i, first in zip(indices, firsts, strict=True)]
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         if self.render_mode is None:
@@ -186,21 +240,29 @@ class M4WorldVectorEnv(VectorEnv):
         return tuple(env.render() for env in self.envs)
 
     def close_extras(self, **kwargs: Any) -> None:
-        for env in self.envs:
-            env.close()
+        self._subenvs.close()
 
     def _split_actions(self, actions: Any) -> list[Any]:
-        try:
-            arr = np.asarray(actions)
-        except ValueError as e:  # ragged nested lists
-            raise InvalidOptionError(
-                f"vector env expects an array of {self.num_envs} actions of equal shape (one per sub-env): {e}"
-            ) from e
-        if arr.shape[:1] != (self.num_envs,):
-            raise InvalidOptionError(
-                f"vector env expects one action per sub-env (leading dimension {self.num_envs}), got shape {arr.shape}"
-            )
-        return list(arr)
+        return list(batched_actions(actions, self.num_envs))
 
     def _stack(self, obs_list: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
         return {k: np.stack([o[k] for o in obs_list]) for k in obs_list[0]}
+
+
+def _check_workers(workers: int, num_envs: int, backend: str, render_mode: str | None) -> None:
+    """Refuse ``config.workers`` where it cannot apply."""
+    if backend != "world_model":
+        raise InvalidOptionError(
+            f"config.workers={workers} needs backend='world_model': the procedural backend renders every "
+            "sensor on the CPU and has no batched model to share; for it, run several processes "
+            "(vectorization_mode='async') and leave workers at 0"
+        )
+    if render_mode is not None:
+        raise InvalidOptionError(
+            f"render_mode={render_mode!r} needs each sub-env's scene in the vector env's process; "
+            f"config.workers={workers} keeps it in the workers: leave workers at 0 to render"
+        )
+    if workers > num_envs:
+        raise InvalidOptionError(
+            f"config.workers={workers} exceeds num_envs={num_envs}: at most one worker per sub-env"
+        )

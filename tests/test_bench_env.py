@@ -67,3 +67,18 @@ def test_world_model_qualifiers_become_model_options():
     assert bench_env._make_kwargs("world_model", checkpoint="other")["checkpoint"] == "other"
     with pytest.raises(SystemExit, match="checkpoint=BUNDLE"):
         bench_env._make_kwargs("world_model:checkpoint=", None)
+
+
+def test_bench_workers_splits_a_step_and_hashes_the_same_observations(tiny_bundle):
+    """bench_env --workers's probe: the parts of a vector step, and equal digests at 0 and 1 worker."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_env
+
+    runs = {k: bench_env.bench_workers(k, "merge_cut_in", 2, 2, 1, 0, str(tiny_bundle)) for k in (0, 1)}
+    assert runs[0]["digest"] == runs[1]["digest"]
+    in_process, workers = (runs[k]["breakdown_ms_per_env_step"] for k in (0, 1))
+    assert {"traffic", "crops", "conditions", "student", "decode", "other"} <= set(in_process)
+    assert {"traffic", "conditions", "busy", "workers_wait", "student", "decode", "other"} <= set(workers)
+    for parts in (in_process, workers):
+        assert parts["traffic"] > 0 and parts["conditions"] > 0 and parts["non_model"] > 0
+    assert workers["workers_wait"] + workers["other"] == pytest.approx(workers["non_model"])

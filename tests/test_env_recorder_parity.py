@@ -34,13 +34,13 @@ def _env_rollout(checkpoint, scenario) -> tuple[list, list[ConditionArrays], Wor
     )
     wm = env.backend.wm
     built: list[ConditionArrays] = []
-    original = wm.condition_arrays
+    original = wm.conditions.arrays
 
     def spy(*args, **kwargs):
         built.append(original(*args, **kwargs))
         return built[-1]
 
-    wm.condition_arrays = spy
+    wm.conditions.arrays = spy
     env.reset(seed=ENV_SEED)
     frames = [env._frame]
     policy = IDMAutopilot(seed=_bridge_seed())

@@ -76,6 +76,31 @@ def test_image_descriptions_from_crops_and_object_image():
         enc.encode([np.zeros((4, 4, 3), np.float32)])
 
 
+@pytest.mark.parametrize("layout", [False, True])
+def test_field_specs_are_the_built_arrays_shapes_and_dtypes(layout):
+    from world_model.model.conditions import condition_field_specs
+    from world_model.model.config import with_layout
+
+    cfg = with_layout(get_preset("tiny"), layout)
+    frames = make_frames(cfg, 3, num_objects=2)
+    _, _, bev = make_sensors(cfg, 3)
+    arr = build_condition_arrays(frames, bev, cfg, HashTextEncoder(cfg.text.dim), VaeCropEncoder(SensorVAE(cfg)))
+    specs = condition_field_specs(cfg, 3)
+    assert {k: (getattr(arr, k).shape, getattr(arr, k).dtype) for k in specs} == {
+        k: (s.shape, s.dtype) for k, s in specs.items()
+    }
+
+
+def test_a_crop_feature_does_not_depend_on_the_crops_encoded_with_it():
+    cfg = get_preset("tiny")
+    vae = perturbed(SensorVAE(cfg).eval())
+    rng = np.random.default_rng(0)
+    crops = [rng.integers(0, 255, (int(rng.integers(8, 40)), int(rng.integers(8, 40)), 3), np.uint8) for _ in range(4)]
+    together = VaeCropEncoder(vae).encode(crops)
+    alone = np.concatenate([VaeCropEncoder(vae).encode([c]) for c in crops])
+    assert np.array_equal(together, alone)
+
+
 def test_object_tokens_ignore_order_and_padding():
     cfg = get_preset("tiny")
     torch.manual_seed(0)

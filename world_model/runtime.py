@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from world_model.bundle import CheckpointError, load_bundle_files, save_bundle  # noqa: F401 (re-export)
+from world_model.conditioning import ConditionBuilder
 from world_model.lora import loaded_adapters, only_adapters
-from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
+from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
@@ -36,7 +37,6 @@ from world_model.observation import Observation
 from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
-from world_model.sim import ProceduralSimulator
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import STREAMING_FILE, StreamingConfig
@@ -60,7 +60,7 @@ class WorldModel:
     def __post_init__(self) -> None:
         self.image = VaeCropEncoder(self.vae)
         self.rig: CameraRig = self.cfg.sensors.rig()
-        self._bev = ProceduralSimulator(bev=self.cfg.sensors.bev)  # the map condition is a BEV raster
+        self.conditions = ConditionBuilder(self.cfg, self.text, self.image)
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
         self._adapter_dirs: dict[tuple[str, str], Path] = {}  # (model, adapter name) -> its directory
         self._completion: dict[str, str] = {}  # reference-model completion adapter -> the category it completes
@@ -183,24 +183,6 @@ class WorldModel:
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
         return latents, [obs[0] for obs in self.decode(latents)]
-
-    def condition_bev(self, frame: SceneFrame) -> np.ndarray:
-        """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
-        return self._bev.render_bev(frame)
-
-    def condition_arrays(
-        self,
-        frames: Sequence[SceneFrame],
-        first: SceneFrame,
-        crops: Mapping[str, np.ndarray] | None = None,
-        crop_since: Mapping[str, int] | None = None,
-    ) -> ConditionArrays:
-        """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2);
-        ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame)."""
-        bev = np.stack([self.condition_bev(f) for f in frames])
-        return build_condition_arrays(
-            frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego, crop_since=crop_since
-        )
 
     def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations.
@@ -332,14 +314,25 @@ class RolloutBatch:
     ) -> Observation:
         """(Re)start rollout ``row`` at ``frame``: its first frame comes from the reference model,
         anchored on ``reference`` images when given (§6), and seeds the student's cache. ``crops``
-        and ``crop_since``: as :meth:`WorldModel.condition_arrays`; set ``self.crops[row]`` and
+        and ``crop_since``: as :meth:`ConditionBuilder.arrays`; set ``self.crops[row]`` and
         ``self.crop_since[row]`` between steps as new crops are cut."""
+        self.crops[row], self.crop_since[row] = dict(crops or {}), dict(crop_since or {})
+        arrays = self.wm.conditions.arrays([frame], frame, self.crops[row], self.crop_since[row])
+        return self.start_row(row, frame, seed, arrays, reference)
+
+    def start_row(
+        self,
+        row: int,
+        frame: SceneFrame,
+        seed: int,
+        arrays: ConditionArrays,
+        reference: Mapping[str, np.ndarray] | None = None,
+    ) -> Observation:
+        """:meth:`reset_row` given the first frame's condition arrays, built by the caller."""
         self.gens[row] = torch.Generator().manual_seed(int(seed))
-        self.first[row], self.crops[row], self.crop_since[row] = frame, dict(crops or {}), dict(crop_since or {})
-        arrays = self.wm.condition_arrays([frame], frame, self.crops[row], self.crop_since[row])
-        cond = Conditions.collate([arrays])
+        self.first[row] = frame
         with torch.no_grad():
-            latents, obs = self.wm.first_frame(cond, frame, reference, seed=int(seed))
+            latents, obs = self.wm.first_frame(Conditions.collate([arrays]), frame, reference, seed=int(seed))
         self._start([row], latents, [arrays])
         return obs
 
@@ -359,12 +352,26 @@ class RolloutBatch:
         if not len(rows) == len(frames) == len(seeds) == len(crops) == len(since) or len(set(rows)) != len(rows):
             raise ValueError(f"need distinct rows and one frame, seed and crops per row, got rows {list(rows)}")
         arrays = []
-        for row, frame, seed, crop, first_seen in zip(rows, frames, seeds, crops, since, strict=True):
+        for row, frame, crop, first_seen in zip(rows, frames, crops, since, strict=True):
+            self.crops[row], self.crop_since[row] = dict(crop or {}), dict(first_seen or {})
+            arrays.append(self.wm.conditions.arrays([frame], frame, self.crops[row], self.crop_since[row]))
+        return self.start_rows(rows, frames, seeds, arrays)
+
+    def start_rows(
+        self,
+        rows: Sequence[int],
+        frames: Sequence[SceneFrame],
+        seeds: Sequence[int],
+        arrays: Sequence[ConditionArrays],
+    ) -> list[Observation]:
+        """:meth:`reset_rows` given each row's first-frame condition arrays, built by the caller."""
+        if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
+            raise ValueError(f"need distinct rows and one frame, seed and arrays per row, got rows {list(rows)}")
+        for row, frame, seed in zip(rows, frames, seeds, strict=True):
             self.gens[row] = torch.Generator().manual_seed(int(seed))
-            self.first[row], self.crops[row], self.crop_since[row] = frame, dict(crop or {}), dict(first_seen or {})
-            arrays.append(self.wm.condition_arrays([frame], frame, self.crops[row], self.crop_since[row]))
+            self.first[row] = frame
         latents, obs = self.wm.batch_first_frames(Conditions.collate(arrays), frames, [int(s) for s in seeds])
-        self._start(list(rows), latents, arrays)
+        self._start(list(rows), latents, list(arrays))
         return obs
 
     def _start(self, rows: list[int], latents: torch.Tensor, arrays: list[ConditionArrays]) -> None:
@@ -390,40 +397,52 @@ class RolloutBatch:
         """Advance every rollout whose chunk is given (``None``: idle, its output is discarded)."""
         if len(chunks) != self.n:
             raise ValueError(f"need one chunk (or None) per rollout: {self.n}, got {len(chunks)}")
+        t0 = time.perf_counter()
+        arrays = [
+            None
+            if chunk is None
+            else self.wm.conditions.chunk_arrays(chunk, self.first[i], self.crops[i], self.crop_since[i])
+            for i, chunk in enumerate(chunks)
+        ]
+        self.seconds["conditions"] += time.perf_counter() - t0
+        return self.step_arrays(arrays)
+
+    def step_arrays(self, arrays: Sequence[Sequence[ConditionArrays] | None]) -> list[list[Observation] | None]:
+        """:meth:`step` given each rollout's condition arrays, built by the caller
+        (:meth:`ConditionBuilder.chunk_arrays`): one per causal chunk of the step, or ``None`` for an
+        idle rollout. Returns each active rollout's observations of the step's last frame (of every
+        frame with ``every_frame``)."""
+        if len(arrays) != self.n:
+            raise ValueError(f"need one list of condition arrays (or None) per rollout: {self.n}, got {len(arrays)}")
         if self.engine.batch_size != self.n:
             missing = [i for i in range(self.n) if i not in self._pending]
             raise RuntimeError(f"rollouts {missing} were never reset; reset every rollout before stepping")
-        lengths = {len(c) for c in chunks if c is not None}
-        if len(lengths) > 1 or (lengths and next(iter(lengths)) % self.chunk_frames):
+        shapes = {tuple(a.num_frames for a in row) for row in arrays if row is not None}
+        if len(shapes) > 1 or any(k != self.chunk_frames for shape in shapes for k in shape):
             raise ValueError(
-                f"every chunk must have the same multiple of the model's {self.chunk_frames} frames, got {lengths}"
+                f"every rollout's step must be the same number of the model's {self.chunk_frames}-frame chunks, "
+                f"got chunks of {sorted(shapes)} frames"
             )
-        total = next(iter(lengths), 0)
+        steps = len(next(iter(shapes), ()))
         outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
         with torch.no_grad():
-            for k in range(0, total, self.chunk_frames):
-                t0 = time.perf_counter()
-                arrays = []
-                for i, chunk in enumerate(chunks):
-                    if chunk is not None:
-                        self.last_arrays[i] = self.wm.condition_arrays(
-                            chunk[k : k + self.chunk_frames], self.first[i], self.crops[i], self.crop_since[i]
-                        )
+            for k in range(steps):
+                batch = []
+                for i, row in enumerate(arrays):
+                    if row is not None:
+                        self.last_arrays[i] = row[k]
                     # An idle row repeats its last controls: its output is thrown away.
                     arr = self.last_arrays[i]
-                    arrays.append(
-                        arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames)
-                    )
-                cond = Conditions.collate(arrays)
-                t1 = time.perf_counter()
+                    batch.append(arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames))
+                cond = Conditions.collate(batch)
+                t0 = time.perf_counter()
                 with self._row_independent():
                     latents = self.engine.step(cond)
-                self.seconds["conditions"] += t1 - t0
-                self.seconds["student"] += time.perf_counter() - t1
+                self.seconds["student"] += time.perf_counter() - t0
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
         t0 = time.perf_counter()
-        active = [i for i, chunk in enumerate(chunks) if chunk is not None]
+        active = [i for i, row in enumerate(arrays) if row is not None]
         results: list[list[Observation] | None] = [None] * self.n
         if active:  # one decoder call for every active rollout's frames
             lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])

@@ -27,7 +27,7 @@ from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
 from m4world_env.traffic.bridge import TrafficBridge
-from m4world_env.vector import MAX_ENVS, split_reset_mask
+from m4world_env.vector import MAX_ENVS, batched_actions, split_reset_mask
 from m4world_env.vector_infos import unbatch_infos
 
 Observations = dict[str, np.ndarray]
@@ -171,16 +171,7 @@ class RayVectorEnv(VectorEnv):
 
     def _check_actions(self, actions: Any) -> np.ndarray:
         """``actions`` as one array, each sub-env's checked as its env would (ResetNeeded, ActionError)."""
-        try:
-            arr = np.asarray(actions)
-        except ValueError as e:  # ragged nested lists
-            raise InvalidOptionError(
-                f"vector env expects an array of {self.num_envs} actions of equal shape (one per sub-env): {e}"
-            ) from e
-        if arr.shape[:1] != (self.num_envs,):
-            raise InvalidOptionError(
-                f"vector env expects one action per sub-env (leading dimension {self.num_envs}), got shape {arr.shape}"
-            )
+        arr = batched_actions(actions, self.num_envs)
         if self._observations is None:
             raise ResetNeeded("call reset() before step() (never reset, or the last reset failed)")
         for i in np.flatnonzero(~self._autoreset):

@@ -75,6 +75,26 @@ def camera_condition(rig: CameraRig) -> np.ndarray:
     return mats
 
 
+# Rig object id -> (the rig, its camera condition, its view adjacency). By identity: a rig holds
+# arrays (unhashable), and every frame of a rollout carries the same rig object. The entry keeps
+# its rig alive, so the id cannot be reused by another object while it is cached.
+_RIG_CONDITIONS: dict[int, tuple[CameraRig, np.ndarray, np.ndarray]] = {}
+MAX_CACHED_RIGS = 64
+
+
+def rig_conditions(rig: CameraRig) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`camera_condition` and :func:`view_adjacency` of ``rig``, computed once per rig object
+    (a rollout's rig never changes) and read-only, since every rollout of the rig shares them."""
+    hit = _RIG_CONDITIONS.get(id(rig))
+    if hit is None or hit[0] is not rig:
+        if len(_RIG_CONDITIONS) >= MAX_CACHED_RIGS:
+            _RIG_CONDITIONS.clear()
+        camera, adjacency = camera_condition(rig), view_adjacency(rig)
+        camera.flags.writeable = adjacency.flags.writeable = False
+        hit = _RIG_CONDITIONS[id(rig)] = (rig, camera, adjacency)
+    return hit[1], hit[2]
+
+
 def category_text(category: str) -> str:
     """The string a category's name is encoded as."""
     return category.replace("_", " ")
@@ -220,8 +240,9 @@ def build_condition_arrays(
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
     text_mask = np.arange(cfg.text.max_tokens) < len(tokens)
+    camera, adjacency = rig_conditions(rig)
     return ConditionArrays(
-        camera=camera_condition(rig),
+        camera=camera,
         ego=np.stack([fr.ego_pose_condition(first) for fr in frames]).astype(np.float32),
         bev=bev.astype(np.uint8),
         obj_corners=corners,
@@ -233,9 +254,44 @@ def build_condition_arrays(
         obj_has_image=has_img,
         text=text,
         text_mask=text_mask,
-        view_adjacency=view_adjacency(rig),
+        view_adjacency=adjacency,
         layout=layout,
     )
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """Shape and dtype of one :class:`ConditionArrays` field."""
+
+    shape: tuple[int, ...]
+    dtype: np.dtype
+
+
+def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldSpec]:
+    """Every :class:`ConditionArrays` field's shape and dtype for ``num_frames`` frames under ``cfg``
+    (the table of the module docstring): what :func:`build_condition_arrays` returns, known before
+    any frame exists (e.g. to lay out shared memory for the arrays of many rollouts)."""
+    t, o, dt, di = num_frames, cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
+    vc, v = cfg.sensors.num_cameras, cfg.sensors.num_views
+    h, w = cfg.latent_hw
+    layout_channels = cfg.layout.channels if cfg.layout.enabled else 0
+    f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
+    return {
+        "camera": FieldSpec((vc, 7, 3), f32),
+        "ego": FieldSpec((t, 4, 3), f32),
+        "bev": FieldSpec((t, *cfg.sensors.bev.shape), u8),
+        "obj_corners": FieldSpec((t, o, 8, 3), f32),
+        "obj_category": FieldSpec((t, o, dt), f32),
+        "obj_text": FieldSpec((t, o, dt), f32),
+        "obj_image": FieldSpec((t, o, di), f32),
+        "obj_mask": FieldSpec((t, o), b),
+        "obj_has_text": FieldSpec((t, o), b),
+        "obj_has_image": FieldSpec((t, o), b),
+        "text": FieldSpec((cfg.text.max_tokens, dt), f32),
+        "text_mask": FieldSpec((cfg.text.max_tokens,), b),
+        "view_adjacency": FieldSpec((v, v), b),
+        "layout": FieldSpec((t, v, layout_channels, h, w), f32),
+    }
 
 
 @dataclass

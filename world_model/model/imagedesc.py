@@ -31,7 +31,8 @@ def image_feature_dim(cfg: ModelConfig) -> int:
 
 
 class ImageDescriptionEncoder(ABC):
-    """uint8 crops (h, w, 3) of any size -> float32 (N, dim) features, cached by content."""
+    """uint8 crops (h, w, 3) of any size -> float32 (N, dim) features, cached by content; each crop's
+    feature is independent of the others encoded with it."""
 
     dim: int
 
@@ -45,10 +46,12 @@ class ImageDescriptionEncoder(ABC):
             if c.dtype != np.uint8 or c.ndim != 3 or c.shape[2] != 3:
                 raise ValueError(f"a reference crop must be uint8 (h, w, 3), got {c.dtype} {c.shape}")
             keys.append(hashlib.sha1(c.tobytes() + str(c.shape).encode()).digest())
-        todo = [(k, c) for k, c in zip(keys, crops, strict=True) if k not in self._cache]
-        if todo:
-            feats = np.asarray(self._encode([c for _, c in todo]), dtype=np.float32)
-            self._cache.update((k, f) for (k, _), f in zip(todo, feats, strict=True))
+        todo = {k: c for k, c in zip(keys, crops, strict=True) if k not in self._cache}
+        for k, c in todo.items():
+            # One crop per call: batched, the encoder's convolutions would give a crop low bits that
+            # depend on which other crops were new with it (a rollout would depend on its batch
+            # neighbours and on which process encoded what first).
+            (self._cache[k],) = np.asarray(self._encode([c]), dtype=np.float32)
         if not crops:
             return np.zeros((0, self.dim), np.float32)
         return np.stack([self._cache[k] for k in keys])

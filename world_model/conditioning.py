@@ -1,0 +1,76 @@
+"""What turns a rollout's SceneFrames into the world model's condition arrays, without the DiTs.
+
+The world model holds one :class:`ConditionBuilder`; so does each simulation worker of a vector
+env (:mod:`m4world_env.workers`), built from the model's config and VAE weights, so the CPU side
+of a step can run beside the model, in another process, by the same code.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+import torch
+
+from world_model.model.conditions import ConditionArrays, build_condition_arrays
+from world_model.model.config import ModelConfig
+from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
+from world_model.model.text import TextEncoder, make_text_encoder
+from world_model.model.vae import SensorVAE
+from world_model.scene import SceneFrame
+from world_model.sim import ProceduralSimulator
+
+
+class ConditionBuilder:
+    """The map raster, the text encoder and the image-description encoder of a model config."""
+
+    def __init__(self, cfg: ModelConfig, text: TextEncoder, image: ImageDescriptionEncoder) -> None:
+        self.cfg, self.text, self.image = cfg, text, image
+        self._bev = ProceduralSimulator(bev=cfg.sensors.bev)  # the map condition is a BEV raster
+
+    @classmethod
+    def from_vae_weights(cls, cfg: ModelConfig, vae_weights: Mapping[str, np.ndarray]) -> ConditionBuilder:
+        """A builder with its own text encoder and a CPU copy of the VAE (for the crops' features),
+        given the VAE's state dict as numpy arrays (what a process without the model receives)."""
+        vae = SensorVAE(cfg)
+        vae.load_state_dict({k: torch.from_numpy(np.asarray(v)) for k, v in vae_weights.items()})
+        vae.eval().requires_grad_(False)
+        return cls(cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae))
+
+    @property
+    def chunk_frames(self) -> int:
+        return self.cfg.clip.chunk_frames
+
+    def bev(self, frame: SceneFrame) -> np.ndarray:
+        """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
+        return self._bev.render_bev(frame)
+
+    def arrays(
+        self,
+        frames: Sequence[SceneFrame],
+        first: SceneFrame,
+        crops: Mapping[str, np.ndarray] | None = None,
+        crop_since: Mapping[str, int] | None = None,
+    ) -> ConditionArrays:
+        """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2);
+        ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame)."""
+        bev = np.stack([self.bev(f) for f in frames])
+        return build_condition_arrays(
+            frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego, crop_since=crop_since
+        )
+
+    def chunk_arrays(
+        self,
+        chunk: Sequence[SceneFrame],
+        first: SceneFrame,
+        crops: Mapping[str, np.ndarray] | None = None,
+        crop_since: Mapping[str, int] | None = None,
+    ) -> list[ConditionArrays]:
+        """:meth:`arrays` of a step's frames, one per causal chunk of :attr:`chunk_frames` frames (the
+        student's unit); ``len(chunk)`` must be a multiple of it."""
+        if not chunk or len(chunk) % self.chunk_frames:
+            raise ValueError(f"a step's frames must be a positive multiple of {self.chunk_frames}, got {len(chunk)}")
+        return [
+            self.arrays(chunk[k : k + self.chunk_frames], first, crops, crop_since)
+            for k in range(0, len(chunk), self.chunk_frames)
+        ]
