@@ -40,6 +40,17 @@ from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
 
 
+def reset_seeds(seed: int | list[int | None] | None, num_envs: int) -> list[int | None]:
+    """Each sub-env's seed of ``reset(seed=...)``: ``s + i`` for an int ``s``, the list's own, or
+    None throughout."""
+    if seed is None or isinstance(seed, int | np.integer):
+        return [None if seed is None else int(seed) + i for i in range(num_envs)]
+    seeds = list(seed)
+    if len(seeds) != num_envs:
+        raise InvalidOptionError(f"reset(seed=list) needs {num_envs} seeds, got {len(seeds)}")
+    return seeds
+
+
 def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dict[str, Any] | None, np.ndarray | None]:
     """``reset`` options without ``reset_mask``, and the mask: a bool array of ``num_envs`` with a True
     (``None`` when absent). The caller's dict is left as it was."""
@@ -184,12 +195,7 @@ class M4WorldVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        if seed is None or isinstance(seed, int | np.integer):
-            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise InvalidOptionError(f"reset(seed=list) needs {self.num_envs} seeds, got {len(seeds)}")
+        seeds = reset_seeds(seed, self.num_envs)
         options, mask = split_reset_mask(options, self.num_envs)
         if mask is not None:
             return self._reset_masked(mask, seeds, options)

@@ -27,7 +27,7 @@ from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
 from m4world_env.traffic.bridge import TrafficBridge
-from m4world_env.vector import MAX_ENVS, batched_actions, split_reset_mask
+from m4world_env.vector import MAX_ENVS, batched_actions, reset_seeds, split_reset_mask
 from m4world_env.vector_infos import unbatch_infos
 
 Observations = dict[str, np.ndarray]
@@ -114,12 +114,7 @@ class RayVectorEnv(VectorEnv):
     def reset(
         self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Observations, dict[str, Any]]:
-        if seed is None or isinstance(seed, int | np.integer):
-            seeds = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != self.num_envs:
-                raise InvalidOptionError(f"reset(seed=list) needs {self.num_envs} seeds, got {len(seeds)}")
+        seeds = reset_seeds(seed, self.num_envs)
         options, mask = split_reset_mask(options, self.num_envs)
         if mask is not None and self._observations is None:
             raise ResetNeeded(
