@@ -62,8 +62,7 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
         measured, met = judge(scores.table2)
         top = ""
         if ceiling is not None and capped:
-            value, top_met = judge(ceiling.table2)
-            top = f"{value}: {'reachable' if top_met else 'out of reach'}" if top_met is not None else ""
+            top = ceiling_text(*judge(ceiling.table2))
         return BarCheck(bar, measured, met, top)
 
     def ratio(q: str, bar: float) -> JudgeBar:
@@ -105,8 +104,7 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
         out.append(judged(f"{q} ≥ {bar}", at_least(q, bar)))
     for q, bar in bars.view_minimums:
         measured, met = worst_view(scores, q, bar)
-        top = "" if ceiling is None else worst_view(ceiling, q, bar)
-        reach = "" if not top or top[1] is None else f"{top[0]}: {'reachable' if top[1] else 'out of reach'}"
+        reach = "" if ceiling is None else ceiling_text(*worst_view(ceiling, q, bar))
         out.append(BarCheck(f"{q} ≥ {bar} in every camera view", measured, met, reach))
     for q in ("visual_fidelity", "textual_fidelity"):
         out.append(judged(f"{q} ≥ geometry_only + {bars.fidelity_margin:.2f}", margin(q)))
@@ -125,6 +123,11 @@ def check_bars(report: Report, model: str = "student", bars: QualityBars = Quali
     met = None if mae is None else mae <= bars.lidar_first_s_max_m
     out.append(BarCheck(f"LiDAR range MAE first second ≤ {bars.lidar_first_s_max_m} m", format_score(mae), met))
     return out
+
+
+def ceiling_text(measured: str, met: bool | None) -> str:
+    """A bar's ceiling column: what the autoencoder row measured and whether it passes."""
+    return "" if met is None else f"{measured}: {'reachable' if met else 'out of reach'}"
 
 
 def worst_view(scores: RowScores, question: str, bar: float) -> tuple[str, bool | None]:
