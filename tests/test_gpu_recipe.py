@@ -16,6 +16,7 @@ import m4world_env  # noqa: F401  (registers M4World-v0)
 from world_model.train.recipe import (
     ADAPTERS,
     BUNDLE_RESERVE_S,
+    CHAIN,
     PHASES,
     SCALES,
     TIME_SHARES,
@@ -66,3 +67,17 @@ def test_stage_time_limits_share_what_is_left_and_pass_on_what_a_stage_did_not_u
     assert stage_time_limit(spec, PHASES[-1:], elapsed_s=70.0) == pytest.approx(30.0)
     assert stage_time_limit(spec, PHASES[-1:], elapsed_s=500.0) == 1.0  # over time: one more short try
     assert stage_time_limit(SCALES["dry"], PHASES, elapsed_s=0.0) is None  # no limit: steps decide
+
+
+def test_each_scale_trains_the_layout_design_with_a_text_encoder_its_machine_has():
+    from world_model.model.config import get_preset
+    from world_model.train.recipe import LAYOUT_SUPERSAMPLE, recipe_config
+
+    for name, spec in SCALES.items():
+        cfg = recipe_config(spec)
+        assert cfg.layout.enabled and cfg.layout.supersample == LAYOUT_SUPERSAMPLE, name
+        assert cfg.text.dim == get_preset(spec.preset).text.dim, name
+        assert set(spec.stages) == {*CHAIN, "lora"}, name
+    # the GPU machine cannot download MiniLM; this CPU has it and keeps the preset's encoder
+    assert recipe_config(SCALES["gpu"]).text.encoder == "hash"
+    assert recipe_config(SCALES["cpu"]).text.encoder == get_preset("default").text.encoder == "minilm"
