@@ -24,7 +24,7 @@ def clips(tmp_path_factory):
 def _in_place(clips):
     latents = [torch.zeros(c.num_frames, 1) for c in clips]
     windows = LatentWindows(clips, latents, CFG, make_text_encoder(CFG.text), None)
-    return [a.layout for a in windows.arrays]
+    return [windows.clip_arrays(i).layout for i in range(len(clips))]
 
 
 def test_layouts_from_worker_processes_equal_the_raster_computed_in_place(clips, tmp_path, monkeypatch):

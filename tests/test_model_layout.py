@@ -212,14 +212,20 @@ def test_layout_training_flag_switches_the_stage_config():
     assert stage_config(p.parse_args([]), preset).layout == preset.layout
 
 
-def test_the_shipped_checkpoint_loads_unchanged_with_layout_off():
-    from world_model.bundle import load_bundle_files
+def test_a_bundle_written_before_layout_existed_loads_unchanged_with_layout_off(tmp_path):
+    from safetensors.torch import load_file, save_file
 
-    files = load_bundle_files(None)
-    cfg = ModelConfig.from_dict(files.model_config)
-    assert cfg.layout.channels == 0 and "layout" not in files.model_config  # written before layout existed
+    old = get_preset("tiny").to_dict()
+    del old["layout"]  # model_config.json of a bundle written before layout conditioning
+    cfg = ModelConfig.from_dict(old)
+    assert cfg.layout.channels == 0
+    no_layout = with_layout(get_preset("tiny"), False)
+    shapes = {k: v.shape for k, v in MultiViewDiT(no_layout).state_dict().items()}
+    assert {k: v.shape for k, v in MultiViewDiT(cfg).state_dict().items()} == shapes
+    torch.manual_seed(0)
+    save_file(MultiViewDiT(cfg).state_dict(), tmp_path / "student.safetensors")
     student = MultiViewDiT(cfg)
-    student.load_state_dict(files.tensors["student"])  # strict: the patch embedding's width is unchanged
+    student.load_state_dict(load_file(tmp_path / "student.safetensors"))  # strict: the patch embedding's width
     cond = tiny_conditions(cfg, 1)
     assert cond.layout.shape[3] == 0
     with torch.no_grad():

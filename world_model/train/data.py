@@ -244,8 +244,11 @@ def _write_latents(path: Path, lat: torch.Tensor, vae_digest: str, clip_key: str
 class LatentWindows:
     """Windows of cached latents with their conditions, at mixed lengths (``clip.train_frames``).
 
-    Every clip's latents and time-varying conditions are concatenated once into flat arrays, so a
-    batch of windows is one index gather per field (:meth:`gather`), not a Python loop per sample.
+    Every clip's latents and time-varying conditions are copied once into flat arrays, so a batch
+    of windows is one index gather per field (:meth:`gather`), not a Python loop per sample. Only
+    the flat arrays are kept: a clip's per-frame conditions (object embeddings, BEV, layout) take
+    about 19 MB at the default preset, and a second copy of them all would double the memory a
+    large dataset needs.
     """
 
     def __init__(
@@ -258,10 +261,15 @@ class LatentWindows:
         layouts: list[np.ndarray] | None = None,
     ) -> None:
         """``layouts``: each clip's layout raster when computed already (:func:`cached_layouts`)."""
-        self.clips, self.latents, self.cfg = clips, latents, cfg
+        self.clips, self.cfg = clips, cfg
         layouts = layouts if layouts is not None else [None] * len(clips)
-        self.arrays: list[ConditionArrays] = [
-            build_condition_arrays(
+        self.lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
+        self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
+        self.flat_latents = torch.cat([lat.float() for lat in latents])  # (sum T, V, C, h, w)
+        self.flat_time: dict[str, np.ndarray] = {}
+        static: dict[str, list[np.ndarray]] = {}
+        for i, (c, lay) in enumerate(zip(clips, layouts, strict=True)):
+            arrays = build_condition_arrays(
                 c.frames,
                 np.asarray(c.bev),
                 cfg,
@@ -271,24 +279,35 @@ class LatentWindows:
                 crop_since=c.crop_since,
                 layout=lay,
             )
-            for c, lay in zip(clips, layouts, strict=True)
-        ]
-        self.lengths = np.array([c.num_frames for c in clips], dtype=np.int64)
-        self.offsets = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
-        self.flat_latents = torch.cat([lat.float() for lat in latents])  # (sum T, V, C, h, w)
-        self.flat_time = {k: np.concatenate([getattr(a, k) for a in self.arrays]) for k in ConditionArrays.TIME_FIELDS}
-        static = [f.name for f in fields(ConditionArrays) if f.name not in ConditionArrays.TIME_FIELDS]
-        self.per_clip = {k: np.stack([getattr(a, k) for a in self.arrays]) for k in static}
+            rows = slice(self.offsets[i], self.offsets[i] + self.lengths[i])
+            for k in ConditionArrays.TIME_FIELDS:
+                value = getattr(arrays, k)
+                if k not in self.flat_time:
+                    self.flat_time[k] = np.empty((int(self.lengths.sum()), *value.shape[1:]), value.dtype)
+                self.flat_time[k][rows] = value
+            for f in fields(ConditionArrays):
+                if f.name not in ConditionArrays.TIME_FIELDS:
+                    static.setdefault(f.name, []).append(getattr(arrays, f.name))
+        self.per_clip = {k: np.stack(v) for k, v in static.items()}
         # (sum T, 3): x, y, yaw of every frame's ego, for the ego condition relative to a window's start
         self.ego_pose = np.array([[f.ego.x, f.ego.y, f.ego.yaw] for c in clips for f in c.frames], dtype=np.float64)
 
+    def clip_arrays(self, clip: int) -> ConditionArrays:
+        """The whole of clip ``clip``'s condition arrays (views of the flat arrays; ego relative to
+        the clip's first frame)."""
+        rows = slice(self.offsets[clip], self.offsets[clip] + self.lengths[clip])
+        return ConditionArrays(
+            **{k: v[rows] for k, v in self.flat_time.items()}, **{k: v[clip] for k, v in self.per_clip.items()}
+        )
+
     def window(self, clip: int, start: int, frames: int) -> tuple[torch.Tensor, ConditionArrays]:
         c, stop = self.clips[clip], start + frames
-        arr = self.arrays[clip].frames(start, stop)
+        arr = self.clip_arrays(clip).frames(start, stop)
         # The ego condition is relative to the first frame of the sequence the model sees.
         first = c.frames[start].ego
         ego = np.stack([fr.ego_pose_condition(first) for fr in c.frames[start:stop]]).astype(np.float32)
-        return self.latents[clip][start:stop], replace(arr, ego=ego)
+        offset = int(self.offsets[clip])
+        return self.flat_latents[offset + start : offset + stop], replace(arr, ego=ego)
 
     def gather(self, clips: np.ndarray, frame_index: np.ndarray, anchor: np.ndarray) -> tuple[torch.Tensor, Conditions]:
         """x0 (B, T, V, C, h, w) float32 and conditions of frames ``frame_index`` (B, T) of ``clips``
