@@ -308,8 +308,8 @@ def test_adapters_carry_a_checksum_and_a_corrupt_one_is_named(tmp_path):
 
     from world_model.bundle import DEFAULT_BUNDLE
 
-    a = tmp_path / "tree_truck"
-    shutil.copytree(DEFAULT_BUNDLE / "adapters" / "tree_truck", a)
+    a = tmp_path / "tree_truck_completion"
+    shutil.copytree(DEFAULT_BUNDLE / "adapters" / "tree_truck_completion", a)
     read_adapter(a)
     data = bytearray((a / "adapter.safetensors").read_bytes())
     data[-1] ^= 0xFF

@@ -29,18 +29,17 @@ def test_demo_runs_on_the_shipped_checkpoint(tmp_path, capsys):
 
 
 def test_every_shipped_adapter_fits_a_model_of_the_shipped_bundle():
-    """adapters/: tree_truck (the student's) and tree_truck_completion (the reference model's, for
-    object completion: it completes tree trucks at reset) load by name, each into the model it was
-    trained on."""
+    """adapters/: tree_truck_completion (the reference model's, for object completion: it completes
+    tree trucks at reset) loads by name into the model it was trained on."""
     from world_model.lora import loaded_adapters, read_adapter
     from world_model.runtime import load_world_model
 
     wm = load_world_model(None, dtype="float32")
     names = sorted(p.name for p in (DEFAULT_BUNDLE / "adapters").iterdir() if p.is_dir())
-    assert names == ["tree_truck", "tree_truck_completion"]
-    assert wm.apply_adapters(names) == ["tree_truck", "tree_truck_completion"]  # student's, then reference's
+    assert names == ["tree_truck_completion"]
+    assert wm.apply_adapters(names) == ["tree_truck_completion"]
     assert loaded_adapters(wm.reference) == ["tree_truck_completion"]
-    assert [read_adapter(DEFAULT_BUNDLE / "adapters" / n)[0].completes for n in names] == [None, "tree_truck"]
+    assert read_adapter(DEFAULT_BUNDLE / "adapters" / names[0])[0].completes == "tree_truck"
 
 
 def test_a_scenario_whose_steps_split_a_chunk_is_refused_at_construction():
