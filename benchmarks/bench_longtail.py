@@ -54,6 +54,7 @@ from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
+from world_model.sim.labels import label_maps
 from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
@@ -200,7 +201,8 @@ def _render_both(
             completed = gen.complete_category(cond, first, frames, category, steps=steps, seed=seed)
         finally:
             remove_adapters(model)
-        return base_obs, [o[0] for o in latents_to_observations(vae, completed, vae.cfg.sensors.lidar)]
+        obs = latents_to_observations(vae, completed, vae.cfg.sensors.lidar, labels=cond.labels[:, :1])
+        return base_obs, [o[0] for o in obs]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)
     try:
@@ -268,7 +270,9 @@ def evaluate(
 def autoencode(vae: SensorVAE, clip: Clip, frame: int) -> np.ndarray:
     """Frame ``frame`` of ``clip`` through the VAE and back: cameras (V, H, W, 3), the best any
     model generating through this VAE could render (the figure's ceiling row)."""
-    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1])
+    fr, s = clip.frames[frame], vae.cfg.sensors
+    labels = label_maps(fr, fr.rig, s.height, s.width)[None] if vae.draws_labels else None
+    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels)
     return cams[0]
 
 

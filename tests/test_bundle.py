@@ -41,6 +41,18 @@ def test_export_and_load_roundtrip(tmp_path):
     ]
 
 
+def test_the_decoder_stage_gives_the_bundle_its_vae_and_label_maps(tmp_path):
+    run = _fake_run(tmp_path / "run")
+    plain = load_bundle_files(export_bundle(run, tmp_path / "plain"))
+    assert plain.model_config == {"name": "tiny"} and torch.equal(plain.tensors["vae"]["w"], torch.ones(3))
+    (run / "decoder").mkdir()
+    save_file({"w": torch.full((3,), 2.0)}, str(run / "decoder" / "model.safetensors"))
+    files = load_bundle_files(export_bundle(run, tmp_path / "bundle"))
+    assert files.manifest["components"]["vae"]["stage"] == "decoder"
+    assert torch.equal(files.tensors["vae"]["w"], torch.full((3,), 2.0))
+    assert files.model_config == {"name": "tiny", "layout": {"decoder": True}}
+
+
 def test_missing_and_corrupt_checkpoints_are_named(tmp_path):
     with pytest.raises(CheckpointNotFoundError, match="does not exist"):
         load_bundle_files(tmp_path / "nope")

@@ -15,6 +15,7 @@ from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
 from world_model.model.conditions import ConditionArrays
 from world_model.runtime import WorldModel, save_untrained_bundle
+from world_model.sim.labels import ROAD, VEHICLE, label_maps
 from world_model.train.data import LatentWindows
 
 # A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).
@@ -89,12 +90,23 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     chunk = cfg.clip.chunk_frames
     starts = [0] + list(range(1, clip.num_frames, chunk))
     assert len(env_arrays) == len(starts)
+    # The DiTs' windows leave out the decoder's label maps; the decoder stage renders them from the
+    # clip's frames.
+    assert train.labels.shape[2:] == (0, 0)
+    labels = np.stack([label_maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
     for start, got in zip(starts, env_arrays, strict=True):
         want = train.frames(start, start + got.num_frames)
         for f in fields(ConditionArrays):
+            if f.name == "labels":
+                continue
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), f"{f.name} differs at frame {start}"
+        if layout:
+            assert np.array_equal(got.labels, labels[start : start + got.num_frames]), f"labels differ at {start}"
+        else:
+            assert got.labels.shape[2:] == (0, 0)
     has_image = np.concatenate([a.obj_has_image for a in env_arrays])
     assert has_image[0].any()  # crops reached the conditions from the first frame
     if layout:
         assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
+        assert (labels == ROAD).any() and (labels == VEHICLE).any()

@@ -3,12 +3,22 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
-from world_model.model.vae import cameras_to_images, images_to_cameras, images_to_lidar, lidar_to_images, weighted_l1
+from world_model.model.config import with_layout
+from world_model.model.vae import (
+    NO_LABEL,
+    cameras_to_images,
+    images_to_cameras,
+    images_to_lidar,
+    lidar_to_images,
+    weighted_l1,
+)
+from world_model.sim.labels import LABEL_CLASSES
 
 
 def test_lidar_normalization_round_trip_and_no_return():
@@ -106,3 +116,37 @@ def test_weighted_l1_is_plain_l1_under_unit_weights_and_follows_the_weights():
     box[:, :, :4] = 10.0
     top, bottom = (rec - target).abs()[:, :, :4].mean(dim=(1, 2, 3)), (rec - target).abs()[:, :, 4:].mean(dim=(1, 2, 3))
     torch.testing.assert_close(weighted_l1(rec, target, box), (10 * top + bottom) / 11)
+
+
+def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps():
+    plain_cfg = get_preset("tiny")
+    cfg = with_layout(plain_cfg, True)
+    torch.manual_seed(0)
+    plain = SensorVAE(plain_cfg).eval()
+    vae = SensorVAE(cfg).eval()
+    missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
+    assert not unexpected and missing and all(k.startswith("decoder.label_mods.") for k in missing)
+    cams, lidar, _ = make_sensors(cfg, 2)
+    lat = vae.encode_frames(cams, lidar.astype(np.float32))
+    h, w = cfg.sensors.height, cfg.sensors.width
+    rng = np.random.default_rng(0)
+    labels = rng.integers(len(LABEL_CLASSES), size=(2, cfg.sensors.num_cameras, h, w)).astype(np.uint8)
+    # zero-initialized modulations: the fine-tuning starts from the plain decoder's images
+    for a, b in zip(vae.decode_frames(lat, labels=labels), plain.decode_frames(lat), strict=True):
+        assert np.array_equal(a, b)
+    with pytest.raises(ValueError, match="label map"):
+        vae.decode_frames(lat)
+    with pytest.raises(ValueError, match="label map"):
+        vae.decode_frames(lat, labels=labels[:, :2])
+
+    for mod in vae.decoder.label_mods:
+        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    z = lat[:, 0]
+    ids = torch.from_numpy(labels[:, 0])
+    drawn = vae.decode(z, ids)
+    assert not torch.allclose(drawn, vae.decode(z, torch.from_numpy(labels[:, 1])))  # follows the labels
+    # NO_LABEL is the all-zero one-hot, the same as giving no labels (the LiDAR view)
+    none = torch.full_like(ids, NO_LABEL)
+    assert torch.equal(vae.decode(z, none), vae.decode(z))
+    # the LiDAR view has no label map: its ranges do not depend on the cameras' labels
+    assert np.array_equal(vae.decode_frames(lat, labels=labels)[1], vae.decode_frames(lat, labels=labels * 0)[1])

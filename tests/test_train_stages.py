@@ -11,6 +11,8 @@ from safetensors.torch import load_file
 from tests.model_fixtures import kill_after_checkpoint, make_dataset
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
+from world_model.model.config import with_layout
+from world_model.model.vae import SensorVAE
 from world_model.train import (
     TrainConfig,
     Trainer,
@@ -21,6 +23,7 @@ from world_model.train import (
     train_stage,
 )
 from world_model.train.checkpoint import save_checkpoint
+from world_model.train.data import encoder_digest
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +59,44 @@ def test_vae_then_teacher_end_to_end_and_resume(dataset, tmp_path):
     _, arr = LatentWindows(clips, lat, model.cfg, make_text_encoder(model.cfg.text), None).window(0, 0, 2)
     out = sample_latents(model, Conditions.collate([arr]), torch.Generator().manual_seed(0))
     assert out.shape == (1, *model.cfg.latent_shape(2)) and torch.isfinite(out).all()
+
+
+def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_path):
+    cfg = with_layout(get_preset("tiny"), True)
+    data = make_dataset(tmp_path / "data", cfg, lengths=(3,))
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match="--layout"):
+        train_stage("decoder", data, run, preset="tiny", steps=2, progress=False)
+    train_stage("vae", data, run, preset="tiny", config=cfg, steps=3, progress=False)
+    out = train_stage("decoder", data, run, preset="tiny", config=cfg, steps=4, ckpt_every=2, progress=False)
+    assert out["step"] == 4 and {"camera_psnr_db", "lidar_range_mae_m"} <= set(out["metrics"])
+    plain = load_vae(run / "vae" / "model")
+    drawn = load_vae(run / "decoder" / "model")
+    assert not plain.draws_labels and drawn.draws_labels and drawn.cfg.layout.decoder
+    mine = drawn.state_dict()
+    for key, value in plain.state_dict().items():  # the DiTs' latents stay the encoder's
+        if not key.startswith("decoder."):
+            assert torch.equal(mine[key], value), key
+    assert any(mods.conv.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # it learned
+
+
+def test_latent_cache_key_is_the_encoder_not_the_decoder():
+    cfg = get_preset("tiny")
+    torch.manual_seed(0)
+    vae = SensorVAE(cfg)
+    key = encoder_digest(vae)
+    drawn = SensorVAE(with_layout(cfg, True))
+    drawn.load_state_dict(vae.state_dict(), strict=False)
+    with torch.no_grad():
+        drawn.decoder.conv_out.weight.add_(1.0)
+    assert encoder_digest(drawn) == key  # another decoder: the same latents
+    with torch.no_grad():
+        vae.latent_std.mul_(2.0)
+    assert encoder_digest(vae) != key  # another normalization: other latents
+    with torch.no_grad():
+        vae.latent_std.div_(2.0)
+        vae.encoder.conv_in.weight.add_(1e-3)
+    assert encoder_digest(vae) != key
 
 
 def test_resume_gives_the_same_state_as_uninterrupted(dataset, tmp_path):

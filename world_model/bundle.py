@@ -6,7 +6,7 @@ Layout::
       manifest.json            format, version, the student's model config, and per component: file,
                                sha256, bytes, stage, and ``model_config`` where the component's
                                differs (the reference model: wider input, teacher depth)
-      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``vae``)
+      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``decoder``, else ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       streaming.json           how the student streams at inference (denoising steps, context
@@ -41,7 +41,7 @@ BUNDLE_VERSION = 1
 DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
-    "vae": ("vae",),
+    "vae": ("decoder", "vae"),
     "student": ("long", "dmd", "ode"),
     "reference": ("reference",),
 }
@@ -100,6 +100,11 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
         )
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
+    # The decoder is the one component whose config may differ from the student's (the DiTs do
+    # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it.
+    draws_labels = found["vae"][0] == "decoder"
+    if draws_labels or config.get("layout", {}).get("decoder"):
+        config["layout"] = {**config.get("layout", {}), "decoder": draws_labels}
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)

@@ -18,7 +18,7 @@ from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.scene import SceneFrame
-from world_model.sim import ProceduralSimulator
+from world_model.sim import LabelRasterizer, ProceduralSimulator
 
 
 class ConditionBuilder:
@@ -27,6 +27,7 @@ class ConditionBuilder:
     def __init__(self, cfg: ModelConfig, text: TextEncoder, image: ImageDescriptionEncoder) -> None:
         self.cfg, self.text, self.image = cfg, text, image
         self._bev = ProceduralSimulator(bev=cfg.sensors.bev)  # the map condition is a BEV raster
+        self._labels = LabelRasterizer()  # the decoder's label maps (``layout.decoder``)
 
     @classmethod
     def from_vae_weights(cls, cfg: ModelConfig, vae_weights: Mapping[str, np.ndarray]) -> ConditionBuilder:
@@ -45,6 +46,14 @@ class ConditionBuilder:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
 
+    def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray | None:
+        """The frames' camera label maps (T, Vc, H, W) uint8 for a decoder that draws them
+        (``layout.decoder``), else None."""
+        if not self.cfg.layout.decoder:
+            return None
+        s = self.cfg.sensors
+        return np.stack([self._labels(f, f.rig, s.height, s.width) for f in frames])
+
     def arrays(
         self,
         frames: Sequence[SceneFrame],
@@ -56,7 +65,15 @@ class ConditionBuilder:
         ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame)."""
         bev = np.stack([self.bev(f) for f in frames])
         return build_condition_arrays(
-            frames, bev, self.cfg, self.text, self.image, dict(crops or {}), first.ego, crop_since=crop_since
+            frames,
+            bev,
+            self.cfg,
+            self.text,
+            self.image,
+            dict(crops or {}),
+            first.ego,
+            crop_since=crop_since,
+            label_rasterizer=self._labels,
         )
 
     def chunk_arrays(

@@ -155,7 +155,7 @@ class WorldModel:
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
-        return latents, self.decode(latents)[0][0]
+        return latents, self.decode(latents, cond.labels[:, :1])[0][0]
 
     @torch.no_grad()
     def batch_first_frames(
@@ -182,16 +182,17 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
-        return latents, [obs[0] for obs in self.decode(latents)]
+        return latents, [obs[0] for obs in self.decode(latents, cond.labels[:, :1])]
 
-    def decode(self, latents: torch.Tensor) -> list[list[Observation]]:
-        """(B, T, V, C, h, w) normalized latents → B lists of T observations.
+    def decode(self, latents: torch.Tensor, labels: torch.Tensor | np.ndarray | None = None) -> list[list[Observation]]:
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, H, W)
+        the frames' camera label maps, for a decoder that draws them (``ConditionArrays.labels``).
 
         Each frame is decoded alone: on CPU the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
         ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
         differ from the same rollout run alone. It costs ~10% of the decode at 64 frames."""
-        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1)
+        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1, labels=labels)
 
 
 def load_world_model(
@@ -446,7 +447,10 @@ class RolloutBatch:
         results: list[list[Observation] | None] = [None] * self.n
         if active:  # one decoder call for every active rollout's frames
             lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
-            for i, obs in zip(active, self.wm.decode(lat if self.every_frame else lat[:, -1:]), strict=True):
+            labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
+            if not self.every_frame:
+                lat, labels = lat[:, -1:], labels[:, -1:]
+            for i, obs in zip(active, self.wm.decode(lat, labels), strict=True):
                 results[i] = obs
         self.seconds["decode"] += time.perf_counter() - t0
         return results

@@ -23,6 +23,10 @@ view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR over
 layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent resolution
                                          (:mod:`world_model.model.layout`); Cl =
                                          ``layout.channels``, 0 when disabled
+labels             (T, Vc, H, W) uint8   each camera's label map at full resolution
+                                         (:data:`~world_model.sim.labels.LABEL_CLASSES` ids)
+                                         for the VAE decoder (``layout.decoder``); H = W = 0
+                                         without it. The DiTs do not read it.
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -45,6 +49,7 @@ from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject
 from world_model.sensors import CameraRig
+from world_model.sim.labels import LabelRasterizer
 
 
 def view_adjacency(rig: CameraRig) -> np.ndarray:
@@ -135,6 +140,7 @@ class ConditionArrays:
     text_mask: np.ndarray
     view_adjacency: np.ndarray
     layout: np.ndarray
+    labels: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -147,6 +153,7 @@ class ConditionArrays:
         "obj_has_text",
         "obj_has_image",
         "layout",
+        "labels",
     )
 
     @property
@@ -168,6 +175,7 @@ def build_condition_arrays(
     first_ego: EgoState | None = None,
     crop_since: Mapping[str, int] | None = None,
     layout: np.ndarray | None = None,
+    label_rasterizer: LabelRasterizer | None = None,
 ) -> ConditionArrays:
     """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
 
@@ -176,7 +184,9 @@ def build_condition_arrays(
     index from which each track's crop exists (:class:`world_model.sim.reference_crops.ReferenceCrops`);
     a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
     when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
-    data's cache), else it is computed here when the config enables it.
+    data's cache), else it is computed here when the config enables it. ``label_rasterizer``
+    renders the decoder's label maps (``layout.decoder``); one kept across calls reuses its ray
+    geometry and road texture (default: a new one).
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -236,6 +246,12 @@ def build_condition_arrays(
     else:
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
+    if cfg.layout.decoder:
+        raster = label_rasterizer or LabelRasterizer()
+        labels = np.stack([raster(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in frames])
+    else:
+        labels = np.zeros((t, cfg.sensors.num_cameras, 0, 0), np.uint8)
+
     tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
@@ -256,6 +272,7 @@ def build_condition_arrays(
         text_mask=text_mask,
         view_adjacency=adjacency,
         layout=layout,
+        labels=labels,
     )
 
 
@@ -275,6 +292,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     vc, v = cfg.sensors.num_cameras, cfg.sensors.num_views
     h, w = cfg.latent_hw
     layout_channels = cfg.layout.channels if cfg.layout.enabled else 0
+    label_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
     f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
     return {
         "camera": FieldSpec((vc, 7, 3), f32),
@@ -291,6 +309,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "text_mask": FieldSpec((cfg.text.max_tokens,), b),
         "view_adjacency": FieldSpec((v, v), b),
         "layout": FieldSpec((t, v, layout_channels, h, w), f32),
+        "labels": FieldSpec((t, vc, *label_hw), u8),
     }
 
 
@@ -314,6 +333,7 @@ class Conditions:
     text_mask: torch.Tensor
     view_adjacency: torch.Tensor
     layout: torch.Tensor
+    labels: torch.Tensor
     drop: torch.Tensor
 
     @property

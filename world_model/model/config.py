@@ -20,6 +20,7 @@ from typing import Any
 
 from world_model.model.layout import LAYOUT_CHANNELS
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
+from world_model.sim.labels import LABEL_CLASSES
 
 
 @dataclass(frozen=True)
@@ -104,14 +105,26 @@ class LayoutConfig:
     """Pixel-aligned layout conditioning (:mod:`world_model.model.layout`): per view, at the latent
     resolution, the road, lane lines, road edges, each object's projected box by category group
     and the nearness of the first hit, concatenated to the DiT's input channels beside the noisy
-    latent. The map and object tokens stay. Disabled: no extra channels (older checkpoints)."""
+    latent. The map and object tokens stay. Disabled: no extra channels (older checkpoints).
+
+    ``decoder``: the VAE decoder also sees the layout, at full resolution: each camera's label map
+    (sky, off-road, road, markings, objects by group) modulates its features at every level
+    (SPADE), so a lane line or a car lands on its pixels however coarse the latent grid is. The
+    latents stay the encoder's: the ``decoder`` stage fine-tunes the decoder alone, and the DiTs do
+    not depend on it."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
+    decoder: bool = False
 
     @property
     def channels(self) -> int:
         return len(LAYOUT_CHANNELS) if self.enabled else 0
+
+    @property
+    def label_channels(self) -> int:
+        """One-hot channels of the decoder's label maps (0 without ``decoder``)."""
+        return len(LABEL_CLASSES) if self.decoder else 0
 
 
 @dataclass(frozen=True)
@@ -229,12 +242,14 @@ class ModelConfig:
 
     def teacher_settings(self) -> ModelConfig:
         """What a bidirectional teacher's weights depend on: this config with the student-only
-        settings (``dit.student_depth``, ``clip.context_frames``) and the VAE's training-only loss
-        weight neutralized. A teacher trained before a student setting changed stays usable:
+        settings (``dit.student_depth``, ``clip.context_frames``), the VAE's training-only loss
+        weight and the decoder's label maps (the DiTs model the encoder's latents, whatever decodes
+        them) neutralized. A teacher trained before a student setting changed stays usable:
         compare teachers under this view."""
         return replace(
             self,
             vae=self.vae.model_settings(),
+            layout=replace(self.layout, decoder=False),
             dit=replace(self.dit, student_depth=None),
             clip=replace(self.clip, context_frames=0),
         )
@@ -373,11 +388,17 @@ def with_student_settings(
 
 def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     """``cfg`` with pixel-aligned layout conditioning switched on or off where given (None keeps
-    the preset's). It changes the DiT's input channels, so teacher, student and reference model
-    of one family must agree on it."""
+    the preset's): the DiT's layout channels and the decoder's label maps together. The channels
+    change the DiT's input, so teacher, student and reference model of one family must agree on it."""
     if enabled is None:
         return cfg
-    return replace(cfg, layout=replace(cfg.layout, enabled=bool(enabled)))
+    return replace(cfg, layout=replace(cfg.layout, enabled=bool(enabled), decoder=bool(enabled)))
+
+
+def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
+    """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
+    conditions the DiTs train on (they never read the label maps)."""
+    return replace(cfg, layout=replace(cfg.layout, decoder=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

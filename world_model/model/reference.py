@@ -392,7 +392,8 @@ class ReferenceGenerator:
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
         lat = self.sample(cond, extra, steps, seed)
-        return lat, [obs[0] for obs in latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar)]
+        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels)
+        return lat, [o[0] for o in obs]
 
     def from_first_frame(
         self, cond: Conditions, reference: Mapping[str, np.ndarray], steps: int | None = None, seed: int = 0
@@ -402,7 +403,7 @@ class ReferenceGenerator:
         extra = first.new_zeros(first.shape[0], cond.num_frames, *first.shape[2:])
         extra[:, :1] = first
         lat = self.sample(cond, extra, steps, seed)
-        return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar)
+        return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels)
 
     def complete_category(
         self,
@@ -455,4 +456,4 @@ class ReferenceGenerator:
         lat = self.vae.encode_frames(np.asarray(cameras), np.asarray(lidar, dtype=np.float32))
         extra = reference_input(lat[None], torch.as_tensor(mask, device=lat.device)[None])
         out = self.sample(cond, extra, steps, seed)
-        return out, latents_to_observations(self.vae, out, self.mcfg.sensors.lidar), mask
+        return out, latents_to_observations(self.vae, out, self.mcfg.sensors.lidar, labels=cond.labels), mask

@@ -97,18 +97,28 @@ def latents_to_observations(
     lidar_spec: LidarSpec | None = None,
     bev: np.ndarray | None = None,
     frames_per_call: int = DECODE_FRAMES_PER_CALL,
+    labels: torch.Tensor | np.ndarray | None = None,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres).
 
     Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
-    attached to the observations unchanged.
+    attached to the observations unchanged. ``labels`` (B, T, Vc, H, W): the frames' camera label
+    maps, for a decoder that draws them (``Conditions.labels``).
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
     if b * t == 0:
         return [[] for _ in range(b)]
-    parts = [vae.decode_frames(flat[i : i + frames_per_call], lidar_spec) for i in range(0, b * t, frames_per_call)]
+    flat_labels = None if labels is None or not vae.draws_labels else torch.as_tensor(labels).flatten(0, 1)
+    parts = [
+        vae.decode_frames(
+            flat[i : i + frames_per_call],
+            lidar_spec,
+            None if flat_labels is None else flat_labels[i : i + frames_per_call],
+        )
+        for i in range(0, b * t, frames_per_call)
+    ]
     cams, lidar = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
     return [
         [
@@ -128,4 +138,5 @@ def generate(
     lidar_spec: LidarSpec | None = None,
 ) -> list[list[Observation]]:
     """Sample and decode: B lists of T :class:`~world_model.Observation`."""
-    return latents_to_observations(vae, sample_latents(model, cond, generator, sampler), lidar_spec)
+    latents = sample_latents(model, cond, generator, sampler)
+    return latents_to_observations(vae, latents, lidar_spec, labels=cond.labels)

@@ -30,6 +30,9 @@ from world_model.model.config import ModelConfig, VaeConfig
 from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
 
+# A label-map id that draws nothing (all-zero one-hot): the LiDAR view, which has no label map.
+NO_LABEL = 255
+
 
 def _groups(channels: int) -> int:
     for g in (8, 4, 2, 1):
@@ -74,10 +77,32 @@ class Encoder(nn.Module):
         return mean, logvar.clamp(-30.0, 20.0)
 
 
-class Decoder(nn.Module):
-    """(N, C, h, w) -> (N, 3, h*d, w*d). Channels shrink as resolution grows to keep decoding cheap."""
+class LabelModulation(nn.Module):
+    """SPADE (Park et al. 2019) without its hidden layer: features ``x * (1 + gamma) + beta``, with
+    gamma and beta a 3x3 convolution of the one-hot label map area-pooled to the features' grid.
+    Zero-initialized, so a decoder fine-tuned with it starts as the plain one."""
 
-    def __init__(self, cfg: VaeConfig) -> None:
+    def __init__(self, label_channels: int, channels: int) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(label_channels, 2 * channels, 3, padding=1)
+        nn.init.zeros_(self.conv.weight)
+        nn.init.zeros_(self.conv.bias)
+
+    def forward(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """x (N, c, h, w), labels (N, K, H, W) one-hot (H, W multiples of h, w) -> (N, c, h, w)."""
+        if labels.shape[-2:] != x.shape[-2:]:
+            labels = F.adaptive_avg_pool2d(labels, x.shape[-2:])
+        gamma, beta = self.conv(labels.to(x.dtype)).chunk(2, dim=1)
+        return x * (1.0 + gamma) + beta
+
+
+class Decoder(nn.Module):
+    """(N, C, h, w) -> (N, 3, h*d, w*d). Channels shrink as resolution grows to keep decoding cheap.
+
+    With ``label_channels``, a :class:`LabelModulation` after the input convolution and after each
+    level's normalization draws the view's label map (N, K, H, W) into the features."""
+
+    def __init__(self, cfg: VaeConfig, label_channels: int = 0) -> None:
         super().__init__()
         chans = [cfg.decoder_base_channels * m for m in reversed(cfg.channel_mults)]
         self.conv_in = nn.Conv2d(cfg.latent_channels, chans[0], 3, padding=1)
@@ -95,9 +120,24 @@ class Decoder(nn.Module):
             cin = c
         self.up = nn.Sequential(*ups)
         self.conv_out = nn.Conv2d(cin, cfg.image_channels, 3, padding=1)
+        self.label_mods = (
+            nn.ModuleList(LabelModulation(label_channels, c) for c in (chans[0], *chans)) if label_channels else None
+        )
 
-    def forward(self, z: torch.Tensor) -> torch.Tensor:
-        return self.conv_out(self.up(self.mid(self.conv_in(z))))
+    def forward(self, z: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+        """z (N, C, h, w); ``labels`` (N, K, H, W) one-hot, required with label modulation (all
+        zeros: no layout, e.g. the LiDAR view)."""
+        if self.label_mods is None:
+            return self.conv_out(self.up(self.mid(self.conv_in(z))))
+        if labels is None:
+            raise ValueError("this decoder draws each view's label map: pass labels")
+        mods = iter(self.label_mods)
+        h = self.mid(next(mods)(self.conv_in(z), labels))
+        layers = list(self.up)
+        for i in range(0, len(layers), 4):  # upsample, conv, norm | modulation | activation
+            upsample, conv, norm, act = layers[i : i + 4]
+            h = act(next(mods)(norm(conv(upsample(h))), labels))
+        return self.conv_out(h)
 
 
 class SensorVAE(nn.Module):
@@ -107,7 +147,7 @@ class SensorVAE(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg.vae)
-        self.decoder = Decoder(cfg.vae)
+        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels)
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
         self.register_buffer("latent_std", torch.ones(c))
@@ -117,8 +157,28 @@ class SensorVAE(nn.Module):
         """Unnormalized posterior mean/logvar of (N, 3, H, W) images."""
         return self.encoder(images)
 
-    def decode_raw(self, z: torch.Tensor) -> torch.Tensor:
-        return self.decoder(z)
+    def decode_raw(self, z: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+        """Unnormalized latents (N, C, h, w) -> images; ``labels`` as :meth:`decode`."""
+        return self.decoder(z, self._one_hot(labels, z))
+
+    @property
+    def draws_labels(self) -> bool:
+        """Whether the decoder needs each camera's label map (``layout.decoder``)."""
+        return self.decoder.label_mods is not None
+
+    def _one_hot(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
+        """(N, H, W) uint8 :data:`~world_model.sim.labels.LABEL_CLASSES` ids -> (N, K, H, W) one-hot,
+        :data:`NO_LABEL` and None -> all zeros (no layout). None for a decoder without label modulation."""
+        if not self.draws_labels:
+            return None
+        k = self.cfg.layout.label_channels
+        h, w = self.cfg_hw
+        if labels is None:
+            return like.new_zeros(like.shape[0], k, h, w)
+        if labels.shape != (like.shape[0], h, w):
+            raise ValueError(f"labels must be ({like.shape[0]}, {h}, {w}) class ids, got {tuple(labels.shape)}")
+        ids = labels.to(like.device).long().clamp(max=k)  # NO_LABEL -> the dropped extra class
+        return F.one_hot(ids, k + 1)[..., :k].movedim(-1, 1).to(like.dtype)
 
     # -- normalized latents (what the DiT sees) --
     def _norm(self, z: torch.Tensor) -> torch.Tensor:
@@ -128,12 +188,16 @@ class SensorVAE(nn.Module):
         """(N, 3, H, W) in [-1, 1] -> normalized latent means (N, C, h, w)."""
         return self._norm(self.encoder(images)[0])
 
-    def decode(self, latents: torch.Tensor) -> torch.Tensor:
-        """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1]."""
+    def decode(self, latents: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+        """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
+
+        ``labels``: (N, H, W) uint8 label-map class ids, read when the decoder draws them
+        (:attr:`draws_labels`); None there means no layout (the LiDAR view)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
-        return self.decoder(z.contiguous(memory_format=torch.channels_last))
+        z = z.contiguous(memory_format=torch.channels_last)
+        return self.decoder(z, self._one_hot(labels, z))
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
@@ -163,25 +227,43 @@ class SensorVAE(nn.Module):
 
     @torch.no_grad()
     def decode_frames(
-        self, latents: torch.Tensor, lidar_spec: LidarSpec | None = None
+        self,
+        latents: torch.Tensor,
+        lidar_spec: LidarSpec | None = None,
+        labels: np.ndarray | torch.Tensor | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth)."""
+        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
+
+        ``labels``: the frames' camera label maps (T, V, H, W) uint8, required when the decoder
+        draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
+        cam_labels = None
+        if self.draws_labels:
+            if labels is None or tuple(labels.shape[:2]) != (t, v1 - 1):
+                got = None if labels is None else tuple(labels.shape)
+                raise ValueError(
+                    f"this VAE's decoder draws each camera's label map: need labels ({t}, {v1 - 1}, H, W), got {got}"
+                )
+            cam_labels = torch.as_tensor(labels).flatten(0, 1)
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
-            images = self.decode(latents[:, :-1].flatten(0, 1))
+            images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels)
         cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         lid = images_to_lidar(
             self.decode(latents[:, -1]), lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
         )
         return cams, lid
 
-    def reconstruct_frames(self, cameras: np.ndarray, lidar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def reconstruct_frames(
+        self, cameras: np.ndarray, lidar: np.ndarray, labels: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) through the autoencoder
-        and back, same layouts: the best any model generating through this VAE can render."""
-        return self.decode_frames(self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32)))
+        and back, same layouts: the best any model generating through this VAE can render.
+        ``labels`` as :meth:`decode_frames`."""
+        latents = self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32))
+        return self.decode_frames(latents, labels=labels)
 
     @property
     def cfg_hw(self) -> tuple[int, int]:

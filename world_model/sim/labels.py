@@ -72,32 +72,37 @@ def texture_classes(levels: int) -> np.ndarray:
 
 
 class LabelRasterizer:
-    """Renders label maps of frames; keeps the per-rig ray geometry and per-map texture of the last
-    rig and map it saw (a rollout shares them across its frames)."""
+    """Renders label maps of frames; keeps the ray geometry and road texture of the last
+    ``keep`` rigs and maps it saw (a rollout shares them across its frames, and one rasterizer may
+    serve every rollout of a vector env)."""
 
-    def __init__(self, config: SimConfig | None = None) -> None:
+    def __init__(self, config: SimConfig | None = None, keep: int = 64) -> None:
         self.config = config or SimConfig()
+        self.keep = keep
         self._classes = texture_classes(self.config.texture_noise_levels)
-        self._rig_key: tuple | None = None
-        self._rays: ground.GroundRays | None = None
-        self._rig: CameraRig | None = None
-        self._rig_anchor: CameraRig | None = None  # keeps id(rig) in the key unique
-        self._map_key: object | None = None
-        self._texture: MapTexture | None = None
+        # id-keyed caches hold their key object too, so an id stays unique while it is cached
+        self._rigs: dict[tuple, tuple[CameraRig, CameraRig, ground.GroundRays]] = {}
+        self._textures: dict[int, tuple[object, MapTexture]] = {}
+
+    def _remember(self, cache: dict, key: object, value: object) -> None:
+        if len(cache) >= self.keep:
+            cache.pop(next(iter(cache)))
+        cache[key] = value
 
     def __call__(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
         """(V, H, W) uint8 class ids (:data:`LABEL_CLASSES`) of ``frame`` seen by ``rig`` at H x W."""
         cfg = self.config
         key = (id(rig), height, width, frame.lidar.mount_height)
-        if key != self._rig_key:
-            self._rig = scaled_rig(rig, height, width)
-            self._rays = ground.ground_rays(self._rig, frame.lidar.mount_height, cfg.max_ground_distance_m)
-            self._rig_key, self._rig_anchor = key, rig
-        if frame.map is not self._map_key:
-            self._texture, self._map_key = MapTexture(frame.map, cfg), frame.map
-        rays, small = self._rays, self._rig
+        if key not in self._rigs:
+            scaled = scaled_rig(rig, height, width)
+            rays = ground.ground_rays(scaled, frame.lidar.mount_height, cfg.max_ground_distance_m)
+            self._remember(self._rigs, key, (rig, scaled, rays))
+        _, small, rays = self._rigs[key]
+        if id(frame.map) not in self._textures:
+            self._remember(self._textures, id(frame.map), (frame.map, MapTexture(frame.map, cfg)))
+        texture = self._textures[id(frame.map)][1]
         flat = np.full(rays.distance.size, SKY, dtype=np.uint8)
-        texels = self._texture.lookup_ego(rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
+        texels = texture.lookup_ego(rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
         flat[rays.ground_index] = self._classes[texels]
         out = flat.reshape(small.num_views, height, width)
         if frame.objects:

@@ -6,6 +6,7 @@ import hashlib
 import json
 import multiprocessing
 import os
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, fields, replace
 from pathlib import Path
@@ -19,7 +20,7 @@ from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
 from world_model.geometry import wrap_angle
 from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
-from world_model.model.config import ModelConfig
+from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.imagedesc import ImageDescriptionEncoder
 from world_model.model.layout import layout_sequence
 from world_model.model.reference import ReferenceConfig
@@ -113,17 +114,24 @@ class FrameSampler:
             self._boxes[key] = object_boxes(fr, view)
         return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra, self._boxes.get(key)))[None]
 
-    def sample(self, rng: np.random.Generator, batch: int) -> FrameBatch:
-        """``batch`` random images of random clips, frames and views (cameras or the LiDAR map)."""
+    def pick(self, rng: np.random.Generator, batch: int) -> list[tuple[int, int, int]]:
+        """``batch`` random (clip, frame, view) triples (the view may be the LiDAR map)."""
         ci = rng.integers(len(self.clips), size=batch)
         fi = [int(rng.integers(self.clips[c].num_frames)) for c in ci]
         vi = rng.integers(self.cfg.sensors.num_views, size=batch)
-        picks = list(zip(ci.tolist(), fi, vi.tolist(), strict=True))
+        return list(zip(ci.tolist(), fi, vi.tolist(), strict=True))
+
+    def batch(self, picks: Sequence[tuple[int, int, int]]) -> FrameBatch:
+        """The images, LiDAR flags and loss weights of (clip, frame, view) triples."""
         return FrameBatch(
             torch.stack([self.image(*p) for p in picks]),
-            torch.as_tensor(vi == self.cfg.sensors.lidar_view),
+            torch.as_tensor([v == self.cfg.sensors.lidar_view for _, _, v in picks]),
             torch.stack([self.weights(*p) for p in picks]),
         )
+
+    def sample(self, rng: np.random.Generator, batch: int) -> FrameBatch:
+        """``batch`` random images of random clips, frames and views (cameras or the LiDAR map)."""
+        return self.batch(self.pick(rng, batch))
 
     def eval_frames(self, count: int) -> list[tuple[int, int]]:
         """Up to ``count`` (clip, frame) pairs spread over the dataset (deterministic)."""
@@ -136,9 +144,22 @@ def file_digest(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
+def encoder_digest(vae: SensorVAE) -> str:
+    """What a clip's latents depend on: the encoder's weights and the latent normalization, not
+    the decoder (the ``decoder`` stage changes it alone) nor the file they were stored in (a
+    bundle keeps the run's VAE)."""
+    h = hashlib.sha256()
+    state = vae.state_dict()
+    for key in sorted(k for k in state if not k.startswith("decoder.")):
+        h.update(key.encode())
+        h.update(state[key].detach().cpu().float().contiguous().numpy().tobytes())
+    return "encoder-" + h.hexdigest()[:16]
+
+
 def latent_cache_dir(run_dir: str | Path) -> Path:
     """The run's one latent cache, shared by every stage that encodes clips (teacher, student
-    stages, reference, LoRA): entries are keyed by clip name, clip fingerprint and VAE digest."""
+    stages, reference, LoRA): entries are keyed by clip name, clip fingerprint and
+    :func:`encoder_digest`."""
     return Path(run_dir) / "teacher" / "latents"
 
 
@@ -175,7 +196,8 @@ def layout_cache_dir(run_dir: str | Path) -> Path:
 def layout_key(cfg: ModelConfig) -> str:
     """What decides a clip's layout raster besides the clip: the layout settings, the LiDAR and the
     latent resolution."""
-    blob = json.dumps([asdict(cfg.layout), asdict(cfg.sensors.lidar), list(cfg.latent_hw)], sort_keys=True)
+    dit_layout = {k: v for k, v in asdict(cfg.layout).items() if k != "decoder"}  # the raster is the DiT's
+    blob = json.dumps([dit_layout, asdict(cfg.sensors.lidar), list(cfg.latent_hw)], sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -268,11 +290,12 @@ class LatentWindows:
         self.flat_latents = torch.cat([lat.float() for lat in latents])  # (sum T, V, C, h, w)
         self.flat_time: dict[str, np.ndarray] = {}
         static: dict[str, list[np.ndarray]] = {}
+        dit_cfg = without_label_decoder(cfg)  # the DiTs never read the decoder's label maps
         for i, (c, lay) in enumerate(zip(clips, layouts, strict=True)):
             arrays = build_condition_arrays(
                 c.frames,
                 np.asarray(c.bev),
-                cfg,
+                dit_cfg,
                 text_encoder,
                 image_encoder,
                 c.crops,

@@ -24,7 +24,7 @@ from world_model.train.data import (
     LatentWindows,
     cached_latents,
     cached_layouts,
-    file_digest,
+    encoder_digest,
     latent_cache_dir,
     layout_cache_dir,
     load_clips,
@@ -79,7 +79,8 @@ def require_export(path: Path, stage: str) -> Path:
 
 
 def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str]:
-    """The run's VAE export, checked against ``cfg``, and its file digest (the latent cache's key)."""
+    """The run's VAE export, checked against ``cfg``, and its :func:`encoder_digest` (the latent
+    cache's key)."""
     path = run_dir / "vae" / EXPORT
     if not path.with_suffix(".safetensors").exists():
         raise FileNotFoundError(
@@ -88,7 +89,7 @@ def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str
     vae = load_vae(path)
     if vae.cfg.vae.model_settings() != cfg.vae.model_settings() or vae.cfg.sensors != cfg.sensors:
         raise ValueError(f"the VAE in {path.parent} was trained for preset {vae.cfg.name!r}, not {cfg.name!r}")
-    return vae, file_digest(path.with_suffix(".safetensors"))
+    return vae, encoder_digest(vae)
 
 
 def latent_windows(

@@ -54,7 +54,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import flow_matching_loss, sample_timesteps
 from world_model.model.reference import TASKS, ReferenceConfig, category_region, reference_input, task_mask
 from world_model.model.vae import SensorVAE
-from world_model.train.data import LatentWindows, load_clips
+from world_model.train.data import LatentWindows, encoder_digest, load_clips
 from world_model.train.exports import EXPORT, latent_windows, load_teacher, run_vae
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
@@ -120,7 +120,7 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
         if model is None:
             raise FileNotFoundError(f"the bundle {bundle} has no {component} model")
         components = json.loads((bundle / "manifest.json").read_text())["components"]  # verified by the load
-        digest = "bundle-" + components["vae"]["sha256"][:16]
+        digest = encoder_digest(vae)
         file, file_sha256 = bundle / components[component]["file"], components[component]["sha256"]
     else:
         base_path = Path(base).with_suffix("") if base else run_dir / "teacher" / EXPORT

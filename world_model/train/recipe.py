@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-CHAIN = ("vae", "teacher", "tf", "ode", "dmd", "long", "reference")
+CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). A student adapter
 # for the same object did not help (docs/experiments.md) and is not trained.
@@ -82,6 +82,7 @@ SCALES = {
         rare_episodes=5,
         stages={
             "vae": (4000, 64),
+            "decoder": (2000, 64),
             "teacher": (5000, 64),
             "tf": (2000, 32),
             "ode": (400, 16),
@@ -104,6 +105,7 @@ SCALES = {
         rare_episodes=5,
         stages={
             "vae": (3000, 16),
+            "decoder": (1500, 16),
             "teacher": (3000, 4),
             "tf": (500, 4),
             "ode": (80, 4),
@@ -139,8 +141,9 @@ EXCLUDED_CATEGORIES = ("tree_truck",)
 # Each stage's share of the training time under a time limit: about the split of the shipped
 # checkpoint's CPU training (docs/MODEL_CARD.md), the teacher the largest.
 TIME_SHARES = {
-    "vae": 0.14,
-    "teacher": 0.36,
+    "vae": 0.12,
+    "decoder": 0.05,
+    "teacher": 0.33,
     "tf": 0.14,
     "ode": 0.08,
     "dmd": 0.1,
@@ -155,12 +158,12 @@ BUNDLE_RESERVE_S = 15.0
 
 
 def recipe_config(spec: RecipeScale):  # noqa: ANN201 - a ModelConfig
-    """The scale's preset with layout conditioning on and the scale's text encoder (the hash encoder
-    needs no download) at the preset's text width."""
+    """The scale's preset with layout conditioning on (the DiT's channels and the decoder's label
+    maps) and the scale's text encoder (the hash encoder needs no download) at the preset's text width."""
     from world_model.model.config import get_preset
 
     cfg = get_preset(spec.preset)
-    layout = replace(cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE)
+    layout = replace(cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE, decoder=True)
     text = cfg.text if spec.text_encoder is None else replace(cfg.text, encoder=spec.text_encoder)
     return replace(cfg, text=text, layout=layout)
 

@@ -21,7 +21,7 @@ from functools import partial
 from pathlib import Path
 
 from world_model.data.clips import write_json_atomic
-from world_model.model.config import ModelConfig, get_preset
+from world_model.model.config import ModelConfig, get_preset, without_label_decoder
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.student.config import StudentConfig
 from world_model.train.device import TrainPlace, resolve_device
@@ -31,7 +31,7 @@ from world_model.train.run import StageRun
 from world_model.train.student_stages import student_stage
 from world_model.train.teacher_stage import teacher_stage
 from world_model.train.trainer import TrainConfig
-from world_model.train.vae_stage import vae_stage
+from world_model.train.vae_stage import check_decoder_config, decoder_stage, vae_stage
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,7 @@ class Stage:
     config_sections: tuple[str, ...] | str | None = None
     # Default steps where a step costs far more than a teacher's: per preset, or one count for all.
     steps: dict[str, int] | int | None = None
+    check: Callable[[ModelConfig], None] | None = None  # refuses a config before anything is written
 
 
 # Sized for the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step
@@ -64,6 +65,17 @@ REGISTRY: dict[str, Stage] = {
     s.name: s
     for s in (
         Stage("vae", vae_stage, 16, 2e-3, 100, config_sections=("sensors", "vae")),
+        # the decoder again, drawing the layout's label maps, on the frozen encoder's latents
+        Stage(
+            "decoder",
+            decoder_stage,
+            16,
+            5e-4,
+            100,
+            config_sections=("sensors", "vae", "layout"),
+            steps={"default": 1500},
+            check=check_decoder_config,
+        ),
         Stage("teacher", teacher_stage, 4, 1e-3, 100, config_sections="teacher"),
         Stage("tf", partial(student_stage, "tf"), 4, 5e-4, 100, steps={"default": 500}),
         # an ode step runs a 20-step guided ODE: checkpoint often
@@ -105,8 +117,8 @@ def _stage_config(stage_dir: Path, stage: Stage, preset: str, config: ModelConfi
     def relevant(c: ModelConfig) -> object:
         if stage.config_sections == "teacher":  # full-depth bidirectional: student settings do not touch it
             return c.teacher_settings()
-        if stage.config_sections is None:
-            return c
+        if stage.config_sections is None:  # the DiT stages: whatever decodes their latents
+            return without_label_decoder(c)
         return tuple(getattr(c, name) for name in stage.config_sections)
 
     if saved.exists():
@@ -214,6 +226,8 @@ def train_stage(
     kwargs = spec.setup(**options) if spec.setup else {}
     run_root = Path(run_dir)
     stage_dir = spec.directory(run_root, options) if spec.directory else run_root / stage
+    if spec.check:
+        spec.check(config or get_preset(preset))
     if place.is_main:  # writes the stage's config; the other ranks then check theirs against it
         _stage_config(stage_dir, spec, preset, config)
     place.barrier()

@@ -1,31 +1,46 @@
-"""``--stage vae``: the camera/LiDAR autoencoder, trained on random sensor frames.
+"""``--stage vae``: the camera/LiDAR autoencoder, trained on random sensor frames; and
+``--stage decoder``: its decoder again, drawing each camera's label map (``layout.decoder``).
 
-Layout: ``RUN/vae/`` holds checkpoints/, model.safetensors + model.json (EMA weights, latent
-statistics, reconstruction metrics) and metrics.json.
+The decoder stage keeps the ``vae`` stage's encoder and latent statistics frozen, so the latents
+every DiT is trained on stay what they were and the stage may run at any point after ``vae``. The
+decoder starts as the plain one (its label modulations zero-initialized) and learns, on the run's
+cached latents, to draw the road, the markings and the objects where the label maps put them.
+The latents it decodes are jittered with Gaussian noise: the student's are not the encoder's.
+
+Layout: ``RUN/vae/`` and ``RUN/decoder/`` each hold checkpoints/, model.safetensors + model.json
+(EMA weights, latent statistics, reconstruction metrics) and metrics.json.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 
 import numpy as np
 import torch
 
 from world_model.data.clips import write_json_atomic
-from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
+from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.vae import NO_LABEL, SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
+from world_model.scene import SceneFrame
+from world_model.sim.labels import LabelRasterizer
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import FrameSampler, load_clips
-from world_model.train.exports import EXPORT
+from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
+from world_model.train.exports import EXPORT, run_vae
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 
 EVAL_FRAMES = 32  # frames used for the VAE's reconstruction metrics
 STATS_FRAMES = 64  # frames used to fit the latent normalization
+# Largest standard deviation of the noise added to a decoder-stage latent (normalized units, drawn
+# uniformly per sample from [0, this]): the student's latents are near the encoder's, not on them.
+DECODER_LATENT_NOISE = 0.3
 
 
 @torch.no_grad()
-def vae_metrics(vae: SensorVAE, sampler: FrameSampler) -> dict[str, float]:
-    """Camera PSNR (dB, uint8 images) and LiDAR range MAE (m, on true returns) + no-return accuracy."""
+def vae_metrics(vae: SensorVAE, sampler: FrameSampler, labels: LabelRasterizer | None = None) -> dict[str, float]:
+    """Camera PSNR (dB, uint8 images) and LiDAR range MAE (m, on true returns) + no-return accuracy.
+    ``labels`` renders the label maps of a decoder that draws them."""
     cfg = vae.cfg
     spec = cfg.sensors.lidar
     device = next(vae.parameters()).device
@@ -34,7 +49,8 @@ def vae_metrics(vae: SensorVAE, sampler: FrameSampler) -> dict[str, float]:
         clip = sampler.clips[ci]
         cams = np.asarray(clip.cameras[f])
         x = torch.stack([sampler.image(ci, f, v) for v in range(cfg.sensors.num_views)]).to(device)
-        rec = vae.decode(vae.encode(x)).float().cpu()
+        ids = view_labels(labels, clip.frames[f], cfg, range(cfg.sensors.num_views)) if labels else None
+        rec = vae.decode(vae.encode(x), ids).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
         truth = np.asarray(clip.lidar[f], dtype=np.float32)
@@ -52,9 +68,17 @@ def vae_metrics(vae: SensorVAE, sampler: FrameSampler) -> dict[str, float]:
     }
 
 
+def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
+    """(N, H, W) uint8 label-map class ids of ``views`` of ``frame``; the LiDAR view gets
+    :data:`~world_model.model.vae.NO_LABEL` (no layout), as it does when decoding frames."""
+    s = cfg.sensors
+    maps = torch.from_numpy(raster(frame, frame.rig, s.height, s.width))
+    return torch.stack([maps[v] if v < s.num_cameras else torch.full_like(maps[0], NO_LABEL) for v in views])
+
+
 def vae_stage(run: StageRun) -> dict:
     """Train (or resume) ``RUN/vae`` (module docstring)."""
-    cfg, tcfg = run.cfg, run.tcfg
+    cfg, tcfg = without_label_decoder(run.cfg), run.tcfg
     sampler = FrameSampler(load_clips(run.data_dir, cfg), cfg)
     torch.manual_seed(tcfg.seed)
     vae = SensorVAE(cfg)
@@ -78,11 +102,58 @@ def vae_stage(run: StageRun) -> dict:
     stats_rng = np.random.default_rng(tcfg.seed)
     final.set_latent_stats(sampler.sample(stats_rng, STATS_FRAMES).images)
     final.eval()
-    metrics = vae_metrics(final, sampler)
-    export_weights(
-        run.stage_dir / EXPORT,
-        final.state_dict(),
-        {"stage": "vae", "step": trainer.step, "model_config": cfg.to_dict(), "metrics": metrics},
-    )
-    write_json_atomic(run.stage_dir / "metrics.json", {"step": trainer.step, **metrics})
-    return {**summary, "metrics": metrics}
+    return {**summary, "metrics": export_vae(run, "vae", final, trainer.step, vae_metrics(final, sampler))}
+
+
+def check_decoder_config(cfg: ModelConfig) -> None:
+    """The decoder stage trains only a decoder that draws label maps (``layout.decoder``)."""
+    if not cfg.layout.decoder:
+        raise ValueError("--stage decoder trains the decoder that draws the layout's label maps: train with --layout")
+
+
+def decoder_stage(run: StageRun) -> dict:
+    """Train (or resume) ``RUN/decoder``: the ``vae`` stage's autoencoder with a decoder that draws
+    each camera's label map (module docstring)."""
+    cfg, tcfg = run.cfg, run.tcfg
+    check_decoder_config(cfg)
+    plain, digest = run_vae(run.run_dir, without_label_decoder(cfg), "decoder")
+    clips = load_clips(run.data_dir, cfg)
+    sampler = FrameSampler(clips, cfg)
+    latents = [cached_latents(c, plain, latent_cache_dir(run.run_dir), digest) for c in clips]
+    torch.manual_seed(tcfg.seed)
+    vae = SensorVAE(cfg)
+    missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
+    if unexpected or any(not k.startswith("decoder.label_mods.") for k in missing):
+        raise ValueError(f"the VAE in {run.run_dir / 'vae'} does not fit this config: {missing + unexpected}")
+    vae.encoder.requires_grad_(False)
+    trainer = run.trainer(vae, "decoder")
+    raster = LabelRasterizer()
+
+    def step(tr: Trainer) -> tuple[torch.Tensor, int]:
+        picks = sampler.pick(tr.rng, tcfg.batch_size)
+        batch = sampler.batch(picks)
+        images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
+        z = torch.stack([latents[c][f, v] for c, f, v in picks]).float()
+        sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
+        z = tr.shard(z + sigma * tr.randn(*z.shape))
+        ids = tr.shard(torch.cat([view_labels(raster, clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
+        err = weighted_l1(vae.decode(z, ids), images, weights)
+        return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+
+    summary = trainer.run(step, "decoder")
+    if not run.place.is_main:
+        return summary
+    final = SensorVAE(cfg)
+    final.load_state_dict(trainer.ema.model_state(vae))
+    final.encoder.load_state_dict(plain.encoder.state_dict())  # bit for bit (the EMA rounds a frozen weight)
+    final.eval()
+    metrics = vae_metrics(final, sampler, raster)
+    return {**summary, "metrics": export_vae(run, "decoder", final, trainer.step, metrics)}
+
+
+def export_vae(run: StageRun, stage: str, vae: SensorVAE, step: int, metrics: dict[str, float]) -> dict[str, float]:
+    """Write ``RUN/<stage>/model`` (weights, config, metrics) and its metrics.json; the metrics."""
+    meta = {"stage": stage, "step": step, "model_config": vae.cfg.to_dict(), "metrics": metrics}
+    export_weights(run.stage_dir / EXPORT, vae.state_dict(), meta)
+    write_json_atomic(run.stage_dir / "metrics.json", {"step": step, **metrics})
+    return metrics
