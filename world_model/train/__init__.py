@@ -1,4 +1,4 @@
-"""Training of the world model: the stages (vae, teacher, tf, ode, dmd, long, reference, lora),
+"""Training of the world model: the stages (vae, decoder, teacher, tf, ode, dmd, long, reference, lora),
 their checkpoints, exports and EMA. The command line: ``python -m world_model.train`` (= ``m4world train``).
 
 The names below load on first use, so that the command line's parser

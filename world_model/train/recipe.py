@@ -3,7 +3,7 @@
 ``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|cpu|dry]``
 
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
-2. trains vae -> teacher -> tf -> ode -> dmd -> long -> reference into ``OUT/run`` through
+2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference into ``OUT/run`` through
    :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
    scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
    bundle's own weights, from the rare object's clips (``OUT/data_rare``);
