@@ -48,13 +48,12 @@ import numpy as np
 
 from world_model.data import Clip, iter_clips
 from world_model.lora import apply_adapters, remove_adapters
-from world_model.model.conditions import Conditions, build_condition_arrays
+from world_model.model.conditions import Conditions, build_condition_arrays, camera_labels
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
-from world_model.sim.labels import label_maps
 from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
@@ -270,8 +269,7 @@ def evaluate(
 def autoencode(vae: SensorVAE, clip: Clip, frame: int) -> np.ndarray:
     """Frame ``frame`` of ``clip`` through the VAE and back: cameras (V, H, W, 3), the best any
     model generating through this VAE could render (the figure's ceiling row)."""
-    fr, s = clip.frames[frame], vae.cfg.sensors
-    labels = label_maps(fr, fr.rig, s.height, s.width)[None] if vae.draws_labels else None
+    labels = camera_labels(clip.frames[frame : frame + 1], vae.cfg)
     cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels)
     return cams[0]
 

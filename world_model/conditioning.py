@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from world_model.model.conditions import ConditionArrays, build_condition_arrays
+from world_model.model.conditions import ConditionArrays, build_condition_arrays, camera_labels
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
 from world_model.model.text import TextEncoder, make_text_encoder
@@ -46,13 +46,9 @@ class ConditionBuilder:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
 
-    def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray | None:
-        """The frames' camera label maps (T, Vc, H, W) uint8 for a decoder that draws them
-        (``layout.decoder``), else None."""
-        if not self.cfg.layout.decoder:
-            return None
-        s = self.cfg.sensors
-        return np.stack([self._labels(f, f.rig, s.height, s.width) for f in frames])
+    def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray:
+        """The frames' camera label maps for the decoder (:func:`camera_labels`)."""
+        return camera_labels(frames, self.cfg, self._labels)
 
     def arrays(
         self,

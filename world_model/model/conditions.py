@@ -185,8 +185,7 @@ def build_condition_arrays(
     a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
     when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
     data's cache), else it is computed here when the config enables it. ``label_rasterizer``
-    renders the decoder's label maps (``layout.decoder``); one kept across calls reuses its ray
-    geometry and road texture (default: a new one).
+    renders the decoder's label maps (:func:`camera_labels`).
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -246,12 +245,7 @@ def build_condition_arrays(
     else:
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
-    if cfg.layout.decoder:
-        raster = label_rasterizer or LabelRasterizer()
-        labels = np.stack([raster(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in frames])
-    else:
-        labels = np.zeros((t, cfg.sensors.num_cameras, 0, 0), np.uint8)
-
+    labels = camera_labels(frames, cfg, label_rasterizer)
     tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
@@ -274,6 +268,19 @@ def build_condition_arrays(
         layout=layout,
         labels=labels,
     )
+
+
+def camera_labels(
+    frames: Sequence[SceneFrame], cfg: ModelConfig, rasterizer: LabelRasterizer | None = None
+) -> np.ndarray:
+    """The ``labels`` field: each camera's label map of every frame, (T, Vc, H, W) uint8, for a
+    decoder that draws them (``layout.decoder``); (T, Vc, 0, 0) without one. ``rasterizer``: one
+    kept across calls reuses its ray geometry and road texture (default: a new one)."""
+    s = cfg.sensors
+    if not cfg.layout.decoder:
+        return np.zeros((len(frames), s.num_cameras, 0, 0), np.uint8)
+    raster = rasterizer or LabelRasterizer()
+    return np.stack([raster(f, f.rig, s.height, s.width) for f in frames])
 
 
 @dataclass(frozen=True)
