@@ -114,10 +114,11 @@ class RolloutConditions:
     the recorder uses, :class:`~world_model.sim.reference_crops.ReferenceCrops`, so the model sees
     in the env the conditions it was trained on) and its condition arrays, one step at a time.
     :class:`WorldModelBackend` holds one for all its rollouts; each simulation worker of a vector
-    env holds one for its sub-envs (:mod:`m4world_env.workers`)."""
+    env holds one for its sub-envs (:mod:`m4world_env.workers`). ``every_frame``: the model decodes
+    every frame of a step, not only the last (:meth:`ConditionBuilder.chunk_arrays`)."""
 
-    def __init__(self, builder: ConditionBuilder, num_rollouts: int) -> None:
-        self.builder = builder
+    def __init__(self, builder: ConditionBuilder, num_rollouts: int, every_frame: bool = False) -> None:
+        self.builder, self.every_frame = builder, every_frame
         self._sim = ProceduralSimulator(
             config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
         )
@@ -146,7 +147,7 @@ class RolloutConditions:
         for frame in frames:
             crops.update(frame)
         t1 = time.perf_counter()
-        arrays = self.builder.chunk_arrays(frames, self._first[index], crops.crops, crops.since)
+        arrays = self.builder.chunk_arrays(frames, self._first[index], crops.crops, crops.since, self.every_frame)
         self.seconds["crops"] += t1 - t0
         self.seconds["conditions"] += time.perf_counter() - t1
         return arrays
@@ -197,7 +198,7 @@ class WorldModelBackend:
         self.rig = self.wm.rig
         self.model_cfg = self.wm.cfg
         self.with_bev = with_bev
-        self.conditions = RolloutConditions(self.wm.conditions, num_rollouts)
+        self.conditions = RolloutConditions(self.wm.conditions, num_rollouts, every_frame)
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
         """Load a scenario's LoRA adapters (§5): :meth:`world_model.runtime.WorldModel.apply_adapters`."""

@@ -161,7 +161,9 @@ class SimulationWorker:
         self.lo, self.slots = lo, shared.arrays
         self.keys = spec.config.observation_keys
         builder = ConditionBuilder.from_vae_weights(spec.model_config, spec.vae_weights)
-        self.conditions = RolloutConditions(builder, hi - lo)
+        # A worker's sub-envs never render (render_mode needs workers=0): only each step's last frame
+        # is decoded.
+        self.conditions = RolloutConditions(builder, hi - lo, every_frame=False)
         backend = WorkerBackend(spec.model_config)
         self.envs = [
             M4WorldEnv(spec.scenario, "world_model", None, None, spec.config, shared_backend=backend, backend_index=i)

@@ -15,7 +15,7 @@ from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
 from world_model.model.conditions import ConditionArrays
 from world_model.runtime import WorldModel, save_untrained_bundle
-from world_model.sim.labels import ROAD, VEHICLE, label_maps
+from world_model.sim.labels import NO_LABEL, ROAD, VEHICLE, label_maps
 from world_model.train.data import LatentWindows
 
 # A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).
@@ -91,7 +91,7 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     starts = [0] + list(range(1, clip.num_frames, chunk))
     assert len(env_arrays) == len(starts)
     # The DiTs' windows leave out the decoder's label maps; the decoder stage renders them from the
-    # clip's frames.
+    # clip's frames. The env renders them only for the frames it decodes.
     assert train.labels.shape[2:] == (0, 0)
     labels = np.stack([label_maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
     for start, got in zip(starts, env_arrays, strict=True):
@@ -102,7 +102,10 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), f"{f.name} differs at frame {start}"
         if layout:
-            assert np.array_equal(got.labels, labels[start : start + got.num_frames]), f"labels differ at {start}"
+            for t in range(start, start + got.num_frames):
+                decoded = t % scenario.frames_per_step == 0  # the first frame, then each step's last
+                want_labels = labels[t] if decoded else np.full_like(labels[t], NO_LABEL)
+                assert np.array_equal(got.labels[t - start], want_labels), f"labels differ at {t}"
         else:
             assert got.labels.shape[2:] == (0, 0)
     has_image = np.concatenate([a.obj_has_image for a in env_arrays])
@@ -110,3 +113,17 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     if layout:
         assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
         assert (labels == ROAD).any() and (labels == VEHICLE).any()
+
+
+def test_each_decoded_frame_has_its_label_map(layout_bundle):
+    """rgb_array_list decodes every frame of a step, the others only its last: each rollout gets
+    the label maps it draws, and refuses to decode a frame whose map was left out."""
+    scenario = load_scenario(SCENARIO).model_copy(update={"duration": DURATION_S})
+    env = M4WorldEnv(scenario, backend="world_model", checkpoint=str(layout_bundle), render_mode="rgb_array_list")
+    env.reset(seed=0)
+    env.step(np.zeros(2, np.float32))
+    assert len(env.render()) == 1 + scenario.frames_per_step
+    chunk = env.advance(np.zeros(2, np.float32))
+    arrays = env.backend.wm.conditions.chunk_arrays(chunk, chunk[0], every_frame=False)
+    with pytest.raises(RuntimeError, match="no label map"):
+        env.backend.rollouts.step_arrays([arrays])

@@ -11,14 +11,13 @@ from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
 from world_model.model.config import with_layout
 from world_model.model.vae import (
-    NO_LABEL,
     cameras_to_images,
     images_to_cameras,
     images_to_lidar,
     lidar_to_images,
     weighted_l1,
 )
-from world_model.sim.labels import LABEL_CLASSES
+from world_model.sim.labels import LABEL_CLASSES, NO_LABEL
 
 
 def test_lidar_normalization_round_trip_and_no_return():

@@ -87,7 +87,11 @@ def test_lower_resolution_matches_downsampled_full_resolution():
 
 def test_rasterizer_reuse_is_identical_and_deterministic():
     road = straight_road()
-    frames = [demo_frame(seed=1, rig=RIG, road=road, frame_index=i, ego_x=3.0 * i) for i in range(3)]
+    # two object sets, interleaved: the cached meshes must follow each frame's objects
+    frames = [
+        demo_frame(num_objects=18 if i % 2 else 7, seed=1, rig=RIG, road=road, frame_index=i, ego_x=3.0 * i)
+        for i in range(4)
+    ]
     r = LabelRasterizer()
     again = [r(f, RIG, 32, 56) for f in frames]
     fresh = [label_maps(f, RIG, 32, 56) for f in frames]

@@ -56,9 +56,11 @@ class ConditionBuilder:
         first: SceneFrame,
         crops: Mapping[str, np.ndarray] | None = None,
         crop_since: Mapping[str, int] | None = None,
+        labeled: Sequence[bool] | None = None,
     ) -> ConditionArrays:
         """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2);
-        ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame)."""
+        ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame);
+        ``labeled``: the frames whose label map the decoder will draw (default: all)."""
         bev = np.stack([self.bev(f) for f in frames])
         return build_condition_arrays(
             frames,
@@ -70,6 +72,7 @@ class ConditionBuilder:
             first.ego,
             crop_since=crop_since,
             label_rasterizer=self._labels,
+            labeled=labeled,
         )
 
     def chunk_arrays(
@@ -78,12 +81,22 @@ class ConditionBuilder:
         first: SceneFrame,
         crops: Mapping[str, np.ndarray] | None = None,
         crop_since: Mapping[str, int] | None = None,
+        every_frame: bool = True,
     ) -> list[ConditionArrays]:
         """:meth:`arrays` of a step's frames, one per causal chunk of :attr:`chunk_frames` frames (the
-        student's unit); ``len(chunk)`` must be a multiple of it."""
+        student's unit); ``len(chunk)`` must be a multiple of it. Without ``every_frame`` only the
+        step's last frame is decoded (:class:`~world_model.runtime.RolloutBatch`), so only it gets a
+        label map."""
         if not chunk or len(chunk) % self.chunk_frames:
             raise ValueError(f"a step's frames must be a positive multiple of {self.chunk_frames}, got {len(chunk)}")
+        last = len(chunk) - 1
         return [
-            self.arrays(chunk[k : k + self.chunk_frames], first, crops, crop_since)
+            self.arrays(
+                chunk[k : k + self.chunk_frames],
+                first,
+                crops,
+                crop_since,
+                None if every_frame else [k + j == last for j in range(self.chunk_frames)],
+            )
             for k in range(0, len(chunk), self.chunk_frames)
         ]

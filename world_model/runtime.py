@@ -37,6 +37,7 @@ from world_model.observation import Observation
 from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
+from world_model.sim.labels import NO_LABEL
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import STREAMING_FILE, StreamingConfig
@@ -402,7 +403,9 @@ class RolloutBatch:
         arrays = [
             None
             if chunk is None
-            else self.wm.conditions.chunk_arrays(chunk, self.first[i], self.crops[i], self.crop_since[i])
+            else self.wm.conditions.chunk_arrays(
+                chunk, self.first[i], self.crops[i], self.crop_since[i], self.every_frame
+            )
             for i, chunk in enumerate(chunks)
         ]
         self.seconds["conditions"] += time.perf_counter() - t0
@@ -450,6 +453,11 @@ class RolloutBatch:
             labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
             if not self.every_frame:
                 lat, labels = lat[:, -1:], labels[:, -1:]
+            if self.wm.vae.draws_labels and (labels[..., 0, 0] == NO_LABEL).all(axis=-1).any():
+                raise RuntimeError(
+                    "a frame to decode has no label map: build each step's conditions with the rollouts' "
+                    "every_frame (ConditionBuilder.chunk_arrays)"
+                )
             for i, obs in zip(active, self.wm.decode(lat, labels), strict=True):
                 results[i] = obs
         self.seconds["decode"] += time.perf_counter() - t0

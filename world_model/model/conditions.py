@@ -49,7 +49,7 @@ from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject
 from world_model.sensors import CameraRig
-from world_model.sim.labels import LabelRasterizer
+from world_model.sim.labels import NO_LABEL, LabelRasterizer
 
 
 def view_adjacency(rig: CameraRig) -> np.ndarray:
@@ -176,6 +176,7 @@ def build_condition_arrays(
     crop_since: Mapping[str, int] | None = None,
     layout: np.ndarray | None = None,
     label_rasterizer: LabelRasterizer | None = None,
+    labeled: Sequence[bool] | None = None,
 ) -> ConditionArrays:
     """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
 
@@ -185,7 +186,7 @@ def build_condition_arrays(
     a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
     when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
     data's cache), else it is computed here when the config enables it. ``label_rasterizer``
-    renders the decoder's label maps (:func:`camera_labels`).
+    and ``labeled`` render the decoder's label maps (:func:`camera_labels`).
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -245,7 +246,7 @@ def build_condition_arrays(
     else:
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
-    labels = camera_labels(frames, cfg, label_rasterizer)
+    labels = camera_labels(frames, cfg, label_rasterizer, labeled)
     tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
@@ -271,16 +272,27 @@ def build_condition_arrays(
 
 
 def camera_labels(
-    frames: Sequence[SceneFrame], cfg: ModelConfig, rasterizer: LabelRasterizer | None = None
+    frames: Sequence[SceneFrame],
+    cfg: ModelConfig,
+    rasterizer: LabelRasterizer | None = None,
+    labeled: Sequence[bool] | None = None,
 ) -> np.ndarray:
     """The ``labels`` field: each camera's label map of every frame, (T, Vc, H, W) uint8, for a
     decoder that draws them (``layout.decoder``); (T, Vc, 0, 0) without one. ``rasterizer``: one
-    kept across calls reuses its ray geometry and road texture (default: a new one)."""
+    kept across calls reuses its ray geometry, road texture and meshes (default: a new one).
+    ``labeled`` (T,): the frames that will be decoded (default: all); the others are left
+    :data:`~world_model.sim.labels.NO_LABEL`, which saves rendering maps nobody draws."""
     s = cfg.sensors
     if not cfg.layout.decoder:
         return np.zeros((len(frames), s.num_cameras, 0, 0), np.uint8)
+    if labeled is not None and len(labeled) != len(frames):
+        raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
     raster = rasterizer or LabelRasterizer()
-    return np.stack([raster(f, f.rig, s.height, s.width) for f in frames])
+    out = np.full((len(frames), s.num_cameras, s.height, s.width), NO_LABEL, np.uint8)
+    for t, frame in enumerate(frames):
+        if labeled is None or labeled[t]:
+            out[t] = raster(frame, frame.rig, s.height, s.width)
+    return out
 
 
 @dataclass(frozen=True)

@@ -30,9 +30,6 @@ from world_model.model.config import ModelConfig, VaeConfig
 from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
 
-# A label-map id that draws nothing (all-zero one-hot): the LiDAR view, which has no label map.
-NO_LABEL = 255
-
 
 def _groups(channels: int) -> int:
     for g in (8, 4, 2, 1):
@@ -168,7 +165,8 @@ class SensorVAE(nn.Module):
 
     def _one_hot(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
         """(N, H, W) uint8 :data:`~world_model.sim.labels.LABEL_CLASSES` ids -> (N, K, H, W) one-hot,
-        :data:`NO_LABEL` and None -> all zeros (no layout). None for a decoder without label modulation."""
+        :data:`~world_model.sim.labels.NO_LABEL` and None -> all zeros (no layout). None for a decoder
+        without label modulation."""
         if not self.draws_labels:
             return None
         k = self.cfg.layout.label_channels

@@ -9,16 +9,18 @@ scaled), so they also serve as per-view layout rasters at latent resolution.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim import ground, objects
+from world_model.sim.cache import LruCache
 from world_model.sim.config import SimConfig
 from world_model.sim.lighting import lighting_for
 from world_model.sim.poses import object_poses
-from world_model.sim.scene_mesh import build_scene_mesh
+from world_model.sim.scene_mesh import build_scene_mesh, object_key
 from world_model.sim.texture import MapTexture, labels_layout
 
 # Class ids are the index in this table; a label map is (V, H, W) uint8 of these ids.
@@ -32,6 +34,9 @@ LABEL_CLASSES: tuple[str, ...] = (
     "other_object",  # cones, barriers
 )
 SKY, OFFROAD, ROAD, MARKING, VEHICLE, VULNERABLE, OTHER_OBJECT = range(len(LABEL_CLASSES))
+# An id that draws nothing (the decoder's all-zero one-hot): the LiDAR view, which has no label
+# map, and frames that will not be decoded.
+NO_LABEL = 255
 
 CATEGORY_CLASS: dict[str, int] = {
     "car": VEHICLE,
@@ -72,46 +77,41 @@ def texture_classes(levels: int) -> np.ndarray:
 
 
 class LabelRasterizer:
-    """Renders label maps of frames; keeps the ray geometry and road texture of the last
-    ``keep`` rigs and maps it saw (a rollout shares them across its frames, and one rasterizer may
-    serve every rollout of a vector env)."""
+    """Renders label maps of frames; keeps, for the last ``keep`` of each, the ray geometry of a
+    rig, the road texture of a map and the mesh of an object set (a rollout shares them across its
+    frames, and one rasterizer may serve every rollout of a vector env)."""
 
     def __init__(self, config: SimConfig | None = None, keep: int = 64) -> None:
         self.config = config or SimConfig()
-        self.keep = keep
         self._classes = texture_classes(self.config.texture_noise_levels)
-        # id-keyed caches hold their key object too, so an id stays unique while it is cached
-        self._rigs: dict[tuple, tuple[CameraRig, CameraRig, ground.GroundRays]] = {}
-        self._textures: dict[int, tuple[object, MapTexture]] = {}
+        self._rigs = LruCache(keep)
+        self._textures = LruCache(keep)
+        self._meshes = LruCache(keep)
 
-    def _remember(self, cache: dict, key: object, value: object) -> None:
-        if len(cache) >= self.keep:
-            cache.pop(next(iter(cache)))
-        cache[key] = value
+    def _rig(self, rig: CameraRig, height: int, width: int, mount_height: float) -> _ScaledRig:
+        def make() -> _ScaledRig:
+            scaled = scaled_rig(rig, height, width)
+            rays = ground.ground_rays(scaled, mount_height, self.config.max_ground_distance_m)
+            return _ScaledRig(scaled, objects.rig_arrays(scaled), rays)
+
+        return self._rigs.get((id(rig), height, width, mount_height), (rig,), make)
 
     def __call__(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
         """(V, H, W) uint8 class ids (:data:`LABEL_CLASSES`) of ``frame`` seen by ``rig`` at H x W."""
         cfg = self.config
-        key = (id(rig), height, width, frame.lidar.mount_height)
-        if key not in self._rigs:
-            scaled = scaled_rig(rig, height, width)
-            rays = ground.ground_rays(scaled, frame.lidar.mount_height, cfg.max_ground_distance_m)
-            self._remember(self._rigs, key, (rig, scaled, rays))
-        _, small, rays = self._rigs[key]
-        if id(frame.map) not in self._textures:
-            self._remember(self._textures, id(frame.map), (frame.map, MapTexture(frame.map, cfg)))
-        texture = self._textures[id(frame.map)][1]
-        flat = np.full(rays.distance.size, SKY, dtype=np.uint8)
-        texels = texture.lookup_ego(rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
-        flat[rays.ground_index] = self._classes[texels]
-        out = flat.reshape(small.num_views, height, width)
+        small = self._rig(rig, height, width, frame.lidar.mount_height)
+        texture = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
+        flat = np.full(small.rays.distance.size, SKY, dtype=np.uint8)
+        texels = texture.lookup_ego(small.rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
+        flat[small.rays.ground_index] = self._classes[texels]
+        out = flat.reshape(small.rig.num_views, height, width)
         if frame.objects:
             plan = objects.plan_objects(
                 frame,
-                build_scene_mesh(frame),
+                self._meshes.get(object_key(frame), (), lambda: build_scene_mesh(frame)),
                 object_poses(frame, frame.lidar.mount_height),
-                small,
-                objects.rig_arrays(small),
+                small.rig,
+                small.arrays,
                 lighting_for(frame.prompt),
                 cfg.near_plane_m,
                 cfg.min_face_area_px,
@@ -120,12 +120,20 @@ class LabelRasterizer:
             )
             ids = np.zeros((height, width), dtype=np.int32)
             lut = np.array([0] + [CATEGORY_CLASS[o.category] for o in frame.objects], dtype=np.uint8)
-            for v in range(small.num_views):
+            for v in range(small.rig.num_views):
                 ids[:] = 0
                 objects.paint(ids, plan, v, False, cfg.subpixel_bits, value=lambda o: o + 1)
                 seen = ids > 0
                 out[v][seen] = lut[ids[seen]]
         return out
+
+
+class _ScaledRig(NamedTuple):
+    """A rig resampled to a label map's size, its arrays for the painter and its ground rays."""
+
+    rig: CameraRig
+    arrays: objects.RigArrays
+    rays: ground.GroundRays
 
 
 def label_maps(

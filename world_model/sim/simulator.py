@@ -8,10 +8,7 @@ across its frames), and per object set by value.
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
-from collections.abc import Callable, Hashable
 from dataclasses import replace
-from typing import Any
 
 import cv2
 import numpy as np
@@ -20,31 +17,12 @@ from world_model.observation import Observation
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, CameraRig, CameraSpec, LidarSpec
 from world_model.sim import ground, lidar, objects, precipitation
+from world_model.sim.cache import LruCache
 from world_model.sim.config import SimConfig
 from world_model.sim.lighting import SKY_DISTANCE_M, SKY_GRADIENT_SPAN_RAD, lighting_for
 from world_model.sim.poses import ObjectPoses, object_poses
 from world_model.sim.scene_mesh import SceneMesh, build_scene_mesh, object_key
 from world_model.sim.texture import MapTexture, palette
-
-
-class _Cache:
-    """A small LRU cache. Identity keys keep a reference to their objects so ids stay unique."""
-
-    def __init__(self, size: int) -> None:
-        self._size = size
-        self._data: OrderedDict[Hashable, tuple[Any, Any]] = OrderedDict()
-
-    def get(self, key: Hashable, anchors: tuple, make: Callable[[], Any]) -> Any:
-        hit = self._data.get(key)
-        if hit is not None and all(a is b for a, b in zip(hit[0], anchors, strict=True)):
-            self._data.move_to_end(key)
-            return hit[1]
-        value = make()
-        self._data[key] = (anchors, value)
-        self._data.move_to_end(key)
-        while len(self._data) > self._size:
-            self._data.popitem(last=False)
-        return value
 
 
 def _check_rig(rig: CameraRig) -> None:
@@ -77,14 +55,14 @@ class ProceduralSimulator:
         self.rig, self.lidar, self.bev = rig, lidar, bev
         self.config = config or SimConfig()
         n = self.config.cache_size
-        self._textures = _Cache(self.config.texture_cache_size)
-        self._rays = _Cache(n)
-        self._shading = _Cache(n)
-        self._lidar_rays = _Cache(n)
-        self._rig_arrays = _Cache(n)
-        self._meshes = _Cache(n)
-        self._precip = _Cache(n)
-        self._poses = _Cache(1)  # render() asks for the same frame's poses twice
+        self._textures = LruCache(self.config.texture_cache_size)
+        self._rays = LruCache(n)
+        self._shading = LruCache(n)
+        self._lidar_rays = LruCache(n)
+        self._rig_arrays = LruCache(n)
+        self._meshes = LruCache(n)
+        self._precip = LruCache(n)
+        self._poses = LruCache(1)  # render() asks for the same frame's poses twice
 
     # -- specs and caches ---------------------------------------------------------------------
 

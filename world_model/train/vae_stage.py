@@ -21,9 +21,9 @@ import torch
 
 from world_model.data.clips import write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
-from world_model.model.vae import NO_LABEL, SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
+from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.scene import SceneFrame
-from world_model.sim.labels import LabelRasterizer
+from world_model.sim.labels import NO_LABEL, LabelRasterizer
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
 from world_model.train.exports import EXPORT, run_vae
@@ -70,7 +70,7 @@ def vae_metrics(vae: SensorVAE, sampler: FrameSampler, labels: LabelRasterizer |
 
 def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
     """(N, H, W) uint8 label-map class ids of ``views`` of ``frame``; the LiDAR view gets
-    :data:`~world_model.model.vae.NO_LABEL` (no layout), as it does when decoding frames."""
+    :data:`~world_model.sim.labels.NO_LABEL` (no layout), as it does when decoding frames."""
     s = cfg.sensors
     maps = torch.from_numpy(raster(frame, frame.rig, s.height, s.width))
     return torch.stack([maps[v] if v < s.num_cameras else torch.full_like(maps[0], NO_LABEL) for v in views])
