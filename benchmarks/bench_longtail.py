@@ -48,11 +48,11 @@ import numpy as np
 
 from world_model.data import Clip, iter_clips
 from world_model.lora import apply_adapters, remove_adapters
-from world_model.model.conditions import Conditions, build_condition_arrays, camera_labels
+from world_model.model.conditions import Conditions, build_condition_arrays, camera_labels, style_of_prompt
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
-from world_model.model.text import make_text_encoder
+from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.train.lora_stage import load_lora_base
 
@@ -200,7 +200,9 @@ def _render_both(
             completed = gen.complete_category(cond, first, frames, category, steps=steps, seed=seed)
         finally:
             remove_adapters(model)
-        obs = latents_to_observations(vae, completed, vae.cfg.sensors.lidar, labels=cond.labels[:, :1])
+        obs = latents_to_observations(
+            vae, completed, vae.cfg.sensors.lidar, labels=cond.labels[:, :1], style=cond.style
+        )
         return base_obs, [o[0] for o in obs]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)
@@ -238,7 +240,8 @@ def evaluate(
         model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px, category
     )
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
-    autoencoded = [autoencode(vae, clips[rv.clip], rv.frame)[rv.view] for rv in views]
+    text = make_text_encoder(vae.cfg.text) if vae.draws_style else None
+    autoencoded = [autoencode(vae, clips[rv.clip], rv.frame, text)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
     adapted = [o.cameras[rv.view] for o, rv in zip(adapted_obs, views, strict=True)]
     rows = []
@@ -266,11 +269,14 @@ def evaluate(
     }
 
 
-def autoencode(vae: SensorVAE, clip: Clip, frame: int) -> np.ndarray:
+def autoencode(vae: SensorVAE, clip: Clip, frame: int, text: TextEncoder | None = None) -> np.ndarray:
     """Frame ``frame`` of ``clip`` through the VAE and back: cameras (V, H, W, 3), the best any
-    model generating through this VAE could render (the figure's ceiling row)."""
-    labels = camera_labels(clip.frames[frame : frame + 1], vae.cfg)
-    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels)
+    model generating through this VAE could render (the figure's ceiling row). ``text``: the text
+    encoder of a decoder that draws the scene's style."""
+    cfg = vae.cfg
+    labels = camera_labels(clip.frames[frame : frame + 1], cfg)
+    style = style_of_prompt(clip.frames[frame].prompt, cfg, text) if vae.draws_style else None
+    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels, style)
     return cams[0]
 
 

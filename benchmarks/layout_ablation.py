@@ -116,7 +116,9 @@ def main(argv: list[str] | None = None) -> dict:
                 cond = Conditions.collate([arrays])
                 for seed in args.seeds:
                     gen = torch.Generator().manual_seed(seed)
-                    (obs,) = latents_to_observations(vae, sample_latents(model, cond, gen, sampler), labels=cond.labels)
+                    (obs,) = latents_to_observations(
+                        vae, sample_latents(model, cond, gen, sampler), labels=cond.labels, style=cond.style
+                    )
                     cams = np.stack([o.cameras for o in obs])
                     totals[name].append(scores(cams, target, objects, road))
                     if w == 0 and seed == args.seeds[0]:

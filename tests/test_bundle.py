@@ -50,7 +50,11 @@ def test_the_decoder_stage_gives_the_bundle_its_vae_and_label_maps(tmp_path):
     files = load_bundle_files(export_bundle(run, tmp_path / "bundle"))
     assert files.manifest["components"]["vae"]["stage"] == "decoder"
     assert torch.equal(files.tensors["vae"]["w"], torch.full((3,), 2.0))
-    assert files.model_config == {"name": "tiny", "layout": {"decoder": True}}
+    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, "decoder_style": False}}
+    # a decoder stage that drew the scene's style says so in its export's config
+    (run / "decoder" / "model.json").write_text(json.dumps({"model_config": {"layout": {"decoder_style": True}}}))
+    files = load_bundle_files(export_bundle(run, tmp_path / "styled"))
+    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, "decoder_style": True}}
 
 
 def test_missing_and_corrupt_checkpoints_are_named(tmp_path):

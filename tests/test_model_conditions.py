@@ -1,5 +1,7 @@
 """Condition conversion, control tokens (object-order invariance, padding), text encoders."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -17,6 +19,7 @@ from world_model.model import (
     get_preset,
     view_adjacency,
 )
+from world_model.model.conditions import Conditions, style_of_prompt
 
 
 def test_default_rig_cross_view_neighbours():
@@ -149,6 +152,23 @@ def test_minilm_text_encoder_tokens_pooled_and_cache():
     _, _, bev = make_sensors(cfg, 1)
     arr = build_condition_arrays(frames, bev, cfg, enc)
     assert arr.text.shape == (cfg.text.max_tokens, 384) and arr.obj_category.shape[-1] == 384
+    # the decoder's scene style is the sentence encoder's own pooled embedding of the prompt
+    full = frames[0].prompt.full_text()
+    assert np.allclose(arr.style, enc.pooled([full])[0], atol=1e-5)
+
+
+def test_the_scene_style_pools_the_prompt_tokens_alike_in_numpy_and_torch():
+    tiny = get_preset("tiny")
+    cfg = replace(tiny, text=replace(tiny.text, max_tokens=64))  # the whole prompt, then padding
+    text = HashTextEncoder(cfg.text.dim)
+    frames = make_frames(cfg, 2, num_objects=1)
+    _, _, bev = make_sensors(cfg, 2)
+    arr = build_condition_arrays(frames, bev, cfg, text)
+    assert 0 < arr.text_mask.sum() < cfg.text.max_tokens  # padding is left out of the mean
+    assert np.allclose(arr.style, text.pooled([frames[0].prompt.full_text()])[0], atol=1e-6)
+    assert np.allclose(arr.style, style_of_prompt(frames[0].prompt, cfg, text))
+    batch = Conditions.collate([arr, arr])
+    assert batch.style.shape == (2, cfg.text.dim) and np.allclose(batch.style.numpy(), arr.style[None], atol=1e-6)
 
 
 def test_object_text_falls_back_to_colour_and_category():

@@ -117,7 +117,7 @@ def test_weighted_l1_is_plain_l1_under_unit_weights_and_follows_the_weights():
     torch.testing.assert_close(weighted_l1(rec, target, box), (10 * top + bottom) / 11)
 
 
-def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps():
+def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_the_scene_style():
     plain_cfg = get_preset("tiny")
     cfg = with_layout(plain_cfg, True)
     torch.manual_seed(0)
@@ -130,22 +130,30 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps():
     h, w = cfg.sensors.height, cfg.sensors.width
     rng = np.random.default_rng(0)
     labels = rng.integers(len(LABEL_CLASSES), size=(2, cfg.sensors.num_cameras, h, w)).astype(np.uint8)
+    style, other_style = (v / np.linalg.norm(v) for v in rng.standard_normal((2, cfg.text.dim)).astype(np.float32))
     # zero-initialized modulations: the fine-tuning starts from the plain decoder's images
-    for a, b in zip(vae.decode_frames(lat, labels=labels), plain.decode_frames(lat), strict=True):
+    assert vae.draws_labels and vae.draws_style
+    for a, b in zip(vae.decode_frames(lat, labels=labels, style=style), plain.decode_frames(lat), strict=True):
         assert np.array_equal(a, b)
     with pytest.raises(ValueError, match="label map"):
-        vae.decode_frames(lat)
+        vae.decode_frames(lat, style=style)
     with pytest.raises(ValueError, match="label map"):
-        vae.decode_frames(lat, labels=labels[:, :2])
+        vae.decode_frames(lat, labels=labels[:, :2], style=style)
+    with pytest.raises(ValueError, match="style"):
+        vae.decode_frames(lat, labels=labels)
 
     for mod in vae.decoder.label_mods:
         torch.nn.init.normal_(mod.conv.weight, std=0.5)
+        torch.nn.init.normal_(mod.style.weight, std=0.5)
     z = lat[:, 0]
     ids = torch.from_numpy(labels[:, 0])
-    drawn = vae.decode(z, ids)
-    assert not torch.allclose(drawn, vae.decode(z, torch.from_numpy(labels[:, 1])))  # follows the labels
-    # NO_LABEL is the all-zero one-hot, the same as giving no labels (the LiDAR view)
+    styles = torch.from_numpy(style).expand(len(z), -1)
+    drawn = vae.decode(z, ids, styles)
+    assert not torch.allclose(drawn, vae.decode(z, torch.from_numpy(labels[:, 1]), styles))  # follows the labels
+    assert not torch.allclose(drawn, vae.decode(z, ids, torch.from_numpy(other_style).expand(len(z), -1)))  # the style
+    # NO_LABEL is the all-zero one-hot, the same as giving no labels (the LiDAR view): no style either
     none = torch.full_like(ids, NO_LABEL)
-    assert torch.equal(vae.decode(z, none), vae.decode(z))
-    # the LiDAR view has no label map: its ranges do not depend on the cameras' labels
-    assert np.array_equal(vae.decode_frames(lat, labels=labels)[1], vae.decode_frames(lat, labels=labels * 0)[1])
+    assert torch.equal(vae.decode(z, none, styles), vae.decode(z))
+    # the LiDAR view has no label map: its ranges depend on neither the cameras' labels nor the style
+    lidar_ranges = vae.decode_frames(lat, labels=labels, style=style)[1]
+    assert np.array_equal(lidar_ranges, vae.decode_frames(lat, labels=labels * 0, style=other_style)[1])

@@ -72,12 +72,13 @@ def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_p
     assert out["step"] == 4 and {"camera_psnr_db", "lidar_range_mae_m"} <= set(out["metrics"])
     plain = load_vae(run / "vae" / "model")
     drawn = load_vae(run / "decoder" / "model")
-    assert not plain.draws_labels and drawn.draws_labels and drawn.cfg.layout.decoder
+    assert not plain.draws_labels and drawn.draws_labels and drawn.draws_style and drawn.cfg.layout.decoder_style
     mine = drawn.state_dict()
     for key, value in plain.state_dict().items():  # the DiTs' latents stay the encoder's
         if not key.startswith("decoder."):
             assert torch.equal(mine[key], value), key
-    assert any(mods.conv.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # it learned
+    assert any(mods.conv.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # it learned the maps
+    assert any(mods.style.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # and the style
 
 
 def test_latent_cache_key_is_the_encoder_not_the_decoder():

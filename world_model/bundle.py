@@ -101,10 +101,16 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
-    # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it.
+    # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it,
+    # in the scene's style when that stage's config says so.
     draws_labels = found["vae"][0] == "decoder"
     if draws_labels or config.get("layout", {}).get("decoder"):
-        config["layout"] = {**config.get("layout", {}), "decoder": draws_labels}
+        vae_layout = (_export_config(found["vae"][1]) or {}).get("layout", {}) if draws_labels else {}
+        config["layout"] = {
+            **config.get("layout", {}),
+            "decoder": draws_labels,
+            "decoder_style": bool(vae_layout.get("decoder_style", False)),
+        }
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)

@@ -12,12 +12,17 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from world_model.model.conditions import ConditionArrays, build_condition_arrays, camera_labels
+from world_model.model.conditions import (
+    ConditionArrays,
+    build_condition_arrays,
+    camera_labels,
+    style_of_prompt,
+)
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
-from world_model.scene import SceneFrame
+from world_model.scene import SceneFrame, ScenePrompt
 from world_model.sim import LabelRasterizer, ProceduralSimulator
 
 
@@ -49,6 +54,10 @@ class ConditionBuilder:
     def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray:
         """The frames' camera label maps for the decoder (:func:`camera_labels`)."""
         return camera_labels(frames, self.cfg, self._labels)
+
+    def style(self, prompt: ScenePrompt) -> np.ndarray:
+        """(Dt,) the scene style the decoder reads for ``prompt`` (:func:`style_of_prompt`)."""
+        return style_of_prompt(prompt, self.cfg, self.text)
 
     def arrays(
         self,

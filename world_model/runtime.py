@@ -156,7 +156,7 @@ class WorldModel:
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
-        return latents, self.decode(latents, cond.labels[:, :1])[0][0]
+        return latents, self.decode(latents, cond.labels[:, :1], cond.style)[0][0]
 
     @torch.no_grad()
     def batch_first_frames(
@@ -183,17 +183,25 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
-        return latents, [obs[0] for obs in self.decode(latents, cond.labels[:, :1])]
+        return latents, [obs[0] for obs in self.decode(latents, cond.labels[:, :1], cond.style)]
 
-    def decode(self, latents: torch.Tensor, labels: torch.Tensor | np.ndarray | None = None) -> list[list[Observation]]:
+    def decode(
+        self,
+        latents: torch.Tensor,
+        labels: torch.Tensor | np.ndarray | None = None,
+        style: torch.Tensor | np.ndarray | None = None,
+    ) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, H, W)
-        the frames' camera label maps, for a decoder that draws them (``ConditionArrays.labels``).
+        the frames' camera label maps and ``style`` (B, Dt) the scenes' styles, for a decoder that
+        draws them (``ConditionArrays.labels``, ``ConditionArrays.style``).
 
         Each frame is decoded alone: on CPU the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
         ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
         differ from the same rollout run alone. It costs ~10% of the decode at 64 frames."""
-        return latents_to_observations(self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1, labels=labels)
+        return latents_to_observations(
+            self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1, labels=labels, style=style
+        )
 
 
 def load_world_model(
@@ -458,7 +466,8 @@ class RolloutBatch:
                     "a frame to decode has no label map: build each step's conditions with the rollouts' "
                     "every_frame (ConditionBuilder.chunk_arrays)"
                 )
-            for i, obs in zip(active, self.wm.decode(lat, labels), strict=True):
+            style = np.stack([arrays[i][0].style for i in active])
+            for i, obs in zip(active, self.wm.decode(lat, labels, style), strict=True):
                 results[i] = obs
         self.seconds["decode"] += time.perf_counter() - t0
         return results

@@ -47,7 +47,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
 from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
-from world_model.scene import EgoState, SceneFrame, SceneObject
+from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
 from world_model.sim.labels import NO_LABEL, LabelRasterizer
 
@@ -160,6 +160,11 @@ class ConditionArrays:
     def num_frames(self) -> int:
         return len(self.ego)
 
+    @property
+    def style(self) -> np.ndarray:
+        """(Dt,) the scene's style for the label decoder (:func:`prompt_style`)."""
+        return prompt_style(self.text, self.text_mask)
+
     def frames(self, start: int, stop: int) -> ConditionArrays:
         """Frames [start, stop). Ego poses stay relative to the sequence's first frame."""
         return replace(self, **{k: getattr(self, k)[start:stop] for k in self.TIME_FIELDS})
@@ -247,7 +252,7 @@ def build_condition_arrays(
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
     labels = camera_labels(frames, cfg, label_rasterizer, labeled)
-    tokens = text_encoder.tokens(frames[0].prompt.full_text())[: cfg.text.max_tokens]
+    tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
     text_mask = np.arange(cfg.text.max_tokens) < len(tokens)
@@ -269,6 +274,31 @@ def build_condition_arrays(
         layout=layout,
         labels=labels,
     )
+
+
+def prompt_tokens(prompt: ScenePrompt, cfg: ModelConfig, text_encoder: TextEncoder) -> np.ndarray:
+    """(L, Dt) the prompt's token embeddings as the conditions hold them (at most ``text.max_tokens``)."""
+    return text_encoder.tokens(prompt.full_text())[: cfg.text.max_tokens]
+
+
+def style_of_prompt(prompt: ScenePrompt, cfg: ModelConfig, text_encoder: TextEncoder) -> np.ndarray:
+    """(Dt,) :func:`prompt_style` of ``prompt`` as the conditions hold it (``ConditionArrays.style``)."""
+    tokens = prompt_tokens(prompt, cfg, text_encoder)
+    return prompt_style(tokens, np.ones(len(tokens), bool))
+
+
+def prompt_style(text: np.ndarray | torch.Tensor, text_mask: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+    """The scene's style the label decoder reads (``layout.decoder_style``): the prompt's pooled
+    embedding, the unit-length mean of its unmasked tokens (the sentence encoder's own pooling), so
+    the weather and light the prompt names reach the decoder. text (..., L, Dt), text_mask (..., L)
+    -> (..., Dt), numpy or torch as given."""
+    if isinstance(text, torch.Tensor):
+        mask = text_mask[..., None].to(text)
+        mean = (text * mask).sum(-2) / mask.sum(-2).clamp_min(1.0)
+        return mean / mean.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    mask = np.asarray(text_mask, np.float32)[..., None]
+    mean = (np.asarray(text, np.float32) * mask).sum(-2) / np.maximum(mask.sum(-2), 1.0)
+    return mean / np.maximum(np.linalg.norm(mean, axis=-1, keepdims=True), 1e-8)
 
 
 def camera_labels(
@@ -362,6 +392,11 @@ class Conditions:
     @property
     def num_frames(self) -> int:
         return self.ego.shape[1]
+
+    @property
+    def style(self) -> torch.Tensor:
+        """(B, Dt) each row's scene style for the label decoder (:func:`prompt_style`)."""
+        return prompt_style(self.text, self.text_mask)
 
     @classmethod
     def collate(cls, items: Sequence[ConditionArrays]) -> Conditions:

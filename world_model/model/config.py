@@ -111,11 +111,20 @@ class LayoutConfig:
     (sky, off-road, road, markings, objects by group) modulates its features at every level
     (SPADE), so a lane line or a car lands on its pixels however coarse the latent grid is. The
     latents stay the encoder's: the ``decoder`` stage fine-tunes the decoder alone, and the DiTs do
-    not depend on it."""
+    not depend on it.
+
+    ``decoder_style``: that modulation also reads the prompt's pooled text embedding, per label
+    class (how the sky, the road, the ground look in this weather and light), so the scene's weather
+    and time of day reach every pixel of its class whatever colour the latents drifted to."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
+    decoder_style: bool = False
+
+    def __post_init__(self) -> None:
+        if self.decoder_style and not self.decoder:
+            raise ValueError("layout.decoder_style needs layout.decoder (the style modulates the label maps)")
 
     @property
     def channels(self) -> int:
@@ -249,7 +258,7 @@ class ModelConfig:
         return replace(
             self,
             vae=self.vae.model_settings(),
-            layout=replace(self.layout, decoder=False),
+            layout=replace(self.layout, decoder=False, decoder_style=False),
             dit=replace(self.dit, student_depth=None),
             clip=replace(self.clip, context_frames=0),
         )
@@ -392,13 +401,14 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     change the DiT's input, so teacher, student and reference model of one family must agree on it."""
     if enabled is None:
         return cfg
-    return replace(cfg, layout=replace(cfg.layout, enabled=bool(enabled), decoder=bool(enabled)))
+    on = bool(enabled)
+    return replace(cfg, layout=replace(cfg.layout, enabled=on, decoder=on, decoder_style=on))
 
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps)."""
-    return replace(cfg, layout=replace(cfg.layout, decoder=False))
+    return replace(cfg, layout=replace(cfg.layout, decoder=False, decoder_style=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

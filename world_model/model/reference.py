@@ -392,7 +392,7 @@ class ReferenceGenerator:
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
         lat = self.sample(cond, extra, steps, seed)
-        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels)
+        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style)
         return lat, [o[0] for o in obs]
 
     def from_first_frame(
@@ -403,7 +403,9 @@ class ReferenceGenerator:
         extra = first.new_zeros(first.shape[0], cond.num_frames, *first.shape[2:])
         extra[:, :1] = first
         lat = self.sample(cond, extra, steps, seed)
-        return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels)
+        return lat, latents_to_observations(
+            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style
+        )
 
     def complete_category(
         self,
@@ -456,4 +458,8 @@ class ReferenceGenerator:
         lat = self.vae.encode_frames(np.asarray(cameras), np.asarray(lidar, dtype=np.float32))
         extra = reference_input(lat[None], torch.as_tensor(mask, device=lat.device)[None])
         out = self.sample(cond, extra, steps, seed)
-        return out, latents_to_observations(self.vae, out, self.mcfg.sensors.lidar, labels=cond.labels), mask
+        return (
+            out,
+            latents_to_observations(self.vae, out, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style),
+            mask,
+        )

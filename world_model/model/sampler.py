@@ -98,24 +98,28 @@ def latents_to_observations(
     bev: np.ndarray | None = None,
     frames_per_call: int = DECODE_FRAMES_PER_CALL,
     labels: torch.Tensor | np.ndarray | None = None,
+    style: torch.Tensor | np.ndarray | None = None,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres).
 
     Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
     attached to the observations unchanged. ``labels`` (B, T, Vc, H, W): the frames' camera label
-    maps, for a decoder that draws them (``Conditions.labels``).
+    maps, for a decoder that draws them (``Conditions.labels``); ``style`` (B, Dt): each sample's
+    scene style, for a decoder that draws it (``Conditions.style``).
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
     if b * t == 0:
         return [[] for _ in range(b)]
     flat_labels = None if labels is None or not vae.draws_labels else torch.as_tensor(labels).flatten(0, 1)
+    flat_style = None if style is None or not vae.draws_style else torch.as_tensor(style).repeat_interleave(t, dim=0)
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],
             lidar_spec,
             None if flat_labels is None else flat_labels[i : i + frames_per_call],
+            None if flat_style is None else flat_style[i : i + frames_per_call],
         )
         for i in range(0, b * t, frames_per_call)
     ]
@@ -139,4 +143,4 @@ def generate(
 ) -> list[list[Observation]]:
     """Sample and decode: B lists of T :class:`~world_model.Observation`."""
     latents = sample_latents(model, cond, generator, sampler)
-    return latents_to_observations(vae, latents, lidar_spec, labels=cond.labels)
+    return latents_to_observations(vae, latents, lidar_spec, labels=cond.labels, style=cond.style)

@@ -29,6 +29,7 @@ from torch import nn
 from world_model.model.config import ModelConfig, VaeConfig
 from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
+from world_model.sim.labels import SCENE_LOOK_CLASSES
 
 
 def _groups(channels: int) -> int:
@@ -77,19 +78,31 @@ class Encoder(nn.Module):
 class LabelModulation(nn.Module):
     """SPADE (Park et al. 2019) without its hidden layer: features ``x * (1 + gamma) + beta``, with
     gamma and beta a 3x3 convolution of the one-hot label map area-pooled to the features' grid.
-    Zero-initialized, so a decoder fine-tuned with it starts as the plain one."""
 
-    def __init__(self, label_channels: int, channels: int) -> None:
+    With ``style_dim``, gamma and beta also get, at each pixel, its label class's vector read from
+    the scene's style (the prompt's pooled text embedding) by a linear map: how that class looks in
+    this weather and light. Zero-initialized, so a decoder fine-tuned with it starts as the plain one."""
+
+    def __init__(self, label_channels: int, channels: int, style_dim: int = 0) -> None:
         super().__init__()
         self.conv = nn.Conv2d(label_channels, 2 * channels, 3, padding=1)
-        nn.init.zeros_(self.conv.weight)
-        nn.init.zeros_(self.conv.bias)
+        styled = min(label_channels, len(SCENE_LOOK_CLASSES))
+        self.style = nn.Linear(style_dim, styled * 2 * channels) if style_dim else None
+        for layer in (self.conv, self.style):
+            if layer is not None:
+                nn.init.zeros_(layer.weight)
+                nn.init.zeros_(layer.bias)
 
-    def forward(self, x: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
-        """x (N, c, h, w), labels (N, K, H, W) one-hot (H, W multiples of h, w) -> (N, c, h, w)."""
+    def forward(self, x: torch.Tensor, labels: torch.Tensor, style: torch.Tensor | None = None) -> torch.Tensor:
+        """x (N, c, h, w), labels (N, K, H, W) one-hot (H, W multiples of h, w), style (N, S) -> (N, c, h, w)."""
         if labels.shape[-2:] != x.shape[-2:]:
             labels = F.adaptive_avg_pool2d(labels, x.shape[-2:])
-        gamma, beta = self.conv(labels.to(x.dtype)).chunk(2, dim=1)
+        labels = labels.to(x.dtype)
+        mod = self.conv(labels)
+        if self.style is not None:
+            per_class = self.style(style.to(x.dtype)).view(len(x), -1, mod.shape[1])  # (N, Ks, 2c)
+            mod = mod + torch.einsum("nkhw,nkc->nchw", labels[:, : per_class.shape[1]], per_class)
+        gamma, beta = mod.chunk(2, dim=1)
         return x * (1.0 + gamma) + beta
 
 
@@ -97,9 +110,10 @@ class Decoder(nn.Module):
     """(N, C, h, w) -> (N, 3, h*d, w*d). Channels shrink as resolution grows to keep decoding cheap.
 
     With ``label_channels``, a :class:`LabelModulation` after the input convolution and after each
-    level's normalization draws the view's label map (N, K, H, W) into the features."""
+    level's normalization draws the view's label map (N, K, H, W) into the features, in the scene's
+    style (N, ``style_dim``) when that is given."""
 
-    def __init__(self, cfg: VaeConfig, label_channels: int = 0) -> None:
+    def __init__(self, cfg: VaeConfig, label_channels: int = 0, style_dim: int = 0) -> None:
         super().__init__()
         chans = [cfg.decoder_base_channels * m for m in reversed(cfg.channel_mults)]
         self.conv_in = nn.Conv2d(cfg.latent_channels, chans[0], 3, padding=1)
@@ -118,22 +132,32 @@ class Decoder(nn.Module):
         self.up = nn.Sequential(*ups)
         self.conv_out = nn.Conv2d(cin, cfg.image_channels, 3, padding=1)
         self.label_mods = (
-            nn.ModuleList(LabelModulation(label_channels, c) for c in (chans[0], *chans)) if label_channels else None
+            nn.ModuleList(LabelModulation(label_channels, c, style_dim) for c in (chans[0], *chans))
+            if label_channels
+            else None
         )
+        self.style_dim = style_dim
 
-    def forward(self, z: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(
+        self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """z (N, C, h, w); ``labels`` (N, K, H, W) one-hot, required with label modulation (all
-        zeros: no layout, e.g. the LiDAR view)."""
+        zeros: no layout, e.g. the LiDAR view); ``style`` (N, S), required with ``style_dim``."""
         if self.label_mods is None:
             return self.conv_out(self.up(self.mid(self.conv_in(z))))
         if labels is None:
             raise ValueError("this decoder draws each view's label map: pass labels")
+        if self.style_dim and (style is None or tuple(style.shape) != (len(z), self.style_dim)):
+            got = None if style is None else tuple(style.shape)
+            raise ValueError(
+                f"this decoder draws the scene's style: pass style ({len(z)}, {self.style_dim}), got {got}"
+            )
         mods = iter(self.label_mods)
-        h = self.mid(next(mods)(self.conv_in(z), labels))
+        h = self.mid(next(mods)(self.conv_in(z), labels, style))
         layers = list(self.up)
         for i in range(0, len(layers), 4):  # upsample, conv, norm | modulation | activation
             upsample, conv, norm, act = layers[i : i + 4]
-            h = act(next(mods)(norm(conv(upsample(h))), labels))
+            h = act(next(mods)(norm(conv(upsample(h))), labels, style))
         return self.conv_out(h)
 
 
@@ -144,7 +168,7 @@ class SensorVAE(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg.vae)
-        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels)
+        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim if cfg.layout.decoder_style else 0)
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
         self.register_buffer("latent_std", torch.ones(c))
@@ -154,14 +178,33 @@ class SensorVAE(nn.Module):
         """Unnormalized posterior mean/logvar of (N, 3, H, W) images."""
         return self.encoder(images)
 
-    def decode_raw(self, z: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
-        """Unnormalized latents (N, C, h, w) -> images; ``labels`` as :meth:`decode`."""
-        return self.decoder(z, self._one_hot(labels, z))
+    def decode_raw(
+        self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """Unnormalized latents (N, C, h, w) -> images; ``labels`` and ``style`` as :meth:`decode`."""
+        return self.decoder(z, self._one_hot(labels, z), self._style(style, labels, z))
 
     @property
     def draws_labels(self) -> bool:
         """Whether the decoder needs each camera's label map (``layout.decoder``)."""
         return self.decoder.label_mods is not None
+
+    @property
+    def draws_style(self) -> bool:
+        """Whether the decoder also needs the scene's style with the label maps (``layout.decoder_style``)."""
+        return self.decoder.style_dim > 0
+
+    def _style(
+        self, style: torch.Tensor | None, labels: torch.Tensor | None, like: torch.Tensor
+    ) -> torch.Tensor | None:
+        """(N, S) style for the decoder: required with label maps, zeros without (nothing to style)."""
+        if not self.draws_style:
+            return None
+        if style is None:
+            if labels is not None:
+                raise ValueError("this VAE's decoder draws the label maps in the scene's style: pass style")
+            return like.new_zeros(like.shape[0], self.decoder.style_dim)
+        return style.to(device=like.device, dtype=like.dtype)
 
     def _one_hot(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
         """(N, H, W) uint8 :data:`~world_model.sim.labels.LABEL_CLASSES` ids -> (N, K, H, W) one-hot,
@@ -186,16 +229,20 @@ class SensorVAE(nn.Module):
         """(N, 3, H, W) in [-1, 1] -> normalized latent means (N, C, h, w)."""
         return self._norm(self.encoder(images)[0])
 
-    def decode(self, latents: torch.Tensor, labels: torch.Tensor | None = None) -> torch.Tensor:
+    def decode(
+        self, latents: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
 
         ``labels``: (N, H, W) uint8 label-map class ids, read when the decoder draws them
-        (:attr:`draws_labels`); None there means no layout (the LiDAR view)."""
+        (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
+        scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
+        when the decoder draws it (:attr:`draws_style`)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
         z = z.contiguous(memory_format=torch.channels_last)
-        return self.decoder(z, self._one_hot(labels, z))
+        return self.decoder(z, self._one_hot(labels, z), self._style(style, labels, z))
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
@@ -229,14 +276,26 @@ class SensorVAE(nn.Module):
         latents: torch.Tensor,
         lidar_spec: LidarSpec | None = None,
         labels: np.ndarray | torch.Tensor | None = None,
+        style: np.ndarray | torch.Tensor | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
 
         ``labels``: the frames' camera label maps (T, V, H, W) uint8, required when the decoder
-        draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``)."""
+        draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
+        ``style``: the scene's style, (S,) for every frame or (T, S), required when the decoder draws
+        it (:attr:`draws_style`; ``ConditionArrays.style``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
-        cam_labels = None
+        cam_labels = cam_style = None
+        if self.draws_style:
+            s = self.decoder.style_dim
+            if style is None or tuple(style.shape) not in ((s,), (t, s)):
+                got = None if style is None else tuple(style.shape)
+                raise ValueError(
+                    f"this VAE's decoder draws the scene's style: need style ({s},) or ({t}, {s}), got {got}"
+                )
+            per_frame = torch.as_tensor(style, dtype=torch.float32, device=latents.device).expand(t, s)
+            cam_style = per_frame.repeat_interleave(v1 - 1, dim=0)
         if self.draws_labels:
             if labels is None or tuple(labels.shape[:2]) != (t, v1 - 1):
                 got = None if labels is None else tuple(labels.shape)
@@ -247,7 +306,7 @@ class SensorVAE(nn.Module):
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
-            images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels)
+            images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels, cam_style)
         cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         lid = images_to_lidar(
             self.decode(latents[:, -1]), lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
@@ -255,13 +314,17 @@ class SensorVAE(nn.Module):
         return cams, lid
 
     def reconstruct_frames(
-        self, cameras: np.ndarray, lidar: np.ndarray, labels: np.ndarray | None = None
+        self,
+        cameras: np.ndarray,
+        lidar: np.ndarray,
+        labels: np.ndarray | None = None,
+        style: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) through the autoencoder
         and back, same layouts: the best any model generating through this VAE can render.
-        ``labels`` as :meth:`decode_frames`."""
+        ``labels`` and ``style`` as :meth:`decode_frames`."""
         latents = self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32))
-        return self.decode_frames(latents, labels=labels)
+        return self.decode_frames(latents, labels=labels, style=style)
 
     @property
     def cfg_hw(self) -> tuple[int, int]:

@@ -34,6 +34,10 @@ LABEL_CLASSES: tuple[str, ...] = (
     "other_object",  # cones, barriers
 )
 SKY, OFFROAD, ROAD, MARKING, VEHICLE, VULNERABLE, OTHER_OBJECT = range(len(LABEL_CLASSES))
+# The classes whose look the scene's weather and light decide (the first ids): the rest are objects,
+# whose look is their own.
+SCENE_LOOK_CLASSES = (SKY, OFFROAD, ROAD, MARKING)
+assert tuple(range(len(SCENE_LOOK_CLASSES))) == SCENE_LOOK_CLASSES
 # An id that draws nothing (the decoder's all-zero one-hot): the LiDAR view, which has no label
 # map, and frames that will not be decoded.
 NO_LABEL = 255

@@ -6,6 +6,9 @@ every DiT is trained on stay what they were and the stage may run at any point a
 decoder starts as the plain one (its label modulations zero-initialized) and learns, on the run's
 cached latents, to draw the road, the markings and the objects where the label maps put them.
 The latents it decodes are jittered with Gaussian noise: the student's are not the encoder's.
+A decoder that draws the scene's style (``layout.decoder_style``) reads each clip's prompt too, and
+its latents also drift by a smooth random field: the student's colours wander (a rainy day's sky
+turning dusk-orange), so the sky, road and ground must take their look from the prompt.
 
 Layout: ``RUN/vae/`` and ``RUN/decoder/`` each hold checkpoints/, model.safetensors + model.json
 (EMA weights, latent statistics, reconstruction metrics) and metrics.json.
@@ -14,13 +17,16 @@ Layout: ``RUN/vae/`` and ``RUN/decoder/`` each hold checkpoints/, model.safetens
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from world_model.data.clips import write_json_atomic
+from world_model.model.conditions import style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.scene import SceneFrame
 from world_model.sim.labels import NO_LABEL, LabelRasterizer
@@ -35,12 +41,23 @@ STATS_FRAMES = 64  # frames used to fit the latent normalization
 # Largest standard deviation of the noise added to a decoder-stage latent (normalized units, drawn
 # uniformly per sample from [0, this]): the student's latents are near the encoder's, not on them.
 DECODER_LATENT_NOISE = 0.3
+# Largest amplitude of the smooth drift added to a styled decoder's latents (normalized units, a
+# per-sample amplitude drawn uniformly from [0, this] times a bilinear field over a coarse grid of
+# Gaussian values, DRIFT_GRID cells): regional, like the student's colour drift.
+DECODER_STYLE_DRIFT = 0.8
+DRIFT_GRID = (2, 4)
 
 
 @torch.no_grad()
-def vae_metrics(vae: SensorVAE, sampler: FrameSampler, labels: LabelRasterizer | None = None) -> dict[str, float]:
+def vae_metrics(
+    vae: SensorVAE,
+    sampler: FrameSampler,
+    labels: LabelRasterizer | None = None,
+    styles: Sequence[np.ndarray] | None = None,
+) -> dict[str, float]:
     """Camera PSNR (dB, uint8 images) and LiDAR range MAE (m, on true returns) + no-return accuracy.
-    ``labels`` renders the label maps of a decoder that draws them."""
+    ``labels`` renders the label maps of a decoder that draws them; ``styles``: each clip's scene
+    style, for a decoder that draws it."""
     cfg = vae.cfg
     spec = cfg.sensors.lidar
     device = next(vae.parameters()).device
@@ -50,7 +67,8 @@ def vae_metrics(vae: SensorVAE, sampler: FrameSampler, labels: LabelRasterizer |
         cams = np.asarray(clip.cameras[f])
         x = torch.stack([sampler.image(ci, f, v) for v in range(cfg.sensors.num_views)]).to(device)
         ids = view_labels(labels, clip.frames[f], cfg, range(cfg.sensors.num_views)) if labels else None
-        rec = vae.decode(vae.encode(x), ids).float().cpu()
+        style = None if styles is None else torch.from_numpy(styles[ci]).expand(len(x), -1)
+        rec = vae.decode(vae.encode(x), ids, style).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
         truth = np.asarray(clip.lidar[f], dtype=np.float32)
@@ -128,6 +146,10 @@ def decoder_stage(run: StageRun) -> dict:
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, "decoder")
     raster = LabelRasterizer()
+    styles = None
+    if vae.draws_style:
+        text = make_text_encoder(cfg.text)
+        styles = [style_of_prompt(c.frames[0].prompt, cfg, text) for c in clips]
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
@@ -135,9 +157,13 @@ def decoder_stage(run: StageRun) -> dict:
         images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
         z = torch.stack([latents[c][f, v] for c, f, v in picks]).float()
         sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
-        z = tr.shard(z + sigma * tr.randn(*z.shape))
+        z = z + sigma * tr.randn(*z.shape)
+        style = None
+        if styles is not None:
+            z = z + style_drift(tr, len(z), z.shape[1:])
+            style = tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
         ids = tr.shard(torch.cat([view_labels(raster, clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
-        err = weighted_l1(vae.decode(z, ids), images, weights)
+        err = weighted_l1(vae.decode(tr.shard(z), ids, style), images, weights)
         return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
 
     summary = trainer.run(step, "decoder")
@@ -147,8 +173,16 @@ def decoder_stage(run: StageRun) -> dict:
     final.load_state_dict(trainer.ema.model_state(vae))
     final.encoder.load_state_dict(plain.encoder.state_dict())  # bit for bit (the EMA rounds a frozen weight)
     final.eval()
-    metrics = vae_metrics(final, sampler, raster)
+    metrics = vae_metrics(final, sampler, raster, styles)
     return {**summary, "metrics": export_vae(run, "decoder", final, trainer.step, metrics)}
+
+
+def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
+    """(n, C, h, w) smooth random latent drift (:data:`DECODER_STYLE_DRIFT`), drawn from the trainer's
+    random streams."""
+    amplitude = torch.from_numpy(tr.rng.uniform(0.0, DECODER_STYLE_DRIFT, size=(n, 1, 1, 1))).float()
+    coarse = tr.randn(n, shape[0], *DRIFT_GRID)
+    return amplitude * F.interpolate(coarse, size=tuple(shape[1:]), mode="bilinear", align_corners=True)
 
 
 def export_vae(run: StageRun, stage: str, vae: SensorVAE, step: int, metrics: dict[str, float]) -> dict[str, float]:
