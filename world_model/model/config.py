@@ -113,9 +113,10 @@ class LayoutConfig:
     latents stay the encoder's: the ``decoder`` stage fine-tunes the decoder alone, and the DiTs do
     not depend on it.
 
-    ``decoder_style``: that modulation also reads the prompt's pooled text embedding, per label
-    class (how the sky, the road, the ground look in this weather and light), so the scene's weather
-    and time of day reach every pixel of its class whatever colour the latents drifted to."""
+    ``decoder_style``: that modulation also reads the prompt's pooled text embedding, per scene
+    class (how the sky, the off-road ground, the road and its markings look in this weather and
+    light), so the scene's weather and time of day reach every pixel of those classes whatever
+    colour the latents drifted to; objects keep their own look."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
@@ -258,7 +259,7 @@ class ModelConfig:
         return replace(
             self,
             vae=self.vae.model_settings(),
-            layout=replace(self.layout, decoder=False, decoder_style=False),
+            layout=without_label_decoder(self).layout,
             dit=replace(self.dit, student_depth=None),
             clip=replace(self.clip, context_frames=0),
         )
