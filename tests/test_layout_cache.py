@@ -39,6 +39,8 @@ def test_a_second_stage_reads_the_cache_and_a_changed_setting_or_corrupt_entry_r
     monkeypatch.setattr(train_data, "_clip_layout", lambda *a: pytest.fail("recomputed a cached layout"))
     again = cached_layouts(clips, CFG, tmp_path, workers=1)
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
+    plain_decoder = replace(CFG, layout=replace(CFG.layout, decoder=False, decoder_style=False))
+    cached_layouts(clips, plain_decoder, tmp_path, workers=1)  # the decoder's settings: the same rasters
     monkeypatch.undo()
     (tmp_path / f"{clips[0].name}.safetensors").write_bytes(b"garbage")
     finer = replace(CFG, layout=replace(CFG.layout, supersample=CFG.layout.supersample + 1))

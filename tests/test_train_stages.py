@@ -9,10 +9,13 @@ import torch
 from safetensors.torch import load_file
 
 from tests.model_fixtures import kill_after_checkpoint, make_dataset
+from world_model.bundle import export_bundle
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
 from world_model.model.config import with_layout
+from world_model.model.dit import MultiViewDiT
 from world_model.model.vae import SensorVAE
+from world_model.student.config import StudentConfig
 from world_model.train import (
     TrainConfig,
     Trainer,
@@ -22,8 +25,8 @@ from world_model.train import (
     load_vae,
     train_stage,
 )
-from world_model.train.checkpoint import save_checkpoint
-from world_model.train.data import encoder_digest
+from world_model.train.checkpoint import export_weights, save_checkpoint
+from world_model.train.data import cached_latents, encoder_digest, latent_cache_dir, load_clips
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +82,45 @@ def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_p
             assert torch.equal(mine[key], value), key
     assert any(mods.conv.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # it learned the maps
     assert any(mods.style.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # and the style
+
+
+def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tmp_path):
+    cfg = with_layout(get_preset("tiny"), True)
+    data = make_dataset(tmp_path / "data", cfg, lengths=(5, 3))
+    run = tmp_path / "run"
+    train_stage("vae", data, run, preset="tiny", config=cfg, steps=2, progress=False)
+    train_stage("decoder", data, run, preset="tiny", config=cfg, steps=2, progress=False)
+    with pytest.raises(FileNotFoundError, match="--stage ode"):
+        train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=2, progress=False)
+    student_cfg = cfg.for_student()
+    torch.manual_seed(0)
+    meta = {"stage": "ode", "model_config": student_cfg.to_dict(), "student_config": StudentConfig().to_dict()}
+    export_weights(run / "ode" / "model", MultiViewDiT(student_cfg).state_dict(), meta)
+
+    out = train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=3, ckpt_every=1, progress=False)
+    assert out["step"] == 3 and out["rollout_clips"] == 2
+    rollouts_file = run / "rollout_decoder" / "rollouts.pt"
+    rollouts = torch.load(rollouts_file)
+    plain = load_vae(run / "vae" / "model")
+    clips = load_clips(data, cfg)
+    assert [len(r) for r in rollouts] == [c.num_frames for c in clips]  # every frame of every clip
+    for clip, rolled in zip(clips, rollouts, strict=True):
+        encoded = cached_latents(clip, plain, latent_cache_dir(run), encoder_digest(plain)).to(rolled.dtype)
+        assert torch.equal(rolled[:1], encoded[:1])  # streamed from the clip's first latents
+        assert not torch.equal(rolled[1:], encoded[1:])
+    tuned, drawn = load_vae(run / "rollout_decoder" / "model"), load_vae(run / "decoder" / "model")
+    assert tuned.cfg == drawn.cfg and tuned.draws_style
+    assert torch.equal(tuned.encoder.conv_in.weight, plain.encoder.conv_in.weight)  # the latents stay the encoder's
+    assert not torch.equal(tuned.decoder.conv_out.weight, drawn.decoder.conv_out.weight)
+
+    stamp = rollouts_file.stat().st_mtime_ns
+    again = train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=4, ckpt_every=1, progress=False)
+    assert again["resumed_from"] == 3 and again["step"] == 4
+    assert rollouts_file.stat().st_mtime_ns == stamp  # rolled out once, then reused
+    bundle = export_bundle(run, tmp_path / "bundle")
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
+    assert manifest["model_config"]["layout"]["decoder"] and manifest["model_config"]["layout"]["decoder_style"]
 
 
 def test_latent_cache_key_is_the_encoder_not_the_decoder():

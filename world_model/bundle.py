@@ -6,7 +6,8 @@ Layout::
       manifest.json            format, version, the student's model config, and per component: file,
                                sha256, bytes, stage, and ``model_config`` where the component's
                                differs (the reference model: wider input, teacher depth)
-      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``decoder``, else ``vae``)
+      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``rollout_decoder``, else
+                               ``decoder``, else ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       streaming.json           how the student streams at inference (denoising steps, context
@@ -41,7 +42,7 @@ BUNDLE_VERSION = 1
 DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
-    "vae": ("decoder", "vae"),
+    "vae": ("rollout_decoder", "decoder", "vae"),
     "student": ("long", "dmd", "ode"),
     "reference": ("reference",),
 }
@@ -103,7 +104,7 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     # The decoder is the one component whose config may differ from the student's (the DiTs do
     # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it,
     # in the scene's style when that stage's config says so.
-    draws_labels = found["vae"][0] == "decoder"
+    draws_labels = found["vae"][0] in ("rollout_decoder", "decoder")
     if draws_labels or config.get("layout", {}).get("decoder"):
         vae_layout = (_export_config(found["vae"][1]) or {}).get("layout", {}) if draws_labels else {}
         config["layout"] = {

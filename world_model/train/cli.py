@@ -15,14 +15,18 @@ from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_fla
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
-stages: vae, decoder, teacher, tf, ode, dmd, long, reference, lora (each writes RUN/<stage>/; lora
-RUN/lora/CASE/); decoder (with --layout) fine-tunes the VAE's decoder to draw the layout's label maps.
---all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> reference at the preset's steps, then writes
+stages: vae, decoder, teacher, tf, ode, dmd, long, rollout_decoder, reference, lora (each writes
+RUN/<stage>/; lora RUN/lora/CASE/); decoder (with --layout) fine-tunes the VAE's decoder to draw the
+layout's label maps, rollout_decoder fine-tunes it again on the trained student's own rollouts.
+--all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> [rollout_decoder] -> reference
+at the preset's steps, then writes
 RUN/bundle. Multi-GPU: torchrun --nproc-per-node N -m world_model.train -- FLAGS (data parallel;
 --batch-size is the global batch, a multiple of N; the "--" keeps torchrun from reading --run as its
 --run-path). Rerunning the same command resumes from each stage's last checkpoint.
 """
-PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference")  # --all (decoder: with --layout)
+# --all; the decoder stages with --layout
+PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "rollout_decoder", "reference")
+DECODER_STAGES = ("decoder", "rollout_decoder")
 
 
 def positive_int(text: str) -> int:
@@ -99,7 +103,7 @@ def run_train(args: argparse.Namespace) -> int:
     try:
         # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
         # rerunning the same command after an interruption loses nothing.
-        chain = [s for s in PIPELINE if s != "decoder" or config.layout.decoder]
+        chain = [s for s in PIPELINE if s not in DECODER_STAGES or config.layout.decoder]
         for stage in chain if args.all else (args.stage,):
             summary = stages.train_stage(
                 stage,

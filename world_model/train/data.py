@@ -193,10 +193,14 @@ def layout_cache_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "teacher" / "layouts"
 
 
+DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style")
+
+
 def layout_key(cfg: ModelConfig) -> str:
     """What decides a clip's layout raster besides the clip: the layout settings, the LiDAR and the
     latent resolution."""
-    dit_layout = {k: v for k, v in asdict(cfg.layout).items() if k != "decoder"}  # the raster is the DiT's
+    # The raster is the DiT's: the decoder's settings do not change it.
+    dit_layout = {k: v for k, v in asdict(cfg.layout).items() if k not in DECODER_LAYOUT_FIELDS}
     blob = json.dumps([dit_layout, asdict(cfg.sensors.lidar), list(cfg.latent_hw)], sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

@@ -3,7 +3,7 @@
 ``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|cpu|dry]``
 
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
-2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference into ``OUT/run`` through
+2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> rollout_decoder -> reference into ``OUT/run`` through
    :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
    scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
    bundle's own weights, from the rare object's clips (``OUT/data_rare``);
@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference")
+CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "rollout_decoder", "reference")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). A student adapter
 # for the same object did not help (docs/experiments.md) and is not trained.
@@ -88,6 +88,7 @@ SCALES = {
             "ode": (400, 16),
             "dmd": (300, 8),
             "long": (100, 8),
+            "rollout_decoder": (1000, 64),
             "reference": (1500, 32),
             "lora": (1500, 32),
         },
@@ -111,6 +112,7 @@ SCALES = {
             "ode": (80, 4),
             "dmd": (50, 2),
             "long": (20, 2),
+            "rollout_decoder": (1500, 16),
             "reference": (800, 4),
             "lora": (300, 4),
         },
@@ -148,6 +150,7 @@ TIME_SHARES = {
     "ode": 0.08,
     "dmd": 0.1,
     "long": 0.06,
+    "rollout_decoder": 0.05,
     "reference": 0.12,
     f"{RARE_CATEGORY}_completion": 0.05,
 }

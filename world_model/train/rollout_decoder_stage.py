@@ -1,0 +1,179 @@
+"""The ``rollout_decoder`` stage: the label decoder fine-tuned on the student's own rollouts.
+
+The ``decoder`` stage learns from the encoder's latents, with noise and a synthetic drift added.
+The trained student's latents drift in their own way: on some clips a grey sky turns dusk-orange
+within a second, and a decoder that never saw such latents draws what they say. Here the run's
+student (its ``long`` export, else ``dmd``, else ``ode``) streams :data:`ROLLOUT_CLIPS` training
+clips once, with the env's streaming settings (:class:`StreamingConfig`'s defaults), from each
+clip's first latent frame; the decoder then learns to draw each recorded frame from the student's
+latents of it, the frame's label maps and the prompt's style. :data:`ROLLOUT_SHARE` of every batch
+comes from these rollouts, the rest is the decoder stage's batch, so that the decoder keeps
+following the latents (docs/experiments.md compares the shares).
+
+    RUN/rollout_decoder/rollouts.pt     the student's latents of the rolled-out clips (bf16), reused on resume
+    RUN/rollout_decoder/progress.json   clips rolled out so far, then the training's progress
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from world_model.data.clips import Clip, write_json_atomic
+from world_model.model.conditions import style_of_prompt
+from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.text import make_text_encoder
+from world_model.model.vae import SensorVAE, weighted_l1
+from world_model.sim.labels import LabelRasterizer
+from world_model.student.engine import StreamingEngine
+from world_model.student.streaming import StreamingConfig
+from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
+from world_model.train.exports import EXPORT, latent_windows, load_student, load_vae, require_export, run_vae
+from world_model.train.rollouts import rollout_batch, rollout_conditions
+from world_model.train.run import StageRun
+from world_model.train.trainer import Trainer
+from world_model.train.vae_stage import (
+    DECODER_LATENT_NOISE,
+    check_decoder_config,
+    export_vae,
+    style_drift,
+    vae_metrics,
+    view_labels,
+)
+
+STAGE = "rollout_decoder"
+STUDENT_STAGES = ("long", "dmd", "ode")  # the student rolled out: the first that has an export
+ROLLOUT_CLIPS = 32  # training clips rolled out, spread evenly over the dataset (7 min on 2 CPU cores)
+ROLLOUT_BATCH = 8  # clips streamed together
+ROLLOUT_SHARE = 0.5  # of each batch: frames of the student's rollouts; the rest as in the decoder stage
+ROLLOUTS_FILE = "rollouts.pt"
+
+
+def rollout_clip_indices(num_clips: int, wanted: int = ROLLOUT_CLIPS) -> list[int]:
+    """``wanted`` clip indices spread evenly over ``num_clips`` (all of them when there are fewer):
+    the dataset lists each scenario's clips together, so every scenario gets its share."""
+    if num_clips <= wanted:
+        return list(range(num_clips))
+    return [int(i) for i in np.linspace(0, num_clips - 1, wanted).round()]
+
+
+def run_student(run: StageRun) -> tuple[torch.nn.Module, object, str]:
+    """The run's latest student export, its :class:`StudentConfig` streaming as the env does, and its stage."""
+    for stage in STUDENT_STAGES:
+        path = run.run_dir / stage / EXPORT
+        if path.with_suffix(".safetensors").exists():
+            student, scfg = load_student(path)
+            return student, StreamingConfig().apply(scfg), stage
+    raise FileNotFoundError(
+        f"--stage {STAGE} rolls out the run's student: train --stage {STUDENT_STAGES[-1]} (or a later student "
+        f"stage) with the same --run first"
+    )
+
+
+@torch.no_grad()
+def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest: str) -> list[torch.Tensor]:
+    """Each clip streamed once by the run's student: latents (T, V, C, h, w) bf16, the first
+    ``prefix_frames`` the encoder's. Computed on the main process, saved to the stage directory and
+    loaded from there on resume (other ranks wait for the file)."""
+    cache = run.stage_dir / ROLLOUTS_FILE
+    if run.place.is_main and not cache.exists():
+        student, scfg, _ = run_student(run)
+        device = run.place.device
+        student = student.to(device).eval().requires_grad_(False)
+        windows = latent_windows(clips, plain, digest, run.run_dir, run.cfg, device)
+        gen = torch.Generator().manual_seed(run.tcfg.seed)
+        engine = StreamingEngine(student, scfg, lambda shape: torch.randn(tuple(shape), generator=gen).to(device))
+        c, p = run.cfg.clip.chunk_frames, scfg.prefix_frames
+        out: list[torch.Tensor] = []
+        for g in range(0, len(clips), ROLLOUT_BATCH):
+            rows = list(range(g, min(g + ROLLOUT_BATCH, len(clips))))
+            first, cond = rollout_batch(windows, rows, 0, p, 0)
+            engine.start(first.to(device), cond.to(device))
+            lengths = windows.lengths[rows]
+            chunks = [first.to(device)]
+            for k in range(math.ceil((int(lengths.max()) - p) / c)):
+                chunks.append(engine.step(rollout_conditions(windows, rows, p + k * c, c, 0).to(device)))
+            latents = torch.cat(chunks, dim=1).to(torch.bfloat16).cpu()
+            out += [latents[j, : lengths[j]].clone() for j in range(len(rows))]
+            progress = {"stage": f"{STAGE}: rollouts", "clips_done": len(out), "clips": len(clips)}
+            progress["updated"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+            write_json_atomic(run.stage_dir / "progress.json", progress)
+        partial = cache.with_suffix(".partial")
+        torch.save(out, partial)
+        os.replace(partial, cache)
+    run.place.barrier()
+    return torch.load(cache, weights_only=True)
+
+
+def load_decoder_export(run_dir: Path, cfg: ModelConfig) -> SensorVAE:
+    """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout)."""
+    vae = load_vae(require_export(run_dir / "decoder" / EXPORT, "decoder"))
+    if (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) != (cfg.sensors, cfg.vae, cfg.layout):
+        raise ValueError(f"{run_dir / 'decoder'} was trained with another config; use the same preset and --layout")
+    return vae
+
+
+def rollout_decoder_stage(run: StageRun) -> dict:
+    """Train (or resume) ``RUN/rollout_decoder`` (module docstring)."""
+    cfg, tcfg = run.cfg, run.tcfg
+    check_decoder_config(cfg)
+    plain, digest = run_vae(run.run_dir, without_label_decoder(cfg), STAGE)
+    vae = load_decoder_export(run.run_dir, cfg)
+    clips = load_clips(run.data_dir, cfg)
+    picked = rollout_clip_indices(len(clips))
+    rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
+    prefix = run_student(run)[1].prefix_frames
+    sampler = FrameSampler(clips, cfg)
+    latents = [cached_latents(c, plain, latent_cache_dir(run.run_dir), digest) for c in clips]
+    torch.manual_seed(tcfg.seed)
+    vae.train().requires_grad_(True)
+    vae.encoder.requires_grad_(False)
+    trainer = run.trainer(vae, STAGE)
+    raster = LabelRasterizer()
+    styles = None
+    if vae.draws_style:
+        text = make_text_encoder(cfg.text)
+        styles = [style_of_prompt(c.frames[0].prompt, cfg, text) for c in clips]
+    from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
+    views = cfg.sensors.num_views
+
+    def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
+        """(clip, frame, view, rollout) of the rollouts' share of the batch; frames after the prefix."""
+        out = []
+        for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
+            frame = int(tr.rng.integers(prefix, len(rollouts[r])))
+            out.append((picked[r], frame, int(tr.rng.integers(views)), r))
+        return out
+
+    def step(tr: Trainer) -> tuple[torch.Tensor, int]:
+        own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
+        rolled = rollout_picks(tr)
+        picks = own + [(c, f, v) for c, f, v, _ in rolled]
+        batch = sampler.batch(picks)
+        images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
+        z = torch.stack([latents[c][f, v] for c, f, v in own]).float()
+        sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
+        z = z + sigma * tr.randn(*z.shape)
+        style = None
+        if styles is not None:
+            z = z + style_drift(tr, len(z), z.shape[1:])
+            style = tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
+        z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float()])
+        ids = tr.shard(torch.cat([view_labels(raster, clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
+        err = weighted_l1(vae.decode(tr.shard(z), ids, style), images, weights)
+        return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+
+    summary = trainer.run(step, STAGE)
+    if not run.place.is_main:
+        return summary
+    final = SensorVAE(cfg)
+    final.load_state_dict(trainer.ema.model_state(vae))
+    final.encoder.load_state_dict(plain.encoder.state_dict())  # bit for bit (the EMA rounds a frozen weight)
+    final.eval()
+    metrics = vae_metrics(final, sampler, raster, styles)
+    return {**summary, "rollout_clips": len(rollouts), "metrics": export_vae(run, STAGE, final, trainer.step, metrics)}
