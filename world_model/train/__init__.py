@@ -1,5 +1,5 @@
-"""Training of the world model: the stages (vae, decoder, teacher, tf, ode, dmd, long, rollout_decoder,
-reference, lora), their checkpoints, exports and EMA. The command line: ``python -m world_model.train``
+"""Training of the world model: the stages (vae, decoder, teacher, tf, ode, dmd, long, reference,
+rollout_decoder, lora), their checkpoints, exports and EMA. The command line: ``python -m world_model.train``
 (= ``m4world train``).
 
 The names below load on first use, so that the command line's parser

@@ -15,17 +15,17 @@ from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_fla
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
-stages: vae, decoder, teacher, tf, ode, dmd, long, rollout_decoder, reference, lora (each writes
+stages: vae, decoder, teacher, tf, ode, dmd, long, reference, rollout_decoder, lora (each writes
 RUN/<stage>/; lora RUN/lora/CASE/); decoder (with --layout) fine-tunes the VAE's decoder to draw the
 layout's label maps, rollout_decoder fine-tunes it again on the trained student's own rollouts.
---all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> [rollout_decoder] -> reference
+--all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> reference -> [rollout_decoder]
 at the preset's steps, then writes
 RUN/bundle. Multi-GPU: torchrun --nproc-per-node N -m world_model.train -- FLAGS (data parallel;
 --batch-size is the global batch, a multiple of N; the "--" keeps torchrun from reading --run as its
 --run-path). Rerunning the same command resumes from each stage's last checkpoint.
 """
 # --all; the decoder stages with --layout
-PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "rollout_decoder", "reference")
+PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder")
 DECODER_STAGES = ("decoder", "rollout_decoder")
 
 

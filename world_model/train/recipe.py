@@ -3,8 +3,8 @@
 ``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|cpu|dry]``
 
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
-2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> rollout_decoder -> reference into ``OUT/run`` through
-   :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
+2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference -> rollout_decoder into
+   ``OUT/run`` through :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
    scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
    bundle's own weights, from the rare object's clips (``OUT/data_rare``);
 3. writes the bundle (``OUT/bundle``) and a copy whose every file is at most ``--max-file-mib``
@@ -35,7 +35,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "rollout_decoder", "reference")
+CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). A student adapter
 # for the same object did not help (docs/experiments.md) and is not trained.

@@ -4,8 +4,9 @@ The ``decoder`` stage learns from the encoder's latents, with noise and a synthe
 The trained student's latents drift in their own way: on some clips a grey sky turns dusk-orange
 within a second, and a decoder that never saw such latents draws what they say. Here the run's
 student (its ``long`` export, else ``dmd``, else ``ode``) streams :data:`ROLLOUT_CLIPS` training
-clips once, with the env's streaming settings (:class:`StreamingConfig`'s defaults), from each
-clip's first latent frame; the decoder then learns to draw each recorded frame from the student's
+clips once as the env does: the first frame from the run's reference model (else the student, as
+a bundle without one), then chunk by chunk with the env's streaming settings
+(:class:`StreamingConfig`'s defaults); the decoder then learns to draw each recorded frame from the student's
 latents of it, the frame's label maps and the prompt's style. :data:`ROLLOUT_SHARE` of every batch
 comes from these rollouts, the rest is the decoder stage's batch, so that the decoder keeps
 following the latents (docs/experiments.md compares the shares).
@@ -27,14 +28,25 @@ import torch
 from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.conditions import style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.dit import MultiViewDiT
+from world_model.model.reference import ReferenceGenerator
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, weighted_l1
 from world_model.sim.labels import LabelRasterizer
+from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import StreamingConfig
 from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
-from world_model.train.exports import EXPORT, latent_windows, load_student, load_vae, require_export, run_vae
-from world_model.train.rollouts import rollout_batch, rollout_conditions
+from world_model.train.exports import (
+    EXPORT,
+    latent_windows,
+    load_student,
+    load_teacher,
+    load_vae,
+    require_export,
+    run_vae,
+)
+from world_model.train.rollouts import rollout_conditions
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 from world_model.train.vae_stage import (
@@ -62,7 +74,13 @@ def rollout_clip_indices(num_clips: int, wanted: int = ROLLOUT_CLIPS) -> list[in
     return [int(i) for i in np.linspace(0, num_clips - 1, wanted).round()]
 
 
-def run_student(run: StageRun) -> tuple[torch.nn.Module, object, str]:
+def run_reference(run: StageRun) -> MultiViewDiT | None:
+    """The run's reference model export, or None before ``--stage reference``."""
+    path = run.run_dir / "reference" / EXPORT
+    return load_teacher(path) if path.with_suffix(".safetensors").exists() else None
+
+
+def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig, str]:
     """The run's latest student export, its :class:`StudentConfig` streaming as the env does, and its stage."""
     for stage in STUDENT_STAGES:
         path = run.run_dir / stage / EXPORT
@@ -77,27 +95,31 @@ def run_student(run: StageRun) -> tuple[torch.nn.Module, object, str]:
 
 @torch.no_grad()
 def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest: str) -> list[torch.Tensor]:
-    """Each clip streamed once by the run's student: latents (T, V, C, h, w) bf16, the first
-    ``prefix_frames`` the encoder's. Computed on the main process, saved to the stage directory and
-    loaded from there on resume (other ranks wait for the file)."""
+    """Each clip streamed once as the env streams it: latents (T, V, C, h, w) bf16, the first frame
+    the first-frame model's (row i of the rollouts seeded ``tcfg.seed + i``). Computed on the main
+    process, saved to the stage directory and loaded from there on resume (other ranks wait for the
+    file)."""
     cache = run.stage_dir / ROLLOUTS_FILE
     if run.place.is_main and not cache.exists():
         student, scfg, _ = run_student(run)
         device = run.place.device
         student = student.to(device).eval().requires_grad_(False)
+        reference = run_reference(run)
+        first_frames = ReferenceGenerator((reference or student).to(device).eval().requires_grad_(False), plain)
         windows = latent_windows(clips, plain, digest, run.run_dir, run.cfg, device)
         gen = torch.Generator().manual_seed(run.tcfg.seed)
         engine = StreamingEngine(student, scfg, lambda shape: torch.randn(tuple(shape), generator=gen).to(device))
-        c, p = run.cfg.clip.chunk_frames, scfg.prefix_frames
+        c = run.cfg.clip.chunk_frames
         out: list[torch.Tensor] = []
         for g in range(0, len(clips), ROLLOUT_BATCH):
             rows = list(range(g, min(g + ROLLOUT_BATCH, len(clips))))
-            first, cond = rollout_batch(windows, rows, 0, p, 0)
-            engine.start(first.to(device), cond.to(device))
+            cond = rollout_conditions(windows, rows, 0, 1, 0).to(device)
+            first = first_frames.sample(cond, seed=[run.tcfg.seed + r for r in rows])
+            engine.start(first, cond)
             lengths = windows.lengths[rows]
-            chunks = [first.to(device)]
-            for k in range(math.ceil((int(lengths.max()) - p) / c)):
-                chunks.append(engine.step(rollout_conditions(windows, rows, p + k * c, c, 0).to(device)))
+            chunks = [first]
+            for k in range(math.ceil((int(lengths.max()) - 1) / c)):
+                chunks.append(engine.step(rollout_conditions(windows, rows, 1 + k * c, c, 0).to(device)))
             latents = torch.cat(chunks, dim=1).to(torch.bfloat16).cpu()
             out += [latents[j, : lengths[j]].clone() for j in range(len(rows))]
             progress = {"stage": f"{STAGE}: rollouts", "clips_done": len(out), "clips": len(clips)}
@@ -127,7 +149,6 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     clips = load_clips(run.data_dir, cfg)
     picked = rollout_clip_indices(len(clips))
     rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
-    prefix = run_student(run)[1].prefix_frames
     sampler = FrameSampler(clips, cfg)
     latents = [cached_latents(c, plain, latent_cache_dir(run.run_dir), digest) for c in clips]
     torch.manual_seed(tcfg.seed)
@@ -143,10 +164,10 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     views = cfg.sensors.num_views
 
     def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
-        """(clip, frame, view, rollout) of the rollouts' share of the batch; frames after the prefix."""
+        """(clip, frame, view, rollout) of the rollouts' share of the batch."""
         out = []
         for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
-            frame = int(tr.rng.integers(prefix, len(rollouts[r])))
+            frame = int(tr.rng.integers(len(rollouts[r])))
             out.append((picked[r], frame, int(tr.rng.integers(views)), r))
         return out
 

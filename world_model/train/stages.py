@@ -5,8 +5,8 @@ A run directory holds one sub-directory per stage::
     RUN_DIR/vae/       checkpoints/, model.safetensors + model.json (EMA weights), metrics.json
     RUN_DIR/teacher/   checkpoints/, latents/ (the run's latent cache, every stage), model.safetensors + model.json
     RUN_DIR/tf|ode|dmd|long/  the causal student's stages (world_model.train.student_stages)
-    RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
+    RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
     RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
 
 Each stage reads the exports of the stages before it. Rerunning a command resumes from the stage's
@@ -85,7 +85,8 @@ REGISTRY: dict[str, Stage] = {
         # each dmd/long step = 1 + critic_updates self-rollouts
         Stage("dmd", partial(student_stage, "dmd"), 2, 1e-4, 10, steps={"default": 50}),
         Stage("long", partial(student_stage, "long"), 2, 5e-5, 10, steps={"default": 20}),
-        # the decoder once more, on the trained student's own rollouts (its first step streams them)
+        Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
+        # the decoder once more, on the trained student's own rollouts streamed as the env does
         Stage(
             "rollout_decoder",
             rollout_decoder_stage,
@@ -96,7 +97,6 @@ REGISTRY: dict[str, Stage] = {
             steps={"default": 1500},
             check=check_decoder_config,
         ),
-        Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
         Stage(
             "lora",
             lora_stage,
