@@ -31,7 +31,7 @@ from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator
 from world_model.model.text import make_text_encoder
-from world_model.model.vae import SensorVAE, weighted_l1
+from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
@@ -49,14 +49,7 @@ from world_model.train.exports import (
 from world_model.train.rollouts import rollout_conditions
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
-from world_model.train.vae_stage import (
-    DECODER_LATENT_NOISE,
-    check_decoder_config,
-    export_vae,
-    style_drift,
-    vae_metrics,
-    view_labels,
-)
+from world_model.train.vae_stage import check_decoder_config, decoder_loss, export_decoder, jittered_latents
 
 STAGE = "rollout_decoder"
 STUDENT_STAGES = ("long", "dmd", "ode")  # the student rolled out: the first that has an export
@@ -161,40 +154,27 @@ def rollout_decoder_stage(run: StageRun) -> dict:
         text = make_text_encoder(cfg.text)
         styles = [style_of_prompt(c.frames[0].prompt, cfg, text) for c in clips]
     from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
-    views = cfg.sensors.num_views
+    # Camera views only: the LiDAR view reads neither label maps nor style, and tuned on the
+    # student's latents it answers the ego's actions less (docs/experiments.md).
+    cameras = cfg.sensors.num_cameras
 
     def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
-        """(clip, frame, view, rollout) of the rollouts' share of the batch."""
+        """(clip, frame, camera view, rollout) of the rollouts' share of the batch."""
         out = []
         for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
             frame = int(tr.rng.integers(len(rollouts[r])))
-            out.append((picked[r], frame, int(tr.rng.integers(views)), r))
+            out.append((picked[r], frame, int(tr.rng.integers(cameras)), r))
         return out
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
+        z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in own]).float(), styles is not None)
         rolled = rollout_picks(tr)
-        picks = own + [(c, f, v) for c, f, v, _ in rolled]
-        batch = sampler.batch(picks)
-        images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
-        z = torch.stack([latents[c][f, v] for c, f, v in own]).float()
-        sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
-        z = z + sigma * tr.randn(*z.shape)
-        style = None
-        if styles is not None:
-            z = z + style_drift(tr, len(z), z.shape[1:])
-            style = tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
         z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float()])
-        ids = tr.shard(torch.cat([view_labels(raster, clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
-        err = weighted_l1(vae.decode(tr.shard(z), ids, style), images, weights)
-        return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+        return decoder_loss(tr, vae, sampler, raster, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:
         return summary
-    final = SensorVAE(cfg)
-    final.load_state_dict(trainer.ema.model_state(vae))
-    final.encoder.load_state_dict(plain.encoder.state_dict())  # bit for bit (the EMA rounds a frozen weight)
-    final.eval()
-    metrics = vae_metrics(final, sampler, raster, styles)
-    return {**summary, "rollout_clips": len(rollouts), "metrics": export_vae(run, STAGE, final, trainer.step, metrics)}
+    metrics = export_decoder(run, STAGE, trainer, vae, plain, sampler, raster, styles)
+    return {**summary, "rollout_clips": len(rollouts), "metrics": metrics}

@@ -153,28 +153,60 @@ def decoder_stage(run: StageRun) -> dict:
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
-        batch = sampler.batch(picks)
-        images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
-        z = torch.stack([latents[c][f, v] for c, f, v in picks]).float()
-        sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
-        z = z + sigma * tr.randn(*z.shape)
-        style = None
-        if styles is not None:
-            z = z + style_drift(tr, len(z), z.shape[1:])
-            style = tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
-        ids = tr.shard(torch.cat([view_labels(raster, clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
-        err = weighted_l1(vae.decode(tr.shard(z), ids, style), images, weights)
-        return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+        z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in picks]).float(), styles is not None)
+        return decoder_loss(tr, vae, sampler, raster, picks, z, styles)
 
     summary = trainer.run(step, "decoder")
     if not run.place.is_main:
         return summary
-    final = SensorVAE(cfg)
+    return {**summary, "metrics": export_decoder(run, "decoder", trainer, vae, plain, sampler, raster, styles)}
+
+
+def jittered_latents(tr: Trainer, z: torch.Tensor, drift: bool) -> torch.Tensor:
+    """The decoder stage's latents (N, C, h, w): Gaussian jitter of a per-sample standard deviation
+    drawn from [0, :data:`DECODER_LATENT_NOISE`], plus :func:`style_drift` when ``drift``."""
+    sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
+    z = z + sigma * tr.randn(*z.shape)
+    return z + style_drift(tr, len(z), z.shape[1:]) if drift else z
+
+
+def decoder_loss(
+    tr: Trainer,
+    vae: SensorVAE,
+    sampler: FrameSampler,
+    raster: LabelRasterizer,
+    picks: Sequence[tuple[int, int, int]],
+    latents: torch.Tensor,
+    styles: Sequence[np.ndarray] | None,
+) -> tuple[torch.Tensor, int]:
+    """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
+    with their label maps (and their clips' ``styles``), and the batch size."""
+    cfg = vae.cfg
+    batch = sampler.batch(picks)
+    images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
+    style = None if styles is None else tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
+    ids = tr.shard(torch.cat([view_labels(raster, sampler.clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
+    err = weighted_l1(vae.decode(tr.shard(latents), ids, style), images, weights)
+    return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+
+
+def export_decoder(
+    run: StageRun,
+    stage: str,
+    trainer: Trainer,
+    vae: SensorVAE,
+    plain: SensorVAE,
+    sampler: FrameSampler,
+    raster: LabelRasterizer,
+    styles: Sequence[np.ndarray] | None,
+) -> dict[str, float]:
+    """Export a decoder stage's EMA weights with ``plain``'s encoder, bit for bit (the EMA rounds a
+    frozen weight); its metrics."""
+    final = SensorVAE(vae.cfg)
     final.load_state_dict(trainer.ema.model_state(vae))
-    final.encoder.load_state_dict(plain.encoder.state_dict())  # bit for bit (the EMA rounds a frozen weight)
+    final.encoder.load_state_dict(plain.encoder.state_dict())
     final.eval()
-    metrics = vae_metrics(final, sampler, raster, styles)
-    return {**summary, "metrics": export_vae(run, "decoder", final, trainer.step, metrics)}
+    return export_vae(run, stage, final, trainer.step, vae_metrics(final, sampler, raster, styles))
 
 
 def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
