@@ -26,11 +26,9 @@ import numpy as np
 import torch
 
 from world_model.data.clips import Clip, write_json_atomic
-from world_model.model.conditions import style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator
-from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
@@ -49,7 +47,13 @@ from world_model.train.exports import (
 from world_model.train.rollouts import rollout_conditions
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
-from world_model.train.vae_stage import check_decoder_config, decoder_loss, export_decoder, jittered_latents
+from world_model.train.vae_stage import (
+    check_decoder_config,
+    clip_styles,
+    decoder_loss,
+    export_decoder,
+    jittered_latents,
+)
 
 STAGE = "rollout_decoder"
 STUDENT_STAGES = ("long", "dmd", "ode")  # the student rolled out: the first that has an export
@@ -73,13 +77,13 @@ def run_reference(run: StageRun) -> MultiViewDiT | None:
     return load_teacher(path) if path.with_suffix(".safetensors").exists() else None
 
 
-def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig, str]:
-    """The run's latest student export, its :class:`StudentConfig` streaming as the env does, and its stage."""
+def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig]:
+    """The run's latest student export and its :class:`StudentConfig`, streaming as the env does."""
     for stage in STUDENT_STAGES:
         path = run.run_dir / stage / EXPORT
         if path.with_suffix(".safetensors").exists():
             student, scfg = load_student(path)
-            return student, StreamingConfig().apply(scfg), stage
+            return student, StreamingConfig().apply(scfg)
     raise FileNotFoundError(
         f"--stage {STAGE} rolls out the run's student: train --stage {STUDENT_STAGES[-1]} (or a later student "
         f"stage) with the same --run first"
@@ -94,7 +98,7 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
     file)."""
     cache = run.stage_dir / ROLLOUTS_FILE
     if run.place.is_main and not cache.exists():
-        student, scfg, _ = run_student(run)
+        student, scfg = run_student(run)
         device = run.place.device
         student = student.to(device).eval().requires_grad_(False)
         reference = run_reference(run)
@@ -116,8 +120,7 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
             latents = torch.cat(chunks, dim=1).to(torch.bfloat16).cpu()
             out += [latents[j, : lengths[j]].clone() for j in range(len(rows))]
             progress = {"stage": f"{STAGE}: rollouts", "clips_done": len(out), "clips": len(clips)}
-            progress["updated"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
-            write_json_atomic(run.stage_dir / "progress.json", progress)
+            write_json_atomic(run.stage_dir / "progress.json", {**progress, "updated": time.strftime("%FT%T%z")})
         partial = cache.with_suffix(".partial")
         torch.save(out, partial)
         os.replace(partial, cache)
@@ -149,10 +152,7 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, STAGE)
     raster = LabelRasterizer()
-    styles = None
-    if vae.draws_style:
-        text = make_text_encoder(cfg.text)
-        styles = [style_of_prompt(c.frames[0].prompt, cfg, text) for c in clips]
+    styles = clip_styles(vae, clips)
     from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
     # Camera views only: the LiDAR view reads neither label maps nor style, and tuned on the
     # student's latents it answers the ego's actions less (docs/experiments.md).

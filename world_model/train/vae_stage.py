@@ -23,7 +23,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from world_model.data.clips import write_json_atomic
+from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.conditions import style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
@@ -146,10 +146,7 @@ def decoder_stage(run: StageRun) -> dict:
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, "decoder")
     raster = LabelRasterizer()
-    styles = None
-    if vae.draws_style:
-        text = make_text_encoder(cfg.text)
-        styles = [style_of_prompt(c.frames[0].prompt, cfg, text) for c in clips]
+    styles = clip_styles(vae, clips)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
@@ -160,6 +157,15 @@ def decoder_stage(run: StageRun) -> dict:
     if not run.place.is_main:
         return summary
     return {**summary, "metrics": export_decoder(run, "decoder", trainer, vae, plain, sampler, raster, styles)}
+
+
+def clip_styles(vae: SensorVAE, clips: Sequence[Clip]) -> list[np.ndarray] | None:
+    """Each clip's scene style (its prompt's, ``ConditionArrays.style``) for a decoder that draws
+    it; None for one that does not."""
+    if not vae.draws_style:
+        return None
+    text = make_text_encoder(vae.cfg.text)
+    return [style_of_prompt(c.frames[0].prompt, vae.cfg, text) for c in clips]
 
 
 def jittered_latents(tr: Trainer, z: torch.Tensor, drift: bool) -> torch.Tensor:
