@@ -4,36 +4,52 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import traceback
 from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
+import torch
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
+from world_model.train import train_stage
+from world_model.train.device import TrainPlace
 from world_model.train.recipe import (
     ADAPTERS,
     BUNDLE_RESERVE_S,
     CHAIN,
     PHASES,
+    RARE_CATEGORY,
     SCALES,
     TIME_SHARES,
     join_files,
+    rare_dir,
+    recipe_config,
     stage_time_limit,
 )
+from world_model.train.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bundle(tmp_path):
-    out = tmp_path / "recipe"
+@pytest.fixture(scope="module")
+def dry_recipe(tmp_path_factory):
+    """The recipe's command at the dry scale: its output folder (data, run, bundle, bundle_parts)."""
+    out = tmp_path_factory.mktemp("dry") / "recipe"
     cmd = [sys.executable, "-m", "world_model.train.recipe", "--out", str(out), "--scale", "dry"]
     cmd += ["--device", "cpu", "--workers", "2", "--no-progress", "--max-file-mib", "0.25"]
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     done = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300, cwd=ROOT)
     assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bundle(dry_recipe, tmp_path):
+    out = dry_recipe
     summary = json.loads((out / "recipe.json").read_text())
     assert summary["clips"] == 9 and set(summary["final_loss"]) == set(PHASES)
     assert all(v == v for v in summary["final_loss"].values())  # finite, not NaN
@@ -81,3 +97,53 @@ def test_each_scale_trains_the_layout_design_with_a_text_encoder_its_machine_has
     # the GPU machine cannot download MiniLM; this CPU has it and keeps the preset's encoder
     assert recipe_config(SCALES["gpu"]).text.encoder == "hash"
     assert recipe_config(SCALES["cpu"]).text.encoder == get_preset("default").text.encoder == "minilm"
+
+
+class HostGenerator(torch.Generator):
+    """A CPU generator whatever device is asked for."""
+
+    def __new__(cls, device: object = None):
+        return super().__new__(cls)
+
+    def __init__(self, device: object = None) -> None:
+        pass
+
+
+@pytest.mark.parametrize("phase", PHASES)
+def test_every_stage_trains_with_the_model_on_another_device(dry_recipe, tmp_path, phase, monkeypatch):
+    """Each stage of the chain, from the dry run's earlier stages, trains its first step with the
+    training device on ``meta``: mixing a tensor there with a CPU tensor fails as it does on a GPU,
+    so a batch, noise or label map left on the CPU shows here. A step gets as far as its first read
+    of a value back to the host (``float(loss)``; the ode stage's teacher sampling reads its time
+    grid), which ``meta`` cannot answer."""
+    monkeypatch.setattr(torch, "Generator", HostGenerator)  # meta has no generator
+    for draw in ("rand", "randn", "randint"):  # drawn on the CPU, then moved, as the runtime's noise
+        real = getattr(Trainer, draw)
+        monkeypatch.setattr(Trainer, draw, lambda self, *a, _real=real: _real(self, *a).to(self.place.device))
+    work = tmp_path / "recipe"
+    shutil.copytree(dry_recipe, work, symlinks=True)
+    stage = phase if phase in CHAIN else "lora"
+    for p in (work / "run" / stage).glob("*"):  # the stage trains anew; the run's caches stay
+        if p.name not in ("latents", "layouts", "labels", "rollouts.pt"):
+            shutil.rmtree(p) if p.is_dir() else p.unlink()
+    options = {}
+    if phase in ADAPTERS:
+        component, box_weight = ADAPTERS[phase]
+        options = {"case": RARE_CATEGORY, "case_data": rare_dir(work / "data"), "lora_box_weight": box_weight}
+        options["base"] = str(work / "bundle" / "reference.safetensors")
+    spec = SCALES["dry"]
+    with pytest.raises((RuntimeError, NotImplementedError), match="meta tensor") as raised:
+        train_stage(
+            stage,
+            work / "data",
+            work / "run",
+            spec.preset,
+            1,
+            batch_size=2,
+            progress=False,
+            config=recipe_config(spec),
+            place=TrainPlace(torch.device("meta")),
+            **options,
+        )
+    own = [f for f in traceback.extract_tb(raised.value.__traceback__) if "world_model" in f.filename]
+    assert Path(own[-1].filename).name in ("trainer.py", "student_stages.py", "flow.py"), own[-1]

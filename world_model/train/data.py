@@ -6,11 +6,11 @@ import hashlib
 import json
 import multiprocessing
 import os
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, fields, replace
 from pathlib import Path
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -27,15 +27,55 @@ from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.scene import SceneFrame
+from world_model.sim.labels import LABEL_CLASSES, LabelRasterizer
 
 NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
-# Fewer frames than this are rastered in-process: starting spawned workers costs about 2 s, the
-# raster a few ms a frame.
+# Fewer frames than this are rastered in-process (layouts, label maps): starting spawned workers
+# costs about 2 s, a raster a few ms a frame.
 LAYOUT_POOL_MIN_FRAMES = 2000
+T = TypeVar("T")
+
+
+# The last dataset (and run latents) this process opened, by key: the recipe trains every stage in
+# one process on one dataset, and reading a full dataset's clips (every frame parsed) and building
+# its latent windows take tens of seconds that each stage would otherwise spend again.
+_last_opened: dict[str, tuple[object, object]] = {}
+
+
+def dataset_stamp(data_dir: str | Path) -> tuple[str, int, int] | None:
+    """What changes when a dataset gains or loses clips: its index file's path, time and size;
+    None for a folder without one."""
+    index = Path(data_dir) / "dataset.json"
+    try:
+        st = index.stat()
+    except FileNotFoundError:
+        return None
+    return str(index.resolve()), st.st_mtime_ns, st.st_size
+
+
+def remember_last(kind: str, key: object, make: Callable[[], T]) -> T:
+    """``make()``, or the value it gave for the same ``key`` when that was the last ``kind`` this
+    process made (None: never remembered). One value per kind is kept: the previous is dropped first."""
+    last = _last_opened.pop(kind, None)
+    if key is not None and last is not None and last[0] == key:
+        _last_opened[kind] = last
+        return last[1]  # type: ignore[return-value]
+    del last
+    value = make()
+    if key is not None:
+        _last_opened[kind] = (key, value)
+    return value
 
 
 def load_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
-    """All clips of a dataset, checked against the model's sensors."""
+    """All clips of a dataset, checked against the model's sensors; the same list as the last call
+    of this process for an unchanged dataset (:func:`remember_last`)."""
+    stamp = dataset_stamp(data_dir)
+    key = None if stamp is None else (stamp, cfg.sensors)
+    return remember_last("clips", key, lambda: _read_clips(data_dir, cfg))
+
+
+def _read_clips(data_dir: str | Path, cfg: ModelConfig) -> list[Clip]:
     clips = list(iter_clips(data_dir))
     if not clips:
         raise FileNotFoundError(f"{data_dir} has no complete clips; record some first (m4world record)")
@@ -216,27 +256,63 @@ def cached_layouts(clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers
     core) and every later stage reads it back. The result is the same for any ``workers``."""
     if not cfg.layout.enabled:
         return None
-    key = layout_key(cfg)
+    jobs = [(c.frames, np.asarray(c.bev), cfg) for c in clips]
+    return _cached_per_clip(clips, cache_dir, "layout", layout_key(cfg), _clip_layout, jobs, workers)
+
+
+def label_cache_dir(run_dir: str | Path) -> Path:
+    """The run's cache of the clips' camera label maps (the decoder stages'), beside the latent cache."""
+    return Path(run_dir) / "teacher" / "labels"
+
+
+def _clip_label_maps(frames: list[SceneFrame], height: int, width: int, num_cameras: int) -> np.ndarray:
+    raster = LabelRasterizer()
+    return np.stack([raster(f, f.rig, height, width)[:num_cameras] for f in frames])
+
+
+def cached_label_maps(
+    clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
+) -> list[np.ndarray]:
+    """Each clip's camera label maps (T, num_cameras, H, W) uint8 class ids
+    (:data:`~world_model.sim.labels.LABEL_CLASSES`), computed once per run as
+    :func:`cached_layouts` computes layouts: the decoder stages read them instead of rastering
+    every sample of every batch."""
+    s = cfg.sensors
+    key = f"{s.height}x{s.width}x{s.num_cameras}:{','.join(LABEL_CLASSES)}"
+    jobs = [(c.frames, s.height, s.width, s.num_cameras) for c in clips]
+    return _cached_per_clip(clips, cache_dir, "labels", key, _clip_label_maps, jobs, workers)
+
+
+def _cached_per_clip(
+    clips: list[Clip],
+    cache_dir: Path,
+    name: str,
+    key: str,
+    compute: Callable[..., np.ndarray],
+    jobs: list[tuple],
+    workers: int | None,
+) -> list[np.ndarray]:
+    """``compute(*jobs[i])`` for each clip i, stored in ``cache_dir`` under the clip's name with
+    ``key`` and the clip's fingerprint: read back where both match, else computed (by ``workers``
+    spawned processes, default every core, for enough frames) and written."""
     out: list[np.ndarray | None] = [None] * len(clips)
     missing = []
     for i, clip in enumerate(clips):
-        path = cache_dir / f"{clip.name}.safetensors"
-        out[i] = _read_cached(path, {"layout": key, "clip": clip_fingerprint(clip)}, "layout")
+        out[i] = _read_cached(cache_dir / f"{clip.name}.safetensors", {name: key, "clip": clip_fingerprint(clip)}, name)
         if out[i] is None:
             missing.append(i)
     workers = min(workers or os.cpu_count() or 1, len(missing))
     if workers > 1 and sum(clips[i].num_frames for i in missing) >= LAYOUT_POOL_MIN_FRAMES:
         ctx = multiprocessing.get_context("spawn")  # no fork of a process that runs torch threads
         with ProcessPoolExecutor(workers, mp_context=ctx) as pool:
-            jobs = [pool.submit(_clip_layout, clips[i].frames, np.asarray(clips[i].bev), cfg) for i in missing]
-            computed = [job.result() for job in jobs]
+            computed = [job.result() for job in [pool.submit(compute, *jobs[i]) for i in missing]]
     else:
-        computed = [_clip_layout(clips[i].frames, np.asarray(clips[i].bev), cfg) for i in missing]
-    for i, layout in zip(missing, computed, strict=True):
-        meta = {"layout": key, "clip": clip_fingerprint(clips[i])}
-        _write_tensor(cache_dir / f"{clips[i].name}.safetensors", "layout", torch.from_numpy(layout), meta)
-        out[i] = layout
-    return out
+        computed = [compute(*jobs[i]) for i in missing]
+    for i, value in zip(missing, computed, strict=True):
+        meta = {name: key, "clip": clip_fingerprint(clips[i])}
+        _write_tensor(cache_dir / f"{clips[i].name}.safetensors", name, torch.from_numpy(value), meta)
+        out[i] = value
+    return out  # type: ignore[return-value]
 
 
 def _read_cached(path: Path, meta: dict[str, str], name: str) -> np.ndarray | None:

@@ -24,10 +24,12 @@ from world_model.train.data import (
     LatentWindows,
     cached_latents,
     cached_layouts,
+    dataset_stamp,
     encoder_digest,
     latent_cache_dir,
     layout_cache_dir,
     load_clips,
+    remember_last,
 )
 
 EXPORT = "model"  # model.safetensors + model.json in each stage directory
@@ -92,6 +94,16 @@ def run_vae(run_dir: Path, cfg: ModelConfig, stage: str) -> tuple[SensorVAE, str
     return vae, encoder_digest(vae)
 
 
+def run_latents(
+    clips: list, vae: SensorVAE, vae_digest: str, run_dir: Path, device: torch.device | str = "cpu"
+) -> list[torch.Tensor]:
+    """Each clip's latents (T, V, C, h, w) on the CPU, through the run's latent cache: what is
+    missing is encoded by a copy of ``vae`` on ``device``."""
+    device = torch.device(device)
+    encoder = vae if device.type == "cpu" else copy.deepcopy(vae).to(device)
+    return [cached_latents(c, encoder, latent_cache_dir(run_dir), vae_digest) for c in clips]
+
+
 def latent_windows(
     clips: list,
     vae: SensorVAE,
@@ -102,9 +114,7 @@ def latent_windows(
 ) -> LatentWindows:
     """``clips`` encoded by ``vae`` on ``device`` (through the run's latent cache) with their
     conditions, their layout rasters from the run's layout cache."""
-    device = torch.device(device)
-    encoder = vae if device.type == "cpu" else copy.deepcopy(vae).to(device)
-    latents = [cached_latents(c, encoder, latent_cache_dir(run_dir), vae_digest) for c in clips]
+    latents = run_latents(clips, vae, vae_digest, run_dir, device)
     layouts = cached_layouts(clips, cfg, layout_cache_dir(run_dir))
     return LatentWindows(clips, latents, cfg, make_text_encoder(cfg.text), VaeCropEncoder(vae), layouts)
 
@@ -113,6 +123,13 @@ def open_run_latents(
     data_dir: str | Path, run_dir: Path, cfg: ModelConfig, stage: str, device: torch.device | str = "cpu"
 ) -> LatentWindows:
     """The dataset's clips in the run's VAE latents (encoded once on ``device``, cached in the run)
-    with their conditions: what every stage after ``vae`` trains on."""
+    with their conditions: what every stage after ``vae`` trains on. The same windows as the last
+    call of this process for an unchanged dataset, run VAE and config (:func:`remember_last`)."""
     vae, digest = run_vae(run_dir, cfg, stage)
-    return latent_windows(load_clips(data_dir, cfg), vae, digest, run_dir, cfg, device)
+    stamp = dataset_stamp(data_dir)
+    run_key = (str(Path(run_dir).resolve()), digest, json.dumps(cfg.to_dict(), sort_keys=True), str(device))
+    return remember_last(
+        "run_latents",
+        None if stamp is None else (stamp, run_key),
+        lambda: latent_windows(load_clips(data_dir, cfg), vae, digest, run_dir, cfg, device),
+    )

@@ -34,7 +34,7 @@ from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import StreamingConfig
-from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
+from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
 from world_model.train.exports import (
     EXPORT,
     latent_windows,
@@ -42,6 +42,7 @@ from world_model.train.exports import (
     load_teacher,
     load_vae,
     require_export,
+    run_latents,
     run_vae,
 )
 from world_model.train.rollouts import rollout_conditions
@@ -146,7 +147,8 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     picked = rollout_clip_indices(len(clips))
     rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
     sampler = FrameSampler(clips, cfg)
-    latents = [cached_latents(c, plain, latent_cache_dir(run.run_dir), digest) for c in clips]
+    latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
+    labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
     torch.manual_seed(tcfg.seed)
     vae.train().requires_grad_(True)
     vae.encoder.requires_grad_(False)
@@ -170,8 +172,8 @@ def rollout_decoder_stage(run: StageRun) -> dict:
         own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
         z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in own]).float(), styles is not None)
         rolled = rollout_picks(tr)
-        z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float()])
-        return decoder_loss(tr, vae, sampler, raster, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
+        z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float().to(z.device)])
+        return decoder_loss(tr, vae, sampler, labels, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:

@@ -31,8 +31,8 @@ from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar,
 from world_model.scene import SceneFrame
 from world_model.sim.labels import NO_LABEL, LabelRasterizer
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import FrameSampler, cached_latents, latent_cache_dir, load_clips
-from world_model.train.exports import EXPORT, run_vae
+from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
+from world_model.train.exports import EXPORT, run_latents, run_vae
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 
@@ -66,8 +66,8 @@ def vae_metrics(
         clip = sampler.clips[ci]
         cams = np.asarray(clip.cameras[f])
         x = torch.stack([sampler.image(ci, f, v) for v in range(cfg.sensors.num_views)]).to(device)
-        ids = view_labels(labels, clip.frames[f], cfg, range(cfg.sensors.num_views)) if labels else None
-        style = None if styles is None else torch.from_numpy(styles[ci]).expand(len(x), -1)
+        ids = view_labels(labels, clip.frames[f], cfg, range(cfg.sensors.num_views)).to(device) if labels else None
+        style = None if styles is None else torch.from_numpy(styles[ci]).to(device).expand(len(x), -1)
         rec = vae.decode(vae.encode(x), ids, style).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
@@ -92,6 +92,14 @@ def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, vi
     s = cfg.sensors
     maps = torch.from_numpy(raster(frame, frame.rig, s.height, s.width))
     return torch.stack([maps[v] if v < s.num_cameras else torch.full_like(maps[0], NO_LABEL) for v in views])
+
+
+def picked_labels(labels: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
+    """(H, W) uint8 class ids of a view of a frame from each clip's camera label maps; the LiDAR
+    view gets :data:`~world_model.sim.labels.NO_LABEL`, as in :func:`view_labels`."""
+    if view < cfg.sensors.num_cameras:
+        return labels[clip][frame, view]
+    return np.full(labels[clip].shape[2:], NO_LABEL, dtype=np.uint8)
 
 
 def vae_stage(run: StageRun) -> dict:
@@ -137,7 +145,8 @@ def decoder_stage(run: StageRun) -> dict:
     plain, digest = run_vae(run.run_dir, without_label_decoder(cfg), "decoder")
     clips = load_clips(run.data_dir, cfg)
     sampler = FrameSampler(clips, cfg)
-    latents = [cached_latents(c, plain, latent_cache_dir(run.run_dir), digest) for c in clips]
+    latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
+    labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
     torch.manual_seed(tcfg.seed)
     vae = SensorVAE(cfg)
     missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
@@ -151,7 +160,7 @@ def decoder_stage(run: StageRun) -> dict:
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
         z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in picks]).float(), styles is not None)
-        return decoder_loss(tr, vae, sampler, raster, picks, z, styles)
+        return decoder_loss(tr, vae, sampler, labels, picks, z, styles)
 
     summary = trainer.run(step, "decoder")
     if not run.place.is_main:
@@ -170,9 +179,11 @@ def clip_styles(vae: SensorVAE, clips: Sequence[Clip]) -> list[np.ndarray] | Non
 
 def jittered_latents(tr: Trainer, z: torch.Tensor, drift: bool) -> torch.Tensor:
     """The decoder stage's latents (N, C, h, w): Gaussian jitter of a per-sample standard deviation
-    drawn from [0, :data:`DECODER_LATENT_NOISE`], plus :func:`style_drift` when ``drift``."""
+    drawn from [0, :data:`DECODER_LATENT_NOISE`], plus :func:`style_drift` when ``drift``; on the
+    training device, where the trainer draws its noise."""
+    noise = tr.randn(*z.shape)
     sigma = torch.from_numpy(tr.rng.uniform(0.0, DECODER_LATENT_NOISE, size=(len(z), 1, 1, 1))).float()
-    z = z + sigma * tr.randn(*z.shape)
+    z = z.to(noise.device) + sigma.to(noise.device) * noise
     return z + style_drift(tr, len(z), z.shape[1:]) if drift else z
 
 
@@ -180,18 +191,19 @@ def decoder_loss(
     tr: Trainer,
     vae: SensorVAE,
     sampler: FrameSampler,
-    raster: LabelRasterizer,
+    labels: Sequence[np.ndarray],
     picks: Sequence[tuple[int, int, int]],
     latents: torch.Tensor,
     styles: Sequence[np.ndarray] | None,
 ) -> tuple[torch.Tensor, int]:
     """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
-    with their label maps (and their clips' ``styles``), and the batch size."""
+    with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; and their clips'
+    ``styles``), and the batch size."""
     cfg = vae.cfg
     batch = sampler.batch(picks)
     images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
     style = None if styles is None else tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
-    ids = tr.shard(torch.cat([view_labels(raster, sampler.clips[c].frames[f], cfg, [v]) for c, f, v in picks]))
+    ids = tr.shard(torch.from_numpy(np.stack([picked_labels(labels, c, f, v, cfg) for c, f, v in picks])))
     err = weighted_l1(vae.decode(tr.shard(latents), ids, style), images, weights)
     return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
 
@@ -220,7 +232,8 @@ def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
     random streams."""
     amplitude = torch.from_numpy(tr.rng.uniform(0.0, DECODER_STYLE_DRIFT, size=(n, 1, 1, 1))).float()
     coarse = tr.randn(n, shape[0], *DRIFT_GRID)
-    return amplitude * F.interpolate(coarse, size=tuple(shape[1:]), mode="bilinear", align_corners=True)
+    drift = F.interpolate(coarse, size=tuple(shape[1:]), mode="bilinear", align_corners=True)
+    return amplitude.to(coarse.device) * drift
 
 
 def export_vae(run: StageRun, stage: str, vae: SensorVAE, step: int, metrics: dict[str, float]) -> dict[str, float]:
