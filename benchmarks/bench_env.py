@@ -306,7 +306,14 @@ def _digest(h, arrays) -> None:  # noqa: ANN001 (hashlib object, arrays)
 
 
 def bench_workers(
-    workers: int, scenario: str, num_envs: int, vector_steps: int, warmup: int, seed: int, checkpoint: str | None
+    workers: int,
+    scenario: str,
+    num_envs: int,
+    vector_steps: int,
+    warmup: int,
+    seed: int,
+    checkpoint: str | None,
+    device: str = "cpu",
 ) -> dict:
     """One vector env of ``num_envs`` world-model sub-envs with ``config.workers`` = ``workers``
     (the key left out at 0, so a checkout without it runs too): ``warmup`` untimed and
@@ -315,11 +322,14 @@ def bench_workers(
     crops, conditions in this process; K workers: their traffic, crops and conditions summed over
     the workers, i.e. work on any core, and ``workers_wait``, main's wall time waiting for them),
     student, decode and ``other`` (the rest of the non-model time); ``non_model_env_steps_per_s``:
-    env steps per second of everything but student and decode; ``digest``: a hash of every
-    observation, reward and flag."""
+    env steps per second of everything but student and decode; ``env_steps_per_s``: of the whole
+    vector step; ``digest``: a hash of every observation, reward and flag. ``device``: the models'
+    (``config.model.device``)."""
     import hashlib
 
     config: dict = {**CONFIG, **({"workers": workers} if workers else {})}
+    if device != "cpu":
+        config["model"] = {"device": device}
     kw = {"backend": "world_model", "config": config, **({"checkpoint": checkpoint} if checkpoint else {})}
     venv = gym.make_vec(
         "M4World-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=scenario, **kw
@@ -373,6 +383,7 @@ def bench_workers(
         "num_envs": num_envs,
         "vector_steps": vector_steps,
         "vector_median_step_ms": 1e3 * statistics.median(walls),
+        "env_steps_per_s": num_envs / statistics.median(walls),
         "vector_reset_ms": 1e3 * reset_s,
         "breakdown_ms_per_env_step": per_env,
         "non_model_env_steps_per_s": 1e3 / per_env["non_model"],
@@ -386,7 +397,9 @@ def bench_workers_isolated(workers: int, args: argparse.Namespace, root: Path) -
     cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--vector-steps", str(args.vector_steps)]
     cmd += ["--warmup", str(args.warmup if args.warmup is not None else 1)]
     cmd += ["--checkpoint", args.checkpoint] if args.checkpoint else []
-    env = {**os.environ, "PYTHONPATH": str(root)}
+    cmd += ["--device", args.device] if args.device != "cpu" else []  # a checkout may lack the option
+    # root first; the rest of the path stays (packages installed with --target, e.g. on a GPU machine)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -403,7 +416,7 @@ def compare_workers(args: argparse.Namespace) -> dict:
     rounds = []
     for _ in range(args.rounds):
         rounds.append({name: bench_workers_isolated(k, args, root) for name, k, root in configs})
-    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "configs": {}}
+    result: dict = {"scenario": args.scenario, "rounds": args.rounds, "device": args.device, "configs": {}}
     for name, _, _ in configs:
         runs = [rnd[name] for rnd in rounds]
         merged = median_rounds([{k: v for k, v in r.items() if k != "breakdown_ms_per_env_step"} for r in runs])
@@ -486,7 +499,14 @@ def main() -> None:
     if args.workers_probe is not None:
         warmup = args.warmup if args.warmup is not None else 1
         r = bench_workers(
-            args.workers_probe, args.scenario, args.num_envs, args.vector_steps, warmup, args.seed, args.checkpoint
+            args.workers_probe,
+            args.scenario,
+            args.num_envs,
+            args.vector_steps,
+            warmup,
+            args.seed,
+            args.checkpoint,
+            args.device,
         )
         print(json.dumps(r))
         return
