@@ -327,6 +327,7 @@ def bench_workers(
     (``config.model.device``)."""
     import hashlib
 
+    start = time.perf_counter()  # progress on stderr: a run cut short shows where it was
     config: dict = {**CONFIG, **({"workers": workers} if workers else {})}
     if device != "cpu":
         config["model"] = {"device": device}
@@ -335,9 +336,15 @@ def bench_workers(
         "M4World-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=scenario, **kw
     )
     base = venv.unwrapped
+
+    def say(what: str) -> None:
+        print(f"[{time.perf_counter() - start:6.1f} s] workers={workers}: {what}", file=sys.stderr, flush=True)
+
+    say(f"{num_envs} envs made")
     t0 = time.perf_counter()
     obs, _ = venv.reset(seed=seed)
     reset_s = time.perf_counter() - t0
+    say(f"reset in {reset_s:.1f} s")
     h = hashlib.sha256()
     _digest(h, obs.values())
     rollouts = base.backend.rollouts
@@ -376,6 +383,7 @@ def bench_workers(
         part["non_model"] = non_model
         walls.append(wall)
         parts.append(part)
+        say(f"vector step {len(walls)}: {wall:.2f} s")
     venv.close()
     per_env = {k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]}
     return {
@@ -400,7 +408,7 @@ def bench_workers_isolated(workers: int, args: argparse.Namespace, root: Path) -
     cmd += ["--device", args.device] if args.device != "cpu" else []  # a checkout may lack the option
     # root first; the rest of the path stays (packages installed with --target, e.g. on a GPU machine)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
+    out = subprocess.run(cmd, check=True, stdout=subprocess.PIPE, text=True, env=env).stdout  # stderr: progress
     return json.loads(out.strip().splitlines()[-1])
 
 
