@@ -72,7 +72,7 @@ def test_label_maps_from_worker_processes_equal_the_decoders_view_labels_and_are
             want = view_labels(raster, frame, CFG, views).numpy()
             got = np.stack([picked_labels(pooled, c, f, v, CFG) for v in views])
             np.testing.assert_array_equal(got, want)  # the LiDAR view too: no label
-    monkeypatch.setattr(train_data, "_clip_label_maps", lambda *a: pytest.fail("recomputed cached label maps"))
+    monkeypatch.setattr(train_data, "camera_labels", lambda *a: pytest.fail("recomputed cached label maps"))
     again = cached_label_maps(clips, CFG, tmp_path, workers=1)
     assert all(np.array_equal(a, b) for a, b in zip(pooled, again, strict=True))
 

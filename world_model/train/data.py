@@ -19,7 +19,7 @@ from safetensors.torch import load_file, save_file
 from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
 from world_model.geometry import wrap_angle
-from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays
+from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays, camera_labels
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.imagedesc import ImageDescriptionEncoder
 from world_model.model.layout import layout_sequence
@@ -27,7 +27,7 @@ from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.scene import SceneFrame
-from world_model.sim.labels import LABEL_CLASSES, LabelRasterizer
+from world_model.sim.labels import LABEL_CLASSES
 
 NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
 # Fewer frames than this are rastered in-process (layouts, label maps): starting spawned workers
@@ -265,11 +265,6 @@ def label_cache_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "teacher" / "labels"
 
 
-def _clip_label_maps(frames: list[SceneFrame], height: int, width: int, num_cameras: int) -> np.ndarray:
-    raster = LabelRasterizer()
-    return np.stack([raster(f, f.rig, height, width)[:num_cameras] for f in frames])
-
-
 def cached_label_maps(
     clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
 ) -> list[np.ndarray]:
@@ -279,8 +274,8 @@ def cached_label_maps(
     every sample of every batch."""
     s = cfg.sensors
     key = f"{s.height}x{s.width}x{s.num_cameras}:{','.join(LABEL_CLASSES)}"
-    jobs = [(c.frames, s.height, s.width, s.num_cameras) for c in clips]
-    return _cached_per_clip(clips, cache_dir, "labels", key, _clip_label_maps, jobs, workers)
+    jobs = [(c.frames, cfg) for c in clips]
+    return _cached_per_clip(clips, cache_dir, "labels", key, camera_labels, jobs, workers)
 
 
 def _cached_per_clip(
