@@ -50,11 +50,13 @@ def test_the_decoder_stage_gives_the_bundle_its_vae_and_label_maps(tmp_path):
     files = load_bundle_files(export_bundle(run, tmp_path / "bundle"))
     assert files.manifest["components"]["vae"]["stage"] == "decoder"
     assert torch.equal(files.tensors["vae"]["w"], torch.full((3,), 2.0))
-    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, "decoder_style": False}}
-    # a decoder stage that drew the scene's style says so in its export's config
-    (run / "decoder" / "model.json").write_text(json.dumps({"model_config": {"layout": {"decoder_style": True}}}))
+    plain_labels = {"decoder": True, "decoder_style": False, "decoder_paint": False}
+    assert files.model_config == {"name": "tiny", "layout": plain_labels}
+    # a decoder stage that drew the scene's style and the objects' paint says so in its export's config
+    drawn = {"decoder_style": True, "decoder_paint": True}
+    (run / "decoder" / "model.json").write_text(json.dumps({"model_config": {"layout": drawn}}))
     files = load_bundle_files(export_bundle(run, tmp_path / "styled"))
-    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, "decoder_style": True}}
+    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, **drawn}}
 
 
 def test_missing_and_corrupt_checkpoints_are_named(tmp_path):

@@ -13,9 +13,9 @@ from m4world_env.policies import IDMAutopilot
 from m4world_env.recorder import RecordConfig, record_episode
 from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
-from world_model.model.conditions import ConditionArrays
+from world_model.model.conditions import ConditionArrays, camera_labels
 from world_model.runtime import WorldModel, save_untrained_bundle
-from world_model.sim.labels import NO_LABEL, ROAD, VEHICLE, label_maps
+from world_model.sim.labels import CLASS_PLANE, ROAD, VEHICLE, LabelRasterizer
 from world_model.train.data import LatentWindows
 
 # A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).
@@ -92,8 +92,9 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     assert len(env_arrays) == len(starts)
     # The DiTs' windows leave out the decoder's label maps; the decoder stage renders them from the
     # clip's frames. The env renders them only for the frames it decodes.
-    assert train.labels.shape[2:] == (0, 0)
-    labels = np.stack([label_maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
+    assert train.labels.shape[3:] == (0, 0)
+    raster = LabelRasterizer()
+    labels = np.stack([raster.maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
     for start, got in zip(starts, env_arrays, strict=True):
         want = train.frames(start, start + got.num_frames)
         for f in fields(ConditionArrays):
@@ -104,15 +105,15 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
         if layout:
             for t in range(start, start + got.num_frames):
                 decoded = t % scenario.frames_per_step == 0  # the first frame, then each step's last
-                want_labels = labels[t] if decoded else np.full_like(labels[t], NO_LABEL)
+                want_labels = labels[t] if decoded else camera_labels([clip.frames[t]], cfg, labeled=[False])[0]
                 assert np.array_equal(got.labels[t - start], want_labels), f"labels differ at {t}"
         else:
-            assert got.labels.shape[2:] == (0, 0)
+            assert got.labels.shape[3:] == (0, 0)
     has_image = np.concatenate([a.obj_has_image for a in env_arrays])
     assert has_image[0].any()  # crops reached the conditions from the first frame
     if layout:
         assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
-        assert (labels == ROAD).any() and (labels == VEHICLE).any()
+        assert (labels[:, :, CLASS_PLANE] == ROAD).any() and (labels[:, :, CLASS_PLANE] == VEHICLE).any()
 
 
 def test_each_decoded_frame_has_its_label_map(layout_bundle):

@@ -10,7 +10,7 @@ import torch
 import world_model.train.data as train_data
 from tests.model_fixtures import make_dataset
 from world_model.model import get_preset, make_text_encoder
-from world_model.model.config import with_layout
+from world_model.model.config import with_layout, without_label_decoder
 from world_model.sim.labels import LabelRasterizer
 from world_model.train.data import LatentWindows, cached_label_maps, cached_layouts, load_clips
 from world_model.train.vae_stage import picked_labels, view_labels
@@ -41,7 +41,7 @@ def test_a_second_stage_reads_the_cache_and_a_changed_setting_or_corrupt_entry_r
     monkeypatch.setattr(train_data, "_clip_layout", lambda *a: pytest.fail("recomputed a cached layout"))
     again = cached_layouts(clips, CFG, tmp_path, workers=1)
     assert all(np.array_equal(a, b) for a, b in zip(first, again, strict=True))
-    plain_decoder = replace(CFG, layout=replace(CFG.layout, decoder=False, decoder_style=False))
+    plain_decoder = without_label_decoder(CFG)
     cached_layouts(clips, plain_decoder, tmp_path, workers=1)  # the decoder's settings: the same rasters
     monkeypatch.undo()
     (tmp_path / f"{clips[0].name}.safetensors").write_bytes(b"garbage")

@@ -17,7 +17,7 @@ from world_model.model.vae import (
     lidar_to_images,
     weighted_l1,
 )
-from world_model.sim.labels import LABEL_CLASSES, NO_LABEL
+from world_model.sim.labels import CLASS_PLANE, LABEL_CLASSES, NO_LABEL, PAINT_PLANE
 
 
 def test_lidar_normalization_round_trip_and_no_return():
@@ -129,7 +129,13 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     lat = vae.encode_frames(cams, lidar.astype(np.float32))
     h, w = cfg.sensors.height, cfg.sensors.width
     rng = np.random.default_rng(0)
-    labels = rng.integers(len(LABEL_CLASSES), size=(2, cfg.sensors.num_cameras, h, w)).astype(np.uint8)
+    labels = np.stack(
+        [
+            rng.integers(len(LABEL_CLASSES), size=(2, cfg.sensors.num_cameras, h, w)),
+            rng.integers(256, size=(2, cfg.sensors.num_cameras, h, w)),
+        ],
+        axis=2,
+    ).astype(np.uint8)
     style, other_style = (v / np.linalg.norm(v) for v in rng.standard_normal((2, cfg.text.dim)).astype(np.float32))
     # zero-initialized modulations: the fine-tuning starts from the plain decoder's images
     assert vae.draws_labels and vae.draws_style
@@ -139,6 +145,8 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
         vae.decode_frames(lat, style=style)
     with pytest.raises(ValueError, match="label map"):
         vae.decode_frames(lat, labels=labels[:, :2], style=style)
+    with pytest.raises(ValueError, match="class ids and paint"):
+        vae.decode_frames(lat, labels=labels[:, :, CLASS_PLANE], style=style)  # a class map without its paint
     with pytest.raises(ValueError, match="style"):
         vae.decode_frames(lat, labels=labels)
 
@@ -149,10 +157,16 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     ids = torch.from_numpy(labels[:, 0])
     styles = torch.from_numpy(style).expand(len(z), -1)
     drawn = vae.decode(z, ids, styles)
-    assert not torch.allclose(drawn, vae.decode(z, torch.from_numpy(labels[:, 1]), styles))  # follows the labels
+    other_classes = ids.clone()
+    other_classes[:, CLASS_PLANE] = torch.from_numpy(labels[:, 1, CLASS_PLANE])
+    assert not torch.allclose(drawn, vae.decode(z, other_classes, styles))  # follows the classes
+    repainted = ids.clone()
+    repainted[:, PAINT_PLANE] = 255 - repainted[:, PAINT_PLANE]
+    assert not torch.allclose(drawn, vae.decode(z, repainted, styles))  # and the paint
     assert not torch.allclose(drawn, vae.decode(z, ids, torch.from_numpy(other_style).expand(len(z), -1)))  # the style
-    # NO_LABEL is the all-zero one-hot, the same as giving no labels (the LiDAR view): no style either
-    none = torch.full_like(ids, NO_LABEL)
+    # NO_LABEL without paint is the all-zero input, the same as giving no labels (the LiDAR view): no style either
+    none = torch.zeros_like(ids)
+    none[:, CLASS_PLANE] = NO_LABEL
     assert torch.equal(vae.decode(z, none, styles), vae.decode(z))
     # the LiDAR view has no label map: its ranges depend on neither the cameras' labels nor the style
     lidar_ranges = vae.decode_frames(lat, labels=labels, style=style)[1]

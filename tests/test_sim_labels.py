@@ -1,22 +1,30 @@
 """Per-camera label maps: sky, road texture classes and objects after occlusion, at any resolution."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from world_model import Box3D, EgoState, SceneFrame, SceneObject, default_rig
+from world_model import Box3D, EgoState, SceneFrame, SceneObject, ScenePrompt, default_rig
 from world_model.sim import ProceduralSimulator, ground
 from world_model.sim.config import SimConfig
 from world_model.sim.demo import demo_frame, straight_road
 from world_model.sim.labels import (
+    CLASS_PLANE,
     LABEL_CLASSES,
+    MAP_PLANES,
     MARKING,
     OFFROAD,
     OTHER_OBJECT,
+    PAINT_BITS,
+    PAINT_PLANE,
     ROAD,
     SKY,
     VEHICLE,
     VULNERABLE,
     LabelRasterizer,
+    decode_paint,
+    encode_paint,
     label_maps,
     scaled_rig,
 )
@@ -103,3 +111,36 @@ def test_rasterizer_reuse_is_identical_and_deterministic():
 def test_bad_size_is_rejected():
     with pytest.raises(ValueError, match="height=0"):
         scaled_rig(RIG, 0, 10)
+
+
+def test_paint_round_trips_each_channel_to_its_high_bits():
+    rgb = np.array([[0, 0, 0], [255, 255, 255], [200, 30, 30], [0, 0, 128], [139, 0, 0]], dtype=np.uint8)
+    back = decode_paint(encode_paint(rgb))
+    assert back.shape == (5, 3) and back.dtype == np.float32
+    levels = np.array([(1 << b) - 1 for b in PAINT_BITS])
+    assert np.array_equal(np.rint(back * levels).astype(int), rgb.astype(int) >> (8 - np.array(PAINT_BITS)))
+    assert np.array_equal(back[0], [0, 0, 0]) and np.array_equal(back[1], [1, 1, 1])
+    assert back[2, 0] > 0.7 and back[2, 1:].max() < 0.2  # red stays red
+    assert back[3, 2] > 0.3 and back[3, :2].max() == 0  # navy stays blue
+    all_bytes = np.arange(256, dtype=np.uint8)
+    assert np.array_equal(encode_paint(np.rint(decode_paint(all_bytes) * 255).astype(np.uint8)), all_bytes)
+
+
+def test_the_paint_plane_holds_each_visible_faces_unlit_paint_and_nothing_elsewhere():
+    red = SceneObject("red", "car", Box3D((15.0, -4.0, 0.8), (4.5, 1.9, 1.6), 0.0), color=(200, 20, 20))
+    blue = SceneObject("blue", "car", Box3D((15.0, -4.0, 0.8), (4.5, 1.9, 1.6), 0.0), color=(20, 40, 200))
+    for car in (red, blue):
+        fr = frame([car])
+        maps = LabelRasterizer().maps(fr, RIG, 64, 112)
+        assert maps.shape == (6, MAP_PLANES, 64, 112) and maps.dtype == np.uint8
+        classes, paint = maps[:, CLASS_PLANE], maps[:, PAINT_PLANE]
+        assert np.array_equal(classes, label_maps(fr, RIG, 64, 112))  # the class plane is the label map
+        assert np.all(paint[classes != VEHICLE] == 0)
+        on_car = paint[classes == VEHICLE]
+        values, counts = np.unique(on_car, return_counts=True)
+        assert values[np.argmax(counts)] == encode_paint(np.array(car.color))  # the body, most of the car
+        assert len(values) > 1  # its glass and tyres have their own paint
+    # The paint is unlit: a night scene paints the car as the day does, where the images darken.
+    night = replace(frame([red]), prompt=ScenePrompt(time_of_day="night"))
+    raster = LabelRasterizer()
+    assert np.array_equal(raster.maps(night, RIG, 64, 112), raster.maps(frame([red]), RIG, 64, 112))

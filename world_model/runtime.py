@@ -37,7 +37,7 @@ from world_model.observation import Observation
 from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
-from world_model.sim.labels import NO_LABEL
+from world_model.sim.labels import CLASS_PLANE, NO_LABEL
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import STREAMING_FILE, StreamingConfig
@@ -461,7 +461,7 @@ class RolloutBatch:
             labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
             if not self.every_frame:
                 lat, labels = lat[:, -1:], labels[:, -1:]
-            if self.wm.vae.draws_labels and (labels[..., 0, 0] == NO_LABEL).all(axis=-1).any():
+            if self.wm.vae.draws_labels and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
                     "a frame to decode has no label map: build each step's conditions with the rollouts' "
                     "every_frame (ConditionBuilder.chunk_arrays)"

@@ -23,10 +23,12 @@ view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR over
 layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent resolution
                                          (:mod:`world_model.model.layout`); Cl =
                                          ``layout.channels``, 0 when disabled
-labels             (T, Vc, H, W) uint8   each camera's label map at full resolution
-                                         (:data:`~world_model.sim.labels.LABEL_CLASSES` ids)
-                                         for the VAE decoder (``layout.decoder``); H = W = 0
-                                         without it. The DiTs do not read it.
+labels             (T, Vc, 2, H, W)      each camera's label map at full resolution for the
+                   uint8                 VAE decoder (``layout.decoder``): class ids
+                                         (:data:`~world_model.sim.labels.LABEL_CLASSES`) and
+                                         the objects' paint
+                                         (:meth:`~world_model.sim.labels.LabelRasterizer.maps`);
+                                         H = W = 0 without it. The DiTs do not read it.
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -49,7 +51,7 @@ from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
-from world_model.sim.labels import NO_LABEL, LabelRasterizer
+from world_model.sim.labels import CLASS_PLANE, MAP_PLANES, NO_LABEL, LabelRasterizer
 
 
 def view_adjacency(rig: CameraRig) -> np.ndarray:
@@ -307,21 +309,23 @@ def camera_labels(
     rasterizer: LabelRasterizer | None = None,
     labeled: Sequence[bool] | None = None,
 ) -> np.ndarray:
-    """The ``labels`` field: each camera's label map of every frame, (T, Vc, H, W) uint8, for a
-    decoder that draws them (``layout.decoder``); (T, Vc, 0, 0) without one. ``rasterizer``: one
+    """The ``labels`` field: each camera's label map of every frame, (T, Vc, 2, H, W) uint8 (class
+    ids and paint, :meth:`LabelRasterizer.maps`), for a decoder that draws them
+    (``layout.decoder``); (T, Vc, 2, 0, 0) without one. ``rasterizer``: one
     kept across calls reuses its ray geometry, road texture and meshes (default: a new one).
-    ``labeled`` (T,): the frames that will be decoded (default: all); the others are left
+    ``labeled`` (T,): the frames that will be decoded (default: all); the others' classes are left
     :data:`~world_model.sim.labels.NO_LABEL`, which saves rendering maps nobody draws."""
     s = cfg.sensors
     if not cfg.layout.decoder:
-        return np.zeros((len(frames), s.num_cameras, 0, 0), np.uint8)
+        return np.zeros((len(frames), s.num_cameras, MAP_PLANES, 0, 0), np.uint8)
     if labeled is not None and len(labeled) != len(frames):
         raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
     raster = rasterizer or LabelRasterizer()
-    out = np.full((len(frames), s.num_cameras, s.height, s.width), NO_LABEL, np.uint8)
+    out = np.zeros((len(frames), s.num_cameras, MAP_PLANES, s.height, s.width), np.uint8)
+    out[:, :, CLASS_PLANE] = NO_LABEL
     for t, frame in enumerate(frames):
         if labeled is None or labeled[t]:
-            out[t] = raster(frame, frame.rig, s.height, s.width)
+            out[t] = raster.maps(frame, frame.rig, s.height, s.width)
     return out
 
 
@@ -358,7 +362,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "text_mask": FieldSpec((cfg.text.max_tokens,), b),
         "view_adjacency": FieldSpec((v, v), b),
         "layout": FieldSpec((t, v, layout_channels, h, w), f32),
-        "labels": FieldSpec((t, vc, *label_hw), u8),
+        "labels": FieldSpec((t, vc, MAP_PLANES, *label_hw), u8),
     }
 
 

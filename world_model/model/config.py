@@ -20,7 +20,7 @@ from typing import Any
 
 from world_model.model.layout import LAYOUT_CHANNELS
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
-from world_model.sim.labels import LABEL_CLASSES
+from world_model.sim.labels import LABEL_CLASSES, PAINT_CHANNELS
 
 
 @dataclass(frozen=True)
@@ -116,16 +116,22 @@ class LayoutConfig:
     ``decoder_style``: that modulation also reads the prompt's pooled text embedding, per scene
     class (how the sky, the off-road ground, the road and its markings look in this weather and
     light), so the scene's weather and time of day reach every pixel of those classes whatever
-    colour the latents drifted to; objects keep their own look."""
+    colour the latents drifted to.
+
+    ``decoder_paint``: the modulation also reads each object pixel's paint, the colour the scene
+    gives that object (the label map's paint plane, as RGB), so a red car comes out red however
+    little of a 10-pixel car's colour the latents keep."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
     decoder_style: bool = False
+    decoder_paint: bool = False
 
     def __post_init__(self) -> None:
-        if self.decoder_style and not self.decoder:
-            raise ValueError("layout.decoder_style needs layout.decoder (the style modulates the label maps)")
+        for name in ("decoder_style", "decoder_paint"):
+            if getattr(self, name) and not self.decoder:
+                raise ValueError(f"layout.{name} needs layout.decoder (it modulates the label maps)")
 
     @property
     def channels(self) -> int:
@@ -133,8 +139,9 @@ class LayoutConfig:
 
     @property
     def label_channels(self) -> int:
-        """One-hot channels of the decoder's label maps (0 without ``decoder``)."""
-        return len(LABEL_CLASSES) if self.decoder else 0
+        """Channels of the decoder's label maps: the classes one-hot, then the paint's RGB with
+        ``decoder_paint`` (0 without ``decoder``)."""
+        return (len(LABEL_CLASSES) + PAINT_CHANNELS * self.decoder_paint) if self.decoder else 0
 
 
 @dataclass(frozen=True)
@@ -403,13 +410,13 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     if enabled is None:
         return cfg
     on = bool(enabled)
-    return replace(cfg, layout=replace(cfg.layout, enabled=on, decoder=on, decoder_style=on))
+    return replace(cfg, layout=replace(cfg.layout, enabled=on, decoder=on, decoder_style=on, decoder_paint=on))
 
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps)."""
-    return replace(cfg, layout=replace(cfg.layout, decoder=False, decoder_style=False))
+    return replace(cfg, layout=replace(cfg.layout, decoder=False, decoder_style=False, decoder_paint=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

@@ -29,7 +29,17 @@ from torch import nn
 from world_model.model.config import ModelConfig, VaeConfig
 from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
-from world_model.sim.labels import SCENE_LOOK_CLASSES
+from world_model.sim.labels import (
+    CLASS_PLANE,
+    LABEL_CLASSES,
+    MAP_PLANES,
+    PAINT_PLANE,
+    SCENE_LOOK_CLASSES,
+    decode_paint,
+)
+
+# Every paint byte's RGB in [0, 1] (256, 3): the decoder's paint channels are a lookup.
+_PAINT_RGB = torch.from_numpy(decode_paint(np.arange(256, dtype=np.uint8)))
 
 
 def _groups(channels: int) -> int:
@@ -207,19 +217,27 @@ class SensorVAE(nn.Module):
         return style.to(device=like.device, dtype=like.dtype)
 
     def _one_hot(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
-        """(N, H, W) uint8 :data:`~world_model.sim.labels.LABEL_CLASSES` ids -> (N, K, H, W) one-hot,
-        :data:`~world_model.sim.labels.NO_LABEL` and None -> all zeros (no layout). None for a decoder
-        without label modulation."""
+        """(N, 2, H, W) uint8 label maps (class ids, paint: :meth:`LabelRasterizer.maps`) -> (N, K, H, W):
+        the :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
+        and None -> all zeros: no layout), then the paint as RGB in [0, 1] when the decoder reads it
+        (``layout.decoder_paint``). None for a decoder without label modulation."""
         if not self.draws_labels:
             return None
         k = self.cfg.layout.label_channels
+        classes = len(LABEL_CLASSES)
         h, w = self.cfg_hw
         if labels is None:
             return like.new_zeros(like.shape[0], k, h, w)
-        if labels.shape != (like.shape[0], h, w):
-            raise ValueError(f"labels must be ({like.shape[0]}, {h}, {w}) class ids, got {tuple(labels.shape)}")
-        ids = labels.to(like.device).long().clamp(max=k)  # NO_LABEL -> the dropped extra class
-        return F.one_hot(ids, k + 1)[..., :k].movedim(-1, 1).to(like.dtype)
+        if labels.shape != (like.shape[0], MAP_PLANES, h, w):
+            want = (like.shape[0], MAP_PLANES, h, w)
+            raise ValueError(f"labels must be {want} class ids and paint, got {tuple(labels.shape)}")
+        labels = labels.to(like.device).long()
+        ids = labels[:, CLASS_PLANE].clamp(max=classes)  # NO_LABEL -> the dropped extra class
+        one_hot = F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype)
+        if k == classes:
+            return one_hot
+        rgb = _PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]].movedim(-1, 1)
+        return torch.cat([one_hot, rgb], dim=1)
 
     # -- normalized latents (what the DiT sees) --
     def _norm(self, z: torch.Tensor) -> torch.Tensor:
@@ -234,7 +252,7 @@ class SensorVAE(nn.Module):
     ) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
 
-        ``labels``: (N, H, W) uint8 label-map class ids, read when the decoder draws them
+        ``labels``: (N, 2, H, W) uint8 label maps (class ids and paint), read when the decoder draws them
         (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
         scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
         when the decoder draws it (:attr:`draws_style`)."""
@@ -280,7 +298,7 @@ class SensorVAE(nn.Module):
     ) -> tuple[np.ndarray, np.ndarray]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
 
-        ``labels``: the frames' camera label maps (T, V, H, W) uint8, required when the decoder
+        ``labels``: the frames' camera label maps (T, V, 2, H, W) uint8, required when the decoder
         draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
         ``style``: the scene's style, (S,) for every frame or (T, S), required when the decoder draws
         it (:attr:`draws_style`; ``ConditionArrays.style``)."""
@@ -300,7 +318,7 @@ class SensorVAE(nn.Module):
             if labels is None or tuple(labels.shape[:2]) != (t, v1 - 1):
                 got = None if labels is None else tuple(labels.shape)
                 raise ValueError(
-                    f"this VAE's decoder draws each camera's label map: need labels ({t}, {v1 - 1}, H, W), got {got}"
+                    f"this VAE's decoder draws each camera's label map: need labels ({t}, {v1 - 1}, 2, H, W), got {got}"
                 )
             cam_labels = torch.as_tensor(labels).flatten(0, 1)
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16

@@ -4,6 +4,11 @@ The simulator knows each pixel's source: the sky, the road plane's label texture
 road surface, painted markings and road edges) or an object's polygon after occlusion. Label maps
 are rendered with the same geometry as the images, at any resolution (the rig's intrinsics are
 scaled), so they also serve as per-view layout rasters at latent resolution.
+
+The decoder's maps (:meth:`LabelRasterizer.maps`) carry a second plane beside the class ids: each
+object pixel's paint, unlit, in one byte (:func:`encode_paint`), 0 elsewhere: the albedo of the face
+it shows, the object's colour (``SceneObject.color``) on its body, its glass, tyres and lamps their
+own. Light, weather and fog are left to the model. The class plane says which pixels are objects.
 """
 
 from __future__ import annotations
@@ -41,6 +46,13 @@ assert tuple(range(len(SCENE_LOOK_CLASSES))) == SCENE_LOOK_CLASSES
 # An id that draws nothing (the decoder's all-zero one-hot): the LiDAR view, which has no label
 # map, and frames that will not be decoded.
 NO_LABEL = 255
+# The planes of a decoder's label map (V, 2, H, W): class ids, and the objects' paint.
+CLASS_PLANE, PAINT_PLANE = 0, 1
+MAP_PLANES = 2
+# Bits of red, green and blue in a paint byte (8-bit truecolour, RRRGGGBB): eight levels of red
+# and green, four of blue; enough to tell a red car from a dark red, navy or blue one.
+PAINT_BITS = (3, 3, 2)
+PAINT_CHANNELS = len(PAINT_BITS)  # the decoder reads paint as RGB
 
 CATEGORY_CLASS: dict[str, int] = {
     "car": VEHICLE,
@@ -56,6 +68,25 @@ CATEGORY_CLASS: dict[str, int] = {
     "barrier": OTHER_OBJECT,
 }
 assert set(CATEGORY_CLASS) == set(CATEGORIES), "every scene category needs a label class"
+
+
+def encode_paint(rgb: np.ndarray) -> np.ndarray:
+    """(..., 3) uint8 RGB -> (...) uint8 paint bytes (:data:`PAINT_BITS`, the high bits of each)."""
+    rgb = np.asarray(rgb, dtype=np.uint8)
+    out = np.zeros(rgb.shape[:-1], dtype=np.uint8)
+    for c, bits in enumerate(PAINT_BITS):
+        out = (out << bits) | (rgb[..., c] >> (8 - bits))
+    return out
+
+
+def decode_paint(paint: np.ndarray) -> np.ndarray:
+    """(...) uint8 paint bytes -> (..., 3) float32 RGB in [0, 1], each channel's levels spread evenly."""
+    paint = np.asarray(paint, dtype=np.uint8)
+    channels, shift = [], 8
+    for bits in PAINT_BITS:
+        shift -= bits
+        channels.append(((paint >> shift) & ((1 << bits) - 1)).astype(np.float32) / ((1 << bits) - 1))
+    return np.stack(channels, axis=-1)
 
 
 def scaled_rig(rig: CameraRig, height: int, width: int) -> CameraRig:
@@ -102,13 +133,19 @@ class LabelRasterizer:
 
     def __call__(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
         """(V, H, W) uint8 class ids (:data:`LABEL_CLASSES`) of ``frame`` seen by ``rig`` at H x W."""
+        return self.maps(frame, rig, height, width)[:, CLASS_PLANE]
+
+    def maps(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
+        """(V, :data:`MAP_PLANES`, H, W) uint8: the class ids of ``frame`` seen by ``rig`` at H x W,
+        and the paint of every object pixel (:func:`encode_paint` of its face's albedo; 0 elsewhere)."""
         cfg = self.config
         small = self._rig(rig, height, width, frame.lidar.mount_height)
         texture = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
         flat = np.full(small.rays.distance.size, SKY, dtype=np.uint8)
         texels = texture.lookup_ego(small.rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
         flat[small.rays.ground_index] = self._classes[texels]
-        out = flat.reshape(small.rig.num_views, height, width)
+        out = np.zeros((small.rig.num_views, MAP_PLANES, height, width), dtype=np.uint8)
+        out[:, CLASS_PLANE] = flat.reshape(small.rig.num_views, height, width)
         if frame.objects:
             plan = objects.plan_objects(
                 frame,
@@ -122,13 +159,17 @@ class LabelRasterizer:
                 cfg.impostor_max_px,
                 cfg.subpixel_bits,
             )
+            unlit = replace(plan, colors=np.clip(plan.albedos, 0.0, 255.0))
             ids = np.zeros((height, width), dtype=np.int32)
+            albedo = np.zeros((height, width, 3), dtype=np.uint8)
             lut = np.array([0] + [CATEGORY_CLASS[o.category] for o in frame.objects], dtype=np.uint8)
             for v in range(small.rig.num_views):
                 ids[:] = 0
                 objects.paint(ids, plan, v, False, cfg.subpixel_bits, value=lambda o: o + 1)
+                objects.paint(albedo, unlit, v, False, cfg.subpixel_bits)
                 seen = ids > 0
-                out[v][seen] = lut[ids[seen]]
+                out[v, CLASS_PLANE][seen] = lut[ids[seen]]
+                out[v, PAINT_PLANE][seen] = encode_paint(albedo[seen])
         return out
 
 

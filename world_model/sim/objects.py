@@ -34,7 +34,8 @@ class DrawPlan:
     """Polygons to paint in order; M polygons sorted by view, then painting order."""
 
     polygons: np.ndarray  # (M, CLIPPED_VERTS, 2) int32 fixed-point pixels, padded by repeating a vertex
-    colors: np.ndarray  # (M, 3) float64 RGB
+    colors: np.ndarray  # (M, 3) float64 RGB, shaded and fogged
+    albedos: np.ndarray  # (M, 3) float64 RGB: the paint of each polygon's face, unlit
     objects: np.ndarray  # (M,) object index
     view_start: np.ndarray  # (V + 1,) polygons of view v are [view_start[v], view_start[v + 1])
 
@@ -256,6 +257,7 @@ def plan_objects(
             _impostor_colors(sm, poses, sun_l, lighting)[io],
         ]
     )
+    albedos = np.concatenate([sm.albedo[kface[k]], sm.object_albedo[io]])
     # cv2 puts pixel centres at integer coordinates; ours are at +0.5.
     lim = float(FIXED_POINT_LIMIT_PX)
     uv = np.stack([np.concatenate([uf, rect_u]), np.concatenate([vf, rect_v])], -1) - 0.5
@@ -263,6 +265,7 @@ def plan_objects(
     return DrawPlan(
         polygons=polys[order],
         colors=colors[order],
+        albedos=albedos[order],
         objects=objs[order],
         view_start=np.searchsorted(views[order], np.arange(nviews + 1)),
     )

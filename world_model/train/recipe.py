@@ -166,7 +166,9 @@ def recipe_config(spec: RecipeScale):  # noqa: ANN201 - a ModelConfig
     from world_model.model.config import get_preset
 
     cfg = get_preset(spec.preset)
-    layout = replace(cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE, decoder=True, decoder_style=True)
+    layout = replace(
+        cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE, decoder=True, decoder_style=True, decoder_paint=True
+    )
     text = cfg.text if spec.text_encoder is None else replace(cfg.text, encoder=spec.text_encoder)
     return replace(cfg, text=text, layout=layout)
 

@@ -29,7 +29,7 @@ from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.scene import SceneFrame
-from world_model.sim.labels import NO_LABEL, LabelRasterizer
+from world_model.sim.labels import CLASS_PLANE, MAP_PLANES, NO_LABEL, LabelRasterizer
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
 from world_model.train.exports import EXPORT, run_latents, run_vae
@@ -87,19 +87,28 @@ def vae_metrics(
 
 
 def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
-    """(N, H, W) uint8 label-map class ids of ``views`` of ``frame``; the LiDAR view gets
-    :data:`~world_model.sim.labels.NO_LABEL` (no layout), as it does when decoding frames."""
+    """(N, 2, H, W) uint8 label maps (class ids and paint) of ``views`` of ``frame``; the LiDAR view
+    gets :func:`no_label_map`, as it does when decoding frames."""
     s = cfg.sensors
-    maps = torch.from_numpy(raster(frame, frame.rig, s.height, s.width))
-    return torch.stack([maps[v] if v < s.num_cameras else torch.full_like(maps[0], NO_LABEL) for v in views])
+    maps = torch.from_numpy(raster.maps(frame, frame.rig, s.height, s.width))
+    blank = torch.from_numpy(no_label_map(cfg))
+    return torch.stack([maps[v] if v < s.num_cameras else blank for v in views])
 
 
 def picked_labels(labels: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
-    """(H, W) uint8 class ids of a view of a frame from each clip's camera label maps; the LiDAR
-    view gets :data:`~world_model.sim.labels.NO_LABEL`, as in :func:`view_labels`."""
+    """(2, H, W) uint8 label map of a view of a frame from each clip's camera label maps; the LiDAR
+    view gets :func:`no_label_map`, as in :func:`view_labels`."""
     if view < cfg.sensors.num_cameras:
         return labels[clip][frame, view]
-    return np.full(labels[clip].shape[2:], NO_LABEL, dtype=np.uint8)
+    return no_label_map(cfg)
+
+
+def no_label_map(cfg: ModelConfig) -> np.ndarray:
+    """(2, H, W) uint8: a map that draws nothing (classes :data:`~world_model.sim.labels.NO_LABEL`,
+    no paint), the LiDAR view's."""
+    out = np.zeros((MAP_PLANES, cfg.sensors.height, cfg.sensors.width), dtype=np.uint8)
+    out[CLASS_PLANE] = NO_LABEL
+    return out
 
 
 def vae_stage(run: StageRun) -> dict:
