@@ -87,7 +87,8 @@ class Encoder(nn.Module):
 
 class LabelModulation(nn.Module):
     """SPADE (Park et al. 2019) without its hidden layer: features ``x * (1 + gamma) + beta``, with
-    gamma and beta a 3x3 convolution of the one-hot label map area-pooled to the features' grid.
+    gamma and beta a 3x3 convolution of the label map's channels (the classes one-hot, then the
+    objects' paint as RGB when the decoder reads it) area-pooled to the features' grid.
 
     With ``style_dim``, gamma and beta also get, at each pixel, its label class's vector read from
     the scene's style (the prompt's pooled text embedding) by a linear map: how that class looks in
@@ -104,7 +105,8 @@ class LabelModulation(nn.Module):
                 nn.init.zeros_(layer.bias)
 
     def forward(self, x: torch.Tensor, labels: torch.Tensor, style: torch.Tensor | None = None) -> torch.Tensor:
-        """x (N, c, h, w), labels (N, K, H, W) one-hot (H, W multiples of h, w), style (N, S) -> (N, c, h, w)."""
+        """x (N, c, h, w), labels (N, K, H, W) channels, the classes' one-hot first (H, W multiples of
+        h, w), style (N, S) -> (N, c, h, w)."""
         if labels.shape[-2:] != x.shape[-2:]:
             labels = F.adaptive_avg_pool2d(labels, x.shape[-2:])
         labels = labels.to(x.dtype)
@@ -151,8 +153,9 @@ class Decoder(nn.Module):
     def forward(
         self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """z (N, C, h, w); ``labels`` (N, K, H, W) one-hot, required with label modulation (all
-        zeros: no layout, e.g. the LiDAR view); ``style`` (N, S), required with ``style_dim``."""
+        """z (N, C, h, w); ``labels`` (N, K, H, W) channels (:meth:`SensorVAE._label_inputs`), required
+        with label modulation (all zeros: no layout, e.g. the LiDAR view); ``style`` (N, S), required
+        with ``style_dim``."""
         if self.label_mods is None:
             return self.conv_out(self.up(self.mid(self.conv_in(z))))
         if labels is None:
@@ -192,7 +195,7 @@ class SensorVAE(nn.Module):
         self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
     ) -> torch.Tensor:
         """Unnormalized latents (N, C, h, w) -> images; ``labels`` and ``style`` as :meth:`decode`."""
-        return self.decoder(z, self._one_hot(labels, z), self._style(style, labels, z))
+        return self.decoder(z, self._label_inputs(labels, z), self._style(style, labels, z))
 
     @property
     def draws_labels(self) -> bool:
@@ -216,7 +219,7 @@ class SensorVAE(nn.Module):
             return like.new_zeros(like.shape[0], self.decoder.style_dim)
         return style.to(device=like.device, dtype=like.dtype)
 
-    def _one_hot(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
+    def _label_inputs(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
         """(N, 2, H, W) uint8 label maps (class ids, paint: :meth:`LabelRasterizer.maps`) -> (N, K, H, W):
         the :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
         and None -> all zeros: no layout), then the paint as RGB in [0, 1] when the decoder reads it
@@ -260,7 +263,7 @@ class SensorVAE(nn.Module):
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
         z = z.contiguous(memory_format=torch.channels_last)
-        return self.decoder(z, self._one_hot(labels, z), self._style(style, labels, z))
+        return self.decoder(z, self._label_inputs(labels, z), self._style(style, labels, z))
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
