@@ -112,7 +112,7 @@ SCALES = {
             "ode": (80, 4),
             "dmd": (50, 2),
             "long": (20, 2),
-            "rollout_decoder": (1500, 16),
+            "rollout_decoder": (4500, 16),
             "reference": (800, 4),
             "lora": (300, 4),
         },
