@@ -118,9 +118,10 @@ class LayoutConfig:
     light), so the scene's weather and time of day reach every pixel of those classes whatever
     colour the latents drifted to.
 
-    ``decoder_paint``: the modulation also reads each object pixel's paint, the colour the scene
-    gives that object (the label map's paint plane, as RGB), so a red car comes out red however
-    little of a 10-pixel car's colour the latents keep."""
+    ``decoder_paint``: the modulation also reads each object pixel's paint, the unlit albedo of the
+    face it shows (the label map's paint plane, as RGB: the object's colour on its body, its glass,
+    tyres and lamps their own), so a red car comes out red with dark windows however little of a
+    10-pixel car's colour the latents keep."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
