@@ -51,7 +51,7 @@ from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
-from world_model.sim.labels import CLASS_PLANE, MAP_PLANES, NO_LABEL, LabelRasterizer
+from world_model.sim.labels import MAP_PLANES, LabelRasterizer, blank_maps
 
 
 def view_adjacency(rig: CameraRig) -> np.ndarray:
@@ -321,8 +321,7 @@ def camera_labels(
     if labeled is not None and len(labeled) != len(frames):
         raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
     raster = rasterizer or LabelRasterizer()
-    out = np.zeros((len(frames), s.num_cameras, MAP_PLANES, s.height, s.width), np.uint8)
-    out[:, :, CLASS_PLANE] = NO_LABEL
+    out = blank_maps((len(frames), s.num_cameras), s.height, s.width)
     for t, frame in enumerate(frames):
         if labeled is None or labeled[t]:
             out[t] = raster.maps(frame, frame.rig, s.height, s.width)

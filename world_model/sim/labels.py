@@ -79,6 +79,14 @@ def encode_paint(rgb: np.ndarray) -> np.ndarray:
     return out
 
 
+def blank_maps(leading: tuple[int, ...], height: int, width: int) -> np.ndarray:
+    """(*leading, :data:`MAP_PLANES`, H, W) uint8 label maps that draw nothing: classes
+    :data:`NO_LABEL`, no paint (the LiDAR view's, and frames that will not be decoded)."""
+    out = np.zeros((*leading, MAP_PLANES, height, width), dtype=np.uint8)
+    out[..., CLASS_PLANE, :, :] = NO_LABEL
+    return out
+
+
 def decode_paint(paint: np.ndarray) -> np.ndarray:
     """(...) uint8 paint bytes -> (..., 3) float32 RGB in [0, 1], each channel's levels spread evenly."""
     paint = np.asarray(paint, dtype=np.uint8)

@@ -29,7 +29,7 @@ from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.scene import SceneFrame
-from world_model.sim.labels import CLASS_PLANE, MAP_PLANES, NO_LABEL, LabelRasterizer
+from world_model.sim.labels import LabelRasterizer, blank_maps
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
 from world_model.train.exports import EXPORT, run_latents, run_vae
@@ -88,27 +88,19 @@ def vae_metrics(
 
 def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
     """(N, 2, H, W) uint8 label maps (class ids and paint) of ``views`` of ``frame``; the LiDAR view
-    gets :func:`no_label_map`, as it does when decoding frames."""
+    gets a map that draws nothing (:func:`~world_model.sim.labels.blank_maps`), as it does when decoding frames."""
     s = cfg.sensors
     maps = torch.from_numpy(raster.maps(frame, frame.rig, s.height, s.width))
-    blank = torch.from_numpy(no_label_map(cfg))
+    blank = torch.from_numpy(blank_maps((), s.height, s.width))
     return torch.stack([maps[v] if v < s.num_cameras else blank for v in views])
 
 
 def picked_labels(labels: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
     """(2, H, W) uint8 label map of a view of a frame from each clip's camera label maps; the LiDAR
-    view gets :func:`no_label_map`, as in :func:`view_labels`."""
+    view gets a map that draws nothing, as in :func:`view_labels`."""
     if view < cfg.sensors.num_cameras:
         return labels[clip][frame, view]
-    return no_label_map(cfg)
-
-
-def no_label_map(cfg: ModelConfig) -> np.ndarray:
-    """(2, H, W) uint8: a map that draws nothing (classes :data:`~world_model.sim.labels.NO_LABEL`,
-    no paint), the LiDAR view's."""
-    out = np.zeros((MAP_PLANES, cfg.sensors.height, cfg.sensors.width), dtype=np.uint8)
-    out[CLASS_PLANE] = NO_LABEL
-    return out
+    return blank_maps((), cfg.sensors.height, cfg.sensors.width)
 
 
 def vae_stage(run: StageRun) -> dict:
