@@ -3,6 +3,7 @@
 import json
 import math
 import time
+from dataclasses import replace
 
 import pytest
 import torch
@@ -281,9 +282,24 @@ def test_a_time_limit_stops_the_run_checkpointed_and_a_rerun_resumes_to_its_step
         time.sleep(0.02)
         return model(torch.ones(1, 2)).sum() ** 2, 1
 
-    out = Trainer(tmp_path, model, tcfg, {}, False, time_limit_s=0.05).run(slow_step, "toy")
+    out = Trainer(tmp_path, model, tcfg, {}, False, deadline=time.perf_counter() + 0.05).run(slow_step, "toy")
     assert out["stopped_by_time_limit"] and 1 <= out["step"] < 50
     assert load_latest(tmp_path / "checkpoints").step == out["step"]  # saved where it stopped
     again = Trainer(tmp_path, model, tcfg, {}, False).run(slow_step, "toy")
     assert again["resumed_from"] == out["step"] and again["step"] == 50
     assert not again["stopped_by_time_limit"]
+
+
+def test_a_stage_time_limit_counts_its_setup_and_still_takes_one_step(dataset, tmp_path, monkeypatch):
+    from world_model.train import stages
+
+    spec = stages.REGISTRY["vae"]
+
+    def slow_setup_then_train(run, **kw):
+        time.sleep(0.3)  # a cache or rollouts built before the first step
+        return spec.train(run, **kw)
+
+    monkeypatch.setitem(stages.REGISTRY, "vae", replace(spec, train=slow_setup_then_train))
+    out = train_stage("vae", dataset, tmp_path / "run", preset="tiny", steps=50, progress=False, time_limit_s=0.2)
+    assert out["stopped_by_time_limit"] and out["step"] == 1  # the setup used the time: one step, checkpointed
+    assert load_latest(tmp_path / "run" / "vae" / "checkpoints").step == 1

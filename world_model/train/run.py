@@ -32,7 +32,7 @@ class StageRun:
     progress: bool = True
     scfg: StudentConfig = field(default_factory=StudentConfig)
     compile_model: bool = False
-    time_limit_s: float | None = None
+    deadline: float | None = None  # time.perf_counter() at which training stops (Trainer)
 
     def trainer(self, model: nn.Module, stage: str, resume_keys: dict | None = None, **meta: object) -> Trainer:
         """The stage's :class:`Trainer` (checkpoints in ``stage_dir``, metadata naming the stage and,
@@ -47,7 +47,7 @@ class StageRun:
             resume_keys,
             self.place,
             self.compile_model,
-            self.time_limit_s,
+            self.deadline,
         )
 
     def latents(self, stage: str) -> LatentWindows:

@@ -16,6 +16,7 @@ latest checkpoint; a finished stage rerun with a larger ``steps`` continues trai
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -221,10 +222,12 @@ def train_stage(
     device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
     or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
     ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
-    ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops after this many seconds
-    of training, checkpointed and exported, even short of ``steps``. Precision, device, compilation
+    ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops this many seconds after
+    this call, its setup (caches, rollouts) counted, checkpointed and exported, even short of
+    ``steps`` (after one step at least). Precision, device, compilation
     and time limit are run-time choices: checkpoints and their configs do not record them.
     """
+    deadline = None if time_limit_s is None else time.perf_counter() + time_limit_s
     if stage not in REGISTRY:
         raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
     spec = REGISTRY[stage]
@@ -257,7 +260,7 @@ def train_stage(
         progress,
         student or StudentConfig(),
         compile_model,
-        time_limit_s,
+        deadline,
     )
     with dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, place.device)):
         out = spec.train(run, **kwargs)

@@ -71,16 +71,17 @@ class Trainer:
         resume_keys: dict[str, object] | None = None,
         place: TrainPlace | None = None,
         compile_model: bool = False,
-        time_limit_s: float | None = None,
+        deadline: float | None = None,
     ):
         """``resume_keys``: entries of ``meta`` a resumed run must share with its checkpoint (a
         setting that changes the objective mid-run), else :meth:`resume` raises ``ValueError``; each
         maps to the value meant by a checkpoint written before the entry existed. ``place``: the
         device and rank (default: one process on the CPU); the model moves there. ``compile_model``:
         ``torch.compile`` the model's forward (each trained network of a container module).
-        ``time_limit_s``: :meth:`run` stops after this many seconds of training, checkpointed, even
-        short of ``tcfg.steps`` (rerunning resumes towards ``tcfg.steps``)."""
-        self.time_limit_s = time_limit_s
+        ``deadline``: a :func:`time.perf_counter` time at which :meth:`run` stops, checkpointed, even
+        short of ``tcfg.steps`` (rerunning resumes towards ``tcfg.steps``); it takes at least one
+        step, so that a stage whose setup used up its time still leaves a checkpoint."""
+        self.deadline = deadline
         self.resume_keys = dict(resume_keys or {})
         self.place = place or TrainPlace(torch.device("cpu"))
         self.dir = Path(stage_dir)
@@ -231,7 +232,7 @@ class Trainer:
                 rate = samples / max(now - t0, 1e-9)
                 bar.set_postfix(loss=f"{value:.4f}", samples_per_s=f"{rate:.1f}")
                 bar.update(1)
-                timed_out = self._out_of_time(now - t0)
+                timed_out = self._out_of_time(now)
                 checkpoint = self.step % self.tcfg.ckpt_every == 0 or self.step == self.tcfg.steps or timed_out
                 if checkpoint:
                     self.save()
@@ -252,12 +253,12 @@ class Trainer:
             "stopped_by_time_limit": timed_out,
         }
 
-    def _out_of_time(self, elapsed_s: float) -> bool:
+    def _out_of_time(self, now: float) -> bool:
         """Whether the time limit is reached; every rank of a ``torchrun`` group takes rank 0's word,
         so that they stop at the same step."""
-        if self.time_limit_s is None:
+        if self.deadline is None:
             return False
-        return self.place.mean(float(elapsed_s >= self.time_limit_s) if self.place.is_main else 0.0) > 0
+        return self.place.mean(float(now >= self.deadline) if self.place.is_main else 0.0) > 0
 
 
 def _to_cpu(state: object) -> object:
