@@ -25,7 +25,6 @@ from world_model.train.recipe import (
     PHASES,
     RARE_CATEGORY,
     SCALES,
-    TIME_SHARES,
     join_files,
     rare_dir,
     recipe_config,
@@ -76,13 +75,18 @@ def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bund
 
 
 def test_stage_time_limits_share_what_is_left_and_pass_on_what_a_stage_did_not_use():
-    spec = replace(SCALES["dry"], time_limit_s=100.0 + BUNDLE_RESERVE_S)
+    spec = replace(SCALES["gpu"], time_limit_s=100.0 + BUNDLE_RESERVE_S)
+    weights = spec.phase_seconds
     first = stage_time_limit(spec, PHASES, elapsed_s=0.0)
-    assert first == pytest.approx(100.0 * TIME_SHARES["vae"] / sum(TIME_SHARES.values()))
+    assert first == pytest.approx(100.0 * weights["vae"] / sum(weights.values()))
     # the last stage gets everything that is left, whatever the earlier stages took
     assert stage_time_limit(spec, PHASES[-1:], elapsed_s=70.0) == pytest.approx(30.0)
     assert stage_time_limit(spec, PHASES[-1:], elapsed_s=500.0) == 1.0  # over time: one more short try
     assert stage_time_limit(SCALES["dry"], PHASES, elapsed_s=0.0) is None  # no limit: steps decide
+    for name, scale in SCALES.items():  # a scale with a time limit weighs every phase
+        assert scale.time_limit_s is None or set(scale.phase_seconds) == set(PHASES), name
+    unweighed = replace(SCALES["dry"], time_limit_s=100.0 + BUNDLE_RESERVE_S)  # --time-limit-s on the dry scale
+    assert stage_time_limit(unweighed, PHASES, elapsed_s=0.0) == pytest.approx(100.0 / len(PHASES))
 
 
 def test_each_scale_trains_the_layout_design_with_a_text_encoder_its_machine_has():

@@ -13,7 +13,8 @@
 4. writes ``OUT/recipe.json``: each phase's wall time, each stage's steps and final loss.
 
 A scale with a time limit (``gpu``: 9 minutes, ``--time-limit-s``) gives each stage a share of the
-time left after recording and stops it there, checkpointed, even short of its steps: the steps are
+time left after recording, its setup (caches, rollouts) included, and stops it there, checkpointed
+and exported, even short of its steps (after one step at least): the steps are
 upper bounds, sized for an H100, and a slower machine still gets a whole chain in time.
 
 On the GPU machine the text encoder is the dependency-free hash encoder (it has no MiniLM
@@ -63,6 +64,10 @@ class RecipeScale:
     rare_episodes: int  # clips of the rare object's scenario with the object, for the adapters
     stages: dict[str, tuple[int, int]] = field(default_factory=dict)
     time_limit_s: float | None = None  # the whole recipe, recording included; None: no limit
+    # Under a time limit, each phase's wall time (setup included: caches, rollouts) on the machine
+    # the scale is for; a phase gets its proportion of the time left (stage_time_limit). Empty:
+    # equal shares.
+    phase_seconds: dict[str, float] = field(default_factory=dict)
     # "hash" where the MiniLM weights cannot travel (a GPU machine); None: the preset's (MiniLM)
     text_encoder: str | None = "hash"
 
@@ -93,6 +98,21 @@ SCALES = {
             "lora": (1500, 32),
         },
         time_limit_s=540.0,
+        # From a 530 s run on one H200 (16 cores; recording took 41 s): label maps took the decoder
+        # 38 s before its first step, the latent and layout caches the teacher 34 s, the rollouts
+        # the rollout_decoder about 20 s; the painting decoder gets more than that run gave it.
+        phase_seconds={
+            "vae": 60,
+            "decoder": 55,
+            "teacher": 150,
+            "tf": 40,
+            "ode": 22,
+            "dmd": 30,
+            "long": 17,
+            "reference": 30,
+            "rollout_decoder": 60,
+            f"{RARE_CATEGORY}_completion": 20,
+        },
     ),
     # This 2-core CPU in about 2.5 hours: the shipped checkpoint's dataset and steps (docs/MODEL_CARD.md),
     # with the MiniLM text encoder that is at hand here. The time limit gives each stage its share;
@@ -117,6 +137,20 @@ SCALES = {
             "lora": (300, 4),
         },
         time_limit_s=9000.0,
+        # The shipped checkpoint's stages on this 2-core CPU (docs/MODEL_CARD.md), the adapter's
+        # without the second encoding of the clips that it once did.
+        phase_seconds={
+            "vae": 600,
+            "decoder": 300,
+            "teacher": 3720,
+            "tf": 540,
+            "ode": 420,
+            "dmd": 660,
+            "long": 180,
+            "reference": 720,
+            "rollout_decoder": 1020,
+            f"{RARE_CATEGORY}_completion": 600,
+        },
         text_encoder=None,
     ),
     # The same command on a CPU: every stage runs, a few steps each.
@@ -140,20 +174,6 @@ LAYOUT_SUPERSAMPLE = 2
 RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
 # The long-tail case stays out of the base model's data: the LoRA adapters learn it (docs/MODEL_CARD.md).
 EXCLUDED_CATEGORIES = ("tree_truck",)
-# Each stage's share of the training time under a time limit: about the split of the shipped
-# checkpoint's CPU training (docs/MODEL_CARD.md), the teacher the largest.
-TIME_SHARES = {
-    "vae": 0.12,
-    "decoder": 0.05,
-    "teacher": 0.33,
-    "tf": 0.14,
-    "ode": 0.08,
-    "dmd": 0.1,
-    "long": 0.06,
-    "rollout_decoder": 0.05,
-    "reference": 0.12,
-    f"{RARE_CATEGORY}_completion": 0.05,
-}
 # The rare clips: the scenario with the rare object, at the base seed the shipped adapters used.
 RARE_SCENARIO, RARE_SEED = "tree_truck_highway", 7
 # Kept from the time limit for what follows the last stage's training: its export and the bundle.
@@ -273,13 +293,15 @@ def join_files(src: Path, dest: Path) -> None:
 
 
 def stage_time_limit(spec: RecipeScale, stages_left: tuple[str, ...], elapsed_s: float) -> float | None:
-    """The training time of ``stages_left[0]``: its share of what the time limit leaves after
-    ``elapsed_s`` (and the bundle's reserve), among the stages still to run, so that a stage that
-    ends early, or takes longer to set up, passes the difference on. None: the scale has no limit."""
+    """The wall time of ``stages_left[0]``, its setup included: its proportion
+    (:attr:`RecipeScale.phase_seconds`) of what the time limit leaves after ``elapsed_s`` (and the
+    bundle's reserve) among the phases still to run, so that a phase that ends early, or late,
+    passes the difference on. None: the scale has no limit."""
     if spec.time_limit_s is None:
         return None
     left = spec.time_limit_s - elapsed_s - BUNDLE_RESERVE_S
-    share = TIME_SHARES[stages_left[0]] / sum(TIME_SHARES[s] for s in stages_left)
+    weights = spec.phase_seconds or dict.fromkeys(stages_left, 1.0)  # none measured: equal shares
+    share = weights[stages_left[0]] / sum(weights[s] for s in stages_left)
     return max(1.0, left * share)
 
 
@@ -324,7 +346,7 @@ def run_recipe(
         steps, batch = spec.stages[stage]
         t = time.perf_counter()
         limit = stage_time_limit(spec, PHASES[k:], t - t0)
-        say(f"{phase}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s of training" if limit else ""))
+        say(f"{phase}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s with its setup" if limit else ""))
         options = {}
         if phase in ADAPTERS:
             if phase == PHASES[len(CHAIN)]:  # the adapters adapt the bundle's own (bf16-stored) weights
