@@ -308,6 +308,13 @@ class RolloutBatch:
     def _on_cpu(self) -> bool:
         return next(self.wm.student.parameters()).device.type == "cpu"
 
+    def _finish_device_work(self) -> None:
+        """Wait for the student's kernels on an asynchronous device (CUDA), so that ``seconds``
+        charges them to the student rather than to the decoder's first read of its latents."""
+        device = next(self.wm.student.parameters()).device
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
         """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
         model's device, so a seed gives the same rollout noise on every device."""
@@ -450,6 +457,7 @@ class RolloutBatch:
                 t0 = time.perf_counter()
                 with self._row_independent():
                     latents = self.engine.step(cond)
+                self._finish_device_work()
                 self.seconds["student"] += time.perf_counter() - t0
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
