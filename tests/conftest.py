@@ -24,6 +24,15 @@ def tiny_bundle(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def layout_bundle(tmp_path_factory):
+    """An untrained tiny bundle with pixel-aligned layout conditioning: the DiT's layout channels
+    and a decoder that draws each camera's label maps, their paint and the scene's style."""
+    from world_model.runtime import save_untrained_bundle
+
+    return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny_layout", layout=True)
+
+
+@pytest.fixture(scope="session")
 def active_bundle(tiny_bundle, tmp_path_factory):
     """``tiny_bundle`` with noise on the student's and reference model's weights: an untrained DiT's
     zero-initialized output ignores its controls and context (adaLN-zero), so only a bundle like

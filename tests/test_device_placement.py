@@ -2,6 +2,7 @@
 reference generator and the streaming engine run with the model on ``meta`` (a stand-in for a GPU
 that needs none) under :class:`tests.device_fixtures.OnDevice`."""
 
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -70,6 +71,29 @@ def test_rollouts_reset_step_and_restart_on_the_model_device(tiny_bundle, studen
     assert wm.student.patch_in.weight.device == META
 
 
+def test_off_the_cpu_a_vector_step_decodes_its_frames_together(tiny_bundle, monkeypatch):
+    # One decoder call per env launches its kernels once per env on a GPU; the CPU decodes frame
+    # by frame so that a vector env's rows equal single envs bit for bit.
+    from world_model.model.sampler import DECODE_FRAMES_PER_CALL
+
+    frames = DECODE_FRAMES_PER_CALL + 2
+    calls = {}
+    for device in ("cpu", "meta"):
+        wm = load_world_model(tiny_bundle, device=device, dtype="float32")
+        latents = torch.zeros(frames, *wm.cfg.latent_shape(1), device=device)
+        calls[device] = 0
+
+        def counted(*args, device=device, decode_frames=wm.vae.decode_frames, **kwargs):
+            calls[device] += 1
+            return decode_frames(*args, **kwargs)
+
+        monkeypatch.setattr(wm.vae, "decode_frames", counted)
+        with OnDevice(META) if device == "meta" else nullcontext():
+            obs = wm.decode(latents)
+        assert len(obs) == frames
+    assert calls == {"cpu": frames, "meta": 2}
+
+
 def test_reference_generator_first_frames_references_and_completion_on_the_model_device():
     torch.manual_seed(0)
     vae, model = _on_meta(SensorVAE(CFG)), _on_meta(expand_teacher(MultiViewDiT(CFG)))
@@ -119,8 +143,11 @@ def test_streaming_engine_start_step_restart_on_the_model_device():
     assert out.device == META and engine.cache.layers[0][0].device == META
 
 
-def test_the_env_and_a_vector_env_step_with_the_model_on_the_device(tiny_bundle, monkeypatch):
+@pytest.mark.parametrize("bundle", ["tiny_bundle", "layout_bundle"])
+def test_the_env_and_a_vector_env_step_with_the_model_on_the_device(bundle, request, monkeypatch):
     import gymnasium as gym
+
+    tiny_bundle = request.getfixturevalue(bundle)  # layout: the decoder reads label maps and style
 
     # A user's config.model.device is cpu, cuda[:N] or auto; meta (no values) is this test's stand-in.
     monkeypatch.setattr("m4world_env.config.DEVICE_TYPES", ("cpu", "cuda", "auto", "meta"))

@@ -14,18 +14,12 @@ from m4world_env.recorder import RecordConfig, record_episode
 from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
 from world_model.model.conditions import ConditionArrays, camera_labels
-from world_model.runtime import WorldModel, save_untrained_bundle
+from world_model.runtime import WorldModel
 from world_model.sim.labels import CLASS_PLANE, ROAD, VEHICLE, LabelRasterizer
 from world_model.train.data import LatentWindows
 
 # A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).
 SCENARIO, ENV_SEED, DURATION_S = "highway_dense_rain_dusk", 1, 2.0
-
-
-@pytest.fixture(scope="module")
-def layout_bundle(tmp_path_factory):
-    """An untrained tiny bundle with pixel-aligned layout conditioning."""
-    return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny_layout", layout=True)
 
 
 def _env_rollout(checkpoint, scenario) -> tuple[list, list[ConditionArrays], WorldModel]:

@@ -112,8 +112,10 @@ def latents_to_observations(
     flat = latents.flatten(0, 1)
     if b * t == 0:
         return [[] for _ in range(b)]
-    flat_labels = None if labels is None or not vae.draws_labels else torch.as_tensor(labels).flatten(0, 1)
-    flat_style = None if style is None or not vae.draws_style else torch.as_tensor(style).repeat_interleave(t, dim=0)
+    device = latents.device  # the label maps travel as uint8, once
+    draws_labels, draws_style = labels is not None and vae.draws_labels, style is not None and vae.draws_style
+    flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draws_labels else None
+    flat_style = torch.as_tensor(style, device=device).repeat_interleave(t, dim=0) if draws_style else None
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],

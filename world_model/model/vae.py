@@ -323,7 +323,7 @@ class SensorVAE(nn.Module):
                 raise ValueError(
                     f"this VAE's decoder draws each camera's label map: need labels ({t}, {v1 - 1}, 2, H, W), got {got}"
                 )
-            cam_labels = torch.as_tensor(labels).flatten(0, 1)
+            cam_labels = torch.as_tensor(labels, device=latents.device).flatten(0, 1)  # uint8: the small copy
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
