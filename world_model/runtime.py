@@ -30,7 +30,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceGenerator, reference_model_config
 from world_model.model.rows import split_rows
-from world_model.model.sampler import latents_to_observations
+from world_model.model.sampler import DECODE_FRAMES_PER_CALL, latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
@@ -195,12 +195,21 @@ class WorldModel:
         the frames' camera label maps and ``style`` (B, Dt) the scenes' styles, for a decoder that
         draws them (``ConditionArrays.labels``, ``ConditionArrays.style``).
 
-        Each frame is decoded alone: on CPU the decoder's convolutions and group norms pick other
+        On CPU each frame is decoded alone: the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
         ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
-        differ from the same rollout run alone. It costs ~10% of the decode at 64 frames."""
+        differ from the same rollout run alone; it costs ~10% of the decode at 64 frames. On a GPU,
+        where the student is batched too (no bit-for-bit promise there), frames go
+        :data:`DECODE_FRAMES_PER_CALL` at a time: one call per frame would launch the decoder's
+        kernels once per env."""
+        on_cpu = next(self.vae.parameters()).device.type == "cpu"
         return latents_to_observations(
-            self.vae, latents, self.cfg.sensors.lidar, frames_per_call=1, labels=labels, style=style
+            self.vae,
+            latents,
+            self.cfg.sensors.lidar,
+            frames_per_call=1 if on_cpu else DECODE_FRAMES_PER_CALL,
+            labels=labels,
+            style=style,
         )
 
 
