@@ -98,9 +98,10 @@ SCALES = {
             "lora": (1500, 32),
         },
         time_limit_s=540.0,
-        # From a 530 s run on one H200 (16 cores; recording took 41 s): label maps took the decoder
-        # 38 s before its first step, the latent and layout caches the teacher 34 s, the rollouts
-        # the rollout_decoder about 20 s; the painting decoder gets more than that run gave it.
+        # Measured on one H200 with 16 cores (recording: 41 s): the label maps take the decoder 38 s
+        # before its first step, the latent and layout caches the teacher 34 s, the student's
+        # rollouts 73 s at the CPU's 8 clips a batch (a GPU streams all 32 at once); the painting
+        # decoder gets a minute, for a few hundred steps after its rollouts.
         phase_seconds={
             "vae": 60,
             "decoder": 55,
@@ -137,8 +138,8 @@ SCALES = {
             "lora": (300, 4),
         },
         time_limit_s=9000.0,
-        # The shipped checkpoint's stages on this 2-core CPU (docs/MODEL_CARD.md), the adapter's
-        # without the second encoding of the clips that it once did.
+        # The shipped checkpoint's stages on this 2-core CPU (docs/MODEL_CARD.md); the adapter's
+        # 10 minutes are its training alone, the clips' latents coming from the run's cache.
         phase_seconds={
             "vae": 600,
             "decoder": 300,
