@@ -30,8 +30,9 @@ Simulation workers (``config.workers``, docs/scaling.md) instead of the backends
 
 times one world-model vector env per worker count, each in a fresh process, in interleaved rounds
 (:func:`bench_workers`), and reports the non-model throughput of each count over 0 workers' and
-whether all of them observed the same; ``--compare-tree`` adds 0 workers of another checkout's
-packages (e.g. ``git archive main | tar -x -C DIR``) to every round.
+whether all of them observed the same (null when a single run compared nothing); ``--compare-tree``
+adds 0 workers of another checkout's packages (e.g. ``git archive main | tar -x -C DIR``) to every
+round.
 """
 
 from __future__ import annotations
@@ -447,7 +448,9 @@ def compare_workers(args: argparse.Namespace) -> dict:
             ]
             result["non_model_cost_workers=0_vs_compare_tree"] = statistics.median(ratios)
     ours = {d for name, _, root in configs if root == here for d in result["configs"][name]["digest"]}
-    result["observations_identical"] = len(ours) == 1
+    runs_of_ours = args.rounds * sum(root == here for _, _, root in configs)
+    # None: a single run compares nothing (one worker count, one round)
+    result["observations_identical"] = len(ours) == 1 if runs_of_ours > 1 else None
     result["per_round"] = rounds
     return result
 

@@ -82,3 +82,26 @@ def test_bench_workers_splits_a_step_and_hashes_the_same_observations(tiny_bundl
     for parts in (in_process, workers):
         assert parts["traffic"] > 0 and parts["conditions"] > 0 and parts["non_model"] > 0
     assert workers["workers_wait"] + workers["other"] == pytest.approx(workers["non_model"])
+
+
+def test_compare_workers_claims_equal_observations_only_when_it_compared_some(monkeypatch):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import argparse
+
+    import bench_env
+
+    def fake_run(workers, args, root):
+        parts = {"non_model": 1.0}
+        return {"non_model_env_steps_per_s": 10.0 + workers, "breakdown_ms_per_env_step": parts, "digest": "d"}
+
+    monkeypatch.setattr(bench_env, "bench_workers_isolated", fake_run)
+
+    def compare(workers, rounds):
+        args = argparse.Namespace(workers=workers, rounds=rounds, compare_tree=None, scenario="s", device="cpu")
+        return bench_env.compare_workers(args)["observations_identical"]
+
+    assert compare([15], rounds=1) is None  # one run: nothing compared
+    assert compare([15], rounds=2) is True  # the same count twice
+    assert compare([0, 2], rounds=1) is True
+    monkeypatch.setattr(bench_env, "bench_workers_isolated", lambda w, a, r: {**fake_run(w, a, r), "digest": f"d{w}"})
+    assert compare([0, 2], rounds=1) is False
