@@ -314,15 +314,18 @@ class RolloutBatch:
         return split_rows(self.n) if self._on_cpu else nullcontext()
 
     @property
+    def _device(self) -> torch.device:
+        return next(self.wm.student.parameters()).device
+
+    @property
     def _on_cpu(self) -> bool:
-        return next(self.wm.student.parameters()).device.type == "cpu"
+        return self._device.type == "cpu"
 
     def _finish_device_work(self) -> None:
         """Wait for the student's kernels on an asynchronous device (CUDA), so that ``seconds``
         charges them to the student rather than to the decoder's first read of its latents."""
-        device = next(self.wm.student.parameters()).device
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        if self._device.type == "cuda":
+            torch.cuda.synchronize(self._device)
 
     def _noise(self, shape: Sequence[int]) -> torch.Tensor:
         """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
