@@ -16,8 +16,9 @@ from world_model.model.vae import (
     images_to_lidar,
     lidar_to_images,
     weighted_l1,
+    with_label_channels,
 )
-from world_model.sim.labels import CLASS_PLANE, LABEL_CLASSES, NO_LABEL, PAINT_PLANE
+from world_model.sim.labels import CLASS_PLANE, LABEL_CLASSES, NO_LABEL, PAINT_PLANE, SURFACE_PLANE
 
 
 def test_lidar_normalization_round_trip_and_no_return():
@@ -133,6 +134,7 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
         [
             rng.integers(len(LABEL_CLASSES), size=(2, cfg.sensors.num_cameras, h, w)),
             rng.integers(256, size=(2, cfg.sensors.num_cameras, h, w)),
+            rng.integers(256, size=(2, cfg.sensors.num_cameras, h, w)),
         ],
         axis=2,
     ).astype(np.uint8)
@@ -145,8 +147,8 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
         vae.decode_frames(lat, style=style)
     with pytest.raises(ValueError, match="label map"):
         vae.decode_frames(lat, labels=labels[:, :2], style=style)
-    with pytest.raises(ValueError, match="class ids and paint"):
-        vae.decode_frames(lat, labels=labels[:, :, CLASS_PLANE], style=style)  # a class map without its paint
+    with pytest.raises(ValueError, match="class ids, paint and surface"):
+        vae.decode_frames(lat, labels=labels[:, :, :SURFACE_PLANE], style=style)  # maps without their surface
     with pytest.raises(ValueError, match="style"):
         vae.decode_frames(lat, labels=labels)
 
@@ -163,6 +165,9 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     repainted = ids.clone()
     repainted[:, PAINT_PLANE] = 255 - repainted[:, PAINT_PLANE]
     assert not torch.allclose(drawn, vae.decode(z, repainted, styles))  # and the paint
+    resurfaced = ids.clone()
+    resurfaced[:, SURFACE_PLANE] = 255 - resurfaced[:, SURFACE_PLANE]
+    assert not torch.allclose(drawn, vae.decode(z, resurfaced, styles))  # and the surface
     assert not torch.allclose(drawn, vae.decode(z, ids, torch.from_numpy(other_style).expand(len(z), -1)))  # the style
     # NO_LABEL without paint is the all-zero input, the same as giving no labels (the LiDAR view): no style either
     none = torch.zeros_like(ids)
@@ -171,3 +176,33 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     # the LiDAR view has no label map: its ranges depend on neither the cameras' labels nor the style
     lidar_ranges = vae.decode_frames(lat, labels=labels, style=style)[1]
     assert np.array_equal(lidar_ranges, vae.decode_frames(lat, labels=labels * 0, style=other_style)[1])
+
+
+def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follows_the_surface():
+    cfg = with_layout(get_preset("tiny"), True)
+    before = replace(cfg, layout=replace(cfg.layout, decoder_surface=False))
+    torch.manual_seed(0)
+    vae = SensorVAE(before).eval()
+    for mod in vae.decoder.label_mods:  # a trained decoder: its modulations are not zero
+        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    extended = with_label_channels(vae, cfg)
+    assert extended.cfg.layout.label_channel_names[-1] == "surface"
+    conv = extended.decoder.label_mods[0].conv.weight
+    assert conv.shape[1] == before.layout.label_channels + 1 and torch.count_nonzero(conv[:, -1]) == 0
+    h, w = cfg.sensors.height, cfg.sensors.width
+    rng = np.random.default_rng(0)
+    labels = torch.from_numpy(rng.integers(256, size=(2, 3, h, w)).astype(np.uint8))
+    labels[:, CLASS_PLANE] %= len(LABEL_CLASSES)
+    z = torch.randn(2, cfg.vae.latent_channels, *cfg.latent_hw)
+    style = torch.randn(2, cfg.text.dim)
+    with torch.no_grad():
+        assert torch.equal(extended.decode(z, labels, style), vae.decode(z, labels, style))
+        torch.nn.init.normal_(extended.decoder.label_mods[0].conv.weight[:, -1:], std=0.5)
+        resurfaced = labels.clone()
+        resurfaced[:, SURFACE_PLANE] = 255 - resurfaced[:, SURFACE_PLANE]
+        assert not torch.allclose(extended.decode(z, labels, style), extended.decode(z, resurfaced, style))
+    # it only adds channels: a decoder that drew the paint cannot lose it, nor change its sensors
+    with pytest.raises(ValueError, match="cannot be extended"):
+        with_label_channels(extended, replace(cfg, layout=replace(cfg.layout, decoder_paint=False)))
+    with pytest.raises(ValueError, match="cannot be extended"):
+        with_label_channels(vae, replace(cfg, sensors=replace(cfg.sensors, num_cameras=2)))

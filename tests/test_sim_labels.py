@@ -20,11 +20,15 @@ from world_model.sim.labels import (
     PAINT_PLANE,
     ROAD,
     SKY,
+    SURFACE_PLANE,
+    SURFACE_STEPS,
     VEHICLE,
     VULNERABLE,
     LabelRasterizer,
     decode_paint,
+    decode_surface,
     encode_paint,
+    encode_surface,
     label_maps,
     scaled_rig,
 )
@@ -144,3 +148,30 @@ def test_the_paint_plane_holds_each_visible_faces_unlit_paint_and_nothing_elsewh
     night = replace(frame([red]), prompt=ScenePrompt(time_of_day="night"))
     raster = LabelRasterizer()
     assert np.array_equal(raster.maps(night, RIG, 64, 112), raster.maps(frame([red]), RIG, 64, 112))
+
+
+def test_surface_bytes_round_trip_and_keep_zero_for_no_surface():
+    v = np.linspace(-1.0, 1.0, 9)
+    back = decode_surface(encode_surface(v))
+    assert np.abs(back - v).max() <= 1.0 / SURFACE_STEPS + 1e-6
+    assert encode_surface(v).min() >= 1 and decode_surface(np.zeros(3, np.uint8)).tolist() == [0.0, 0.0, 0.0]
+
+
+def test_the_surface_plane_is_where_the_rendered_ground_is_brighter_or_darker():
+    car = obj("car", 12.0, -4.0, "car", (4.5, 1.9, 1.6))
+    fr = frame([car])
+    maps = LabelRasterizer().maps(fr, RIG, 64, 112)
+    classes, surface = maps[:, CLASS_PLANE], maps[:, SURFACE_PLANE]
+    # a textured surface (road, off-road) has a surface byte; the sky, markings and objects none
+    assert np.all((surface > 0) == np.isin(classes, (ROAD, OFFROAD)))
+    variation = decode_surface(surface)
+    assert variation.min() < -0.5 and variation.max() > 0.5  # the patches span the palette's range
+    # The rendered road is brighter where the plane says so (same light, same distances on average).
+    image = ProceduralSimulator().render(fr).cameras.astype(np.float64).mean(-1)
+    road = classes == ROAD
+    bright, dark = image[road & (variation > 0.5)].mean(), image[road & (variation < -0.5)].mean()
+    assert bright > dark * 1.1
+    # Moving the ego a few metres moves the patches with the ground: the plane changes, the classes hardly.
+    moved = replace(fr, ego=EgoState(3.0, -4.0, 0.0))
+    again = LabelRasterizer().maps(moved, RIG, 64, 112)
+    assert np.mean(again[:, SURFACE_PLANE] != surface) > 0.3

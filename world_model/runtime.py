@@ -191,7 +191,7 @@ class WorldModel:
         labels: torch.Tensor | np.ndarray | None = None,
         style: torch.Tensor | np.ndarray | None = None,
     ) -> list[list[Observation]]:
-        """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, 2, H, W)
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, 3, H, W)
         the frames' camera label maps and ``style`` (B, Dt) the scenes' styles, for a decoder that
         draws them (``ConditionArrays.labels``, ``ConditionArrays.style``).
 

@@ -23,10 +23,10 @@ view_adjacency     (V, V) bool           FoV overlap (self excluded); LiDAR over
 layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent resolution
                                          (:mod:`world_model.model.layout`); Cl =
                                          ``layout.channels``, 0 when disabled
-labels             (T, Vc, 2, H, W)      each camera's label map at full resolution for the
+labels             (T, Vc, 3, H, W)      each camera's label map at full resolution for the
                    uint8                 VAE decoder (``layout.decoder``): class ids
-                                         (:data:`~world_model.sim.labels.LABEL_CLASSES`) and
-                                         the objects' paint
+                                         (:data:`~world_model.sim.labels.LABEL_CLASSES`),
+                                         the objects' paint, the ground's surface
                                          (:meth:`~world_model.sim.labels.LabelRasterizer.maps`);
                                          H = W = 0 without it. The DiTs do not read it.
 =================  ====================  ===============================================
@@ -309,9 +309,9 @@ def camera_labels(
     rasterizer: LabelRasterizer | None = None,
     labeled: Sequence[bool] | None = None,
 ) -> np.ndarray:
-    """The ``labels`` field: each camera's label map of every frame, (T, Vc, 2, H, W) uint8 (class
-    ids and paint, :meth:`LabelRasterizer.maps`), for a decoder that draws them
-    (``layout.decoder``); (T, Vc, 2, 0, 0) without one. ``rasterizer``: one
+    """The ``labels`` field: each camera's label map of every frame, (T, Vc, 3, H, W) uint8 (class
+    ids, paint, surface: :meth:`LabelRasterizer.maps`), for a decoder that draws them
+    (``layout.decoder``); (T, Vc, 3, 0, 0) without one. ``rasterizer``: one
     kept across calls reuses its ray geometry, road texture and meshes (default: a new one).
     ``labeled`` (T,): the frames that will be decoded (default: all); the others' classes are left
     :data:`~world_model.sim.labels.NO_LABEL`, which saves rendering maps nobody draws."""

@@ -20,7 +20,7 @@ from typing import Any
 
 from world_model.model.layout import LAYOUT_CHANNELS
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
-from world_model.sim.labels import LABEL_CLASSES, PAINT_CHANNELS
+from world_model.sim.labels import LABEL_CLASSES
 
 
 @dataclass(frozen=True)
@@ -121,16 +121,22 @@ class LayoutConfig:
     ``decoder_paint``: the modulation also reads each object pixel's paint, the unlit albedo of the
     face it shows (the label map's paint plane, as RGB: the object's colour on its body, its glass,
     tyres and lamps their own), so a red car comes out red with dark windows however little of a
-    10-pixel car's colour the latents keep."""
+    10-pixel car's colour the latents keep.
+
+    ``decoder_surface``: the modulation also reads the road's and the off-road ground's surface
+    variation (the label map's surface plane: the world-aligned patches that brighten or darken the
+    asphalt and the grass), so the ground streams past the cameras as the ego moves over it, at the
+    ego's speed, however little of that texture the latents keep."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
     decoder_style: bool = False
     decoder_paint: bool = False
+    decoder_surface: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("decoder_style", "decoder_paint"):
+        for name in ("decoder_style", "decoder_paint", "decoder_surface"):
             if getattr(self, name) and not self.decoder:
                 raise ValueError(f"layout.{name} needs layout.decoder (it modulates the label maps)")
 
@@ -139,10 +145,18 @@ class LayoutConfig:
         return len(LAYOUT_CHANNELS) if self.enabled else 0
 
     @property
+    def label_channel_names(self) -> tuple[str, ...]:
+        """The decoder's label-map input channels in order: the classes one-hot, then the paint's
+        RGB with ``decoder_paint``, then the surface with ``decoder_surface`` (none without ``decoder``)."""
+        if not self.decoder:
+            return ()
+        paint = ("paint_red", "paint_green", "paint_blue") if self.decoder_paint else ()
+        return (*LABEL_CLASSES, *paint, *(("surface",) if self.decoder_surface else ()))
+
+    @property
     def label_channels(self) -> int:
-        """Channels of the decoder's label maps: the classes one-hot, then the paint's RGB with
-        ``decoder_paint`` (0 without ``decoder``)."""
-        return (len(LABEL_CLASSES) + PAINT_CHANNELS * self.decoder_paint) if self.decoder else 0
+        """Number of :attr:`label_channel_names` (0 without ``decoder``)."""
+        return len(self.label_channel_names)
 
 
 @dataclass(frozen=True)
@@ -411,13 +425,15 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     if enabled is None:
         return cfg
     on = bool(enabled)
-    return replace(cfg, layout=replace(cfg.layout, enabled=on, decoder=on, decoder_style=on, decoder_paint=on))
+    layout = replace(cfg.layout, enabled=on, decoder=on, decoder_style=on, decoder_paint=on, decoder_surface=on)
+    return replace(cfg, layout=layout)
 
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps)."""
-    return replace(cfg, layout=replace(cfg.layout, decoder=False, decoder_style=False, decoder_paint=False))
+    plain = replace(cfg.layout, decoder=False, decoder_style=False, decoder_paint=False, decoder_surface=False)
+    return replace(cfg, layout=plain)
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

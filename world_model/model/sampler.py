@@ -104,7 +104,7 @@ def latents_to_observations(
 
     Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
-    attached to the observations unchanged. ``labels`` (B, T, Vc, 2, H, W): the frames' camera label
+    attached to the observations unchanged. ``labels`` (B, T, Vc, 3, H, W): the frames' camera label
     maps, for a decoder that draws them (``Conditions.labels``); ``style`` (B, Dt): each sample's
     scene style, for a decoder that draws it (``Conditions.style``).
     """

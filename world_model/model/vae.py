@@ -21,6 +21,8 @@ flow expects) and :meth:`SensorVAE.decode` undoes it.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -35,11 +37,15 @@ from world_model.sim.labels import (
     MAP_PLANES,
     PAINT_PLANE,
     SCENE_LOOK_CLASSES,
+    SURFACE_PLANE,
     decode_paint,
+    decode_surface,
 )
 
 # Every paint byte's RGB in [0, 1] (256, 3): the decoder's paint channels are a lookup.
 _PAINT_RGB = torch.from_numpy(decode_paint(np.arange(256, dtype=np.uint8)))
+# Every surface byte's variation in [-1, 1] (256,): the decoder's surface channel is a lookup.
+_SURFACE = torch.from_numpy(decode_surface(np.arange(256, dtype=np.uint8)))
 
 
 def _groups(channels: int) -> int:
@@ -88,7 +94,8 @@ class Encoder(nn.Module):
 class LabelModulation(nn.Module):
     """SPADE (Park et al. 2019) without its hidden layer: features ``x * (1 + gamma) + beta``, with
     gamma and beta a 3x3 convolution of the label map's channels (the classes one-hot, then the
-    objects' paint as RGB when the decoder reads it) area-pooled to the features' grid.
+    objects' paint as RGB and the ground's surface when the decoder reads them) area-pooled to the
+    features' grid.
 
     With ``style_dim``, gamma and beta also get, at each pixel, its label class's vector read from
     the scene's style (the prompt's pooled text embedding) by a linear map: how that class looks in
@@ -220,27 +227,30 @@ class SensorVAE(nn.Module):
         return style.to(device=like.device, dtype=like.dtype)
 
     def _label_inputs(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
-        """(N, 2, H, W) uint8 label maps (class ids, paint: :meth:`LabelRasterizer.maps`) -> (N, K, H, W):
-        the :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
-        and None -> all zeros: no layout), then the paint as RGB in [0, 1] when the decoder reads it
-        (``layout.decoder_paint``). None for a decoder without label modulation."""
+        """(N, 3, H, W) uint8 label maps (class ids, paint, surface: :meth:`LabelRasterizer.maps`) ->
+        (N, K, H, W), the channels of ``layout.label_channel_names``: the
+        :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
+        and None -> all zeros: no layout), then the paint as RGB in [0, 1] (``layout.decoder_paint``),
+        then the surface variation in [-1, 1] (``layout.decoder_surface``). None for a decoder
+        without label modulation."""
         if not self.draws_labels:
             return None
-        k = self.cfg.layout.label_channels
+        layout = self.cfg.layout
         classes = len(LABEL_CLASSES)
         h, w = self.cfg_hw
         if labels is None:
-            return like.new_zeros(like.shape[0], k, h, w)
+            return like.new_zeros(like.shape[0], layout.label_channels, h, w)
         if labels.shape != (like.shape[0], MAP_PLANES, h, w):
             want = (like.shape[0], MAP_PLANES, h, w)
-            raise ValueError(f"labels must be {want} class ids and paint, got {tuple(labels.shape)}")
+            raise ValueError(f"labels must be {want} class ids, paint and surface, got {tuple(labels.shape)}")
         labels = labels.to(like.device).long()
         ids = labels[:, CLASS_PLANE].clamp(max=classes)  # NO_LABEL -> the dropped extra class
-        one_hot = F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype)
-        if k == classes:
-            return one_hot
-        rgb = _PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]].movedim(-1, 1)
-        return torch.cat([one_hot, rgb], dim=1)
+        channels = [F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype)]
+        if layout.decoder_paint:
+            channels.append(_PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]].movedim(-1, 1))
+        if layout.decoder_surface:
+            channels.append(_SURFACE.to(device=like.device, dtype=like.dtype)[labels[:, SURFACE_PLANE]][:, None])
+        return torch.cat(channels, dim=1) if len(channels) > 1 else channels[0]
 
     # -- normalized latents (what the DiT sees) --
     def _norm(self, z: torch.Tensor) -> torch.Tensor:
@@ -255,7 +265,7 @@ class SensorVAE(nn.Module):
     ) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
 
-        ``labels``: (N, 2, H, W) uint8 label maps (class ids and paint), read when the decoder draws them
+        ``labels``: (N, 3, H, W) uint8 label maps (class ids, paint, surface), read when the decoder draws them
         (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
         scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
         when the decoder draws it (:attr:`draws_style`)."""
@@ -301,7 +311,7 @@ class SensorVAE(nn.Module):
     ) -> tuple[np.ndarray, np.ndarray]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
 
-        ``labels``: the frames' camera label maps (T, V, 2, H, W) uint8, required when the decoder
+        ``labels``: the frames' camera label maps (T, V, 3, H, W) uint8, required when the decoder
         draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
         ``style``: the scene's style, (S,) for every frame or (T, S), required when the decoder draws
         it (:attr:`draws_style`; ``ConditionArrays.style``)."""
@@ -321,7 +331,8 @@ class SensorVAE(nn.Module):
             if labels is None or tuple(labels.shape[:2]) != (t, v1 - 1):
                 got = None if labels is None else tuple(labels.shape)
                 raise ValueError(
-                    f"this VAE's decoder draws each camera's label map: need labels ({t}, {v1 - 1}, 2, H, W), got {got}"
+                    f"this VAE's decoder draws each camera's label map: "
+                    f"need labels ({t}, {v1 - 1}, {MAP_PLANES}, H, W), got {got}"
                 )
             cam_labels = torch.as_tensor(labels, device=latents.device).flatten(0, 1)  # uint8: the small copy
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
@@ -350,6 +361,43 @@ class SensorVAE(nn.Module):
     @property
     def cfg_hw(self) -> tuple[int, int]:
         return self.cfg.sensors.height, self.cfg.sensors.width
+
+
+def with_label_channels(vae: SensorVAE, cfg: ModelConfig) -> SensorVAE:
+    """``vae`` under ``cfg``, whose decoder reads label-map channels that ``vae``'s does not (the
+    surface beside the paint, say): every weight copied, the new channels' weights zero, so that it
+    draws exactly as ``vae`` does until it is trained. The label modulations' convolutions are the
+    only weights that read those channels; every other setting of the two must agree."""
+    old, new = vae.cfg.layout.label_channel_names, cfg.layout.label_channel_names
+    extended = replace(
+        cfg.layout,
+        decoder_paint=vae.cfg.layout.decoder_paint,
+        decoder_surface=vae.cfg.layout.decoder_surface,
+    )
+    if (
+        not vae.draws_labels
+        or not set(old) <= set(new)
+        or (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout)
+        != (
+            cfg.sensors,
+            cfg.vae,
+            extended,
+        )
+    ):
+        raise ValueError(
+            f"a decoder reading {list(old) or 'no label maps'} cannot be extended to read {list(new)} under "
+            "another preset or layout: train it again with the same preset and --layout"
+        )
+    out = SensorVAE(cfg)
+    state = vae.state_dict()
+    columns = [new.index(name) for name in old]
+    for name, target in out.state_dict().items():
+        source = state[name]
+        if source.shape != target.shape:  # a label modulation's (2c, K, 3, 3) convolution
+            source = torch.zeros_like(target).index_copy_(1, torch.tensor(columns), source)
+        state[name] = source
+    out.load_state_dict(state)
+    return out.train(vae.training)
 
 
 def weighted_l1(reconstruction: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

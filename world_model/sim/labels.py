@@ -9,6 +9,9 @@ The decoder's maps (:meth:`LabelRasterizer.maps`) carry a second plane beside th
 object pixel's paint, unlit, in one byte (:func:`encode_paint`), 0 elsewhere: the albedo of the face
 it shows, the object's colour (``SceneObject.color``) on its body, its glass, tyres and lamps their
 own. Light, weather and fog are left to the model. The class plane says which pixels are objects.
+A third plane carries the road's and the off-road ground's surface variation (:func:`encode_surface`):
+the low-frequency patches of the world-aligned texture that brighten or darken the asphalt and the
+grass, so that the ground moves past the cameras as the ego drives over it.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from world_model.sim.config import SimConfig
 from world_model.sim.lighting import lighting_for
 from world_model.sim.poses import object_poses
 from world_model.sim.scene_mesh import build_scene_mesh, object_key
-from world_model.sim.texture import MapTexture, labels_layout
+from world_model.sim.texture import MapTexture, labels_layout, surface_variation
 
 # Class ids are the index in this table; a label map is (V, H, W) uint8 of these ids.
 LABEL_CLASSES: tuple[str, ...] = (
@@ -46,9 +49,12 @@ assert tuple(range(len(SCENE_LOOK_CLASSES))) == SCENE_LOOK_CLASSES
 # An id that draws nothing (the decoder's all-zero one-hot): the LiDAR view, which has no label
 # map, and frames that will not be decoded.
 NO_LABEL = 255
-# The planes of a decoder's label map (V, 2, H, W): class ids, and the objects' paint.
-CLASS_PLANE, PAINT_PLANE = 0, 1
-MAP_PLANES = 2
+# The planes of a decoder's label map (V, 3, H, W): class ids, the objects' paint, the ground's surface.
+CLASS_PLANE, PAINT_PLANE, SURFACE_PLANE = 0, 1, 2
+MAP_PLANES = 3
+# Surface bytes: 0 where no textured surface shows (sky, markings, objects), else 1 + the
+# variation's place in [-1, 1] on SURFACE_STEPS steps.
+SURFACE_STEPS = 254
 # Bits of red, green and blue in a paint byte (8-bit truecolour, RRRGGGBB): eight levels of red
 # and green, four of blue; enough to tell a red car from a dark red, navy or blue one.
 PAINT_BITS = (3, 3, 2)
@@ -79,9 +85,23 @@ def encode_paint(rgb: np.ndarray) -> np.ndarray:
     return out
 
 
+def encode_surface(variation: np.ndarray) -> np.ndarray:
+    """(...) float variation in [-1, 1] (:func:`~world_model.sim.texture.surface_variation`) -> (...)
+    uint8 surface bytes, 1 to 255 (0 is kept for "no textured surface")."""
+    v = np.clip(np.asarray(variation, dtype=np.float64), -1.0, 1.0)
+    return (1 + np.rint((v + 1.0) * SURFACE_STEPS / 2)).astype(np.uint8)
+
+
+def decode_surface(surface: np.ndarray) -> np.ndarray:
+    """(...) uint8 surface bytes -> (...) float32 variation in [-1, 1], 0 where the byte is 0."""
+    surface = np.asarray(surface, dtype=np.uint8)
+    v = (surface.astype(np.float32) - 1.0) * (2.0 / SURFACE_STEPS) - 1.0
+    return np.where(surface > 0, v, 0.0).astype(np.float32)
+
+
 def blank_maps(leading: tuple[int, ...], height: int, width: int) -> np.ndarray:
     """(*leading, :data:`MAP_PLANES`, H, W) uint8 label maps that draw nothing: classes
-    :data:`NO_LABEL`, no paint (the LiDAR view's, and frames that will not be decoded)."""
+    :data:`NO_LABEL`, no paint, no surface (the LiDAR view's, and frames that will not be decoded)."""
     out = np.zeros((*leading, MAP_PLANES, height, width), dtype=np.uint8)
     out[..., CLASS_PLANE, :, :] = NO_LABEL
     return out
@@ -119,6 +139,16 @@ def texture_classes(levels: int) -> np.ndarray:
     return table
 
 
+def texture_surfaces(levels: int) -> np.ndarray:
+    """(256,) uint8: the surface byte (:func:`encode_surface`) of every road-texture label; 0 for
+    the markings and road edges, which are painted flat."""
+    off0, road0, _marking, _edge = labels_layout(levels)
+    table = np.zeros(256, dtype=np.uint8)
+    for first in (off0, road0):
+        table[first : first + levels] = encode_surface(surface_variation(levels))
+    return table
+
+
 class LabelRasterizer:
     """Renders label maps of frames; keeps, for the last ``keep`` of each, the ray geometry of a
     rig, the road texture of a map and the mesh of an object set (a rollout shares them across its
@@ -127,6 +157,7 @@ class LabelRasterizer:
     def __init__(self, config: SimConfig | None = None, keep: int = 64) -> None:
         self.config = config or SimConfig()
         self._classes = texture_classes(self.config.texture_noise_levels)
+        self._surfaces = texture_surfaces(self.config.texture_noise_levels)
         self._rigs = LruCache(keep)
         self._textures = LruCache(keep)
         self._meshes = LruCache(keep)
@@ -145,15 +176,17 @@ class LabelRasterizer:
 
     def maps(self, frame: SceneFrame, rig: CameraRig, height: int, width: int) -> np.ndarray:
         """(V, :data:`MAP_PLANES`, H, W) uint8: the class ids of ``frame`` seen by ``rig`` at H x W,
-        and the paint of every object pixel (:func:`encode_paint` of its face's albedo; 0 elsewhere)."""
+        the paint of every object pixel (:func:`encode_paint` of its face's albedo; 0 elsewhere) and
+        the surface of every road and off-road pixel (:func:`encode_surface`; 0 elsewhere)."""
         cfg = self.config
         small = self._rig(rig, height, width, frame.lidar.mount_height)
         texture = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
-        flat = np.full(small.rays.distance.size, SKY, dtype=np.uint8)
         texels = texture.lookup_ego(small.rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
-        flat[small.rays.ground_index] = self._classes[texels]
         out = np.zeros((small.rig.num_views, MAP_PLANES, height, width), dtype=np.uint8)
-        out[:, CLASS_PLANE] = flat.reshape(small.rig.num_views, height, width)
+        for plane, table, sky in ((CLASS_PLANE, self._classes, SKY), (SURFACE_PLANE, self._surfaces, 0)):
+            flat = np.full(small.rays.distance.size, sky, dtype=np.uint8)
+            flat[small.rays.ground_index] = table[texels]
+            out[:, plane] = flat.reshape(small.rig.num_views, height, width)
         if frame.objects:
             plan = objects.plan_objects(
                 frame,
@@ -178,6 +211,7 @@ class LabelRasterizer:
                 seen = ids > 0
                 out[v, CLASS_PLANE][seen] = lut[ids[seen]]
                 out[v, PAINT_PLANE][seen] = encode_paint(albedo[seen])
+                out[v, SURFACE_PLANE][seen] = 0
         return out
 
 

@@ -29,11 +29,17 @@ def labels_layout(levels: int) -> tuple[int, int, int, int]:
     return 0, levels, 2 * levels, 2 * levels + 1
 
 
+def surface_variation(levels: int) -> np.ndarray:
+    """(levels,) float64 in [-1, 1]: where each surface variation level sits between the darkest
+    and the brightest patch (the palette scales the surface's albedo by 1 + SURFACE_VARIATION x this)."""
+    return (np.arange(levels) / max(levels - 1, 1) - 0.5) * 2
+
+
 def palette(lighting: Lighting, levels: int) -> np.ndarray:
     """(256, 3) float32 albedo of every label under ``lighting``."""
     off0, road0, marking, edge = labels_layout(levels)
     pal = np.zeros((256, 3), dtype=np.float32)
-    ramp = 1.0 + SURFACE_VARIATION * (np.arange(levels) / max(levels - 1, 1) - 0.5) * 2
+    ramp = 1.0 + SURFACE_VARIATION * surface_variation(levels)
     pal[off0 : off0 + levels] = ramp[:, None] * lighting.offroad
     pal[road0 : road0 + levels] = ramp[:, None] * lighting.road
     pal[marking] = lighting.marking

@@ -27,7 +27,7 @@ from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.scene import SceneFrame
-from world_model.sim.labels import LABEL_CLASSES, PAINT_BITS
+from world_model.sim.labels import LABEL_CLASSES, PAINT_BITS, SURFACE_STEPS
 
 NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
 # Fewer frames than this are rastered in-process (layouts, label maps): starting spawned workers
@@ -233,7 +233,7 @@ def layout_cache_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "teacher" / "layouts"
 
 
-DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style", "decoder_paint")
+DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style", "decoder_paint", "decoder_surface")
 
 
 def layout_key(cfg: ModelConfig) -> str:
@@ -268,12 +268,15 @@ def label_cache_dir(run_dir: str | Path) -> Path:
 def cached_label_maps(
     clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
 ) -> list[np.ndarray]:
-    """Each clip's camera label maps (T, num_cameras, 2, H, W) uint8, class ids
-    (:data:`~world_model.sim.labels.LABEL_CLASSES`) and paint (:func:`camera_labels`), computed once per run as
+    """Each clip's camera label maps (T, num_cameras, 3, H, W) uint8, class ids
+    (:data:`~world_model.sim.labels.LABEL_CLASSES`), paint and surface (:func:`camera_labels`), computed once per run as
     :func:`cached_layouts` computes layouts: the decoder stages read them instead of rastering
     every sample of every batch."""
     s = cfg.sensors
-    key = f"{s.height}x{s.width}x{s.num_cameras}:{','.join(LABEL_CLASSES)}:albedo-paint{''.join(map(str, PAINT_BITS))}"
+    key = (
+        f"{s.height}x{s.width}x{s.num_cameras}:{','.join(LABEL_CLASSES)}"
+        f":albedo-paint{''.join(map(str, PAINT_BITS))}:surface{SURFACE_STEPS}"
+    )
     jobs = [(c.frames, cfg) for c in clips]
     return _cached_per_clip(clips, cache_dir, "labels", key, camera_labels, jobs, workers)
 

@@ -29,7 +29,7 @@ from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator
-from world_model.model.vae import SensorVAE
+from world_model.model.vae import SensorVAE, with_label_channels
 from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
@@ -134,11 +134,16 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
 
 
 def load_decoder_export(run_dir: Path, cfg: ModelConfig) -> SensorVAE:
-    """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout)."""
+    """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout); one whose
+    decoder reads fewer of the label map's channels than ``cfg`` says starts as it drew, the new
+    channels' weights zero (:func:`with_label_channels`)."""
     vae = load_vae(require_export(run_dir / "decoder" / EXPORT, "decoder"))
-    if (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) != (cfg.sensors, cfg.vae, cfg.layout):
-        raise ValueError(f"{run_dir / 'decoder'} was trained with another config; use the same preset and --layout")
-    return vae
+    if (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) == (cfg.sensors, cfg.vae, cfg.layout):
+        return vae
+    try:
+        return with_label_channels(vae, cfg)
+    except ValueError as e:
+        raise ValueError(f"{run_dir / 'decoder'} was trained with another config: {e}") from None
 
 
 def rollout_decoder_stage(run: StageRun) -> dict:

@@ -87,7 +87,7 @@ def vae_metrics(
 
 
 def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
-    """(N, 2, H, W) uint8 label maps (class ids and paint) of ``views`` of ``frame``; the LiDAR view
+    """(N, 3, H, W) uint8 label maps (class ids, paint, surface) of ``views`` of ``frame``; the LiDAR view
     gets a map that draws nothing (:func:`~world_model.sim.labels.blank_maps`), as it does when decoding frames."""
     s = cfg.sensors
     maps = torch.from_numpy(raster.maps(frame, frame.rig, s.height, s.width))
@@ -96,7 +96,7 @@ def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, vi
 
 
 def picked_labels(labels: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
-    """(2, H, W) uint8 label map of a view of a frame from each clip's camera label maps; the LiDAR
+    """(3, H, W) uint8 label map of a view of a frame from each clip's camera label maps; the LiDAR
     view gets a map that draws nothing, as in :func:`view_labels`."""
     if view < cfg.sensors.num_cameras:
         return labels[clip][frame, view]
