@@ -151,3 +151,31 @@ def test_every_stage_trains_with_the_model_on_another_device(dry_recipe, tmp_pat
         )
     own = [f for f in traceback.extract_tb(raised.value.__traceback__) if "world_model" in f.filename]
     assert Path(own[-1].filename).name in ("trainer.py", "student_stages.py", "flow.py"), own[-1]
+
+
+def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_was(dry_recipe, tmp_path):
+    from safetensors.torch import load_file
+
+    from world_model.train.recipe import run_recipe
+    from world_model.train.seed_run import seed_run
+
+    out = tmp_path / "again"
+    shutil.copytree(dry_recipe / "data", out / "data")  # recorded: the recipe skips them
+    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
+    source = dry_recipe / "bundle"
+    summary = run_recipe(out, "dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("rollout_decoder",))
+    assert summary["phases"] == ["rollout_decoder"] and set(summary["final_loss"]) == {"rollout_decoder"}
+    manifest = json.loads((out / "bundle" / "manifest.json").read_text())
+    assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
+    for component in ("student", "reference"):  # untouched: the same tensors as the bundle it started from
+        old, new = (load_file(str(b / f"{component}.safetensors")) for b in (source, out / "bundle"))
+        assert old.keys() == new.keys() and all(torch.equal(old[k], new[k]) for k in old)
+    old, new = (load_file(str(b / "vae.safetensors")) for b in (source, out / "bundle"))
+    assert all(torch.equal(old[k], new[k]) for k in old if k.startswith("encoder."))  # the latents stay
+    assert any(not torch.equal(old[k], new[k]) for k in old if k.startswith("decoder.label_mods."))  # trained
+    assert sorted(p.name for p in (out / "bundle" / "adapters").iterdir()) == sorted(ADAPTERS)
+    seeded = json.loads((out / "run" / "decoder" / "model.json").read_text())
+    assert seeded["seeded_from"] == str(source)
+    assert seed_run(source, out / "run") == []  # a seeded run keeps what it has
+    with pytest.raises(ValueError, match="--phases"):
+        run_recipe(out, "dry", "cpu", workers=1, progress=False, phases=("paint",))

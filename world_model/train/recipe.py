@@ -21,6 +21,13 @@ On the GPU machine the text encoder is the dependency-free hash encoder (it has 
 weights); ``--scale cpu`` keeps the preset's MiniLM. ``--scale dry`` runs the very same command
 at the tiny preset and a few steps per stage (the CPU check, ``tests/test_gpu_recipe.py``).
 Rerunning resumes: recorded clips are skipped and each stage resumes from its last checkpoint.
+
+``--from-bundle BUNDLE --phases P [P ...]`` retrains some phases of a finished bundle at the scale:
+``OUT/run`` starts from the bundle's components as stage exports
+(:func:`world_model.train.seed_run.seed_run`), only the phases named train, and the bundle is
+written from the run as usual. The decoder phases, say, train again on a shipped checkpoint whose
+encoder and DiTs stay as they are (a decoder that reads fewer of the label map's channels than the
+scale's config starts as it drew, the new channels' weights zero).
 """
 
 from __future__ import annotations
@@ -184,12 +191,10 @@ BUNDLE_RESERVE_S = 15.0
 def recipe_config(spec: RecipeScale):  # noqa: ANN201 - a ModelConfig
     """The scale's preset with layout conditioning on (the DiT's channels and the decoder's label
     maps) and the scale's text encoder (the hash encoder needs no download) at the preset's text width."""
-    from world_model.model.config import get_preset
+    from world_model.model.config import get_preset, with_layout
 
     cfg = get_preset(spec.preset)
-    layout = replace(
-        cfg.layout, enabled=True, supersample=LAYOUT_SUPERSAMPLE, decoder=True, decoder_style=True, decoder_paint=True
-    )
+    layout = replace(with_layout(cfg, True).layout, supersample=LAYOUT_SUPERSAMPLE)
     text = cfg.text if spec.text_encoder is None else replace(cfg.text, encoder=spec.text_encoder)
     return replace(cfg, text=text, layout=layout)
 
@@ -315,11 +320,18 @@ def run_recipe(
     max_file_mib: float = 16.0,
     progress: bool = True,
     time_limit_s: float | None = None,
+    from_bundle: str | Path | None = None,
+    phases: tuple[str, ...] = PHASES,
 ) -> dict:
     """Record, train the chain and write the bundle into ``out`` (module docstring); the summary.
-    ``time_limit_s`` overrides the scale's time limit."""
+    ``time_limit_s`` overrides the scale's time limit; ``from_bundle`` and ``phases``: retrain those
+    phases of that bundle (module docstring)."""
     if scale not in SCALES:
         raise ValueError(f"--scale must be one of {', '.join(SCALES)}, got {scale!r}")
+    unknown = [p for p in phases if p not in PHASES]
+    if unknown or not phases:
+        raise ValueError(f"--phases takes one or more of {', '.join(PHASES)}, got {', '.join(unknown) or 'none'}")
+    phases = tuple(p for p in PHASES if p in phases)  # the chain's order
     from world_model.bundle import export_bundle
     from world_model.train.stages import train_stage
 
@@ -340,17 +352,21 @@ def run_recipe(
     say(f"recording {spec.episodes * spec.seeds} clips per scenario into {data}")
     clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
     times["record"] = time.perf_counter() - t0
+    if from_bundle is not None:
+        from world_model.train.seed_run import seed_run
+
+        say(f"run seeded from {from_bundle}: {', '.join(seed_run(from_bundle, run)) or 'nothing new'}")
     config = recipe_config(spec)
     bundle = out / "bundle"
-    for k, phase in enumerate(PHASES):
+    for k, phase in enumerate(phases):
         stage = phase if phase in CHAIN else "lora"
         steps, batch = spec.stages[stage]
         t = time.perf_counter()
-        limit = stage_time_limit(spec, PHASES[k:], t - t0)
+        limit = stage_time_limit(spec, phases[k:], t - t0)
         say(f"{phase}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s with its setup" if limit else ""))
         options = {}
         if phase in ADAPTERS:
-            if phase == PHASES[len(CHAIN)]:  # the adapters adapt the bundle's own (bf16-stored) weights
+            if phase == next(p for p in phases if p in ADAPTERS):  # adapters adapt the bundle's own (bf16) weights
                 export_bundle(run, bundle)
             component, box_weight = ADAPTERS[phase]
             base = bundle / "reference.safetensors" if component == "reference" else bundle
@@ -381,6 +397,8 @@ def run_recipe(
     times["bundle"] = time.perf_counter() - t
     summary = {
         "scale": scale,
+        "from_bundle": None if from_bundle is None else str(from_bundle),
+        "phases": list(phases),
         "preset": spec.preset,
         "device": device,
         "clips": clips,
@@ -412,6 +430,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--time-limit-s", type=float, default=None, help="the whole recipe's wall time (default: the scale's)"
     )
+    p.add_argument("--from-bundle", default=None, help="start the run from this bundle's components (with --phases)")
+    p.add_argument(
+        "--phases", nargs="+", default=list(PHASES), help=f"the phases to train (default: all: {' '.join(PHASES)})"
+    )
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--join", nargs=2, metavar=("PARTS", "DEST"), help="rebuild a bundle from bundle_parts/")
     a = p.parse_args(argv)
@@ -430,6 +452,8 @@ def main(argv: list[str] | None = None) -> int:
             a.max_file_mib,
             progress=not a.no_progress,
             time_limit_s=a.time_limit_s,
+            from_bundle=a.from_bundle,
+            phases=tuple(a.phases),
         )
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         print(f"error: {e}", file=sys.stderr)

@@ -1,0 +1,71 @@
+"""Start a run from a bundle: its components written as the stage exports that made them.
+
+A later stage then trains on them as it would on the run that exported the bundle, e.g. the decoder
+stages again on a shipped checkpoint whose DiTs stay as they are::
+
+    RUN/vae/        the bundle's encoder with its decoder's plain trunk (the latents every stage reads)
+    RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start)
+    RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
+    RUN/reference/  the reference model, under its own config
+    RUN/lora/NAME/  the adapters
+
+Exports already in the run are kept: seeding a run that has trained since leaves its work alone.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import torch
+
+from world_model.bundle import load_bundle_files
+from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.vae import SensorVAE
+from world_model.train.checkpoint import export_weights
+from world_model.train.exports import EXPORT
+
+SEEDED_FROM = "seeded_from"  # the export's metadata: the bundle it came from
+
+
+def _float32(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The bundle stores its DiTs in bf16; training reads float32 (bf16 -> float32 is exact)."""
+    return {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+
+
+def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
+    """Write ``bundle``'s components into ``run_dir`` as stage exports (module docstring); returns the
+    stages written (those the run already had are skipped)."""
+    files = load_bundle_files(bundle)
+    run_dir = Path(run_dir)
+    cfg = ModelConfig.from_dict(files.model_config)
+    source = {SEEDED_FROM: str(files.path)}
+    written: list[str] = []
+
+    def export(stage: str, state: dict[str, torch.Tensor], meta: dict) -> None:
+        path = run_dir / stage / EXPORT
+        if path.with_suffix(".safetensors").exists():
+            return
+        export_weights(path, state, {"stage": stage, **meta, **source})
+        written.append(stage)
+
+    vae = files.tensors["vae"]
+    if cfg.layout.decoder:
+        export("decoder", vae, {"model_config": cfg.to_dict()})
+    plain_cfg = without_label_decoder(cfg)
+    plain = SensorVAE(plain_cfg).state_dict()
+    export("vae", {k: vae[k] for k in plain}, {"model_config": plain_cfg.to_dict()})
+    student_stage = files.manifest["components"]["student"]["stage"]
+    student_meta = {"model_config": files.model_config, "student_config": files.manifest.get("student_config") or {}}
+    export(student_stage, _float32(files.tensors["student"]), student_meta)
+    if files.has("reference"):
+        reference_cfg = files.component_config("reference") or files.model_config
+        export("reference", _float32(files.tensors["reference"]), {"model_config": reference_cfg})
+    adapters = files.path / "adapters"
+    if adapters.is_dir():
+        for adapter in sorted(p for p in adapters.iterdir() if p.is_dir()):
+            target = run_dir / "lora" / adapter.name
+            if not target.exists():
+                shutil.copytree(adapter, target)
+                written.append(f"lora/{adapter.name}")
+    return written
