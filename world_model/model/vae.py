@@ -369,21 +369,12 @@ def with_label_channels(vae: SensorVAE, cfg: ModelConfig) -> SensorVAE:
     draws exactly as ``vae`` does until it is trained. The label modulations' convolutions are the
     only weights that read those channels; every other setting of the two must agree."""
     old, new = vae.cfg.layout.label_channel_names, cfg.layout.label_channel_names
-    extended = replace(
-        cfg.layout,
-        decoder_paint=vae.cfg.layout.decoder_paint,
-        decoder_surface=vae.cfg.layout.decoder_surface,
+    # cfg's layout with vae's choice of label channels: all that may differ is which channels are read
+    same_channels = replace(
+        cfg.layout, decoder_paint=vae.cfg.layout.decoder_paint, decoder_surface=vae.cfg.layout.decoder_surface
     )
-    if (
-        not vae.draws_labels
-        or not set(old) <= set(new)
-        or (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout)
-        != (
-            cfg.sensors,
-            cfg.vae,
-            extended,
-        )
-    ):
+    same_otherwise = (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) == (cfg.sensors, cfg.vae, same_channels)
+    if not (vae.draws_labels and set(old) <= set(new) and same_otherwise):
         raise ValueError(
             f"a decoder reading {list(old) or 'no label maps'} cannot be extended to read {list(new)} under "
             "another preset or layout: train it again with the same preset and --layout"
