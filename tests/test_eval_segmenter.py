@@ -209,3 +209,18 @@ def test_the_shipped_segmenter_reproduces_its_held_out_check_slice():
             assert value is None, name
         else:
             assert value == pytest.approx(expected, abs=0.01), name
+
+
+@pytest.mark.parametrize(
+    ("sky", "ground"),
+    [((170, 195, 225), (70, 115, 55)), ((215, 218, 225), (200, 202, 206)), ((15, 18, 30), (9, 10, 9))],
+    ids=["sunny grass", "snowfield", "night"],
+)
+def test_the_shipped_segmenter_sees_no_road_where_a_view_shows_none(sky, ground):
+    """A view of sky over a featureless field (what a world model that lost its road draws) must
+    score no road: the metric may not fill in a road from where roads usually are."""
+    views = np.empty((6, 64, 112, 3), np.uint8)
+    views[:, :28], views[:, 28:] = sky, ground
+    predicted = load_default_segmenter().predict(views)
+    assert np.mean(predicted == ROAD) < 0.01
+    assert np.mean(predicted == MARKING) < 0.01

@@ -10,7 +10,14 @@ from safetensors.numpy import load_file
 from m4world_env.recorder import RecordConfig, record
 from world_model.eval.segmenter import CONFIG_FILE, SCENE_CLASSES, WEIGHTS_FILE, SegmenterConfig, load_segmenter
 from world_model.eval.segmenter_data import cached_scene_labels
-from world_model.eval.train_segmenter import TrainSegmenterConfig, class_weights, main, train_segmenter
+from world_model.eval.train_segmenter import (
+    AugmentConfig,
+    TrainSegmenterConfig,
+    augment,
+    class_weights,
+    main,
+    train_segmenter,
+)
 
 
 @pytest.fixture(scope="module")
@@ -73,6 +80,20 @@ def test_class_weights_favour_rare_classes_with_a_cap():
     w = class_weights(labels, power=0.5, max_weight=5.0)
     assert w[3] > w[0] and w[3] <= 5.0
     assert w[1] == 5.0  # never labelled: the cap
+
+
+def test_augmenting_a_night_view_keeps_the_road_darker_than_the_ground():
+    # an unlit night view: the road two levels darker than the ground beside it, noise and blur off
+    image = np.full((1, 16, 16, 3), 11, np.uint8)
+    image[:, 8:, 4:12] = 9
+    labels = np.zeros((1, 16, 16), np.uint8)
+    labels[:, 8:, 4:12] = SCENE_CLASSES.index("road")
+    config = AugmentConfig(blur=0.0, noise=0.0, channel_gain=0.0)
+    for seed in range(50):
+        x, y = augment(image, labels, np.random.default_rng(seed), config)
+        road = x[0][:, y[0] == SCENE_CLASSES.index("road")]
+        ground = x[0][:, y[0] == 0]
+        assert road.max() < ground.min(), f"seed {seed}: the augmented view no longer shows the road"
 
 
 def test_bad_inputs_are_specific(dirs, tmp_path):

@@ -61,8 +61,8 @@ def scene_classes(label_map: np.ndarray) -> np.ndarray:
 class SegmenterConfig:
     """Sizes of :class:`SegNet` (every default visible)."""
 
-    channels: tuple[int, ...] = (16, 32, 48, 64)  # one stride-2 encoder stage per entry
-    head_channels: int = 8  # the full-resolution refinement before the class logits
+    channels: tuple[int, ...] = (32, 64, 96, 128)  # one stride-2 encoder stage per entry
+    head_channels: int = 16  # the full-resolution refinement before the class logits
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}

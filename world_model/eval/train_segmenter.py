@@ -45,7 +45,9 @@ class AugmentConfig:
     flip: float = 0.5  # probability of a horizontal mirror (image and labels)
     gain: tuple[float, float] = (0.6, 1.4)  # brightness multiplier
     channel_gain: float = 0.15  # per-channel multiplier in 1 +- this
-    bias: tuple[float, float] = (-25.0, 25.0)  # added on the 0-255 scale
+    # added, as a fraction of the view's mean level: a night view's road differs from the ground by
+    # a few levels, which a fixed shift of tens of levels would clip away
+    bias: tuple[float, float] = (-0.2, 0.2)
     blur: float = 0.35  # probability of a Gaussian blur
     blur_sigma: tuple[float, float] = (0.5, 1.5)  # pixels
     noise: float = 0.25  # probability of additive Gaussian noise
@@ -68,7 +70,7 @@ class TrainSegmenterConfig:
     class_weight_power: float = 0.5  # cross-entropy weight of a class: (its pixel frequency) ** -power
     max_class_weight: float = 10.0  # relative to the mean weight
     rare_view_weight: float = 4.0  # views showing a pedestrian, cyclist, cone or barrier are drawn this much more
-    train_stride: int = 2  # every n-th frame of the training clips
+    train_stride: int = 1  # every n-th frame of the training clips
     heldout_stride: int = 4  # every n-th frame of the held-out clips
     evalset_stride: int = 10  # every n-th frame of the evaluation set's clips
     check_frames: int = 4  # frames of one held-out clip in the check slice (every heldout_stride-th)
@@ -88,7 +90,7 @@ def augment(
         if rng.random() < config.flip:
             x, labs[i] = x[:, ::-1], labs[i][:, ::-1]
         gain = rng.uniform(*config.gain) * (1.0 + rng.uniform(-config.channel_gain, config.channel_gain, 3))
-        x = x * gain.astype(np.float32) + np.float32(rng.uniform(*config.bias))
+        x = x * gain.astype(np.float32) + np.float32(rng.uniform(*config.bias) * x.mean())
         if rng.random() < config.blur:
             x = cv2.GaussianBlur(np.ascontiguousarray(x), (0, 0), rng.uniform(*config.blur_sigma))
         if rng.random() < config.noise:
