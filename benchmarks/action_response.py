@@ -10,8 +10,17 @@ the mean absolute difference (uint8 levels), LiDAR as the mean absolute range di
 (metres). On the procedural backend that is the ground truth's response to the action; a world
 model that ignored the action would show none, one that responds like the scene does shows a
 similar curve. ``response_*`` is each backend's median over steps divided by the procedural
-backend's (1: as much as the ground truth). Backend specs are ``bench_env.py``'s (qualifiers such as
-``world_model:sink=0`` or ``world_model:no-refresh``), so model options are compared in one run.
+backend's (1: as much as the ground truth).
+
+The LiDAR's mean hides where a response comes from: the ground truth's ranges change only on the
+few cells whose object moved, a world model's may wander a little everywhere. So the LiDAR is
+also split by the ground truth's own difference at each step: ``lidar_moved``, the mean range
+difference on the cells where the ground truth's two runs differ by more than ``MOVED_M``
+(``response_lidar_moved``: its median against the ground truth's there), and ``lidar_still``, the
+mean on every other cell (metres the backend changed where the scene did not).
+
+Backend specs are ``bench_env.py``'s (qualifiers such as ``world_model:sink=0`` or
+``world_model:no-refresh``), so model options are compared in one run.
 """
 
 from __future__ import annotations
@@ -30,6 +39,8 @@ from bench_env import _make_kwargs  # noqa: E402
 
 import m4world_env  # noqa: E402,F401  (registers M4World-v0)
 
+MOVED_M = 0.5  # a LiDAR cell whose range differs by more than this between the truth's runs moved
+
 
 def episode(kwargs: dict, scenario: str, seed: int, action: np.ndarray, steps: int) -> list[dict]:
     """The observations of the reset and of up to ``steps`` steps holding ``action``."""
@@ -45,12 +56,23 @@ def episode(kwargs: dict, scenario: str, seed: int, action: np.ndarray, steps: i
     return out
 
 
-def apart(a: list[dict], b: list[dict]) -> dict[str, list[float]]:
-    """Per step (over the steps both runs reached): the two runs' camera and LiDAR differences."""
-    n = min(len(a), len(b))
+def apart(a: list[dict], b: list[dict], moved: list[np.ndarray] | None = None) -> dict[str, list[float]]:
+    """Per step (over the steps both runs reached): the two runs' camera and LiDAR differences;
+    with ``moved`` (per step, the LiDAR cells where the ground truth moved) also the LiDAR's on
+    those cells and on the others (``lidar_moved``, ``lidar_still``)."""
+    n = min(len(a), len(b), len(moved) if moved is not None else len(a))
     cams = [float(np.abs(a[i]["cameras"].astype(np.float32) - b[i]["cameras"]).mean()) for i in range(n)]
-    lidar = [float(np.abs(a[i]["lidar"] - b[i]["lidar"]).mean()) for i in range(n)]
-    return {"cameras": cams, "lidar": lidar}
+    lidar = [np.abs(a[i]["lidar"] - b[i]["lidar"]) for i in range(n)]
+    out = {"cameras": cams, "lidar": [float(d.mean()) for d in lidar]}
+    if moved is not None:
+        out["lidar_moved"], out["lidar_still"] = (list(v) for v in zip(*map(split_mean, lidar, moved), strict=True))
+    return out
+
+
+def split_mean(values: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
+    """Mean of ``values`` where ``mask`` holds and where it does not (0 for an empty part)."""
+    inside, outside = values[mask], values[~mask]
+    return (float(inside.mean()) if inside.size else 0.0, float(outside.mean()) if outside.size else 0.0)
 
 
 def parse_action(text: str) -> np.ndarray:
@@ -73,11 +95,15 @@ def main(argv: list[str] | None = None) -> int:
     if "procedural" not in a.backend:
         p.error("--backend needs procedural: the ground truth every response is divided by")
     held = [parse_action(s) for s in a.actions]
-    result: dict = {"scenario": a.scenario, "seed": a.seed, "actions": a.actions, "backends": {}}
-    for backend in a.backend:
+    result: dict = {"scenario": a.scenario, "seed": a.seed, "actions": a.actions, "moved_m": MOVED_M, "backends": {}}
+    moved = None
+    for backend in ["procedural", *(b for b in a.backend if b != "procedural")]:
         kw = _make_kwargs(backend, a.checkpoint if backend.startswith("world_model") else None)
         kw["config"] = {**kw["config"], "action_type": "continuous"}
-        curves = apart(*(episode(kw, a.scenario, a.seed, h, a.steps) for h in held))
+        runs = [episode(kw, a.scenario, a.seed, h, a.steps) for h in held]
+        if moved is None:  # the ground truth runs first: where its ranges changed
+            moved = [np.abs(x["lidar"] - y["lidar"]) > MOVED_M for x, y in zip(*runs, strict=False)]
+        curves = apart(*runs, moved=moved)
         result["backends"][backend] = {
             "steps": len(curves["cameras"]) - 1,
             **{f"median_{k}": statistics.median(v[1:]) for k, v in curves.items()},
@@ -86,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         print(backend, {k: round(v, 3) for k, v in result["backends"][backend].items() if k.startswith("median")})
     truth = result["backends"]["procedural"]
     for r in result["backends"].values():
-        for k in ("cameras", "lidar"):
+        for k in ("cameras", "lidar", "lidar_moved"):
             r[f"response_{k}"] = r[f"median_{k}"] / truth[f"median_{k}"] if truth[f"median_{k}"] else None
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(result, indent=1))

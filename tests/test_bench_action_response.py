@@ -9,7 +9,8 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from action_response import main  # noqa: E402
+import numpy as np  # noqa: E402
+from action_response import MOVED_M, apart, main, split_mean  # noqa: E402
 
 
 def test_braking_moves_the_ground_truth_and_each_backend_is_scored_against_it(tiny_bundle, tmp_path):
@@ -26,6 +27,22 @@ def test_braking_moves_the_ground_truth_and_each_backend_is_scored_against_it(ti
     # The world model's two runs draw the same noise: identical at reset, only the action differs.
     assert model["per_step"]["cameras"][0] == 0.0 and model["per_step"]["lidar"][0] == 0.0
     assert model["response_cameras"] >= 0 and model["response_lidar"] >= 0
+    # The LiDAR split by where the truth moved: the truth changes more there than anywhere else.
+    assert truth["response_lidar_moved"] == 1.0 and truth["median_lidar_moved"] > MOVED_M
+    assert max(truth["per_step"]["lidar_still"]) <= MOVED_M
+    assert model["per_step"]["lidar_moved"][0] == 0.0 and model["response_lidar_moved"] >= 0
+
+
+def test_the_lidar_difference_splits_by_where_the_truth_moved():
+    assert split_mean(np.array([1.0, 2.0, 3.0, 5.0]), np.array([True, False, False, True])) == (3.0, 2.5)
+    assert split_mean(np.array([1.0, 3.0]), np.zeros(2, bool)) == (0.0, 2.0)
+    frame = {"cameras": np.zeros((1, 2, 2, 3), np.uint8)}
+    a = [{**frame, "lidar": np.zeros((2, 2), np.float32)}] * 2
+    b = [{**frame, "lidar": np.zeros((2, 2), np.float32)}, {**frame, "lidar": np.array([[4, 0], [0, 1]], np.float32)}]
+    moved = [np.zeros((2, 2), bool), np.array([[True, False], [False, False]])]
+    curves = apart(a, b, moved)
+    assert curves["lidar"] == [0.0, 1.25] and curves["lidar_moved"] == [0.0, 4.0]
+    assert curves["lidar_still"] == pytest.approx([0.0, 1 / 3])
 
 
 def test_bad_arguments_are_refused(tmp_path):
