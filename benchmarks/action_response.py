@@ -56,17 +56,20 @@ def episode(kwargs: dict, scenario: str, seed: int, action: np.ndarray, steps: i
     return out
 
 
-def apart(a: list[dict], b: list[dict], moved: list[np.ndarray] | None = None) -> dict[str, list[float]]:
-    """Per step (over the steps both runs reached): the two runs' camera and LiDAR differences;
-    with ``moved`` (per step, the LiDAR cells where the ground truth moved) also the LiDAR's on
-    those cells and on the others (``lidar_moved``, ``lidar_still``)."""
-    n = min(len(a), len(b), len(moved) if moved is not None else len(a))
+def apart(a: list[dict], b: list[dict], moved: list[np.ndarray]) -> dict[str, list[float]]:
+    """Per step (over the steps both runs and ``moved`` reach): the two runs' camera and LiDAR
+    differences, and the LiDAR's on the cells where the ground truth moved (``moved``, per step)
+    and on the others (``lidar_moved``, ``lidar_still``)."""
+    n = min(len(a), len(b), len(moved))
     cams = [float(np.abs(a[i]["cameras"].astype(np.float32) - b[i]["cameras"]).mean()) for i in range(n)]
     lidar = [np.abs(a[i]["lidar"] - b[i]["lidar"]) for i in range(n)]
-    out = {"cameras": cams, "lidar": [float(d.mean()) for d in lidar]}
-    if moved is not None:
-        out["lidar_moved"], out["lidar_still"] = (list(v) for v in zip(*map(split_mean, lidar, moved), strict=True))
-    return out
+    inside, outside = zip(*map(split_mean, lidar, moved), strict=False)
+    return {
+        "cameras": cams,
+        "lidar": [float(d.mean()) for d in lidar],
+        "lidar_moved": list(inside),
+        "lidar_still": list(outside),
+    }
 
 
 def split_mean(values: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
