@@ -62,7 +62,7 @@ class TrainSegmenterConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     seed: int = 0
     threads: int = 2
-    steps: int = 4500
+    steps: int = 6000
     batch_size: int = 24  # camera views per step
     lr: float = 3e-3
     weight_decay: float = 1e-4
