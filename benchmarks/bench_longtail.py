@@ -48,7 +48,13 @@ import numpy as np
 
 from world_model.data import Clip, iter_clips
 from world_model.lora import apply_adapters, remove_adapters
-from world_model.model.conditions import Conditions, build_condition_arrays, camera_labels, style_of_prompt
+from world_model.model.conditions import (
+    Conditions,
+    build_condition_arrays,
+    camera_labels,
+    lidar_nearness_maps,
+    style_of_prompt,
+)
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
@@ -201,7 +207,12 @@ def _render_both(
         finally:
             remove_adapters(model)
         obs = latents_to_observations(
-            vae, completed, vae.cfg.sensors.lidar, labels=cond.labels[:, :1], style=cond.style
+            vae,
+            completed,
+            vae.cfg.sensors.lidar,
+            labels=cond.labels[:, :1],
+            style=cond.style,
+            nearness=cond.lidar_nearness[:, :1],
         )
         return base_obs, [o[0] for o in obs]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
@@ -275,8 +286,11 @@ def autoencode(vae: SensorVAE, clip: Clip, frame: int, text: TextEncoder | None 
     encoder of a decoder that draws the scene's style."""
     cfg = vae.cfg
     labels = camera_labels(clip.frames[frame : frame + 1], cfg)
+    nearness = lidar_nearness_maps(clip.frames[frame : frame + 1], cfg)
     style = style_of_prompt(clip.frames[frame].prompt, cfg, text) if vae.draws_style else None
-    cams, _ = vae.reconstruct_frames(clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels, style)
+    cams, _ = vae.reconstruct_frames(
+        clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels, style, nearness
+    )
     return cams[0]
 
 

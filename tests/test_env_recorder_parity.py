@@ -13,7 +13,7 @@ from m4world_env.policies import IDMAutopilot
 from m4world_env.recorder import RecordConfig, record_episode
 from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
-from world_model.model.conditions import ConditionArrays, camera_labels
+from world_model.model.conditions import ConditionArrays, camera_labels, lidar_nearness_maps
 from world_model.runtime import WorldModel
 from world_model.sim.labels import CLASS_PLANE, ROAD, VEHICLE, LabelRasterizer
 from world_model.train.data import LatentWindows
@@ -86,13 +86,14 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     assert len(env_arrays) == len(starts)
     # The DiTs' windows leave out the decoder's label maps; the decoder stage renders them from the
     # clip's frames. The env renders them only for the frames it decodes.
-    assert train.labels.shape[3:] == (0, 0)
+    assert train.labels.shape[3:] == (0, 0) and train.lidar_nearness.shape[1:] == (0, 0)
     raster = LabelRasterizer()
     labels = np.stack([raster.maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
+    nearness = lidar_nearness_maps(clip.frames, cfg)
     for start, got in zip(starts, env_arrays, strict=True):
         want = train.frames(start, start + got.num_frames)
         for f in fields(ConditionArrays):
-            if f.name == "labels":
+            if f.name in ("labels", "lidar_nearness"):
                 continue
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), f"{f.name} differs at frame {start}"
@@ -101,12 +102,15 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
                 decoded = t % scenario.frames_per_step == 0  # the first frame, then each step's last
                 want_labels = labels[t] if decoded else camera_labels([clip.frames[t]], cfg, labeled=[False])[0]
                 assert np.array_equal(got.labels[t - start], want_labels), f"labels differ at {t}"
+                want_near = nearness[t] if decoded else np.zeros_like(nearness[t])
+                assert np.array_equal(got.lidar_nearness[t - start], want_near), f"nearness differs at {t}"
         else:
-            assert got.labels.shape[3:] == (0, 0)
+            assert got.labels.shape[3:] == (0, 0) and got.lidar_nearness.shape[1:] == (0, 0)
     has_image = np.concatenate([a.obj_has_image for a in env_arrays])
     assert has_image[0].any()  # crops reached the conditions from the first frame
     if layout:
         assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
+        assert nearness.shape[1:] == (cfg.sensors.height, cfg.sensors.width) and (nearness > 0).mean() > 0.3
         assert (labels[:, :, CLASS_PLANE] == ROAD).any() and (labels[:, :, CLASS_PLANE] == VEHICLE).any()
 
 

@@ -10,7 +10,7 @@ from tests.model_fixtures import make_frames, make_sensors, perturbed, tiny_cond
 from world_model import Box3D, EgoState, MapGeometry, SceneFrame, SceneObject, ScenePrompt
 from world_model.model import MultiViewDiT, build_condition_arrays, get_preset, make_text_encoder
 from world_model.model.config import ModelConfig, with_layout
-from world_model.model.layout import LAYOUT_CHANNELS, layout_raster
+from world_model.model.layout import LAYOUT_CHANNELS, NEARNESS_LEVELS, layout_raster, lidar_nearness
 from world_model.model.vae import lidar_to_images
 from world_model.sim.demo import straight_road
 from world_model.sim.simulator import ProceduralSimulator
@@ -103,6 +103,13 @@ def test_lidar_view_nearness_is_the_simulated_range_map():
     assert np.median(np.abs(lay_range[seen] - sim_range[seen])) < 0.5
     on_bus = full[cfg.sensors.lidar_view, VEHICLE] == 1.0
     assert on_bus.sum() > 20 and np.median(np.abs(lay_range[on_bus] - sim_range[on_bus])) < 0.5
+    # the decoder's nearness map is that channel in bytes, one ray per view pixel
+    near = lidar_nearness(frame, cfg.sensors.lidar, (cfg.sensors.height, cfg.sensors.width))
+    assert near.dtype == np.uint8 and near.shape == (cfg.sensors.height, cfg.sensors.width)
+    assert np.abs(near / NEARNESS_LEVELS - full[cfg.sensors.lidar_view, NEARNESS]).max() <= 0.5 / NEARNESS_LEVELS + 1e-6
+    # the bus's face 6 m ahead, in the middle columns, at the horizon's rows
+    mid = cfg.sensors.width // 2
+    assert abs((1 - near[20:28, mid] / NEARNESS_LEVELS).mean() * cfg.sensors.lidar.max_range - 6.0) < 0.5
 
 
 def test_road_and_objects_agree_with_the_simulators_pixels():

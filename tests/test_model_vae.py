@@ -139,18 +139,24 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
         axis=2,
     ).astype(np.uint8)
     style, other_style = (v / np.linalg.norm(v) for v in rng.standard_normal((2, cfg.text.dim)).astype(np.float32))
+    near = rng.integers(256, size=(2, h, w)).astype(np.uint8)
     # zero-initialized modulations: the fine-tuning starts from the plain decoder's images
-    assert vae.draws_labels and vae.draws_style
-    for a, b in zip(vae.decode_frames(lat, labels=labels, style=style), plain.decode_frames(lat), strict=True):
+    assert vae.draws_labels and vae.draws_style and vae.draws_lidar
+    drawn_frames = vae.decode_frames(lat, labels=labels, style=style, nearness=near)
+    for a, b in zip(drawn_frames, plain.decode_frames(lat), strict=True):
         assert np.array_equal(a, b)
     with pytest.raises(ValueError, match="label map"):
-        vae.decode_frames(lat, style=style)
+        vae.decode_frames(lat, style=style, nearness=near)
     with pytest.raises(ValueError, match="label map"):
-        vae.decode_frames(lat, labels=labels[:, :2], style=style)
+        vae.decode_frames(lat, labels=labels[:, :2], style=style, nearness=near)
     with pytest.raises(ValueError, match="class ids, paint and surface"):
-        vae.decode_frames(lat, labels=labels[:, :, :SURFACE_PLANE], style=style)  # maps without their surface
+        vae.decode_frames(lat, labels=labels[:, :, :SURFACE_PLANE], style=style, nearness=near)  # no surface
     with pytest.raises(ValueError, match="style"):
-        vae.decode_frames(lat, labels=labels)
+        vae.decode_frames(lat, labels=labels, nearness=near)
+    with pytest.raises(ValueError, match="nearness"):
+        vae.decode_frames(lat, labels=labels, style=style)
+    with pytest.raises(ValueError, match="nearness"):
+        vae.decode_frames(lat, labels=labels, style=style, nearness=near[:, :, :-1])
 
     for mod in vae.decoder.label_mods:
         torch.nn.init.normal_(mod.conv.weight, std=0.5)
@@ -173,13 +179,17 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     none = torch.zeros_like(ids)
     none[:, CLASS_PLANE] = NO_LABEL
     assert torch.equal(vae.decode(z, none, styles), vae.decode(z))
-    # the LiDAR view has no label map: its ranges depend on neither the cameras' labels nor the style
-    lidar_ranges = vae.decode_frames(lat, labels=labels, style=style)[1]
-    assert np.array_equal(lidar_ranges, vae.decode_frames(lat, labels=labels * 0, style=other_style)[1])
+    # the LiDAR view has no label map: its ranges depend on neither the cameras' labels nor the style,
+    # but follow its nearness map, which the cameras do not read
+    cams, lidar_ranges = vae.decode_frames(lat, labels=labels, style=style, nearness=near)
+    assert np.array_equal(lidar_ranges, vae.decode_frames(lat, labels=labels * 0, style=other_style, nearness=near)[1])
+    other_cams, other_ranges = vae.decode_frames(lat, labels=labels, style=style, nearness=255 - near)
+    assert not np.array_equal(lidar_ranges, other_ranges) and np.array_equal(cams, other_cams)
 
 
 def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follows_the_surface():
     cfg = with_layout(get_preset("tiny"), True)
+    cfg = replace(cfg, layout=replace(cfg.layout, decoder_lidar=False))
     before = replace(cfg, layout=replace(cfg.layout, decoder_surface=False))
     torch.manual_seed(0)
     vae = SensorVAE(before).eval()
@@ -206,3 +216,34 @@ def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follo
         with_label_channels(extended, replace(cfg, layout=replace(cfg.layout, decoder_paint=False)))
     with pytest.raises(ValueError, match="cannot be extended"):
         with_label_channels(vae, replace(cfg, sensors=replace(cfg.sensors, num_cameras=2)))
+
+
+def test_a_decoder_extended_to_read_the_lidar_nearness_starts_as_it_drew_and_then_follows_it():
+    cfg = with_layout(get_preset("tiny"), True)
+    before = replace(cfg, layout=replace(cfg.layout, decoder_lidar=False))
+    torch.manual_seed(0)
+    vae = SensorVAE(before).eval()
+    for mod in vae.decoder.label_mods:  # a trained decoder: its modulations are not zero
+        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    extended = with_label_channels(vae, cfg)
+    assert extended.cfg.layout.label_channel_names[-1] == "lidar_nearness" and extended.draws_lidar
+    cams, lidar, _ = make_sensors(cfg, 2)
+    lat = vae.encode_frames(cams, lidar.astype(np.float32))
+    rng = np.random.default_rng(0)
+    h, w = cfg.sensors.height, cfg.sensors.width
+    labels = rng.integers(256, size=(2, cfg.sensors.num_cameras, 3, h, w)).astype(np.uint8)
+    labels[:, :, CLASS_PLANE] %= len(LABEL_CLASSES)
+    style = rng.standard_normal(cfg.text.dim).astype(np.float32)
+    near = rng.integers(256, size=(2, h, w)).astype(np.uint8)
+    for a, b in zip(
+        extended.decode_frames(lat, labels=labels, style=style, nearness=near),
+        vae.decode_frames(lat, labels=labels, style=style),
+        strict=True,
+    ):
+        assert np.array_equal(a, b)
+    with torch.no_grad():
+        for mod in extended.decoder.label_mods:
+            torch.nn.init.normal_(mod.conv.weight[:, -1:], std=0.5)
+    cams_a, lidar_a = extended.decode_frames(lat, labels=labels, style=style, nearness=near)
+    cams_b, lidar_b = extended.decode_frames(lat, labels=labels, style=style, nearness=255 - near)
+    assert np.array_equal(cams_a, cams_b) and not np.array_equal(lidar_a, lidar_b)

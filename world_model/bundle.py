@@ -103,7 +103,8 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
     # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it,
-    # in the scene's style, with the objects' paint and the ground's surface when that stage's config says so.
+    # in the scene's style, with the objects' paint, the ground's surface and the LiDAR's nearness
+    # when that stage's config says so.
     draws_labels = found["vae"][0] in ("rollout_decoder", "decoder")
     if draws_labels or config.get("layout", {}).get("decoder"):
         vae_layout = (_export_config(found["vae"][1]) or {}).get("layout", {}) if draws_labels else {}
@@ -113,6 +114,7 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
             "decoder_style": bool(vae_layout.get("decoder_style", False)),
             "decoder_paint": bool(vae_layout.get("decoder_paint", False)),
             "decoder_surface": bool(vae_layout.get("decoder_surface", False)),
+            "decoder_lidar": bool(vae_layout.get("decoder_lidar", False)),
         }
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():

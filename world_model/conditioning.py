@@ -16,6 +16,7 @@ from world_model.model.conditions import (
     ConditionArrays,
     build_condition_arrays,
     camera_labels,
+    lidar_nearness_maps,
     style_of_prompt,
 )
 from world_model.model.config import ModelConfig
@@ -54,6 +55,10 @@ class ConditionBuilder:
     def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray:
         """The frames' camera label maps for the decoder (:func:`camera_labels`)."""
         return camera_labels(frames, self.cfg, self._labels)
+
+    def nearness(self, frames: Sequence[SceneFrame]) -> np.ndarray:
+        """The frames' LiDAR nearness maps for the decoder (:func:`lidar_nearness_maps`)."""
+        return lidar_nearness_maps(frames, self.cfg)
 
     def style(self, prompt: ScenePrompt) -> np.ndarray:
         """(Dt,) the scene style the decoder reads for ``prompt`` (:func:`style_of_prompt`)."""

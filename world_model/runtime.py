@@ -156,7 +156,7 @@ class WorldModel:
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
-        return latents, self.decode(latents, cond.labels[:, :1], cond.style)[0][0]
+        return latents, self.decode(latents, cond.labels[:, :1], cond.style, cond.lidar_nearness[:, :1])[0][0]
 
     @torch.no_grad()
     def batch_first_frames(
@@ -183,17 +183,21 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
-        return latents, [obs[0] for obs in self.decode(latents, cond.labels[:, :1], cond.style)]
+        return latents, [
+            obs[0] for obs in self.decode(latents, cond.labels[:, :1], cond.style, cond.lidar_nearness[:, :1])
+        ]
 
     def decode(
         self,
         latents: torch.Tensor,
         labels: torch.Tensor | np.ndarray | None = None,
         style: torch.Tensor | np.ndarray | None = None,
+        nearness: torch.Tensor | np.ndarray | None = None,
     ) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, 3, H, W)
-        the frames' camera label maps and ``style`` (B, Dt) the scenes' styles, for a decoder that
-        draws them (``ConditionArrays.labels``, ``ConditionArrays.style``).
+        the frames' camera label maps, ``style`` (B, Dt) the scenes' styles and ``nearness`` (B, T, H, W)
+        the LiDAR view's nearness maps, for a decoder that draws them (``ConditionArrays.labels``,
+        ``ConditionArrays.style``, ``ConditionArrays.lidar_nearness``).
 
         On CPU each frame is decoded alone: the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
@@ -210,6 +214,7 @@ class WorldModel:
             frames_per_call=1 if on_cpu else DECODE_FRAMES_PER_CALL,
             labels=labels,
             style=style,
+            nearness=nearness,
         )
 
 
@@ -479,15 +484,16 @@ class RolloutBatch:
         if active:  # one decoder call for every active rollout's frames
             lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
             labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
+            nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
             if not self.every_frame:
-                lat, labels = lat[:, -1:], labels[:, -1:]
+                lat, labels, nearness = lat[:, -1:], labels[:, -1:], nearness[:, -1:]
             if self.wm.vae.draws_labels and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
                     "a frame to decode has no label map: build each step's conditions with the rollouts' "
                     "every_frame (ConditionBuilder.chunk_arrays)"
                 )
             style = np.stack([arrays[i][0].style for i in active])
-            for i, obs in zip(active, self.wm.decode(lat, labels, style), strict=True):
+            for i, obs in zip(active, self.wm.decode(lat, labels, style, nearness), strict=True):
                 results[i] = obs
         self.seconds["decode"] += time.perf_counter() - t0
         return results

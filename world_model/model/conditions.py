@@ -29,6 +29,11 @@ labels             (T, Vc, 3, H, W)      each camera's label map at full resolut
                                          the objects' paint, the ground's surface
                                          (:meth:`~world_model.sim.labels.LabelRasterizer.maps`);
                                          H = W = 0 without it. The DiTs do not read it.
+lidar_nearness     (T, H, W) uint8       the range map the scene implies on the LiDAR view at
+                                         full resolution, for the decoder
+                                         (``layout.decoder_lidar``,
+                                         :func:`~world_model.model.layout.lidar_nearness`);
+                                         H = W = 0 without it. The DiTs do not read it.
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -47,7 +52,7 @@ import torch
 
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
-from world_model.model.layout import layout_sequence
+from world_model.model.layout import layout_sequence, lidar_nearness
 from world_model.model.text import TextEncoder
 from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
@@ -143,6 +148,7 @@ class ConditionArrays:
     view_adjacency: np.ndarray
     layout: np.ndarray
     labels: np.ndarray
+    lidar_nearness: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -156,6 +162,7 @@ class ConditionArrays:
         "obj_has_image",
         "layout",
         "labels",
+        "lidar_nearness",
     )
 
     @property
@@ -193,7 +200,7 @@ def build_condition_arrays(
     a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
     when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
     data's cache), else it is computed here when the config enables it. ``label_rasterizer``
-    and ``labeled`` render the decoder's label maps (:func:`camera_labels`).
+    and ``labeled`` render the decoder's label maps (:func:`camera_labels`, :func:`lidar_nearness_maps`).
     """
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
@@ -254,6 +261,7 @@ def build_condition_arrays(
         layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
     labels = camera_labels(frames, cfg, label_rasterizer, labeled)
+    nearness = lidar_nearness_maps(frames, cfg, labeled)
     tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
     text = np.zeros((cfg.text.max_tokens, dt), np.float32)
     text[: len(tokens)] = tokens
@@ -275,6 +283,7 @@ def build_condition_arrays(
         view_adjacency=adjacency,
         layout=layout,
         labels=labels,
+        lidar_nearness=nearness,
     )
 
 
@@ -328,6 +337,25 @@ def camera_labels(
     return out
 
 
+def lidar_nearness_maps(
+    frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
+) -> np.ndarray:
+    """The ``lidar_nearness`` field: the LiDAR view's nearness map of every frame, (T, H, W) uint8
+    (:func:`~world_model.model.layout.lidar_nearness`), for a decoder that draws it
+    (``layout.decoder_lidar``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`: the
+    other frames' maps are left 0, nothing in range."""
+    s = cfg.sensors
+    if not cfg.layout.decoder_lidar:
+        return np.zeros((len(frames), 0, 0), np.uint8)
+    if labeled is not None and len(labeled) != len(frames):
+        raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
+    out = np.zeros((len(frames), s.height, s.width), np.uint8)
+    for t, frame in enumerate(frames):
+        if labeled is None or labeled[t]:
+            out[t] = lidar_nearness(frame, s.lidar, (s.height, s.width))
+    return out
+
+
 @dataclass(frozen=True)
 class FieldSpec:
     """Shape and dtype of one :class:`ConditionArrays` field."""
@@ -345,6 +373,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     h, w = cfg.latent_hw
     layout_channels = cfg.layout.channels if cfg.layout.enabled else 0
     label_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
+    nearness_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder_lidar else (0, 0)
     f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
     return {
         "camera": FieldSpec((vc, 7, 3), f32),
@@ -362,6 +391,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "view_adjacency": FieldSpec((v, v), b),
         "layout": FieldSpec((t, v, layout_channels, h, w), f32),
         "labels": FieldSpec((t, vc, MAP_PLANES, *label_hw), u8),
+        "lidar_nearness": FieldSpec((t, *nearness_hw), u8),
     }
 
 
@@ -386,6 +416,7 @@ class Conditions:
     view_adjacency: torch.Tensor
     layout: torch.Tensor
     labels: torch.Tensor
+    lidar_nearness: torch.Tensor
     drop: torch.Tensor
 
     @property

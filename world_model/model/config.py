@@ -126,7 +126,12 @@ class LayoutConfig:
     ``decoder_surface``: the modulation also reads the road's and the off-road ground's surface
     variation (the label map's surface plane: the world-aligned patches that brighten or darken the
     asphalt and the grass), so the ground streams past the cameras as the ego moves over it, at the
-    ego's speed, however little of that texture the latents keep."""
+    ego's speed, however little of that texture the latents keep.
+
+    ``decoder_lidar``: the LiDAR view's modulation reads the range map the scene implies at full
+    resolution (:func:`~world_model.model.layout.lidar_nearness`; ``ConditionArrays.lidar_nearness``),
+    so the returns of a car ahead stand at its distance in this frame however far the DiT's range
+    latents lag; the cameras read zeros there."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
@@ -134,9 +139,10 @@ class LayoutConfig:
     decoder_style: bool = False
     decoder_paint: bool = False
     decoder_surface: bool = False
+    decoder_lidar: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("decoder_style", "decoder_paint", "decoder_surface"):
+        for name in ("decoder_style", "decoder_paint", "decoder_surface", "decoder_lidar"):
             if getattr(self, name) and not self.decoder:
                 raise ValueError(f"layout.{name} needs layout.decoder (it modulates the label maps)")
 
@@ -147,11 +153,13 @@ class LayoutConfig:
     @property
     def label_channel_names(self) -> tuple[str, ...]:
         """The decoder's label-map input channels in order: the classes one-hot, then the paint's
-        RGB with ``decoder_paint``, then the surface with ``decoder_surface`` (none without ``decoder``)."""
+        RGB with ``decoder_paint``, then the surface with ``decoder_surface``, then the LiDAR view's
+        nearness with ``decoder_lidar`` (none without ``decoder``)."""
         if not self.decoder:
             return ()
         paint = ("paint_red", "paint_green", "paint_blue") if self.decoder_paint else ()
-        return (*LABEL_CLASSES, *paint, *(("surface",) if self.decoder_surface else ()))
+        surface = ("surface",) if self.decoder_surface else ()
+        return (*LABEL_CLASSES, *paint, *surface, *(("lidar_nearness",) if self.decoder_lidar else ()))
 
     @property
     def label_channels(self) -> int:
@@ -425,14 +433,24 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     if enabled is None:
         return cfg
     on = bool(enabled)
-    layout = replace(cfg.layout, enabled=on, decoder=on, decoder_style=on, decoder_paint=on, decoder_surface=on)
+    layout = replace(
+        cfg.layout,
+        enabled=on,
+        decoder=on,
+        decoder_style=on,
+        decoder_paint=on,
+        decoder_surface=on,
+        decoder_lidar=on,
+    )
     return replace(cfg, layout=layout)
 
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps)."""
-    plain = replace(cfg.layout, decoder=False, decoder_style=False, decoder_paint=False, decoder_surface=False)
+    plain = replace(
+        cfg.layout, decoder=False, decoder_style=False, decoder_paint=False, decoder_surface=False, decoder_lidar=False
+    )
     return replace(cfg, layout=plain)
 
 

@@ -48,6 +48,8 @@ assert set(_GROUP_OF) == set(CATEGORIES), "every scene category needs a layout g
 _CHANNEL = {name: i for i, name in enumerate(LAYOUT_CHANNELS)}
 # A hit closer than this to the ray's origin is ignored: the sensor sits inside no object.
 _NEAR_M = 0.05
+# Steps of a nearness byte (:func:`lidar_nearness`): 0.39 m at the default 100 m range.
+NEARNESS_LEVELS = 255
 
 
 @functools.lru_cache(maxsize=16)
@@ -121,6 +123,36 @@ def _box_hits(origins: np.ndarray, dirs: np.ndarray, center: np.ndarray, size: n
     return out
 
 
+def _first_hits(frame: SceneFrame, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each ray's (origins, unit directions (R, 3), LiDAR frame) distance to the road plane and to
+    the first object it enters (inf where none), and that object's layout channel (-1 where none)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(d[:, 2] < 0, (-frame.lidar.mount_height - o[:, 2]) / d[:, 2], np.inf)
+    t_obj = np.full(len(d), np.inf)
+    obj_group = np.full(len(d), -1)
+    for box, obj in zip(frame.object_boxes_lidar(), frame.objects, strict=True):
+        t = _box_hits(o, d, np.asarray(box.center), np.asarray(box.size), box.yaw)
+        closer = t < t_obj
+        t_obj[closer] = t[closer]
+        obj_group[closer] = _CHANNEL[_GROUP_OF.get(obj.category, "other_object")]
+    return t_ground, t_obj, obj_group
+
+
+def _nearness(first: np.ndarray, max_range: float) -> np.ndarray:
+    """``1 - range / max_range`` of first hits, 0 for those out of range."""
+    return np.where(first < max_range, 1.0 - first / max_range, 0.0).astype(np.float32)
+
+
+def lidar_nearness(frame: SceneFrame, lidar: LidarSpec, hw: tuple[int, int]) -> np.ndarray:
+    """(H, W) uint8: the range map the scene implies on the LiDAR view at ``hw``, one ray per cell
+    (the ``nearness`` channel of :func:`layout_raster` without averaging), in
+    :data:`NEARNESS_LEVELS` steps of ``1 - range / max_range``, 0 where nothing is in range."""
+    d = _lidar_rays(lidar, *hw)
+    t_ground, t_obj, _ = _first_hits(frame, np.zeros_like(d), d)
+    near = _nearness(np.minimum(t_ground, t_obj), lidar.max_range)
+    return np.rint(near * NEARNESS_LEVELS).astype(np.uint8).reshape(hw)
+
+
 def layout_raster(
     frame: SceneFrame,
     bev: np.ndarray,
@@ -150,21 +182,11 @@ def layout_raster(
     origins, dirs = view_rays(frame.rig, lidar, rows, cols)
     v, n = dirs.shape[:2]
     o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_ground = np.where(d[:, 2] < 0, (-frame.lidar.mount_height - o[:, 2]) / d[:, 2], np.inf)
-    t_obj = np.full(len(d), np.inf)
-    obj_group = np.full(len(d), -1)
-    for box, obj in zip(frame.object_boxes_lidar(), frame.objects, strict=True):
-        t = _box_hits(o, d, np.asarray(box.center), np.asarray(box.size), box.yaw)
-        closer = t < t_obj
-        t_obj[closer] = t[closer]
-        obj_group[closer] = _CHANNEL[_GROUP_OF.get(obj.category, "other_object")]
-
+    t_ground, t_obj, obj_group = _first_hits(frame, o, d)
     first = np.minimum(t_ground, t_obj)
     in_range = first < lidar.max_range
     out = np.zeros((len(LAYOUT_CHANNELS), len(d)), np.float32)
-    out[_CHANNEL["nearness"]] = np.where(in_range, 1.0 - first / lidar.max_range, 0.0)
+    out[_CHANNEL["nearness"]] = _nearness(first, lidar.max_range)
     on_obj = in_range & (t_obj <= t_ground)
     out[obj_group[on_obj], np.flatnonzero(on_obj)] = 1.0
 

@@ -392,7 +392,9 @@ class ReferenceGenerator:
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
         lat = self.sample(cond, extra, steps, seed)
-        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style)
+        obs = latents_to_observations(
+            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
+        )
         return lat, [o[0] for o in obs]
 
     def from_first_frame(
@@ -404,7 +406,7 @@ class ReferenceGenerator:
         extra[:, :1] = first
         lat = self.sample(cond, extra, steps, seed)
         return lat, latents_to_observations(
-            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style
+            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
         )
 
     def complete_category(
@@ -460,6 +462,13 @@ class ReferenceGenerator:
         out = self.sample(cond, extra, steps, seed)
         return (
             out,
-            latents_to_observations(self.vae, out, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style),
+            latents_to_observations(
+                self.vae,
+                out,
+                self.mcfg.sensors.lidar,
+                labels=cond.labels,
+                style=cond.style,
+                nearness=cond.lidar_nearness,
+            ),
             mask,
         )

@@ -99,6 +99,7 @@ def latents_to_observations(
     frames_per_call: int = DECODE_FRAMES_PER_CALL,
     labels: torch.Tensor | np.ndarray | None = None,
     style: torch.Tensor | np.ndarray | None = None,
+    nearness: torch.Tensor | np.ndarray | None = None,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres).
 
@@ -106,7 +107,8 @@ def latents_to_observations(
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
     attached to the observations unchanged. ``labels`` (B, T, Vc, 3, H, W): the frames' camera label
     maps, for a decoder that draws them (``Conditions.labels``); ``style`` (B, Dt): each sample's
-    scene style, for a decoder that draws it (``Conditions.style``).
+    scene style, for a decoder that draws it (``Conditions.style``); ``nearness`` (B, T, H, W): the
+    LiDAR view's nearness maps, for a decoder that draws them (``Conditions.lidar_nearness``).
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
@@ -116,12 +118,15 @@ def latents_to_observations(
     draws_labels, draws_style = labels is not None and vae.draws_labels, style is not None and vae.draws_style
     flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draws_labels else None
     flat_style = torch.as_tensor(style, device=device).repeat_interleave(t, dim=0) if draws_style else None
+    draws_lidar = nearness is not None and vae.draws_lidar
+    flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draws_lidar else None
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],
             lidar_spec,
             None if flat_labels is None else flat_labels[i : i + frames_per_call],
             None if flat_style is None else flat_style[i : i + frames_per_call],
+            None if flat_near is None else flat_near[i : i + frames_per_call],
         )
         for i in range(0, b * t, frames_per_call)
     ]
@@ -145,4 +150,6 @@ def generate(
 ) -> list[list[Observation]]:
     """Sample and decode: B lists of T :class:`~world_model.Observation`."""
     latents = sample_latents(model, cond, generator, sampler)
-    return latents_to_observations(vae, latents, lidar_spec, labels=cond.labels, style=cond.style)
+    return latents_to_observations(
+        vae, latents, lidar_spec, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
+    )

@@ -29,6 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from world_model.model.config import ModelConfig, VaeConfig
+from world_model.model.layout import NEARNESS_LEVELS
 from world_model.precision import bf16_autocast
 from world_model.sensors import LidarSpec
 from world_model.sim.labels import (
@@ -199,15 +200,24 @@ class SensorVAE(nn.Module):
         return self.encoder(images)
 
     def decode_raw(
-        self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
+        self,
+        z: torch.Tensor,
+        labels: torch.Tensor | None = None,
+        style: torch.Tensor | None = None,
+        nearness: torch.Tensor | None = None,
     ) -> torch.Tensor:
-        """Unnormalized latents (N, C, h, w) -> images; ``labels`` and ``style`` as :meth:`decode`."""
-        return self.decoder(z, self._label_inputs(labels, z), self._style(style, labels, z))
+        """Unnormalized latents (N, C, h, w) -> images; ``labels``, ``style`` and ``nearness`` as :meth:`decode`."""
+        return self.decoder(z, self._label_inputs(labels, z, nearness), self._style(style, labels, z))
 
     @property
     def draws_labels(self) -> bool:
         """Whether the decoder needs each camera's label map (``layout.decoder``)."""
         return self.decoder.label_mods is not None
+
+    @property
+    def draws_lidar(self) -> bool:
+        """Whether the decoder also needs the LiDAR view's nearness map (``layout.decoder_lidar``)."""
+        return self.draws_labels and self.cfg.layout.decoder_lidar
 
     @property
     def draws_style(self) -> bool:
@@ -226,30 +236,46 @@ class SensorVAE(nn.Module):
             return like.new_zeros(like.shape[0], self.decoder.style_dim)
         return style.to(device=like.device, dtype=like.dtype)
 
-    def _label_inputs(self, labels: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor | None:
-        """(N, 3, H, W) uint8 label maps (class ids, paint, surface: :meth:`LabelRasterizer.maps`) ->
+    def _label_inputs(
+        self, labels: torch.Tensor | None, like: torch.Tensor, nearness: torch.Tensor | None = None
+    ) -> torch.Tensor | None:
+        """(N, 3, H, W) uint8 label maps (class ids, paint, surface: :meth:`LabelRasterizer.maps`) and
+        (N, H, W) uint8 nearness maps (:func:`~world_model.model.layout.lidar_nearness`) ->
         (N, K, H, W), the channels of ``layout.label_channel_names``: the
         :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
         and None -> all zeros: no layout), then the paint as RGB in [0, 1] (``layout.decoder_paint``),
-        then the surface variation in [-1, 1] (``layout.decoder_surface``). None for a decoder
-        without label modulation."""
+        then the surface variation in [-1, 1] (``layout.decoder_surface``), then the nearness in
+        [0, 1] (``layout.decoder_lidar``; None -> zeros, a camera's). None for a decoder without
+        label modulation."""
         if not self.draws_labels:
             return None
         layout = self.cfg.layout
         classes = len(LABEL_CLASSES)
         h, w = self.cfg_hw
+        n = like.shape[0]
+        channels = []
         if labels is None:
-            return like.new_zeros(like.shape[0], layout.label_channels, h, w)
-        if labels.shape != (like.shape[0], MAP_PLANES, h, w):
-            want = (like.shape[0], MAP_PLANES, h, w)
-            raise ValueError(f"labels must be {want} class ids, paint and surface, got {tuple(labels.shape)}")
-        labels = labels.to(like.device).long()
-        ids = labels[:, CLASS_PLANE].clamp(max=classes)  # NO_LABEL -> the dropped extra class
-        channels = [F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype)]
-        if layout.decoder_paint:
-            channels.append(_PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]].movedim(-1, 1))
-        if layout.decoder_surface:
-            channels.append(_SURFACE.to(device=like.device, dtype=like.dtype)[labels[:, SURFACE_PLANE]][:, None])
+            channels.append(like.new_zeros(n, layout.label_channels - layout.decoder_lidar, h, w))
+        else:
+            if labels.shape != (n, MAP_PLANES, h, w):
+                raise ValueError(
+                    f"labels must be {(n, MAP_PLANES, h, w)} class ids, paint and surface, got {tuple(labels.shape)}"
+                )
+            labels = labels.to(like.device).long()
+            ids = labels[:, CLASS_PLANE].clamp(max=classes)  # NO_LABEL -> the dropped extra class
+            channels.append(F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype))
+            if layout.decoder_paint:
+                rgb = _PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]]
+                channels.append(rgb.movedim(-1, 1))
+            if layout.decoder_surface:
+                channels.append(_SURFACE.to(device=like.device, dtype=like.dtype)[labels[:, SURFACE_PLANE]][:, None])
+        if layout.decoder_lidar:
+            if nearness is None:
+                channels.append(like.new_zeros(n, 1, h, w))
+            elif nearness.shape != (n, h, w):
+                raise ValueError(f"nearness must be {(n, h, w)} uint8 maps, got {tuple(nearness.shape)}")
+            else:
+                channels.append(nearness.to(device=like.device, dtype=like.dtype)[:, None] / NEARNESS_LEVELS)
         return torch.cat(channels, dim=1) if len(channels) > 1 else channels[0]
 
     # -- normalized latents (what the DiT sees) --
@@ -261,19 +287,25 @@ class SensorVAE(nn.Module):
         return self._norm(self.encoder(images)[0])
 
     def decode(
-        self, latents: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
+        self,
+        latents: torch.Tensor,
+        labels: torch.Tensor | None = None,
+        style: torch.Tensor | None = None,
+        nearness: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
 
         ``labels``: (N, 3, H, W) uint8 label maps (class ids, paint, surface), read when the decoder draws them
         (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
         scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
-        when the decoder draws it (:attr:`draws_style`)."""
+        when the decoder draws it (:attr:`draws_style`). ``nearness``: (N, H, W) uint8, the LiDAR
+        view's range map the scene implies, read when the decoder draws it (:attr:`draws_lidar`);
+        None there means none (a camera)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
         z = z.contiguous(memory_format=torch.channels_last)
-        return self.decoder(z, self._label_inputs(labels, z), self._style(style, labels, z))
+        return self.decoder(z, self._label_inputs(labels, z, nearness), self._style(style, labels, z))
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
@@ -308,13 +340,16 @@ class SensorVAE(nn.Module):
         lidar_spec: LidarSpec | None = None,
         labels: np.ndarray | torch.Tensor | None = None,
         style: np.ndarray | torch.Tensor | None = None,
+        nearness: np.ndarray | torch.Tensor | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
 
         ``labels``: the frames' camera label maps (T, V, 3, H, W) uint8, required when the decoder
         draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
         ``style``: the scene's style, (S,) for every frame or (T, S), required when the decoder draws
-        it (:attr:`draws_style`; ``ConditionArrays.style``)."""
+        it (:attr:`draws_style`; ``ConditionArrays.style``). ``nearness``: the LiDAR view's nearness
+        maps (T, H, W) uint8, required when the decoder draws them (:attr:`draws_lidar`;
+        ``ConditionArrays.lidar_nearness``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
         cam_labels = cam_style = None
@@ -335,13 +370,24 @@ class SensorVAE(nn.Module):
                     f"need labels ({t}, {v1 - 1}, {MAP_PLANES}, H, W), got {got}"
                 )
             cam_labels = torch.as_tensor(labels, device=latents.device).flatten(0, 1)  # uint8: the small copy
+        lidar_near = None
+        if self.draws_lidar:
+            if nearness is None or tuple(nearness.shape) != (t, *self.cfg_hw):
+                got = None if nearness is None else tuple(nearness.shape)
+                raise ValueError(
+                    f"this VAE's decoder draws the LiDAR view's nearness: need nearness ({t}, {self.cfg_hw[0]}, "
+                    f"{self.cfg_hw[1]}), got {got}"
+                )
+            lidar_near = torch.as_tensor(nearness, device=latents.device)
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
             images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels, cam_style)
         cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         lid = images_to_lidar(
-            self.decode(latents[:, -1]), lidar_spec or self.cfg.sensors.lidar, self.cfg.vae.lidar_no_return_fraction
+            self.decode(latents[:, -1], nearness=lidar_near),
+            lidar_spec or self.cfg.sensors.lidar,
+            self.cfg.vae.lidar_no_return_fraction,
         )
         return cams, lid
 
@@ -351,12 +397,13 @@ class SensorVAE(nn.Module):
         lidar: np.ndarray,
         labels: np.ndarray | None = None,
         style: np.ndarray | None = None,
+        nearness: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) through the autoencoder
         and back, same layouts: the best any model generating through this VAE can render.
-        ``labels`` and ``style`` as :meth:`decode_frames`."""
+        ``labels``, ``style`` and ``nearness`` as :meth:`decode_frames`."""
         latents = self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32))
-        return self.decode_frames(latents, labels=labels, style=style)
+        return self.decode_frames(latents, labels=labels, style=style, nearness=nearness)
 
     @property
     def cfg_hw(self) -> tuple[int, int]:
@@ -371,7 +418,10 @@ def with_label_channels(vae: SensorVAE, cfg: ModelConfig) -> SensorVAE:
     old, new = vae.cfg.layout.label_channel_names, cfg.layout.label_channel_names
     # cfg's layout with vae's choice of label channels: all that may differ is which channels are read
     same_channels = replace(
-        cfg.layout, decoder_paint=vae.cfg.layout.decoder_paint, decoder_surface=vae.cfg.layout.decoder_surface
+        cfg.layout,
+        decoder_paint=vae.cfg.layout.decoder_paint,
+        decoder_surface=vae.cfg.layout.decoder_surface,
+        decoder_lidar=vae.cfg.layout.decoder_lidar,
     )
     same_otherwise = (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) == (cfg.sensors, cfg.vae, same_channels)
     if not (vae.draws_labels and set(old) <= set(new) and same_otherwise):

@@ -19,10 +19,16 @@ from safetensors.torch import load_file, save_file
 from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
 from world_model.geometry import wrap_angle
-from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays, camera_labels
+from world_model.model.conditions import (
+    ConditionArrays,
+    Conditions,
+    build_condition_arrays,
+    camera_labels,
+    lidar_nearness_maps,
+)
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.imagedesc import ImageDescriptionEncoder
-from world_model.model.layout import layout_sequence
+from world_model.model.layout import NEARNESS_LEVELS, layout_sequence
 from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
@@ -233,7 +239,7 @@ def layout_cache_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "teacher" / "layouts"
 
 
-DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style", "decoder_paint", "decoder_surface")
+DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style", "decoder_paint", "decoder_surface", "decoder_lidar")
 
 
 def layout_key(cfg: ModelConfig) -> str:
@@ -279,6 +285,25 @@ def cached_label_maps(
     )
     jobs = [(c.frames, cfg) for c in clips]
     return _cached_per_clip(clips, cache_dir, "labels", key, camera_labels, jobs, workers)
+
+
+def nearness_cache_dir(run_dir: str | Path) -> Path:
+    """The run's cache of the clips' LiDAR nearness maps (the decoder stages'), beside the label maps."""
+    return Path(run_dir) / "teacher" / "nearness"
+
+
+def cached_nearness_maps(
+    clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
+) -> list[np.ndarray] | None:
+    """Each clip's LiDAR nearness maps (T, H, W) uint8 (:func:`lidar_nearness_maps`), computed once
+    per run as :func:`cached_label_maps`; None for a decoder that does not draw them
+    (``layout.decoder_lidar``)."""
+    if not cfg.layout.decoder_lidar:
+        return None
+    s = cfg.sensors
+    key = f"{s.height}x{s.width}:nearness{NEARNESS_LEVELS}:{json.dumps(asdict(s.lidar), sort_keys=True)}"
+    jobs = [(c.frames, cfg) for c in clips]
+    return _cached_per_clip(clips, cache_dir, "nearness", key, lidar_nearness_maps, jobs, workers)
 
 
 def _cached_per_clip(

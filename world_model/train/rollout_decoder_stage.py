@@ -34,7 +34,14 @@ from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import StreamingConfig
-from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
+from world_model.train.data import (
+    FrameSampler,
+    cached_label_maps,
+    cached_nearness_maps,
+    label_cache_dir,
+    load_clips,
+    nearness_cache_dir,
+)
 from world_model.train.exports import (
     EXPORT,
     latent_windows,
@@ -158,6 +165,7 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     sampler = FrameSampler(clips, cfg)
     latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
     labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
+    nearness = cached_nearness_maps(clips, cfg, nearness_cache_dir(run.run_dir))
     torch.manual_seed(tcfg.seed)
     vae.train().requires_grad_(True)
     vae.encoder.requires_grad_(False)
@@ -165,16 +173,17 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     raster = LabelRasterizer()
     styles = clip_styles(vae, clips)
     from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
-    # Camera views only: the LiDAR view reads neither label maps nor style, and tuned on the
-    # student's latents it answers the ego's actions less (docs/experiments.md).
-    cameras = cfg.sensors.num_cameras
+    # The LiDAR view only when it reads its nearness map: without a layout, tuned on the student's
+    # latents it answers the ego's actions less (docs/experiments.md); with one, the rollouts teach
+    # it to stand the returns where the scene says however the latents lag.
+    views = cfg.sensors.num_views if vae.draws_lidar else cfg.sensors.num_cameras
 
     def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
-        """(clip, frame, camera view, rollout) of the rollouts' share of the batch."""
+        """(clip, frame, view, rollout) of the rollouts' share of the batch."""
         out = []
         for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
             frame = int(tr.rng.integers(len(rollouts[r])))
-            out.append((picked[r], frame, int(tr.rng.integers(cameras)), r))
+            out.append((picked[r], frame, int(tr.rng.integers(views)), r))
         return out
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
@@ -182,7 +191,7 @@ def rollout_decoder_stage(run: StageRun) -> dict:
         z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in own]).float(), styles is not None)
         rolled = rollout_picks(tr)
         z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float().to(z.device)])
-        return decoder_loss(tr, vae, sampler, labels, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
+        return decoder_loss(tr, vae, sampler, labels, nearness, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:

@@ -24,14 +24,21 @@ import torch
 import torch.nn.functional as F
 
 from world_model.data.clips import Clip, write_json_atomic
-from world_model.model.conditions import style_of_prompt
+from world_model.model.conditions import lidar_nearness_maps, style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
 from world_model.scene import SceneFrame
 from world_model.sim.labels import LabelRasterizer, blank_maps
 from world_model.train.checkpoint import export_weights
-from world_model.train.data import FrameSampler, cached_label_maps, label_cache_dir, load_clips
+from world_model.train.data import (
+    FrameSampler,
+    cached_label_maps,
+    cached_nearness_maps,
+    label_cache_dir,
+    load_clips,
+    nearness_cache_dir,
+)
 from world_model.train.exports import EXPORT, run_latents, run_vae
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
@@ -66,9 +73,11 @@ def vae_metrics(
         clip = sampler.clips[ci]
         cams = np.asarray(clip.cameras[f])
         x = torch.stack([sampler.image(ci, f, v) for v in range(cfg.sensors.num_views)]).to(device)
-        ids = view_labels(labels, clip.frames[f], cfg, range(cfg.sensors.num_views)).to(device) if labels else None
+        views = range(cfg.sensors.num_views)
+        ids = view_labels(labels, clip.frames[f], cfg, views).to(device) if labels else None
+        near = view_nearness(clip.frames[f], cfg, views).to(device) if vae.draws_lidar else None
         style = None if styles is None else torch.from_numpy(styles[ci]).to(device).expand(len(x), -1)
-        rec = vae.decode(vae.encode(x), ids, style).float().cpu()
+        rec = vae.decode(vae.encode(x), ids, style, near).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
         truth = np.asarray(clip.lidar[f], dtype=np.float32)
@@ -93,6 +102,22 @@ def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, vi
     maps = torch.from_numpy(raster.maps(frame, frame.rig, s.height, s.width))
     blank = torch.from_numpy(blank_maps((), s.height, s.width))
     return torch.stack([maps[v] if v < s.num_cameras else blank for v in views])
+
+
+def view_nearness(frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
+    """(N, H, W) uint8 nearness maps of ``views`` of ``frame``: the LiDAR view's
+    (:func:`~world_model.model.conditions.lidar_nearness_maps`), zeros for a camera, as when decoding frames."""
+    s = cfg.sensors
+    lidar = torch.from_numpy(lidar_nearness_maps([frame], cfg)[0])
+    return torch.stack([lidar if v == s.lidar_view else torch.zeros_like(lidar) for v in views])
+
+
+def picked_nearness(nearness: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
+    """(H, W) uint8 nearness map of a view of a frame from each clip's LiDAR nearness maps; zeros
+    for a camera, as in :func:`view_nearness`."""
+    if view == cfg.sensors.lidar_view:
+        return nearness[clip][frame]
+    return np.zeros((cfg.sensors.height, cfg.sensors.width), np.uint8)
 
 
 def picked_labels(labels: Sequence[np.ndarray], clip: int, frame: int, view: int, cfg: ModelConfig) -> np.ndarray:
@@ -148,6 +173,7 @@ def decoder_stage(run: StageRun) -> dict:
     sampler = FrameSampler(clips, cfg)
     latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
     labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
+    nearness = cached_nearness_maps(clips, cfg, nearness_cache_dir(run.run_dir))
     torch.manual_seed(tcfg.seed)
     vae = SensorVAE(cfg)
     missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
@@ -161,7 +187,7 @@ def decoder_stage(run: StageRun) -> dict:
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
         z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in picks]).float(), styles is not None)
-        return decoder_loss(tr, vae, sampler, labels, picks, z, styles)
+        return decoder_loss(tr, vae, sampler, labels, nearness, picks, z, styles)
 
     summary = trainer.run(step, "decoder")
     if not run.place.is_main:
@@ -193,19 +219,24 @@ def decoder_loss(
     vae: SensorVAE,
     sampler: FrameSampler,
     labels: Sequence[np.ndarray],
+    nearness: Sequence[np.ndarray] | None,
     picks: Sequence[tuple[int, int, int]],
     latents: torch.Tensor,
     styles: Sequence[np.ndarray] | None,
 ) -> tuple[torch.Tensor, int]:
     """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
-    with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; and their clips'
-    ``styles``), and the batch size."""
+    with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; its LiDAR
+    ``nearness`` maps, :func:`cached_nearness_maps`, for a decoder that draws them; and their
+    clips' ``styles``), and the batch size."""
     cfg = vae.cfg
     batch = sampler.batch(picks)
     images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
     style = None if styles is None else tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
     ids = tr.shard(torch.from_numpy(np.stack([picked_labels(labels, c, f, v, cfg) for c, f, v in picks])))
-    err = weighted_l1(vae.decode(tr.shard(latents), ids, style), images, weights)
+    near = None
+    if nearness is not None:
+        near = tr.shard(torch.from_numpy(np.stack([picked_nearness(nearness, c, f, v, cfg) for c, f, v in picks])))
+    err = weighted_l1(vae.decode(tr.shard(latents), ids, style, near), images, weights)
     return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
 
 

@@ -178,7 +178,8 @@ def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
             part = slice(s, s + batch_frames)
             labels = wm.conditions.labels(clip.frames[part])
             style = wm.conditions.style(clip.frames[0].prompt)
-            c, lid = wm.vae.reconstruct_frames(clip.cameras[part], clip.lidar[part], labels, style)
+            nearness = wm.conditions.nearness(clip.frames[part])
+            c, lid = wm.vae.reconstruct_frames(clip.cameras[part], clip.lidar[part], labels, style, nearness)
             cams.append(c)
             lids.append(lid)
         return Generated(cameras=np.concatenate(cams), lidar=np.concatenate(lids))
@@ -206,7 +207,7 @@ def teacher_row(wm: WorldModel, teacher: MultiViewDiT, seed: int = 0, window: in
         for start in range(0, len(frames), w):
             part = frames[start : start + w]
             cond = Conditions.collate([wm.conditions.arrays(part, part[0], clip.crops, clip.crop_since)])
-            obs += wm.decode(sample_latents(teacher, cond, gen), cond.labels, cond.style)[0]
+            obs += wm.decode(sample_latents(teacher, cond, gen), cond.labels, cond.style, cond.lidar_nearness)[0]
         cameras, lidar = np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs])
         return Generated(cameras=cameras, lidar=lidar, pass_starts=tuple(range(w, len(frames), w)))
 
