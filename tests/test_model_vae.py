@@ -9,7 +9,7 @@ import torch
 from tests.model_fixtures import make_sensors, perturbed, tiny_conditions
 from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
-from world_model.model.config import with_layout
+from world_model.model.config import ModelConfig, with_layout
 from world_model.model.vae import (
     cameras_to_images,
     images_to_cameras,
@@ -187,14 +187,20 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     assert not np.array_equal(lidar_ranges, other_ranges) and np.array_equal(cams, other_cams)
 
 
+def decoder_with_nonzero_modulations(cfg: ModelConfig) -> SensorVAE:
+    """A VAE whose label modulations are not zero, as a trained decoder's are."""
+    torch.manual_seed(0)
+    vae = SensorVAE(cfg).eval()
+    for mod in vae.decoder.label_mods:
+        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    return vae
+
+
 def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follows_the_surface():
     cfg = with_layout(get_preset("tiny"), True)
     cfg = replace(cfg, layout=replace(cfg.layout, decoder_lidar=False))
     before = replace(cfg, layout=replace(cfg.layout, decoder_surface=False))
-    torch.manual_seed(0)
-    vae = SensorVAE(before).eval()
-    for mod in vae.decoder.label_mods:  # a trained decoder: its modulations are not zero
-        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    vae = decoder_with_nonzero_modulations(before)
     extended = with_label_channels(vae, cfg)
     assert extended.cfg.layout.label_channel_names[-1] == "surface"
     conv = extended.decoder.label_mods[0].conv.weight
@@ -221,10 +227,7 @@ def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follo
 def test_a_decoder_extended_to_read_the_lidar_nearness_starts_as_it_drew_and_then_follows_it():
     cfg = with_layout(get_preset("tiny"), True)
     before = replace(cfg, layout=replace(cfg.layout, decoder_lidar=False))
-    torch.manual_seed(0)
-    vae = SensorVAE(before).eval()
-    for mod in vae.decoder.label_mods:  # a trained decoder: its modulations are not zero
-        torch.nn.init.normal_(mod.conv.weight, std=0.5)
+    vae = decoder_with_nonzero_modulations(before)
     extended = with_label_channels(vae, cfg)
     assert extended.cfg.layout.label_channel_names[-1] == "lidar_nearness" and extended.draws_lidar
     cams, lidar, _ = make_sensors(cfg, 2)
