@@ -11,6 +11,7 @@ from world_model import Observation
 from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
 from world_model.model.config import ModelConfig, with_layout
 from world_model.model.vae import (
+    LABEL_DECODER_WEIGHTS,
     cameras_to_images,
     images_to_cameras,
     images_to_lidar,
@@ -125,7 +126,7 @@ def test_label_decoder_starts_as_the_plain_one_and_then_draws_the_label_maps_in_
     plain = SensorVAE(plain_cfg).eval()
     vae = SensorVAE(cfg).eval()
     missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
-    assert not unexpected and missing and all(k.startswith("decoder.label_mods.") for k in missing)
+    assert not unexpected and missing and all(k.startswith(LABEL_DECODER_WEIGHTS) for k in missing)
     cams, lidar, _ = make_sensors(cfg, 2)
     lat = vae.encode_frames(cams, lidar.astype(np.float32))
     h, w = cfg.sensors.height, cfg.sensors.width
@@ -250,3 +251,25 @@ def test_a_decoder_extended_to_read_the_lidar_nearness_starts_as_it_drew_and_the
     cams_a, lidar_a = extended.decode_frames(lat, labels=labels, style=style, nearness=near)
     cams_b, lidar_b = extended.decode_frames(lat, labels=labels, style=style, nearness=255 - near)
     assert np.array_equal(cams_a, cams_b) and not np.array_equal(lidar_a, lidar_b)
+
+
+def test_the_nearness_gate_learns_to_move_the_lidar_to_the_scenes_ranges_and_leaves_the_cameras():
+    cfg = with_layout(get_preset("tiny"), True)
+    torch.manual_seed(0)
+    vae = SensorVAE(cfg)
+    h, w = cfg.sensors.height, cfg.sensors.width
+    z = torch.randn(2, cfg.vae.latent_channels, *cfg.latent_hw)
+    near = torch.randint(1, 256, (2, h, w), dtype=torch.uint8)
+    near[:, : h // 4] = 0  # nothing in range: the decoder's own output stays
+    labels = torch.zeros(2, 3, h, w, dtype=torch.uint8)
+    style = torch.randn(2, cfg.text.dim)
+    lidar_before, cams_before = vae.decode(z, None, None, near), vae.decode(z, labels, style)
+    scene = 1.0 - 2.0 * near.float()[:, None].expand(-1, 3, -1, -1) / 255
+    (vae.decode(z, None, None, near) - scene).abs().mean().backward()  # zero-initialized, yet it learns
+    assert vae.decoder.nearness_gate.bias.grad.item() < 0  # descending raises the share
+    with torch.no_grad():
+        vae.decoder.nearness_gate.bias.fill_(10.0)  # the whole share
+        lidar = vae.decode(z, None, None, near)
+        far = (near == 0)[:, None].expand_as(lidar)
+        assert torch.allclose(lidar[~far], scene[~far], atol=1e-5) and torch.equal(lidar[far], lidar_before[far])
+        assert torch.equal(vae.decode(z, labels, style), cams_before)  # a camera reads no nearness

@@ -5,6 +5,7 @@ import math
 import time
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file
@@ -28,6 +29,7 @@ from world_model.train import (
 )
 from world_model.train.checkpoint import export_weights, save_checkpoint
 from world_model.train.data import cached_latents, encoder_digest, latent_cache_dir, load_clips
+from world_model.train.vae_stage import LIDAR_LAG_SHARE, LIDAR_LATENT_LAG, latent_frames
 
 
 @pytest.fixture(scope="module")
@@ -123,6 +125,26 @@ def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tm
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
     assert manifest["model_config"]["layout"]["decoder"] and manifest["model_config"]["layout"]["decoder_style"]
+
+
+def test_the_lidar_view_is_decoded_from_a_lagged_latent_for_a_share_of_its_samples():
+    cfg = get_preset("tiny")
+    lidar = cfg.sensors.lidar_view
+    lengths = [30, 5]
+    picks = [(c, f, v) for c, n in enumerate(lengths) for f in range(n) for v in (0, lidar)] * 20
+    frames = latent_frames(np.random.default_rng(0), picks, lengths, cfg)
+    cams = [(f, g) for (_, f, v), g in zip(picks, frames, strict=True) if v != lidar]
+    assert all(f == g for f, g in cams)  # a camera decodes its own frame
+    lags = [(c, g - f) for (c, f, v), g in zip(picks, frames, strict=True) if v == lidar]
+    assert all(abs(d) <= LIDAR_LATENT_LAG for _, d in lags)
+    assert all(0 <= g < lengths[c] for (c, _, _), g in zip(picks, frames, strict=True))  # within its clip
+    own = sum(d == 0 for _, d in lags) / len(lags)
+    assert LIDAR_LAG_SHARE / 2 < 1 - own < LIDAR_LAG_SHARE + 0.05  # some lagged ones land on their own frame
+    # as many draws whatever the views, so the training's random stream does not depend on them
+    rng_a, rng_b = np.random.default_rng(1), np.random.default_rng(1)
+    latent_frames(rng_a, picks, lengths, cfg)
+    latent_frames(rng_b, [(c, f, 0) for c, f, _ in picks], lengths, cfg)
+    assert rng_a.random() == rng_b.random()
 
 
 def test_latent_cache_key_is_the_encoder_not_the_decoder():

@@ -126,15 +126,24 @@ class LabelModulation(nn.Module):
         return x * (1.0 + gamma) + beta
 
 
+# The weights a label-drawing decoder has beyond the plain one's (which it starts from).
+LABEL_DECODER_WEIGHTS = ("decoder.label_mods.", "decoder.nearness_gate.")
+
+
 class Decoder(nn.Module):
     """(N, C, h, w) -> (N, 3, h*d, w*d). Channels shrink as resolution grows to keep decoding cheap.
 
     With ``label_channels``, a :class:`LabelModulation` after the input convolution and after each
     level's normalization draws the view's label map (N, K, H, W) into the features, in the scene's
-    style (N, ``style_dim``) when that is given."""
+    style (N, ``style_dim``) when that is given. With ``nearness_gate`` the last label channel is the
+    LiDAR view's nearness map, which the output also moves toward by a learned per-pixel share."""
 
-    def __init__(self, cfg: VaeConfig, label_channels: int = 0, style_dim: int = 0) -> None:
+    def __init__(
+        self, cfg: VaeConfig, label_channels: int = 0, style_dim: int = 0, nearness_gate: bool = False
+    ) -> None:
         super().__init__()
+        if nearness_gate and not label_channels:
+            raise ValueError("the nearness gate reads the label channels' last one: give label_channels")
         chans = [cfg.decoder_base_channels * m for m in reversed(cfg.channel_mults)]
         self.conv_in = nn.Conv2d(cfg.latent_channels, chans[0], 3, padding=1)
         self.mid = ResBlock(chans[0], chans[0])
@@ -157,6 +166,15 @@ class Decoder(nn.Module):
             else None
         )
         self.style_dim = style_dim
+        # Where the last label channel (the LiDAR view's nearness) puts a surface in range, the
+        # output moves toward the range it implies by a learned share: the modulations alone shift
+        # the latent's returns by a fraction of where the scene moved them. Zero-initialized: the
+        # share starts at 0 and the decoder draws as it did; torch.clamp passes the gradient at its
+        # bounds, so it can grow from there.
+        self.nearness_gate = nn.Conv2d(cin + 1, 1, 3, padding=1) if nearness_gate else None
+        if self.nearness_gate is not None:
+            nn.init.zeros_(self.nearness_gate.weight)
+            nn.init.zeros_(self.nearness_gate.bias)
 
     def forward(
         self, z: torch.Tensor, labels: torch.Tensor | None = None, style: torch.Tensor | None = None
@@ -179,7 +197,12 @@ class Decoder(nn.Module):
         for i in range(0, len(layers), 4):  # upsample, conv, norm | modulation | activation
             upsample, conv, norm, act = layers[i : i + 4]
             h = act(next(mods)(norm(conv(upsample(h))), labels, style))
-        return self.conv_out(h)
+        out = self.conv_out(h)
+        if self.nearness_gate is None:
+            return out
+        near = labels[:, -1:]
+        share = torch.clamp(self.nearness_gate(torch.cat([h, near], dim=1)), 0.0, 1.0) * (near > 0)
+        return out + share * ((1.0 - 2.0 * near) - out)  # 1 - 2 * nearness: the range's image value
 
 
 class SensorVAE(nn.Module):
@@ -189,7 +212,9 @@ class SensorVAE(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg.vae)
-        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim if cfg.layout.decoder_style else 0)
+        style_dim = cfg.text.dim if cfg.layout.decoder_style else 0
+        gate = cfg.layout.decoder and cfg.layout.decoder_lidar
+        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, style_dim, gate)
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
         self.register_buffer("latent_std", torch.ones(c))
@@ -433,7 +458,7 @@ def with_label_channels(vae: SensorVAE, cfg: ModelConfig) -> SensorVAE:
     state = vae.state_dict()
     columns = [new.index(name) for name in old]
     for name, target in out.state_dict().items():
-        source = state[name]
+        source = state.get(name, target)  # the nearness gate, new with the nearness: zero
         if source.shape != target.shape:  # a label modulation's (2c, K, 3, 3) convolution
             source = torch.zeros_like(target).index_copy_(1, torch.tensor(columns), source)
         state[name] = source

@@ -61,6 +61,7 @@ from world_model.train.vae_stage import (
     decoder_loss,
     export_decoder,
     jittered_latents,
+    latent_frames,
 )
 
 STAGE = "rollout_decoder"
@@ -177,6 +178,7 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     # latents it answers the ego's actions less (docs/experiments.md); with one, the rollouts teach
     # it to stand the returns where the scene says however the latents lag.
     views = cfg.sensors.num_views if vae.draws_lidar else cfg.sensors.num_cameras
+    clip_lengths, rollout_lengths = [len(x) for x in latents], [len(x) for x in rollouts]
 
     def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
         """(clip, frame, view, rollout) of the rollouts' share of the batch."""
@@ -186,11 +188,19 @@ def rollout_decoder_stage(run: StageRun) -> dict:
             out.append((picked[r], frame, int(tr.rng.integers(views)), r))
         return out
 
+    def frames_of(tr: Trainer, picks: list[tuple[int, int, int]], lengths: list[int]) -> list[int]:
+        """The frames whose latents ``picks`` decode (:func:`latent_frames` when the LiDAR reads its nearness)."""
+        return latent_frames(tr.rng, picks, lengths, cfg) if vae.draws_lidar else [f for _, f, _ in picks]
+
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
-        z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in own]).float(), styles is not None)
+        frames = frames_of(tr, own, clip_lengths)
+        z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(own, frames, strict=True)]).float()
+        z = jittered_latents(tr, z, styles is not None)
         rolled = rollout_picks(tr)
-        z = torch.cat([z, torch.stack([rollouts[r][f, v] for _, f, v, r in rolled]).float().to(z.device)])
+        frames = frames_of(tr, [(r, f, v) for _, f, v, r in rolled], rollout_lengths)
+        z_rolled = torch.stack([rollouts[r][g, v] for (_, _, v, r), g in zip(rolled, frames, strict=True)])
+        z = torch.cat([z, z_rolled.float().to(z.device)])
         return decoder_loss(tr, vae, sampler, labels, nearness, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
 
     summary = trainer.run(step, STAGE)

@@ -9,6 +9,9 @@ The latents it decodes are jittered with Gaussian noise: the student's are not t
 A decoder that draws the scene's style (``layout.decoder_style``) reads each clip's prompt too, and
 its latents also drift by a smooth random field: the student's colours wander (a rainy day's sky
 turning dusk-orange), so the sky, road and ground must take their look from the prompt.
+A decoder that reads the LiDAR's nearness map (``layout.decoder_lidar``) decodes half of its
+LiDAR-view samples from the latent of a nearby frame (:func:`latent_frames`): the returns must
+stand where the scene's objects are, not where a lagging latent has them.
 
 Layout: ``RUN/vae/`` and ``RUN/decoder/`` each hold checkpoints/, model.safetensors + model.json
 (EMA weights, latent statistics, reconstruction metrics) and metrics.json.
@@ -27,7 +30,14 @@ from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.conditions import lidar_nearness_maps, style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
-from world_model.model.vae import SensorVAE, images_to_cameras, images_to_lidar, kl_loss, weighted_l1
+from world_model.model.vae import (
+    LABEL_DECODER_WEIGHTS,
+    SensorVAE,
+    images_to_cameras,
+    images_to_lidar,
+    kl_loss,
+    weighted_l1,
+)
 from world_model.scene import SceneFrame
 from world_model.sim.labels import LabelRasterizer, blank_maps
 from world_model.train.checkpoint import export_weights
@@ -53,6 +63,12 @@ DECODER_LATENT_NOISE = 0.3
 # Gaussian values, DRIFT_GRID cells): regional, like the student's colour drift.
 DECODER_STYLE_DRIFT = 0.8
 DRIFT_GRID = (2, 4)
+# A decoder that reads the LiDAR's nearness map decodes this share of its LiDAR-view samples from
+# the latent of another frame of the clip, up to LIDAR_LATENT_LAG frames away: the student's LiDAR
+# objects lag the scene (they hardly follow the ego's braking), and the decoder must learn to stand
+# the returns where the nearness map says rather than where the latent has them.
+LIDAR_LAG_SHARE = 0.5
+LIDAR_LATENT_LAG = 20
 
 
 @torch.no_grad()
@@ -177,16 +193,19 @@ def decoder_stage(run: StageRun) -> dict:
     torch.manual_seed(tcfg.seed)
     vae = SensorVAE(cfg)
     missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
-    if unexpected or any(not k.startswith("decoder.label_mods.") for k in missing):
+    if unexpected or any(not k.startswith(LABEL_DECODER_WEIGHTS) for k in missing):
         raise ValueError(f"the VAE in {run.run_dir / 'vae'} does not fit this config: {missing + unexpected}")
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, "decoder")
     raster = LabelRasterizer()
     styles = clip_styles(vae, clips)
+    lengths = [len(x) for x in latents]
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
-        z = jittered_latents(tr, torch.stack([latents[c][f, v] for c, f, v in picks]).float(), styles is not None)
+        frames = latent_frames(tr.rng, picks, lengths, cfg) if vae.draws_lidar else [f for _, f, _ in picks]
+        z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(picks, frames, strict=True)]).float()
+        z = jittered_latents(tr, z, styles is not None)
         return decoder_loss(tr, vae, sampler, labels, nearness, picks, z, styles)
 
     summary = trainer.run(step, "decoder")
@@ -257,6 +276,22 @@ def export_decoder(
     final.encoder.load_state_dict(plain.encoder.state_dict())
     final.eval()
     return export_vae(run, stage, final, trainer.step, vae_metrics(final, sampler, raster, styles))
+
+
+def latent_frames(
+    rng: np.random.Generator, picks: Sequence[tuple[int, int, int]], lengths: Sequence[int], cfg: ModelConfig
+) -> list[int]:
+    """The frame whose latent each (clip, frame, view) pick is decoded from, for a decoder that
+    reads the LiDAR's nearness map: the pick's own frame, except for :data:`LIDAR_LAG_SHARE` of the
+    LiDAR view's, a frame up to :data:`LIDAR_LATENT_LAG` away within the clip (``lengths``: frames
+    per clip). The draws do not depend on the picks' views, so a batch's random stream stays put."""
+    lagged = rng.random(len(picks)) < LIDAR_LAG_SHARE
+    shift = rng.integers(-LIDAR_LATENT_LAG, LIDAR_LATENT_LAG + 1, size=len(picks))
+    lidar = cfg.sensors.lidar_view
+    return [
+        min(max(f + int(d), 0), lengths[c] - 1) if v == lidar and lag else f
+        for (c, f, v), lag, d in zip(picks, lagged, shift, strict=True)
+    ]
 
 
 def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
