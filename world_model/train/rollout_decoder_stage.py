@@ -34,14 +34,7 @@ from world_model.sim.labels import LabelRasterizer
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.student.streaming import StreamingConfig
-from world_model.train.data import (
-    FrameSampler,
-    cached_label_maps,
-    cached_nearness_maps,
-    label_cache_dir,
-    load_clips,
-    nearness_cache_dir,
-)
+from world_model.train.data import FrameSampler, load_clips
 from world_model.train.exports import (
     EXPORT,
     latent_windows,
@@ -59,6 +52,7 @@ from world_model.train.vae_stage import (
     check_decoder_config,
     clip_styles,
     decoder_loss,
+    decoder_maps,
     export_decoder,
     jittered_latents,
     latent_frames,
@@ -165,8 +159,7 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
     sampler = FrameSampler(clips, cfg)
     latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
-    labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
-    nearness = cached_nearness_maps(clips, cfg, nearness_cache_dir(run.run_dir))
+    labels, nearness = decoder_maps(run, clips)
     torch.manual_seed(tcfg.seed)
     vae.train().requires_grad_(True)
     vae.encoder.requires_grad_(False)

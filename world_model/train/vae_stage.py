@@ -188,8 +188,7 @@ def decoder_stage(run: StageRun) -> dict:
     clips = load_clips(run.data_dir, cfg)
     sampler = FrameSampler(clips, cfg)
     latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
-    labels = cached_label_maps(clips, cfg, label_cache_dir(run.run_dir))
-    nearness = cached_nearness_maps(clips, cfg, nearness_cache_dir(run.run_dir))
+    labels, nearness = decoder_maps(run, clips)
     torch.manual_seed(tcfg.seed)
     vae = SensorVAE(cfg)
     missing, unexpected = vae.load_state_dict(plain.state_dict(), strict=False)
@@ -212,6 +211,13 @@ def decoder_stage(run: StageRun) -> dict:
     if not run.place.is_main:
         return summary
     return {**summary, "metrics": export_decoder(run, "decoder", trainer, vae, plain, sampler, raster, styles)}
+
+
+def decoder_maps(run: StageRun, clips: list[Clip]) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
+    """Each clip's camera label maps (:func:`cached_label_maps`) and, for a decoder that draws them,
+    its LiDAR nearness maps (:func:`cached_nearness_maps`; else None), from the run's caches."""
+    labels = cached_label_maps(clips, run.cfg, label_cache_dir(run.run_dir))
+    return labels, cached_nearness_maps(clips, run.cfg, nearness_cache_dir(run.run_dir))
 
 
 def clip_styles(vae: SensorVAE, clips: Sequence[Clip]) -> list[np.ndarray] | None:
