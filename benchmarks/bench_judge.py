@@ -4,9 +4,10 @@ throughput.
 Questions with known answers are built from the evaluation set (``record_evalset``; seeds never
 used to train the judge or the world model): positives ask about the true attribute / the same
 object, negatives about a wrong one (see ``world_model.eval.questions``). Accuracy is balanced
-accuracy. Throughput: medians over repeats measured in one run.
+accuracy; weather and time of day are also asked of the views under mild degradations that
+change neither (``scene_accuracy_degraded``). Throughput: medians over repeats measured in one run.
 
-    PYTHONPATH=src python benchmarks/bench_judge.py --evalset /work/m4world_data/evalset --out bench_judge.json
+    python benchmarks/bench_judge.py --evalset data/evalset --out bench_judge.json
 """
 
 from __future__ import annotations
@@ -17,12 +18,13 @@ import os
 import platform
 import statistics
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
 
 from world_model.eval.judge import DEFAULT_JUDGE_DIR, load_judge
-from world_model.eval.judge_data import CollectConfig, collect
+from world_model.eval.judge_data import MILD_DEGRADATIONS, CollectConfig, collect
 from world_model.eval.questions import QUESTION_TYPES, build_questions, judge_accuracy
 
 
@@ -54,6 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     questions = build_questions(data, seed=0, max_per_type=args.max_per_type)
     accuracy = judge_accuracy(judge, questions)
     eval_s = time.perf_counter() - t0
+    scene = ("weather", "time_of_day")
+    robustness = {
+        name: judge_accuracy(
+            judge, build_questions(replace(data, scene_frames=[fn(f) for f in data.scene_frames]), seed=0,
+                                   max_per_type=args.max_per_type), scene)
+        for name, fn in MILD_DEGRADATIONS.items()
+    }  # fmt: skip
 
     crops = (data.crops * (1 + 512 // max(1, len(data.crops))))[:512]
     frames = np.stack((data.scene_frames * (1 + 32 // len(data.scene_frames)))[:32])
@@ -67,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         "crops": len(data.crops),
         "scene_frames": len(data.scene_frames),
         "accuracy": accuracy,
+        "scene_accuracy_degraded": robustness,
         "throughput": {"crops_per_s": crop_rate, "multiview_frames_per_s": frame_rate, "threads": args.threads},
         "evaluation_seconds": eval_s,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__},
@@ -80,6 +90,11 @@ def main(argv: list[str] | None = None) -> int:
     print("existence per category: " + ", ".join(
         f"{c}={v['balanced_accuracy']:.2f}" for c, v in accuracy["existence"]["per_category"].items()
     ))  # fmt: skip
+    for name, acc in robustness.items():
+        worst = {q: min(v["balanced_accuracy"] for v in a["per_category"].values()) for q, a in acc.items()}
+        print(f"views under {name}: " + ", ".join(
+            f"{q} {a['balanced_accuracy']:.3f} (worst view {worst[q]:.3f})" for q, a in acc.items()
+        ))  # fmt: skip
     print(f"throughput: {crop_rate:.0f} crops/s, {frame_rate:.1f} multi-view frames/s ({args.threads} threads)")
     if args.out:
         with open(args.out, "w") as f:

@@ -11,6 +11,7 @@ positives and the no-rate on negatives), overall and per category of the asked-a
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -196,11 +197,13 @@ def balanced_accuracy(pred: np.ndarray, label: np.ndarray) -> dict[str, float]:
     }
 
 
-def judge_accuracy(backend: JudgeBackend, questions: dict[str, QuestionSet]) -> dict[str, dict]:
-    """Accuracy per question type, overall and per group (``per_category``): the category of the
-    asked-about object, or the camera view of a scene question."""
+def judge_accuracy(
+    backend: JudgeBackend, questions: dict[str, QuestionSet], types: Sequence[str] = QUESTION_TYPES
+) -> dict[str, dict]:
+    """Accuracy per question type (of ``types``), overall and per group (``per_category``): the
+    category of the asked-about object, or the camera view of a scene question."""
     report = {}
-    for qtype in QUESTION_TYPES:
+    for qtype in types:
         q = questions[qtype]
         pred = np.asarray(answer(backend, qtype, q), dtype=bool)
         entry = balanced_accuracy(pred, q.label)

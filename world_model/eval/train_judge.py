@@ -29,7 +29,7 @@ from torch.nn import functional as F
 from world_model.data import list_clips
 from world_model.eval.crops import crop_statistics, normalize_crops
 from world_model.eval.judge import CnnJudge, JudgeThresholds, load_judge
-from world_model.eval.judge_data import CollectConfig, DegradeConfig, JudgeData, collect, degrade
+from world_model.eval.judge_data import VIEW_JITTER, CollectConfig, DegradeConfig, JudgeData, collect, degrade
 from world_model.eval.nets import BACKGROUND, COLOR_CLASSES, CROP_CLASSES, CropNet, JudgeNetConfig, SceneNet
 from world_model.eval.questions import build_questions, judge_accuracy
 from world_model.scene import CATEGORIES, TIMES_OF_DAY, WEATHERS
@@ -42,13 +42,15 @@ class TrainJudgeConfig:
     net: JudgeNetConfig = field(default_factory=JudgeNetConfig)
     collect: CollectConfig = field(default_factory=CollectConfig)
     degrade: DegradeConfig = field(default_factory=DegradeConfig)
+    view_jitter: DegradeConfig = VIEW_JITTER  # weather- and time-preserving jitter of training views
+    view_jitter_share: float = 0.5  # of the scene network's training views
     val_every: int = 7  # every 7th clip (sorted by dataset, then name) is held out for calibration
     seed: int = 0
     threads: int = 2
     crop_steps: int = 1200
     tracks_per_batch: int = 48  # two crops of each -> pairs for the same-object head
     background_per_batch: int = 32
-    scene_steps: int = 1500
+    scene_steps: int = 3000
     scene_batch: int = 12
     lr: float = 2e-3
     weight_decay: float = 1e-4
@@ -146,7 +148,9 @@ def _train_crop_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str],
 
 def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str], None]) -> SceneNet:
     """Weather and time of day of single camera views: every view of ``scene_batch`` sampled frames
-    is one example with its frame's labels."""
+    is one example with its frame's labels. A share of the views is jittered (``view_jitter``) so
+    that the answer rests on what a viewer would call weather and light, not on single pixels: a
+    network trained on clean views alone called a fog scene snow once blurred by 0.7 px."""
     rng = np.random.default_rng([cfg.seed, 2])
     frames = np.stack(data.scene_frames)
     views = frames.shape[1]
@@ -156,7 +160,10 @@ def _train_scene_net(data: JudgeData, cfg: TrainJudgeConfig, log: Callable[[str]
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, cfg.lr, total_steps=cfg.scene_steps)
     for step in range(cfg.scene_steps):
         idx = rng.choice(len(frames), cfg.scene_batch, replace=False)
-        x = torch.from_numpy(frames[idx]).permute(0, 1, 4, 2, 3).float() / 255.0
+        batch = frames[idx].copy()
+        for i, k in np.argwhere(rng.random(batch.shape[:2]) < cfg.view_jitter_share):
+            batch[i, k] = degrade(batch[i, k], rng, cfg.view_jitter)
+        x = torch.from_numpy(batch).permute(0, 1, 4, 2, 3).float() / 255.0
         x = x.flatten(0, 1).unsqueeze(1)  # (B * V, 1, 3, H, W): each view alone
         if rng.random() < 0.5:  # mirror the views: weather and time do not care
             x = x.flip(4)
