@@ -15,6 +15,8 @@ from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
 from world_model.train.cli import positive_int as _positive_int
 
+VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")  # containers that take the demo's H.264
+
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     import cv2
@@ -25,11 +27,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     import m4world_env  # noqa: F401  (registers M4World-v0)
     from m4world_env.evaluate import make_policy
 
+    out = Path(args.out)
+    if out.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"--out {args.out}: give a video file ending in {', '.join(VIDEO_SUFFIXES)}")
+    _check_out(args.out, "file")
     env = gym.make(
         "M4World-v0", scenario=args.scenario, backend=args.backend, checkpoint=args.checkpoint, render_mode="rgb_array"
     )
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(f".{out.stem}.partial{out.suffix}")  # an earlier video stays whole until this one is
     obs, info = env.reset(seed=args.seed)
     policy = make_policy(args.policy, env)  # after reset: same policy seed as `m4world eval` for this seed
     fps = env.metadata["render_fps"]
@@ -42,14 +48,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         return np.pad(img, ((0, img.shape[0] % 2), (0, img.shape[1] % 2), (0, 0)))
 
     started = time.perf_counter()
-    with imageio.get_writer(out, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
-        writer.append_data(frame())
-        while True:
-            obs, _r, terminated, truncated, info = env.step(policy(obs, info))
+    try:
+        with imageio.get_writer(partial, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
             writer.append_data(frame())
-            steps += 1
-            if terminated or truncated or (args.steps and steps >= args.steps):
-                break
+            while True:
+                obs, _r, terminated, truncated, info = env.step(policy(obs, info))
+                writer.append_data(frame())
+                steps += 1
+                if terminated or truncated or (args.steps and steps >= args.steps):
+                    break
+        partial.replace(out)
+    finally:
+        partial.unlink(missing_ok=True)
     elapsed = time.perf_counter() - started
     wm = getattr(env.unwrapped.backend, "wm", None)  # the world-model backend's loaded bundle
     env.close()

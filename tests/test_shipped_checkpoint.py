@@ -28,6 +28,15 @@ def test_demo_runs_on_the_shipped_checkpoint(tmp_path, capsys):
     assert json.loads((DEFAULT_BUNDLE / "manifest.json").read_text())["format"] == "m4world-bundle"
 
 
+def test_demo_refuses_an_output_that_is_no_video_before_running(tmp_path, capsys):
+    kept = tmp_path / "results"
+    kept.write_text("an earlier file")
+    assert main(["demo", "--steps", "2", "--out", str(kept)]) == 2
+    assert "give a video file ending in .mp4" in capsys.readouterr().err
+    assert kept.read_text() == "an earlier file"
+    assert main(["demo", "--steps", "2", "--out", str(tmp_path)]) == 2  # a folder
+
+
 def test_every_shipped_adapter_fits_a_model_of_the_shipped_bundle():
     """adapters/: tree_truck_completion (the reference model's, for object completion: it completes
     tree trucks at reset) loads by name into the model it was trained on."""
