@@ -58,7 +58,7 @@ MILD_DEGRADATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 
 
 def degrade(crop: np.ndarray, rng: np.random.Generator, config: DegradeConfig = DegradeConfig()) -> np.ndarray:
-    """A blurred, noised or pixelated copy of one uint8 (h, w, 3) crop."""
+    """A blurred, noised or pixelated copy of one uint8 (h, w, 3) image."""
     kind = int(rng.integers(3))
     if kind == 0:
         return blur(crop, float(rng.uniform(*config.blur_sigma)))
