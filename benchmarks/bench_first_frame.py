@@ -46,12 +46,9 @@ def first_frame_row(wm: WorldModel, generator: ReferenceGenerator, sampler: Samp
     def row(clip: Clip) -> Generated:
         cond = Conditions.collate([wm.conditions.arrays(clip.frames, clip.frames[0], clip.crops, clip.crop_since)])
         seed = int(clip.name.rsplit(SEED_SEPARATOR, 1)[1])
-        obs = wm.decode(
-            generator.sample(cond, None, seed=seed, sampler=sampler),
-            cond.labels[:, :1],
-            cond.style,
-            cond.lidar_nearness[:, :1],
-        )[0]
+        obs = wm.decode(generator.sample(cond, None, seed=seed, sampler=sampler), **cond.frames(0, 1).decoder_inputs())[
+            0
+        ]
         return Generated(cameras=np.stack([o.cameras for o in obs]), lidar=np.stack([o.lidar for o in obs]))
 
     return row

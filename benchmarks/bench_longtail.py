@@ -206,14 +206,7 @@ def _render_both(
             completed = gen.complete_category(cond, first, frames, category, steps=steps, seed=seed)
         finally:
             remove_adapters(model)
-        obs = latents_to_observations(
-            vae,
-            completed,
-            vae.cfg.sensors.lidar,
-            labels=cond.labels[:, :1],
-            style=cond.style,
-            nearness=cond.lidar_nearness[:, :1],
-        )
+        obs = latents_to_observations(vae, completed, vae.cfg.sensors.lidar, **cond.frames(0, 1).decoder_inputs())
         return base_obs, [o[0] for o in obs]
     base_obs = _render(gen, clips, views, steps, seed, task, blank_px)
     apply_adapters(model, adapters, search_dirs)

@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> dict:
                 for seed in args.seeds:
                     gen = torch.Generator().manual_seed(seed)
                     (obs,) = latents_to_observations(
-                        vae, sample_latents(model, cond, gen, sampler), labels=cond.labels, style=cond.style
+                        vae, sample_latents(model, cond, gen, sampler), **cond.decoder_inputs()
                     )
                     cams = np.stack([o.cameras for o in obs])
                     totals[name].append(scores(cams, target, objects, road))

@@ -156,7 +156,7 @@ class WorldModel:
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
-        return latents, self.decode(latents, cond.labels[:, :1], cond.style, cond.lidar_nearness[:, :1])[0][0]
+        return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs())[0][0]
 
     @torch.no_grad()
     def batch_first_frames(
@@ -183,9 +183,7 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
-        return latents, [
-            obs[0] for obs in self.decode(latents, cond.labels[:, :1], cond.style, cond.lidar_nearness[:, :1])
-        ]
+        return latents, [obs[0] for obs in self.decode(latents, **cond.frames(0, 1).decoder_inputs())]
 
     def decode(
         self,

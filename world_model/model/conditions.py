@@ -450,6 +450,12 @@ class Conditions:
     def to(self, device: torch.device | str) -> Conditions:
         return self.apply(lambda _, v: v.to(device))
 
+    def decoder_inputs(self) -> dict[str, torch.Tensor]:
+        """What a decoder reads beside the latents, as keyword arguments of
+        :func:`~world_model.model.sampler.latents_to_observations` and ``WorldModel.decode``: the
+        frames' camera label maps, the scene's style and the LiDAR view's nearness maps."""
+        return {"labels": self.labels, "style": self.style, "nearness": self.lidar_nearness}
+
     def frames(self, start: int, stop: int) -> Conditions:
         """Frames [start, stop) of the time-varying fields."""
         return self.apply(lambda k, v: v[:, start:stop] if k in ConditionArrays.TIME_FIELDS else v)

@@ -392,9 +392,7 @@ class ReferenceGenerator:
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
         lat = self.sample(cond, extra, steps, seed)
-        obs = latents_to_observations(
-            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
-        )
+        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs())
         return lat, [o[0] for o in obs]
 
     def from_first_frame(
@@ -405,9 +403,7 @@ class ReferenceGenerator:
         extra = first.new_zeros(first.shape[0], cond.num_frames, *first.shape[2:])
         extra[:, :1] = first
         lat = self.sample(cond, extra, steps, seed)
-        return lat, latents_to_observations(
-            self.vae, lat, self.mcfg.sensors.lidar, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
-        )
+        return lat, latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs())
 
     def complete_category(
         self,
@@ -462,13 +458,6 @@ class ReferenceGenerator:
         out = self.sample(cond, extra, steps, seed)
         return (
             out,
-            latents_to_observations(
-                self.vae,
-                out,
-                self.mcfg.sensors.lidar,
-                labels=cond.labels,
-                style=cond.style,
-                nearness=cond.lidar_nearness,
-            ),
+            latents_to_observations(self.vae, out, self.mcfg.sensors.lidar, **cond.decoder_inputs()),
             mask,
         )

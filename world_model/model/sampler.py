@@ -150,6 +150,4 @@ def generate(
 ) -> list[list[Observation]]:
     """Sample and decode: B lists of T :class:`~world_model.Observation`."""
     latents = sample_latents(model, cond, generator, sampler)
-    return latents_to_observations(
-        vae, latents, lidar_spec, labels=cond.labels, style=cond.style, nearness=cond.lidar_nearness
-    )
+    return latents_to_observations(vae, latents, lidar_spec, **cond.decoder_inputs())

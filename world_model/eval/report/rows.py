@@ -207,7 +207,7 @@ def teacher_row(wm: WorldModel, teacher: MultiViewDiT, seed: int = 0, window: in
         for start in range(0, len(frames), w):
             part = frames[start : start + w]
             cond = Conditions.collate([wm.conditions.arrays(part, part[0], clip.crops, clip.crop_since)])
-            obs += wm.decode(sample_latents(teacher, cond, gen), cond.labels, cond.style, cond.lidar_nearness)[0]
+            obs += wm.decode(sample_latents(teacher, cond, gen), **cond.decoder_inputs())[0]
         cameras, lidar = np.stack([o.cameras for o in obs]), np.stack([o.lidar for o in obs])
         return Generated(cameras=cameras, lidar=lidar, pass_starts=tuple(range(w, len(frames), w)))
 
