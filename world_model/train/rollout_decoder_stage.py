@@ -51,11 +51,11 @@ from world_model.train.trainer import Trainer
 from world_model.train.vae_stage import (
     check_decoder_config,
     clip_styles,
+    decoded_frames,
     decoder_loss,
     decoder_maps,
     export_decoder,
     jittered_latents,
-    latent_frames,
 )
 
 STAGE = "rollout_decoder"
@@ -181,17 +181,13 @@ def rollout_decoder_stage(run: StageRun) -> dict:
             out.append((picked[r], frame, int(tr.rng.integers(views)), r))
         return out
 
-    def frames_of(tr: Trainer, picks: list[tuple[int, int, int]], lengths: list[int]) -> list[int]:
-        """The frames whose latents ``picks`` decode (:func:`latent_frames` when the LiDAR reads its nearness)."""
-        return latent_frames(tr.rng, picks, lengths, cfg) if vae.draws_lidar else [f for _, f, _ in picks]
-
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
-        frames = frames_of(tr, own, clip_lengths)
+        frames = decoded_frames(tr.rng, vae, own, clip_lengths)
         z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(own, frames, strict=True)]).float()
         z = jittered_latents(tr, z, styles is not None)
         rolled = rollout_picks(tr)
-        frames = frames_of(tr, [(r, f, v) for _, f, v, r in rolled], rollout_lengths)
+        frames = decoded_frames(tr.rng, vae, [(r, f, v) for _, f, v, r in rolled], rollout_lengths)
         z_rolled = torch.stack([rollouts[r][g, v] for (_, _, v, r), g in zip(rolled, frames, strict=True)])
         z = torch.cat([z, z_rolled.float().to(z.device)])
         return decoder_loss(tr, vae, sampler, labels, nearness, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)

@@ -202,7 +202,7 @@ def decoder_stage(run: StageRun) -> dict:
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
-        frames = latent_frames(tr.rng, picks, lengths, cfg) if vae.draws_lidar else [f for _, f, _ in picks]
+        frames = decoded_frames(tr.rng, vae, picks, lengths)
         z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(picks, frames, strict=True)]).float()
         z = jittered_latents(tr, z, styles is not None)
         return decoder_loss(tr, vae, sampler, labels, nearness, picks, z, styles)
@@ -298,6 +298,14 @@ def latent_frames(
         min(max(f + int(d), 0), lengths[c] - 1) if v == lidar and lag else f
         for (c, f, v), lag, d in zip(picks, lagged, shift, strict=True)
     ]
+
+
+def decoded_frames(
+    rng: np.random.Generator, vae: SensorVAE, picks: Sequence[tuple[int, int, int]], lengths: Sequence[int]
+) -> list[int]:
+    """The frame whose latent each (clip, frame, view) pick is decoded from: :func:`latent_frames`
+    for a decoder that reads the LiDAR's nearness map, else the pick's own (no random draw)."""
+    return latent_frames(rng, picks, lengths, vae.cfg) if vae.draws_lidar else [f for _, f, _ in picks]
 
 
 def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
