@@ -14,6 +14,13 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 import pytest  # noqa: E402
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_logs_in_test_tmp(tmp_path_factory):
+    """Stable-Baselines3 makes a log folder per ``learn`` call, in the system's temp folder unless
+    ``SB3_LOGDIR`` names one: keep them with the session's other temporary files."""
+    os.environ.setdefault("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3_logs")))
+
+
 @pytest.fixture(scope="session")
 def tiny_bundle(tmp_path_factory):
     """An untrained tiny-preset checkpoint bundle (VAE + student + reference model): enough to
