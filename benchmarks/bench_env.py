@@ -292,8 +292,10 @@ def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, w
     cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--warmup", str(warmup), "--out", "-"]
     cmd += ["--device", args.device]
     cmd += (["--checkpoint", args.checkpoint] if args.checkpoint else []) + (["--compile"] if args.compile else [])
-    out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
-    return json.loads(out.strip().splitlines()[-1])
+    probe = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its errors reach the terminal
+    if probe.returncode:
+        raise SystemExit(f"bench_env: the {backend} backend's run failed (exit {probe.returncode}); its error is above")
+    return json.loads(probe.stdout.strip().splitlines()[-1])
 
 
 def median_rounds(rounds: list[dict]) -> dict:

@@ -32,6 +32,15 @@ def test_bench_env_reports_medians_of_interleaved_rounds(tmp_path):
     assert result["peak_rss_mb"] < min(2 * r["one_env_peak_rss_mb"] + 200, 500)
 
 
+def test_a_failing_backend_run_shows_its_own_error(tmp_path):
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_env.py"), "--backend", "world_model", "--rounds", "1"]
+    cmd += ["--steps", "2", "--num-envs", "1", "--checkpoint", str(tmp_path), "--out", str(tmp_path / "env.json")]
+    run = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert run.returncode != 0
+    assert "is not a checkpoint bundle" in run.stderr  # the timed process's error, not just its exit status
+    assert "world_model backend's run failed" in run.stderr and "CalledProcessError" not in run.stderr
+
+
 def test_bench_env_in_process_and_memory_probe_reads_its_own_peak(tmp_path):
     out = tmp_path / "env.json"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_env.py"), "--backend", "procedural", "--steps", "20"]
