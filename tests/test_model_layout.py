@@ -144,6 +144,47 @@ def test_object_occludes_road_and_farther_object():
     assert cell[VEHICLE] == 1.0 and cell[ROAD] == 0.0
 
 
+def _first_object_hits_by_brute_force(frame: SceneFrame, origins: np.ndarray, dirs: np.ndarray):
+    """Every ray against every box (slab test, no culling): the nearest entry and its object index."""
+    o = np.repeat(origins, dirs.shape[1], axis=0)
+    d = dirs.reshape(-1, 3)
+    best_t, best = np.full(len(d), np.inf), np.full(len(d), -1)
+    for i, box in enumerate(frame.object_boxes_lidar()):
+        c, s = np.cos(box.yaw), np.sin(box.yaw)
+        to_box = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        ob, db = (o - np.asarray(box.center)) @ to_box.T, d @ to_box.T
+        half = 0.5 * np.asarray(box.size)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (-half - ob) / db, (half - ob) / db
+        t_in = np.nanmax(np.minimum(t1, t2), axis=1)
+        t_out = np.nanmin(np.maximum(t1, t2), axis=1)
+        hit = (t_out >= t_in) & (t_in > 0.05) & (t_in < best_t)
+        best_t[hit], best[hit] = t_in[hit], i
+    return best_t, best
+
+
+def test_first_hits_equal_testing_every_ray_against_every_box():
+    from world_model.model.layout import _GROUP_OF, _first_hits, view_rays
+
+    cfg = get_preset("default")
+    rng = np.random.default_rng(5)
+    categories = ["car", "bus", "pedestrian", "cone", "truck", "cyclist"]
+    objects = []
+    for i in range(40):  # around the ego, beside the cameras, behind them, overlapping each other
+        size = (rng.uniform(0.4, 12.0), rng.uniform(0.4, 3.0), rng.uniform(0.5, 3.5))
+        center = (rng.uniform(-40, 60), rng.uniform(-25, 25), size[2] / 2 + rng.uniform(-0.2, 0.5))
+        box = Box3D(center=center, size=size, yaw=float(rng.uniform(-np.pi, np.pi)))
+        objects.append(SceneObject(f"o{i}", categories[i % len(categories)], box))
+    frame = _bus_ahead(cfg).with_objects(tuple(objects))
+    origins, dirs = view_rays(frame.rig, cfg.sensors.lidar, 24, 40)
+    _, t_obj, group = _first_hits(frame, origins, dirs)
+    want_t, want = _first_object_hits_by_brute_force(frame, origins, dirs)
+    assert (want >= 0).mean() > 0.1  # many rays hit something
+    np.testing.assert_allclose(t_obj, want_t, rtol=1e-9)
+    channels = np.array([LAYOUT_CHANNELS.index(_GROUP_OF[o.category]) for o in objects])
+    assert np.array_equal(group, np.where(want >= 0, channels[want], -1))
+
+
 def test_bad_layout_settings_raise():
     cfg = get_preset("default")
     frame = _bus_ahead(cfg)

@@ -56,7 +56,7 @@ NEARNESS_LEVELS = 255
 def _camera_rays(rig_key: tuple, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
     """Per camera, rays through a ``rows x cols`` grid of cell centres spanning the image.
 
-    Returns origins (Vc, rows*cols, 3) and unit directions (Vc, rows*cols, 3), LiDAR frame."""
+    Returns each camera's origin (Vc, 3) and its rays' unit directions (Vc, rows*cols, 3), LiDAR frame."""
     origins, dirs = [], []
     for k, r, t, width, height in rig_key:
         k, r, t = (np.frombuffer(a, dtype=np.float64).reshape(s) for a, s in ((k, (3, 3)), (r, (3, 3)), (t, (3,))))
@@ -66,7 +66,7 @@ def _camera_rays(rig_key: tuple, rows: int, cols: int) -> tuple[np.ndarray, np.n
         cam = np.stack([(uu - k[0, 2]) / k[0, 0], (vv - k[1, 2]) / k[1, 1], np.ones_like(uu)], axis=-1)
         d = cam.reshape(-1, 3) @ r.T
         dirs.append(d / np.linalg.norm(d, axis=1, keepdims=True))
-        origins.append(np.broadcast_to(t, d.shape))
+        origins.append(t)
     return np.stack(origins), np.stack(dirs)
 
 
@@ -88,53 +88,63 @@ def _rig_key(rig: CameraRig) -> tuple:
 
 
 def view_rays(rig: CameraRig, lidar: LidarSpec, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rays of every view (cameras in rig order, then the LiDAR): origins and unit directions,
-    each (V, rows*cols, 3) in the LiDAR frame."""
+    """Rays of every view (cameras in rig order, then the LiDAR), in the LiDAR frame: each view's
+    origin (V, 3) and its rays' unit directions (V, rows*cols, 3)."""
     cam_o, cam_d = _camera_rays(_rig_key(rig), rows, cols)
     lid_d = _lidar_rays(lidar, rows, cols)
-    origins = np.concatenate([cam_o, np.zeros_like(lid_d)[None]])
-    return origins, np.concatenate([cam_d, lid_d[None]])
+    return np.concatenate([cam_o, np.zeros((1, 3))]), np.concatenate([cam_d, lid_d[None]])
 
 
-def _box_hits(origins: np.ndarray, dirs: np.ndarray, center: np.ndarray, size: np.ndarray, yaw: float) -> np.ndarray:
-    """Ray parameter of each ray's entry into a yawed box (slab test); inf where it misses.
-    origins, dirs (R, 3) in the LiDAR frame; center (3,), size (l, w, h), yaw about +z.
+def _first_hits(frame: SceneFrame, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each ray's distance to the road plane and to the first object it enters (inf where none),
+    and that object's layout channel (-1 where none), all (V*n,) in view-major order.
+    origins (V, 3): each view's sensor; dirs (V, n, 3): its rays' unit directions; LiDAR frame.
 
-    Only the rays that pass within the box's bounding sphere are slab-tested: an object covers a
-    small part of the views, and the dot product that finds them is cheaper than the test."""
-    out = np.full(len(dirs), np.inf)
-    rel = center - origins
-    along = np.einsum("rk,rk->r", rel, dirs)
-    radius2 = 0.25 * float(size @ size)
-    near = np.flatnonzero((np.einsum("rk,rk->r", rel, rel) - along**2 <= radius2) & (along > -np.sqrt(radius2)))
-    if not len(near):
-        return out
-    c, s = np.cos(yaw), np.sin(yaw)
-    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # LiDAR frame -> box axes
-    o = -rel[near] @ rot.T
-    d = dirs[near] @ rot.T
-    half = 0.5 * size
-    inv = 1.0 / np.where(np.abs(d) < 1e-12, 1e-12, d)
-    t1, t2 = (-half - o) * inv, (half - o) * inv
-    t_in = np.minimum(t1, t2).max(axis=1)
-    t_out = np.maximum(t1, t2).min(axis=1)
-    hit = (t_out >= t_in) & (t_in > _NEAR_M)
-    out[near[hit]] = t_in[hit]
-    return out
-
-
-def _first_hits(frame: SceneFrame, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each ray's (origins, unit directions (R, 3), LiDAR frame) distance to the road plane and to
-    the first object it enters (inf where none), and that object's layout channel (-1 where none)."""
+    An object covers a small part of the views: one product of every ray with every object's
+    centre finds the rays that pass within its bounding sphere (kept with a hair of slack, so
+    rounding never drops a ray the box could stop), and only those (ray, object) pairs are
+    slab-tested against the yawed box, all at once. Of the boxes a ray enters, the nearest
+    counts; at equal distance, the earlier object in the frame's order."""
+    v, n, _ = dirs.shape
+    d = dirs.reshape(-1, 3)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_ground = np.where(d[:, 2] < 0, (-frame.lidar.mount_height - o[:, 2]) / d[:, 2], np.inf)
+        t_ground = np.where(d[:, 2] < 0, (-frame.lidar.mount_height - np.repeat(origins[:, 2], n)) / d[:, 2], np.inf)
     t_obj = np.full(len(d), np.inf)
     obj_group = np.full(len(d), -1)
-    for box, obj in zip(frame.object_boxes_lidar(), frame.objects, strict=True):
-        t = _box_hits(o, d, np.asarray(box.center), np.asarray(box.size), box.yaw)
-        closer = t < t_obj
-        t_obj[closer] = t[closer]
-        obj_group[closer] = _CHANNEL[_GROUP_OF.get(obj.category, "other_object")]
+    boxes = frame.object_boxes_lidar()
+    if not boxes:
+        return t_ground, t_obj, obj_group
+    centers = np.array([b.center for b in boxes], np.float64)  # (K, 3)
+    sizes = np.array([b.size for b in boxes], np.float64)
+    yaws = np.array([b.yaw for b in boxes], np.float64)
+    groups = np.array([_CHANNEL[_GROUP_OF.get(o.category, "other_object")] for o in frame.objects])
+    radius2 = 0.25 * (sizes**2).sum(axis=1)  # (K,)
+    rel = centers[None] - origins[:, None]  # (V, K, 3): each object's centre seen from each sensor
+    dist2 = (rel**2).sum(axis=-1)[:, None]  # (V, 1, K)
+    along = dirs @ rel.transpose(0, 2, 1)  # (V, n, K)
+    slack = 1e-9 * (1.0 + dist2)
+    near = (dist2 - along**2 <= radius2 + slack) & (along > -np.sqrt(radius2) - slack)
+    view, ray, obj = np.nonzero(near)
+    ray = view * n + ray
+
+    # The slab test in each box's axes (rotation by -yaw about +z), written out per component so
+    # a pair's result does not depend on how many pairs there are.
+    c, s = np.cos(yaws)[obj], np.sin(yaws)[obj]
+    r, dr = rel[view, obj], d[ray]
+    o_box = np.stack([-(c * r[:, 0] + s * r[:, 1]), -(c * r[:, 1] - s * r[:, 0]), -r[:, 2]], axis=1)
+    d_box = np.stack([c * dr[:, 0] + s * dr[:, 1], c * dr[:, 1] - s * dr[:, 0], dr[:, 2]], axis=1)
+    half = 0.5 * sizes[obj]
+    inv = 1.0 / np.where(np.abs(d_box) < 1e-12, 1e-12, d_box)
+    t1, t2 = (-half - o_box) * inv, (half - o_box) * inv
+    t_in = np.minimum(t1, t2).max(axis=1)
+    hit = (np.maximum(t1, t2).min(axis=1) >= t_in) & (t_in > _NEAR_M)
+    ray, obj, t_in = ray[hit], obj[hit], t_in[hit]
+    order = np.lexsort((obj, t_in, ray))  # per ray, nearest first, then the frame's order
+    ray, obj, t_in = ray[order], obj[order], t_in[order]
+    first = np.ones(len(ray), bool)
+    first[1:] = ray[1:] != ray[:-1]
+    t_obj[ray[first]] = t_in[first]
+    obj_group[ray[first]] = groups[obj[first]]
     return t_ground, t_obj, obj_group
 
 
@@ -148,7 +158,7 @@ def lidar_nearness(frame: SceneFrame, lidar: LidarSpec, hw: tuple[int, int]) -> 
     (the ``nearness`` channel of :func:`layout_raster` without averaging), in
     :data:`NEARNESS_LEVELS` steps of ``1 - range / max_range``, 0 where nothing is in range."""
     d = _lidar_rays(lidar, *hw)
-    t_ground, t_obj, _ = _first_hits(frame, np.zeros_like(d), d)
+    t_ground, t_obj, _ = _first_hits(frame, np.zeros((1, 3)), d[None])
     near = _nearness(np.minimum(t_ground, t_obj), lidar.max_range)
     return np.rint(near * NEARNESS_LEVELS).astype(np.uint8).reshape(hw)
 
@@ -181,8 +191,8 @@ def layout_raster(
     rows, cols = h * supersample, w * supersample
     origins, dirs = view_rays(frame.rig, lidar, rows, cols)
     v, n = dirs.shape[:2]
-    o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
-    t_ground, t_obj, obj_group = _first_hits(frame, o, d)
+    o, d = np.repeat(origins, n, axis=0), dirs.reshape(-1, 3)
+    t_ground, t_obj, obj_group = _first_hits(frame, origins, dirs)
     first = np.minimum(t_ground, t_obj)
     in_range = first < lidar.max_range
     out = np.zeros((len(LAYOUT_CHANNELS), len(d)), np.float32)
