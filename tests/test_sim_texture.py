@@ -41,6 +41,31 @@ def test_dashed_lines_alternate_and_tile_memory_is_bounded():
     assert np.array_equal(again, painted)
 
 
+def test_rollouts_on_equal_roads_share_one_texture(monkeypatch):
+    import world_model.sim.simulator as simulator
+
+    built = []
+
+    class CountedTexture(MapTexture):
+        def __init__(self, *args, **kwargs):
+            built.append(1)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(simulator, "MapTexture", CountedTexture)
+    a, b = straight_road(num_lanes=3), straight_road(num_lanes=3)  # equal content, two objects
+    other = straight_road(num_lanes=2)
+    assert a is not b and a.digest == b.digest and other.digest != a.digest
+    moved = MapGeometry(lane_lines=(LaneLine(points=a.lane_lines[0].points + 0.01, kind=a.lane_lines[0].kind),))
+    assert moved.digest != MapGeometry(lane_lines=a.lane_lines[:1]).digest
+    sim = ProceduralSimulator(config=SimConfig(texture_cache_size=1))
+    images = []
+    for road in (a, b, a, b):
+        frame = SceneFrame(time=0.0, frame_index=0, ego=EgoState(x=20.0, y=0.0, yaw=0.0), objects=(), map=road)
+        images.append(sim.render_cameras(frame))
+    assert len(built) == 1  # one road, one texture, however many map objects draw it
+    assert all(np.array_equal(images[0], im) for im in images[1:])
+
+
 def test_ring_road_is_drivable_on_the_ring_only():
     tex = MapTexture(ring_road(radius=30.0, num_lanes=2), CFG)
     ang = np.linspace(0, 2 * np.pi, 37)

@@ -12,6 +12,8 @@ is what the model consumes. Frame conventions: :mod:`world_model.geometry`.
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -204,6 +206,20 @@ class MapGeometry:
     road_edges: tuple[np.ndarray, ...] = ()
     drivable_area: tuple[np.ndarray, ...] = ()
     lane_width: float = 4.0
+
+    @functools.cached_property
+    def digest(self) -> bytes:
+        """A digest of the geometry: maps with equal digests draw the same road, so the renderers
+        key their road textures by it and every rollout on one road shares one texture."""
+        h = hashlib.blake2b(digest_size=16)
+        h.update(np.float64(self.lane_width).tobytes())
+        parts = [(ln.kind, ln.points) for ln in self.lane_lines]
+        parts += [("edge", e) for e in self.road_edges] + [("area", p) for p in self.drivable_area]
+        for tag, points in parts:
+            points = np.ascontiguousarray(points, dtype=np.float64)
+            h.update(f"{tag}:{points.shape}".encode())
+            h.update(points.tobytes())
+        return h.digest()
 
     def to_dict(self) -> dict:
         return {

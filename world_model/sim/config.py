@@ -50,7 +50,7 @@ class SimConfig:
 
     # -- caches (keyed by object identity of specs / maps) --
     cache_size: int = 8  # rigs, LiDAR specs, lightings and object sets kept
-    texture_cache_size: int = 2  # maps whose road textures are kept (each up to texture_max_tiles)
+    texture_cache_size: int = 2  # roads (by map content) whose textures are kept (each up to texture_max_tiles)
 
     def __post_init__(self) -> None:
         positive = {

@@ -180,7 +180,7 @@ class LabelRasterizer:
         the surface of every road and off-road pixel (:func:`encode_surface`; 0 elsewhere)."""
         cfg = self.config
         small = self._rig(rig, height, width, frame.lidar.mount_height)
-        texture = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
+        texture = self._textures.get(frame.map.digest, (), lambda: MapTexture(frame.map, cfg))
         texels = texture.lookup_ego(small.rays.ground_xy, frame.ego.x, frame.ego.y, frame.ego.yaw)
         out = np.zeros((small.rig.num_views, MAP_PLANES, height, width), dtype=np.uint8)
         for plane, table, sky in ((CLASS_PLANE, self._classes, SKY), (SURFACE_PLANE, self._surfaces, 0)):

@@ -119,7 +119,7 @@ class ProceduralSimulator:
         h, w = rig.resolution
         lighting = lighting_for(frame.prompt)
         weather, tod = frame.prompt.weather, frame.prompt.time_of_day
-        tex = self._textures.get(id(frame.map), (frame.map,), lambda: MapTexture(frame.map, cfg))
+        tex = self._textures.get(frame.map.digest, (), lambda: MapTexture(frame.map, cfg))
         rays = self._rays.get(
             (id(rig), spec.mount_height),
             (rig,),
