@@ -299,8 +299,17 @@ def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, w
 
 
 def median_rounds(rounds: list[dict]) -> dict:
-    """Field-wise median of the rounds' numbers (ints, e.g. ``num_envs``, are equal in every round)."""
-    return {k: statistics.median(r[k] for r in rounds) if isinstance(v, float) else v for k, v in rounds[0].items()}
+    """Field-wise median of the rounds' numbers, nested dicts (a step's breakdown) included; ints
+    (e.g. ``num_envs``) and other values are equal in every round and taken from the first."""
+    out = {}
+    for k, v in rounds[0].items():
+        if isinstance(v, float):
+            out[k] = statistics.median(r[k] for r in rounds)
+        elif isinstance(v, dict):
+            out[k] = median_rounds([r[k] for r in rounds])
+        else:
+            out[k] = v
+    return out
 
 
 def _digest(h, arrays) -> None:  # noqa: ANN001 (hashlib object, arrays)

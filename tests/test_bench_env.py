@@ -32,6 +32,22 @@ def test_bench_env_reports_medians_of_interleaved_rounds(tmp_path):
     assert result["peak_rss_mb"] < min(2 * r["one_env_peak_rss_mb"] + 200, 500)
 
 
+def test_median_rounds_takes_the_median_of_nested_figures_too():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_env
+
+    rounds = [
+        {"steps_per_s": s, "num_envs": 8, "breakdown": {"student": st, "decode": 1.0}, "name": "x"}
+        for s, st in ((3.0, 240.0), (1.0, 198.0), (2.0, 256.0))
+    ]
+    assert bench_env.median_rounds(rounds) == {
+        "steps_per_s": 2.0,
+        "num_envs": 8,
+        "breakdown": {"student": 240.0, "decode": 1.0},
+        "name": "x",
+    }
+
+
 def test_a_failing_backend_run_shows_its_own_error(tmp_path):
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_env.py"), "--backend", "world_model", "--rounds", "1"]
     cmd += ["--steps", "2", "--num-envs", "1", "--checkpoint", str(tmp_path), "--out", str(tmp_path / "env.json")]
