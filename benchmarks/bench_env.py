@@ -242,11 +242,19 @@ def bench_backend(
     traffic_s = [0.0]
     for env in venv.unwrapped.envs:  # the traffic half of each sub-env's step, timed in place
         env.advance = _timed(env.advance, traffic_s)
+    rollout_conditions = getattr(venv.unwrapped.backend, "conditions", None)  # the env's crops and arrays
+
+    def model_seconds() -> dict[str, float]:
+        seconds = dict(rollouts.seconds)
+        if rollout_conditions is not None:
+            seconds["conditions"] += sum(rollout_conditions.seconds.values())
+        return seconds
+
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
     vec_times, parts = [], []
     for i in range(warmup + max(steps // num_envs, 10)):
         actions = np.stack([p(e.bridge) for p, e in zip(policies, venv.unwrapped.envs, strict=True)])
-        before = dict(rollouts.seconds) if rollouts is not None else {}
+        before = model_seconds() if rollouts is not None else {}
         traffic_s[0] = 0.0
         t0 = time.perf_counter()
         venv.step(actions)
@@ -255,7 +263,8 @@ def bench_backend(
         vec_times.append(time.perf_counter() - t0)
         part = {"traffic": traffic_s[0]}
         if rollouts is not None:
-            part.update({k: rollouts.seconds[k] - before[k] for k in ("conditions", "student", "decode")})
+            after = model_seconds()
+            part.update({k: after[k] - before[k] for k in ("conditions", "student", "decode")})
         part["other"] = vec_times[-1] - sum(part.values())
         parts.append(part)
     vec_s = statistics.median(vec_times)

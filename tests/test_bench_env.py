@@ -94,6 +94,15 @@ def test_world_model_qualifiers_become_model_options():
         bench_env._make_kwargs("world_model:checkpoint=", None)
 
 
+def test_world_model_step_breakdown_counts_the_condition_arrays(tiny_bundle):
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_env
+
+    r = bench_env.bench_backend("world_model", "merge_cut_in", 2, 2, 0, str(tiny_bundle), warmup=1, resets=0)
+    part = r["vector_step_breakdown_ms_per_env_step"]
+    assert part["conditions"] > 0 and part["student"] > 0 and part["decode"] > 0
+
+
 def test_bench_workers_splits_a_step_and_hashes_the_same_observations(tiny_bundle):
     """bench_env --workers's probe: the parts of a vector step, and equal digests at 0 and 1 worker."""
     sys.path.insert(0, str(ROOT / "benchmarks"))
