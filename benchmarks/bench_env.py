@@ -242,12 +242,11 @@ def bench_backend(
     traffic_s = [0.0]
     for env in venv.unwrapped.envs:  # the traffic half of each sub-env's step, timed in place
         env.advance = _timed(env.advance, traffic_s)
-    rollout_conditions = getattr(venv.unwrapped.backend, "conditions", None)  # the env's crops and arrays
+    backend_of_venv = venv.unwrapped.backend
 
     def model_seconds() -> dict[str, float]:
         seconds = dict(rollouts.seconds)
-        if rollout_conditions is not None:
-            seconds["conditions"] += sum(rollout_conditions.seconds.values())
+        seconds["conditions"] = sum(_condition_seconds(backend_of_venv, rollouts).values())
         return seconds
 
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
@@ -305,6 +304,14 @@ def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, w
     if probe.returncode:
         raise SystemExit(f"bench_env: the {backend} backend's run failed (exit {probe.returncode}); its error is above")
     return json.loads(probe.stdout.strip().splitlines()[-1])
+
+
+def _condition_seconds(backend: object, rollouts: object) -> dict[str, float]:
+    """Seconds so far cutting crops and building condition arrays in this process: the env's own
+    (its ``RolloutConditions``; absent in a checkout without them) and the runtime's."""
+    conditions = getattr(backend, "conditions", None)
+    own = dict(conditions.seconds) if conditions is not None else {}
+    return {**own, "conditions": own.get("conditions", 0.0) + rollouts.seconds["conditions"]}
 
 
 def median_rounds(rounds: list[dict]) -> dict:
@@ -374,13 +381,7 @@ def bench_workers(
     def cpu_parts() -> dict[str, float]:
         if pool is not None:
             return {**pool.seconds(), "workers_wait": pool.wait_s}
-        conditions = getattr(base.backend, "conditions", None)  # a checkout's in-process crops/conditions
-        own = dict(conditions.seconds) if conditions is not None else {}
-        return {
-            "traffic": traffic_s[0],
-            **own,
-            "conditions": own.get("conditions", 0.0) + rollouts.seconds["conditions"],
-        }
+        return {"traffic": traffic_s[0], **_condition_seconds(base.backend, rollouts)}
 
     traffic_s = [0.0]
     if pool is None:

@@ -191,7 +191,7 @@ def layout_raster(
     rows, cols = h * supersample, w * supersample
     origins, dirs = view_rays(frame.rig, lidar, rows, cols)
     v, n = dirs.shape[:2]
-    o, d = np.repeat(origins, n, axis=0), dirs.reshape(-1, 3)
+    d = dirs.reshape(-1, 3)
     t_ground, t_obj, obj_group = _first_hits(frame, origins, dirs)
     first = np.minimum(t_ground, t_obj)
     in_range = first < lidar.max_range
@@ -201,7 +201,7 @@ def layout_raster(
     out[obj_group[on_obj], np.flatnonzero(on_obj)] = 1.0
 
     ground = np.flatnonzero(in_range & ~on_obj & np.isfinite(t_ground))
-    p = o[ground] + t_ground[ground, None] * d[ground]
+    p = origins[ground // n] + t_ground[ground, None] * d[ground]
     spec = frame.bev
     bh, bw, _ = spec.shape
     r = np.floor((spec.forward_m - p[:, 0]) / spec.m_per_px).astype(np.int64)

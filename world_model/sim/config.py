@@ -48,7 +48,7 @@ class SimConfig:
     crop_min_visible_fraction: float = 0.35  # visible / unoccluded silhouette pixels
     crop_margin: float = 0.1  # relative margin added around the projected box
 
-    # -- caches (keyed by object identity of specs / maps) --
+    # -- caches (keyed by object identity of specs, road textures by the map's content) --
     cache_size: int = 8  # rigs, LiDAR specs, lightings and object sets kept
     texture_cache_size: int = 2  # roads (by map content) whose textures are kept (each up to texture_max_tiles)
 
