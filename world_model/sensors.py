@@ -284,3 +284,17 @@ class BevSpec:
         d = dict(d)
         d["classes"] = tuple(d.get("classes", BEV_CLASSES))
         return cls(**d)
+
+
+def road_points(camera: CameraSpec, mount_height: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(..., 2) LiDAR-frame (x forward, y left) m of the flat road (``mount_height`` below the
+    LiDAR) seen at continuous pixel coordinates ``u`` (right) and ``v`` (down), both (...);
+    nan where the pixel's ray does not descend to the road (at or above the horizon)."""
+    u, v = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64))
+    pixels = np.stack([u, v, np.ones_like(u)], axis=-1)
+    rays = pixels @ np.linalg.inv(camera.K).T @ camera.R.T  # camera -> LiDAR frame directions
+    drop = -mount_height - camera.t[2]  # the road relative to the camera centre (negative: below)
+    down = rays[..., 2] < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scale = np.where(down, drop / rays[..., 2], np.nan)
+    return camera.t[:2] + scale[..., None] * rays[..., :2]

@@ -7,9 +7,9 @@ yes-frequencies), as markdown and report.json. One module per concern:
 * :mod:`.lineup`: which rows a bundle's report runs, under which streaming settings, with the
   ids their cached scores are keyed by; :func:`report_bundle` runs it all (``m4world eval --report``).
 * :mod:`.judging`: Table 2's questions asked of a row's frames, and their yes-frequencies.
-* :mod:`.clip_scores`: one clip's measurements (:class:`ClipScores`, the scene IoU included)
-  against the recording's side (:class:`ClipTruth`); :mod:`.row_scores` pools them into a row's
-  :class:`RowScores`; :mod:`.seeds` averages a row over noise seeds.
+* :mod:`.clip_scores`: one clip's measurements (:class:`ClipScores`, the scene IoU and what a
+  policy reads included) against the recording's side (:class:`ClipTruth`); :mod:`.row_scores`
+  pools them into a row's :class:`RowScores`; :mod:`.seeds` averages a row over noise seeds.
 * :mod:`.results`: the typed results and their report.json form.
 * :mod:`.cache`: finished rows on disk, keyed by row id, clips, config, judge, segmenter and version.
 * :mod:`.run`: :func:`evaluate_rows` (rows x clips -> :class:`Report`) and :func:`write_report`.
@@ -24,13 +24,18 @@ from world_model.eval.report.results import (
     HEADLINE_IOU,
     ClipChunkJumps,
     ClipSceneIoU,
+    DecisionFigures,
+    DecisionScores,
     GenerationScores,
     JumpRatios,
+    LaneFigures,
+    LeadFigures,
     LongHorizon,
     Report,
     RowScores,
     RowSpread,
     SceneIoUScores,
+    SectorFigures,
     WindowFrechet,
     YesFrequencies,
 )
@@ -43,9 +48,13 @@ __all__ = [
     "BundleReport",
     "ClipChunkJumps",
     "ClipSceneIoU",
+    "DecisionFigures",
+    "DecisionScores",
     "Generated",
     "GenerationScores",
     "JumpRatios",
+    "LaneFigures",
+    "LeadFigures",
     "LongHorizon",
     "QualityBars",
     "Report",
@@ -55,6 +64,7 @@ __all__ = [
     "RowScores",
     "RowSpread",
     "SceneIoUScores",
+    "SectorFigures",
     "StudentStreaming",
     "WindowFrechet",
     "YesFrequencies",

@@ -26,7 +26,7 @@ from world_model.eval.segmenter import Segmenter
 
 log = logging.getLogger(__name__)
 # Part of every cached row's key: bump when rows or scoring change what a row's scores are.
-REPORT_VERSION = 8
+REPORT_VERSION = 9
 
 
 def row_cache_key(

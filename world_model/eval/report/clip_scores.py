@@ -15,6 +15,7 @@ import numpy as np
 
 from world_model.data import Clip
 from world_model.eval.crops import CropConfig
+from world_model.eval.decisions import FRONT_VIEW, ClipDecisions, DecisionSums, camera_decisions, lidar_decisions
 from world_model.eval.judge import CnnJudge, JudgeBackend
 from world_model.eval.metrics import (
     ChangeSums,
@@ -60,23 +61,30 @@ SensorPairs = Mapping[str, StreamPair[S]]  # sensor ("cameras", "lidar") -> gene
 @dataclass(frozen=True, eq=False)
 class ClipTruth:
     """What a clip's rows are scored against, computed once per report (:func:`clip_truth`): the
-    judge's frame features of the recording (None when the judge has none) and the recording's scene
-    label maps at the frames the scene IoU reads."""
+    judge's frame features of the recording (None when the judge has none), the recording's scene
+    label maps at the frames the scene IoU reads and, at the same frames, the segmenter's classes of
+    its FRONT view (what a policy reads is read by the same segmenter on the row and the recording)."""
 
     features: np.ndarray | None  # (T, D)
     scene_labels: np.ndarray  # (T, V, H, W) uint8 scene class ids; 0 at the frames not read
+    front_classes: np.ndarray | None = None  # (T, H, W) uint8; None without a FRONT view or a segmenter
 
 
-def clip_truth(clip: Clip, judge: JudgeBackend, config: ReportConfig) -> ClipTruth:
-    """The recording's side of ``clip``'s scores: judge features and the label maps of every
-    ``scene_frame_stride``-th frame (the frames :func:`~world_model.eval.scene_iou.scene_iou` reads)."""
+def clip_truth(clip: Clip, judge: JudgeBackend, config: ReportConfig, segmenter: Segmenter | None = None) -> ClipTruth:
+    """The recording's side of ``clip``'s scores: judge features, the label maps of every
+    ``scene_frame_stride``-th frame (the frames :func:`~world_model.eval.scene_iou.scene_iou` reads)
+    and ``segmenter``'s classes of the FRONT view at those frames."""
     cameras = np.asarray(clip.cameras)
     features = getattr(judge, "frame_features", None)
     t, v, h, w = cameras.shape[:4]
     labels = np.zeros((t, v, h, w), np.uint8)
-    read = list(range(0, t, config.scene_frame_stride))
+    read = _scene_frames(clip, config)
     labels[read] = scene_labels([clip.frames[i] for i in read], h, w)
-    return ClipTruth(features(cameras) if features else None, labels)
+    front, front_classes = _front_view(clip), None
+    if segmenter is not None and front is not None:
+        front_classes = np.zeros((t, h, w), np.uint8)
+        front_classes[read] = segmenter.predict(cameras[read, front])
+    return ClipTruth(features(cameras) if features else None, labels, front_classes)
 
 
 @dataclass(frozen=True, eq=False)
@@ -98,6 +106,7 @@ class ClipScores:
     features: np.ndarray | None  # (T, D) judge frame features of the generated frames; None without them
     long_horizon: LongHorizon | None  # clips of at least twice long_window_s
     scene_iou: SceneIoU | None  # clips of at least a second (the scene IoU pools whole seconds)
+    decisions: ClipDecisions | None = None  # what a policy reads (clip_decisions)
 
 
 def score_clip(
@@ -134,6 +143,7 @@ def score_clip(
     if clip.num_frames >= round(clip.fps):
         scene = scene_iou(gen.cameras, truth.scene_labels, clip.fps, segmenter, config.long_window_s,
                           config.scene_frame_stride)  # fmt: skip
+    decisions = clip_decisions(gen, clip, segmenter, truth, config)
     motion = motion_sums(gen, clip, config)
     long = None
     if clip.num_frames / clip.fps >= 2 * config.long_window_s:
@@ -154,7 +164,43 @@ def score_clip(
         features=gen_features,
         long_horizon=long,
         scene_iou=scene,
+        decisions=decisions,
     )
+
+
+def clip_decisions(
+    gen: Generated, clip: Clip, segmenter: Segmenter, truth: ClipTruth, config: ReportConfig
+) -> ClipDecisions:
+    """What a policy reads on one clip (:mod:`world_model.eval.decisions`), the row's sensors against
+    the recording's: the LiDAR's nearest object per sector on every frame (rows with LiDAR), the lead
+    vehicle and the lane markings in FRONT on the frames the scene IoU reads, ``segmenter`` labelling
+    the row's view as it labelled the recording's (``truth.front_classes``)."""
+    per_frame = [DecisionSums() for _ in range(clip.num_frames)]
+    if gen.lidar is not None:
+        for f, frame in enumerate(clip.frames):
+            per_frame[f] = lidar_decisions(_ranges(clip.lidar, f), _ranges(gen.lidar, f), frame.lidar)
+    front = _front_view(clip)
+    if front is not None and truth.front_classes is not None:
+        read = _scene_frames(clip, config)
+        predicted = segmenter.predict(np.asarray(gen.cameras[read, front]))
+        for f, classes in zip(read, predicted, strict=True):
+            frame = clip.frames[f]
+            camera = frame.rig.cameras[front]
+            per_frame[f] += camera_decisions(truth.front_classes[f], classes, camera, frame.lidar.mount_height)
+    step = max(1, round(clip.fps))
+    seconds = tuple(sum(per_frame[s * step : (s + 1) * step], DecisionSums()) for s in range(clip.num_frames // step))
+    return ClipDecisions(sum(per_frame, DecisionSums()), seconds)
+
+
+def _scene_frames(clip: Clip, config: ReportConfig) -> list[int]:
+    """The frames the scene IoU and the FRONT readings read: every ``scene_frame_stride``-th."""
+    return list(range(0, clip.num_frames, config.scene_frame_stride))
+
+
+def _front_view(clip: Clip) -> int | None:
+    """The FRONT camera's index in the clip's rig; None for a rig without one."""
+    names = clip.frames[0].rig.names
+    return names.index(FRONT_VIEW) if FRONT_VIEW in names else None
 
 
 def object_scores(

@@ -1,14 +1,23 @@
-"""A :class:`Report` as markdown: Table 1, Table 2, their breakdowns and the quality bars."""
+"""A :class:`Report` as markdown: Table 1, Table 2, their breakdowns, what a policy reads and the quality bars."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import fields
 
 import numpy as np
 
+from world_model.eval.decisions import FAR_ERROR_M, OBJECT_RANGE_M, SECTOR_DEG
 from world_model.eval.report.bars import check_bars, format_score
-from world_model.eval.report.results import HEADLINE_IOU, GenerationScores, LongHorizon, Report, YesFrequencies
+from world_model.eval.report.results import (
+    HEADLINE_IOU,
+    DecisionFigures,
+    DecisionScores,
+    GenerationScores,
+    LongHorizon,
+    Report,
+    YesFrequencies,
+)
 
 LONG_HORIZON_COLUMNS = (
     "seconds",
@@ -34,6 +43,8 @@ def format_markdown(report: Report) -> str:
     lines += existence_by_category(report)
     lines += scene_by_view(report)
     lines += scene_iou_by_second(report)
+    lines += what_a_policy_reads(report)
+    lines += what_a_policy_reads_by_second(report)
     lines += long_horizon_table(report)
     lines += chunk_jumps_per_clip(report)
     lines += quality_bars(report)
@@ -65,6 +76,92 @@ def scene_iou_by_second(report: Report) -> list[str]:
     lines = ["", "### Scene IoU per second (segmenter on the generated views against the recording's labels)", ""]
     columns = [f"{k}s" for k in range(seconds)] + [f"last {w} s (long clips)"]
     return lines + table(columns, cells, first=("row", "class"))
+
+
+def _horizon_farther_or_missed(d: DecisionFigures) -> float | None:
+    horizon = d.sectors.get("horizon")
+    return None if horizon is None else horizon.farther_or_missed
+
+
+# The per-second table's figures: the horizon beams' far objects, the lead's bottom row, the lane.
+PER_SECOND_DECISIONS: tuple[tuple[str, Callable[[DecisionFigures], float | None]], ...] = (
+    ("LiDAR horizon: farther or missed", _horizon_farther_or_missed),
+    ("lead bottom row p50 px", lambda d: d.lead.bottom_row_p50_px),
+    ("lane lateral p50 m", lambda d: d.lanes.error_p50_m),
+)
+LIDAR_COLUMNS = ("objects", "abs error p50 / p95 m", f">{FAR_ERROR_M:g} m farther or missed", "missed", "phantom")
+FRONT_COLUMNS = (
+    "leads",
+    "lead missed",
+    "bottom row p50 / p95 px",
+    "centre column p50 / p95 px",
+    "near leads",
+    "range p50 / p95 m",
+    f">{FAR_ERROR_M:g} m farther or missed",
+    "phantom lead",
+    "markings",
+    "lateral p50 / p95 m",
+    "marking missed",
+)
+
+
+def _decision_rows(report: Report) -> dict[str, DecisionScores]:
+    return {row: r.decisions for row, r in report.rows.items() if r.decisions is not None}
+
+
+def _p50_p95(p50: float | None, p95: float | None, digits: int = 2) -> str:
+    return f"{format_score(p50, digits)} / {format_score(p95, digits)}"
+
+
+def what_a_policy_reads(report: Report) -> list[str]:
+    """Markdown lines: each row's readings that change a driving decision, against the recording's
+    (:mod:`world_model.eval.decisions`): the LiDAR's nearest object per sector and beam band, the
+    lead vehicle and the lane markings in FRONT. Empty where no row was read."""
+    rows = _decision_rows(report)
+    if not rows:
+        return []
+    lidar, front = [], []
+    for row, d in rows.items():
+        for band, f in d.overall.sectors.items():
+            lidar.append([row, band, str(f.objects), _p50_p95(f.error_p50_m, f.error_p95_m)]
+                         + [format_score(v) for v in (f.farther_or_missed, f.missed, f.phantom)])  # fmt: skip
+        lead, lanes = d.overall.lead, d.overall.lanes
+        front.append([
+            row, str(lead.leads), format_score(lead.missed),
+            _p50_p95(lead.bottom_row_p50_px, lead.bottom_row_p95_px, 1),
+            _p50_p95(lead.centre_col_p50_px, lead.centre_col_p95_px, 1),
+            str(lead.near_leads), _p50_p95(lead.range_p50_m, lead.range_p95_m),
+            format_score(lead.near_farther_or_missed), format_score(lead.phantom),
+            str(lanes.markings), _p50_p95(lanes.error_p50_m, lanes.error_p95_m), format_score(lanes.missed),
+        ])  # fmt: skip
+    lines = ["", "### What a policy reads (the row's sensors against the recording's)", ""]
+    lines.append(
+        f"LiDAR: the nearest return above the road in each {SECTOR_DEG:g}° sector where the recording has one "
+        f"within {OBJECT_RANGE_M:g} m (an object); shares of those objects (phantom: of the other sectors)."
+    )
+    lines += [""] + table(LIDAR_COLUMNS, lidar, first=("row", "band")) + [""]
+    lines.append(
+        "FRONT (the same segmenter on the row's view and the recording's): the lead vehicle, the largest "
+        f"vehicle blob in the central third (near: standing within {OBJECT_RANGE_M:g} m on the flat road), "
+        "and the nearest lane marking left and right in the bottom rows."
+    )
+    return lines + [""] + table(FRONT_COLUMNS, front)
+
+
+def what_a_policy_reads_by_second(report: Report) -> list[str]:
+    """Markdown lines: the headline readings (:data:`PER_SECOND_DECISIONS`) of each row per second,
+    pooled over the clips that last that long. Empty where no row was read for a whole second."""
+    rows = {row: d for row, d in _decision_rows(report).items() if d.per_second}
+    if not rows:
+        return []
+    seconds = max(len(d.per_second) for d in rows.values())
+    cells = []
+    for row, d in rows.items():
+        for name, figure in PER_SECOND_DECISIONS:
+            per_s = [format_score(figure(s), 2) for s in d.per_second] + [""] * (seconds - len(d.per_second))
+            cells.append([row, name, *per_s])
+    lines = ["", "### What a policy reads per second", ""]
+    return lines + table([f"{k}s" for k in range(seconds)], cells, first=("row", "reading"))
 
 
 def long_horizon_table(report: Report) -> list[str]:

@@ -2,8 +2,8 @@
 
 A :class:`Report` holds one :class:`RowScores` per row: Table 1 (:class:`GenerationScores`),
 Table 2 (:class:`YesFrequencies`), the breakdowns (per object category, per camera view, per
-clip's chunk jumps), one :class:`LongHorizon` per long clip and the scene IoU per second
-(:class:`SceneIoUScores`). ``to_json`` writes the keys of
+clip's chunk jumps), one :class:`LongHorizon` per long clip, the scene IoU per second
+(:class:`SceneIoUScores`) and what a policy reads (:class:`DecisionScores`). ``to_json`` writes the keys of
 report.json; ``from_json`` reads them back (the row cache stores rows this way).
 """
 
@@ -211,31 +211,132 @@ class SceneIoUScores:
 
 
 @dataclass(frozen=True)
+class SectorFigures(_FlatScores):
+    """One beam band's LiDAR sector readings (:func:`~world_model.eval.decisions.sector_range_errors`):
+    ``objects`` (frame, sector) pairs whose recording holds an object within range, the absolute
+    range error of those the row also reports, and shares of the objects (``farther_or_missed``,
+    ``missed``) or of the empty sectors (``phantom``)."""
+
+    objects: int = 0
+    error_p50_m: float | None = None
+    error_p95_m: float | None = None
+    farther_or_missed: float | None = None  # more than FAR_ERROR_M farther, or no return at all
+    missed: float | None = None
+    phantom: float | None = None  # the row reports an object where the recording has none
+
+
+@dataclass(frozen=True)
+class LeadFigures(_FlatScores):
+    """The lead vehicle in FRONT (:func:`~world_model.eval.decisions.lead_errors`): pixel errors of
+    its bottom row and centre column where both the row and the recording show one; the implied
+    range error of the recording's ``near_leads`` (within OBJECT_RANGE_M on the flat road) and the
+    share of those the row puts more than FAR_ERROR_M farther or misses; ``phantom``: the share of
+    frames without a lead where the row shows one."""
+
+    leads: int = 0
+    missed: float | None = None
+    bottom_row_p50_px: float | None = None
+    bottom_row_p95_px: float | None = None
+    centre_col_p50_px: float | None = None
+    centre_col_p95_px: float | None = None
+    near_leads: int = 0
+    range_p50_m: float | None = None
+    range_p95_m: float | None = None
+    near_farther_or_missed: float | None = None
+    phantom: float | None = None
+
+
+@dataclass(frozen=True)
+class LaneFigures(_FlatScores):
+    """Lane markings at the bottom of FRONT (:func:`~world_model.eval.decisions.lane_errors`):
+    ``markings`` (frame, side) pairs whose recording shows one, the lateral error where the row
+    shows one too, and the share it misses."""
+
+    markings: int = 0
+    error_p50_m: float | None = None
+    error_p95_m: float | None = None
+    missed: float | None = None
+
+
+@dataclass(frozen=True)
+class DecisionFigures:
+    """What a policy reads, over some frames: the LiDAR sectors per beam band (empty for a row
+    without LiDAR), the lead vehicle and the lane markings."""
+
+    sectors: Mapping[str, SectorFigures]
+    lead: LeadFigures
+    lanes: LaneFigures
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "sectors": {band: f.to_json() for band, f in self.sectors.items()},
+            "lead": self.lead.to_json(),
+            "lanes": self.lanes.to_json(),
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> DecisionFigures:
+        def get(key: str) -> Any:
+            return _require(data, key, "decisions")
+
+        return cls(
+            sectors={band: SectorFigures.from_json(f) for band, f in get("sectors").items()},
+            lead=LeadFigures.from_json(get("lead")),
+            lanes=LaneFigures.from_json(get("lanes")),
+        )
+
+
+@dataclass(frozen=True)
+class DecisionScores:
+    """A row's "what a policy reads" (report.json's ``decisions``): over every frame read of every
+    clip, and per whole second pooled over the clips that last that long."""
+
+    overall: DecisionFigures
+    per_second: tuple[DecisionFigures, ...]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"overall": self.overall.to_json(), "per_second": [s.to_json() for s in self.per_second]}
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> DecisionScores:
+        return cls(
+            overall=DecisionFigures.from_json(_require(data, "overall", "decisions")),
+            per_second=tuple(DecisionFigures.from_json(s) for s in _require(data, "per_second", "decisions")),
+        )
+
+
+@dataclass(frozen=True)
 class RowSpread:
-    """Standard deviation over noise seeds of a seeded row's Table 1, Table 2, per-view scores and
-    scene IoU (None when a seed has none)."""
+    """Standard deviation over noise seeds of a seeded row's Table 1, Table 2, per-view scores,
+    scene IoU and what a policy reads (None when a seed has none)."""
 
     table1: GenerationScores
     table2: YesFrequencies
     per_view: PerView
     scene_iou: SceneIoUScores | None = None
+    decisions: DecisionScores | None = None
 
     def to_json(self) -> dict[str, Any]:
-        out = {
+        out: dict[str, Any] = {
             "table1": self.table1.to_json(),
             "table2": self.table2.to_json(),
             "per_view": _views_json(self.per_view),
         }
-        return out if self.scene_iou is None else out | {"scene_iou": self.scene_iou.to_json()}
+        if self.scene_iou is not None:
+            out["scene_iou"] = self.scene_iou.to_json()
+        if self.decisions is not None:
+            out["decisions"] = self.decisions.to_json()
+        return out
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> RowSpread:
-        scene = data.get("scene_iou")
+        scene, decisions = data.get("scene_iou"), data.get("decisions")
         return cls(
             GenerationScores.from_json(_require(data, "table1", "spread")),
             YesFrequencies.from_json(_require(data, "table2", "spread")),
             _views(_require(data, "per_view", "spread")),
             None if scene is None else SceneIoUScores.from_json(scene),
+            None if decisions is None else DecisionScores.from_json(decisions),
         )
 
 
@@ -257,6 +358,7 @@ class RowScores:
     answers: int = 0
     long_horizon: tuple[LongHorizon, ...] = ()  # clips of at least twice long_window_s
     scene_iou: SceneIoUScores | None = None  # None without a clip of at least a second
+    decisions: DecisionScores | None = None  # None where no clip was read (rows built by hand)
     seeds: int | None = None
     spread: RowSpread | None = None
 
@@ -272,6 +374,8 @@ class RowScores:
             "long_horizon": [c.to_json() for c in self.long_horizon],
             "scene_iou": None if self.scene_iou is None else self.scene_iou.to_json(),
         }
+        if self.decisions is not None:
+            out["decisions"] = self.decisions.to_json()
         if self.seeds is not None:
             out["seeds"] = self.seeds
         if self.spread is not None:
@@ -283,7 +387,7 @@ class RowScores:
         def get(key: str) -> Any:
             return _require(data, key, "report row")
 
-        spread, scene = data.get("spread"), get("scene_iou")
+        spread, scene, decisions = data.get("spread"), get("scene_iou"), data.get("decisions")
         return cls(
             table1=GenerationScores.from_json(get("table1")),
             table2=YesFrequencies.from_json(get("table2")),
@@ -294,6 +398,7 @@ class RowScores:
             answers=get("answers"),
             long_horizon=tuple(LongHorizon.from_json(c) for c in get("long_horizon")),
             scene_iou=None if scene is None else SceneIoUScores.from_json(scene),
+            decisions=None if decisions is None else DecisionScores.from_json(decisions),
             seeds=data.get("seeds"),
             spread=None if spread is None else RowSpread.from_json(spread),
         )

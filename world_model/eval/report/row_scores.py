@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from world_model.eval.decisions import P50, P95, DecisionSums, LaneSums, LeadSums, SectorSums, percentile, share
+from world_model.eval.decisions import pool_seconds as pool_decision_seconds
 from world_model.eval.metrics import ChangeSums, ConfusionSums, JumpSums, clip_window_features, frechet_features
 from world_model.eval.report.clip_scores import ClipScores, SensorPairs, StreamPair, chunk_jump_scores, motion_scores
 from world_model.eval.report.config import ReportConfig
@@ -14,10 +16,15 @@ from world_model.eval.report.results import (
     HEADLINE_IOU,
     ClipChunkJumps,
     ClipSceneIoU,
+    DecisionFigures,
+    DecisionScores,
     GenerationScores,
     JumpRatios,
+    LaneFigures,
+    LeadFigures,
     RowScores,
     SceneIoUScores,
+    SectorFigures,
 )
 from world_model.eval.scene_iou import pool_scene_iou, pool_seconds
 from world_model.eval.segmenter import SCENE_CLASSES
@@ -61,6 +68,7 @@ def row_scores(clips: Sequence[ClipScores], config: ReportConfig, gt_features: S
         answers=len(answers),
         long_horizon=tuple(c.long_horizon for c in clips if c.long_horizon is not None),
         scene_iou=scene,
+        decisions=decision_scores(clips),
     )
 
 
@@ -79,6 +87,61 @@ def scene_iou_scores(clips: Sequence[ClipScores]) -> SceneIoUScores | None:
         per_second=tuple(dict(zip(SCENE_CLASSES, s.iou(), strict=True)) for s in seconds),
         last_window_long_clips=pool_scene_iou(long_clips).last_window_iou() if long_clips else None,
         per_clip=tuple(ClipSceneIoU(c.clip, tuple(c.scene_iou.per_second_iou())) for c in scored),
+    )
+
+
+def decision_scores(clips: Sequence[ClipScores]) -> DecisionScores | None:
+    """A row's "what a policy reads" from its clips' readings: pooled over every frame read of every
+    clip, and per whole second over the clips that last that long; None where no clip was read."""
+    read = [c.decisions for c in clips if c.decisions is not None]
+    if not read:
+        return None
+    overall = sum((d.overall for d in read), DecisionSums())
+    return DecisionScores(decision_figures(overall), tuple(decision_figures(s) for s in pool_decision_seconds(read)))
+
+
+def decision_figures(sums: DecisionSums) -> DecisionFigures:
+    """The report's figures (percentiles, shares) of pooled readings."""
+    return DecisionFigures(
+        sectors={band: sector_figures(s) for band, s in sums.sectors.items()},
+        lead=lead_figures(sums.lead),
+        lanes=lane_figures(sums.lanes),
+    )
+
+
+def sector_figures(s: SectorSums) -> SectorFigures:
+    return SectorFigures(
+        objects=s.objects,
+        error_p50_m=percentile(s.errors_m, P50),
+        error_p95_m=percentile(s.errors_m, P95),
+        farther_or_missed=share(s.farther + s.missed, s.objects),
+        missed=share(s.missed, s.objects),
+        phantom=share(s.phantom, s.empty),
+    )
+
+
+def lead_figures(s: LeadSums) -> LeadFigures:
+    return LeadFigures(
+        leads=s.leads,
+        missed=share(s.missed, s.leads),
+        bottom_row_p50_px=percentile(s.bottom_row_errors_px, P50),
+        bottom_row_p95_px=percentile(s.bottom_row_errors_px, P95),
+        centre_col_p50_px=percentile(s.centre_col_errors_px, P50),
+        centre_col_p95_px=percentile(s.centre_col_errors_px, P95),
+        near_leads=s.near_leads,
+        range_p50_m=percentile(s.range_errors_m, P50),
+        range_p95_m=percentile(s.range_errors_m, P95),
+        near_farther_or_missed=share(s.near_farther + s.near_missed, s.near_leads),
+        phantom=share(s.phantom, s.no_lead),
+    )
+
+
+def lane_figures(s: LaneSums) -> LaneFigures:
+    return LaneFigures(
+        markings=s.markings,
+        error_p50_m=percentile(s.errors_m, P50),
+        error_p95_m=percentile(s.errors_m, P95),
+        missed=share(s.missed, s.markings),
     )
 
 

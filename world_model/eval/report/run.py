@@ -38,7 +38,8 @@ def evaluate_rows(
     ``config``: the sampling (default :class:`ReportConfig`). ``judge`` answers the questions
     (default: the shipped CNN judge); its ``frame_features`` feed the Fréchet distances (a backend
     without them gets None there). ``segmenter`` labels the rows' camera pixels for the scene IoU
-    against the recordings' label maps (default: the shipped one). A row given as a sequence of
+    against the recordings' label maps, and the rows' and the recordings' FRONT views for what a
+    policy reads (default: the shipped one). A row given as a sequence of
     generators is one model under several noise seeds: each is scored and the row holds their mean
     (:func:`~world_model.eval.report.seeds.average_seeds`).
 
@@ -52,7 +53,7 @@ def evaluate_rows(
     judge = judge if judge is not None else load_default_judge()
     segmenter = segmenter if segmenter is not None else load_default_segmenter()
     config = config if config is not None else ReportConfig()
-    truths = [clip_truth(c, judge, config) for c in clips]
+    truths = [clip_truth(c, judge, config, segmenter) for c in clips]
     cache = RowCache(Path(cache_dir)) if cache_dir is not None else None
     scored: dict[str, RowScores] = {}
 

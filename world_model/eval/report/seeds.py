@@ -15,7 +15,8 @@ from world_model.eval.report.results import RowScores, RowSpread
 def average_seeds(results: Sequence[RowScores]) -> RowScores:
     """One row from its scores under several noise seeds: every score is the mean over seeds;
     ``seeds`` holds their count and ``spread`` the standard deviation of Table 1, Table 2, the
-    per-view scores and the scene IoU. A score missing (None) in any seed is None, not the mean of the others."""
+    per-view scores, the scene IoU and what a policy reads. A score missing (None) in any seed is
+    None, not the mean of the others."""
     if not results:
         raise ValueError("average_seeds needs at least one seeded result")
     spread = RowSpread(
@@ -23,6 +24,7 @@ def average_seeds(results: Sequence[RowScores]) -> RowScores:
         table2=leaf_mean([r.table2 for r in results], spread=True),
         per_view=leaf_mean([r.per_view for r in results], spread=True),
         scene_iou=leaf_mean([r.scene_iou for r in results], spread=True),
+        decisions=leaf_mean([r.decisions for r in results], spread=True),
     )
     return replace(leaf_mean(list(results), spread=False), seeds=len(results), spread=spread)
 
