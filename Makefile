@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 # CPU build of torch first: a plain `torch` requirement would pull several GB of CUDA wheels.
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare segmenter
+.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare segmenter zoo
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -78,6 +78,11 @@ segmenter: install
 	$(VENV)/bin/m4world evalset --out data/evalset
 	$(PY) -m world_model.eval.train_segmenter --data $(SEG_DATA)/train --heldout $(SEG_DATA)/heldout \
 	  --evalset data/evalset --work runs/segmenter --out world_model/assets/segmenter
+
+# The zoo's learned members (m4world_env/zoo/learned.py): autopilot demonstrations recorded on the
+# procedural backend (cached in runs/zoo_learned), one small CNN behaviour-cloned per member.
+zoo: install
+	$(PY) -m m4world_env.zoo.train_learned --out m4world_env/zoo/weights
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -6,8 +6,9 @@ writes JSON. Every episode's seed is recorded: ``m4world demo --scenario S --see
 replays it with a video.
 
 A policy is ``callable(observation: dict, info: dict) -> action``. ``--policy`` takes a built-in name
-(:data:`BUILTIN_POLICIES`) or ``module:attr``; when ``attr`` is a class or a factory taking the env
-(``attr(env)``), it is called once per env to build the policy.
+(:data:`BUILTIN_POLICIES`, which read the traffic state), a zoo member's name (policies that see,
+:mod:`m4world_env.zoo`; ``name`` or ``name@vN``) or ``module:attr``; when ``attr`` is a class or a
+factory taking the env (``attr(env)``), it is called once per env to build the policy.
 """
 
 from __future__ import annotations
@@ -33,10 +34,12 @@ ROUTE_AGGREGATED = ("off_route", "route_deviation_max_m")
 
 
 def _builtin_policy(name: str, env: gym.Env) -> Policy:
-    from m4world_env import policies
+    from m4world_env import policies, zoo
 
     base = env.unwrapped
     seed = int(base.np_random.integers(2**31 - 1))
+    if is_zoo_policy(name):
+        return zoo.member(name).build(zoo.SensorGeometry.of_env(env), seed)
     if name == "random":
         rand = policies.RandomPolicy(seed=seed)
         return lambda obs, info: rand(base.bridge)
@@ -52,12 +55,27 @@ def _builtin_policy(name: str, env: gym.Env) -> Policy:
 BUILTIN_POLICIES = ("random", "lane_keeping", "idm")
 
 
+def is_zoo_policy(spec: object) -> bool:
+    """Whether ``spec`` names a zoo member (``name`` or ``name@vN``)."""
+    from m4world_env import zoo
+
+    return isinstance(spec, str) and spec.partition("@v")[0] in zoo.members()
+
+
+def is_named_policy(spec: object) -> bool:
+    """A built-in or zoo name: such a policy is built afresh for every episode."""
+    return spec in BUILTIN_POLICIES or is_zoo_policy(spec)
+
+
 def make_policy(spec: str, env: gym.Env) -> Policy:
-    """Build a policy for ``env`` from a built-in name or a ``module:attr`` spec."""
-    if spec in BUILTIN_POLICIES:
+    """Build a policy for ``env`` from a built-in name, a zoo member's name or a ``module:attr`` spec."""
+    if is_named_policy(spec):
         return _builtin_policy(spec, env)
     if ":" not in spec:
-        raise ValueError(f"policy {spec!r} is neither a built-in {BUILTIN_POLICIES} nor 'module:callable'")
+        raise ValueError(
+            f"policy {spec!r} is neither a built-in {BUILTIN_POLICIES}, a zoo member (m4world zoo lists them) "
+            "nor 'module:callable'"
+        )
     module_name, attr = spec.split(":", 1)
     try:
         obj = getattr(importlib.import_module(module_name), attr)
@@ -79,7 +97,7 @@ def make_policy(spec: str, env: gym.Env) -> Policy:
 def run_episode(env: gym.Env, policy: Policy | str, seed: int, max_steps: int | None = None) -> dict[str, float]:
     """One episode; returns the env's final ``episode_metrics`` plus the seed.
 
-    A built-in policy name is instantiated after the reset (its state is per episode and its seed
+    A built-in or zoo policy name is instantiated after the reset (its state is per episode and its seed
     comes from the env's seeded RNG, so an episode replays from its seed alone).
     """
     obs, info = env.reset(seed=seed)
@@ -151,7 +169,7 @@ def scenario_policy(policy: str | Callable, env: gym.Env) -> Policy | str:
     name (built per episode), a spec or factory is built once for the env, a policy is itself."""
     if callable(policy):
         return policy(env) if list(inspect.signature(policy).parameters) == ["env"] else policy
-    return policy if policy in BUILTIN_POLICIES else make_policy(policy, env)
+    return policy if is_named_policy(policy) else make_policy(policy, env)
 
 
 def build_report(
