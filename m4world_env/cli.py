@@ -13,9 +13,17 @@ from pathlib import Path
 
 from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
+from world_model.train.cli import non_negative_int as _non_negative_int
 from world_model.train.cli import positive_int as _positive_int
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")  # containers that take the demo's H.264
+# m4world agreement's default jobs: each holds a world model and a batch of ~30 rollouts (~2 GB).
+MAX_DEFAULT_JOBS = 4
+
+
+def default_jobs() -> int:
+    """The CPUs this process may run on, at most :data:`MAX_DEFAULT_JOBS`."""
+    return max(1, min(len(os.sched_getaffinity(0)), MAX_DEFAULT_JOBS))
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -217,6 +225,49 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.out:
         write_report(report, args.out)
         print(f"wrote {args.out}")
+    return 0
+
+
+def _cmd_agreement(args: argparse.Namespace) -> int:
+    from m4world_env import zoo
+    from m4world_env.agreement.run import AgreementPlan, default_plan, minutes, run_agreement
+    from m4world_env.scenario import load_scenario
+
+    _check_out(args.out, "folder")
+    if args.checkpoint is not None and not Path(args.checkpoint).is_dir():
+        raise ValueError(f"--checkpoint {args.checkpoint}: no bundle folder there")
+    base = default_plan(full=args.full, checkpoint=args.checkpoint)
+    policies = tuple(zoo.member(p).name for p in args.policies) if args.policies else base.policies
+    scenarios = tuple(args.scenarios) if args.scenarios else base.scenarios
+    for name in scenarios:
+        load_scenario(name)  # a bad name or file is refused now, not after the first cells
+    seeds = tuple(range(args.seed, args.seed + args.seeds)) if args.seeds else base.seeds
+    plan = AgreementPlan(
+        policies=policies, scenarios=scenarios, seeds=seeds, steps=args.steps or base.steps, checkpoint=args.checkpoint
+    )
+    summary = run_agreement(plan, args.out, videos=args.videos, jobs=args.jobs)
+    a = summary["agreement"]
+
+    def num(x: float | None) -> str:
+        return "n/a" if x is None else f"{x:.3f}"
+
+    print(
+        f"{a['policies']} policies, {a['episodes']} episode pairs in {minutes(summary['seconds'])}: "
+        f"Pearson r {num(a['pearson'])}, Spearman {num(a['spearman'])}, Kendall {num(a['kendall'])}, "
+        f"MMRV {num(a['mmrv'])}, mean |dPDMS| {num(a['mean_abs_delta'])}, "
+        f"collision agreement {num(a['collision_agreement'])}"
+    )
+    print(f"wrote {Path(args.out) / 'report.md'}, summary.json, scatter.png")
+    return 0
+
+
+def _cmd_zoo(args: argparse.Namespace) -> int:
+    from m4world_env import zoo
+
+    rows = [(m.citation, m.family, str(m.seed), m.description) for m in zoo.members().values()]
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    for r in rows:
+        print("  ".join(c.ljust(w) for c, w in zip(r[:3], widths, strict=True)) + "  " + r[3])
     return 0
 
 
@@ -533,6 +584,36 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--height", type=int, default=128)
     g.add_argument("--width", type=int, default=224)
     g.set_defaults(func=_cmd_gallery)
+
+    ag = sub.add_parser(
+        "agreement",
+        help="run the policy zoo on the ground truth and the world model; report how well their scores agree",
+    )
+    ag.add_argument("--out", required=True, help="the run's folder (resumed when it holds the same run)")
+    ag.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
+    ag.add_argument("--full", action="store_true", help="the large run: six scenarios, four seeds")
+    ag.add_argument("--policies", nargs="+", default=None, help="zoo members (default: all; m4world zoo lists them)")
+    ag.add_argument("--scenarios", nargs="+", default=None, help="scenarios (default: the run size's)")
+    ag.add_argument("--seeds", type=_positive_int, default=None, help="seeds per scenario (--seed, --seed + 1, ...)")
+    ag.add_argument("--seed", type=_non_negative_int, default=0, help="the first seed")
+    ag.add_argument("--steps", type=_positive_int, default=None, help="policy steps per episode")
+    ag.add_argument(
+        "--jobs",
+        type=_positive_int,
+        default=default_jobs(),
+        help="cells run at once, each in its own process with one torch thread (default: the CPUs, at most "
+        f"{MAX_DEFAULT_JOBS}; each holds a world model and a batch of rollouts, ~2 GB)",
+    )
+    ag.add_argument(
+        "--videos",
+        type=_non_negative_int,
+        default=3,
+        help="side-by-side videos of the episodes the backends disagree on most",
+    )
+    ag.set_defaults(func=_cmd_agreement)
+
+    z = sub.add_parser("zoo", help="list the zoo's policies that see (names for --policy)")
+    z.set_defaults(func=_cmd_zoo)
 
     s = sub.add_parser("scenarios", help="list (or validate) scenarios")
     s.add_argument("--check", nargs="*", help="scenario files to validate")

@@ -12,10 +12,11 @@ depend on which other rollouts share its batch: a vector env equals N single env
 
 from __future__ import annotations
 
+import hashlib
 import time
 from collections.abc import Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -288,6 +289,18 @@ def save_untrained_bundle(
     )
 
 
+def start_key(arrays: ConditionArrays, seed: int) -> bytes:
+    """A digest of a rollout's first-frame condition arrays and seed: rollouts with equal keys start
+    from the same first frame."""
+    digest = hashlib.blake2b(digest_size=16)
+    digest.update(int(seed).to_bytes(8, "little", signed=True))
+    for f in fields(arrays):
+        value = np.ascontiguousarray(getattr(arrays, f.name))
+        digest.update(f"{f.name}:{value.dtype}:{value.shape}".encode())
+        digest.update(value.tobytes())
+    return digest.digest()
+
+
 class RolloutBatch:
     """``num_rollouts`` independent rollouts advanced together, one causal chunk per :meth:`step`."""
 
@@ -402,7 +415,19 @@ class RolloutBatch:
         for row, frame, seed in zip(rows, frames, seeds, strict=True):
             self.gens[row] = torch.Generator().manual_seed(int(seed))
             self.first[row] = frame
-        latents, obs = self.wm.batch_first_frames(Conditions.collate(arrays), frames, [int(s) for s in seeds])
+        # Rows that start from the same controls and seed (one scene and seed under several
+        # policies) get the same first frame: it is sampled once and copied.
+        keys = [start_key(a, s) for a, s in zip(arrays, seeds, strict=True)]
+        unique = list(dict.fromkeys(keys))
+        firsts = [keys.index(k) for k in unique]
+        latents, obs = self.wm.batch_first_frames(
+            Conditions.collate([arrays[i] for i in firsts]),
+            [frames[i] for i in firsts],
+            [int(seeds[i]) for i in firsts],
+        )
+        source = [unique.index(k) for k in keys]
+        latents = latents[source]
+        obs = [replace(obs[j], cameras=obs[j].cameras.copy(), lidar=obs[j].lidar.copy()) for j in source]
         self._start(list(rows), latents, list(arrays))
         return obs
 

@@ -40,6 +40,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """An argparse type for a count that may be zero (none)."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or a positive integer, got {text!r}")
+    return value
+
+
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Every flag of the training command."""
     p.add_argument("--stage", default=None, help="the stage to train (see below)")

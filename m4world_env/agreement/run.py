@@ -1,0 +1,346 @@
+"""The agreement run: every zoo policy on both backends over the same scenarios and seeds.
+
+    m4world agreement --out out/agreement              # the default size (this CPU: < 30 min)
+    m4world agreement --full --out out/agreement_full  # >= 6 scenarios x 4 seeds
+    m4world agreement --checkpoint MY_BUNDLE --out out/agreement_mine
+
+The work is cut into cells, one per (backend, scenario, seed). A cell runs every policy at once in
+one vector env (one row per policy, one batched world-model call per step): every row starts from
+the same first frame (the same scene and seed), sampled once, and a row whose episode has ended
+idles until the cell is done. Each cell's episodes are written to ``OUT/episodes/`` as it finishes,
+so a run that is stopped resumes where it was (``OUT/plan.json`` guards against resuming with other
+settings); ``OUT/progress.json`` tells how far it is. At the end: ``summary.json``, ``report.md``,
+``scatter.png`` and, for the episodes the backends disagree on most, side-by-side videos
+(ground truth | world model, the policy's action and the score so far) in ``videos/``.
+
+A row's episode is exactly ``m4world eval --policy P --scenarios S --seed SEED --backend B``'s (the
+vector env equals single envs bit for bit on CPU, and the policy's seed is drawn the same way).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from m4world_env.agreement.render import build_summary, markdown_report, scatter_plot
+from m4world_env.zoo.base import SENSOR_KEYS
+
+BACKEND_PAIR = ("procedural", "world_model")
+# The default run's size is set by the world model's cost on a 2-core CPU without native bf16
+# (~0.5 s per env step and thread): three scenarios of different roads and light, two seeds, 4 s
+# of driving (a policy step is 0.2 s in every bundled scenario).
+DEFAULT_SCENARIOS = ("highway_sunny_day", "merge_cut_in", "two_way_overtake_dusk")
+DEFAULT_SEEDS = 2
+DEFAULT_STEPS = 20
+# --full: six scenarios (highway in sun and rain, a merge, a two-way road, fog on a roundabout, snow
+# with a stopped vehicle), four seeds, the same 4 s episodes.
+FULL_SCENARIOS = (
+    "highway_sunny_day",
+    "highway_dense_rain_dusk",
+    "merge_cut_in",
+    "two_way_overtake_dusk",
+    "roundabout_fog",
+    "stopped_vehicle_snow",
+)
+FULL_SEEDS = 4
+FULL_STEPS = DEFAULT_STEPS
+DEFAULT_VIDEOS = 3
+PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
+SHIPPED_CHECKPOINT = "shipped"  # how a plan names the bundle that comes with the package
+
+
+@dataclass(frozen=True)
+class AgreementPlan:
+    """What a run covers. ``checkpoint``: a bundle path, or None for the shipped one."""
+
+    policies: tuple[str, ...]
+    scenarios: tuple[str, ...]
+    seeds: tuple[int, ...]
+    steps: int
+    checkpoint: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.policies or not self.scenarios or not self.seeds:
+            raise ValueError("an agreement run needs at least one policy, scenario and seed")
+        if len(set(self.policies)) != len(self.policies):
+            raise ValueError(f"policies repeat in {list(self.policies)}")
+        if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
+            raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["checkpoint"] = SHIPPED_CHECKPOINT if self.checkpoint is None else str(Path(self.checkpoint).resolve())
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+@dataclass(frozen=True)
+class Cell:
+    backend: str
+    scenario: str
+    seed: int
+
+    def path(self, out: Path) -> Path:
+        return out / "episodes" / self.backend / self.scenario / f"seed{self.seed}.json"
+
+    def step_path(self, out: Path) -> Path:
+        """Where a running cell keeps the step it has reached."""
+        return out / "running" / f"{self.backend}__{self.scenario}__seed{self.seed}.json"
+
+
+def cells(plan: AgreementPlan) -> list[Cell]:
+    """The run's cells: each scenario and seed on the ground truth, then on the world model."""
+    return [Cell(b, s, seed) for s in plan.scenarios for seed in plan.seeds for b in BACKEND_PAIR]
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """``data`` to ``path`` atomically (a stopped run never leaves half a file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _check_plan(plan: AgreementPlan, out: Path) -> None:
+    """Start a run in ``out``, or resume it when its plan is this one."""
+    path = out / "plan.json"
+    wanted = plan.to_json()
+    if path.exists():
+        found = json.loads(path.read_text())
+        if found != wanted:
+            changed = sorted(k for k in wanted if found.get(k) != wanted[k])
+            raise ValueError(
+                f"{out} holds a run with other settings ({', '.join(changed)} differ): resume it with the same "
+                "options, or give another --out"
+            )
+    else:
+        _write_json(path, wanted)
+
+
+def run_cell(cell: Cell, plan: AgreementPlan, on_step: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+    """Every policy of ``plan`` for one episode of ``cell``'s scenario and seed on its backend, in one
+    vector env; returns one record per policy (its ``episode_metrics`` and who, where, what).
+    ``on_step(t)`` is called after each step ``t`` (1, 2, ...)."""
+    from m4world_env import zoo
+    from m4world_env.vector import M4WorldVectorEnv
+
+    members = [zoo.member(name) for name in plan.policies]
+    n = len(members)
+    venv = M4WorldVectorEnv(
+        num_envs=n,
+        scenario=cell.scenario,
+        backend=cell.backend,
+        checkpoint=plan.checkpoint if cell.backend == "world_model" else None,
+        config={"observation_keys": list(SENSOR_KEYS)},
+    )
+    try:
+        obs, infos = venv.reset(seed=[cell.seed] * n)
+        geometry = zoo.SensorGeometry.of_env(venv.envs[0])
+        # Drawn as `m4world eval` draws a named policy's seed: after the reset, from the env's generator.
+        drivers = [
+            m.build(geometry, int(env.np_random.integers(2**31 - 1))) for m, env in zip(members, venv.envs, strict=True)
+        ]
+        rows_obs = [{k: obs[k][i] for k in obs} for i in range(n)]
+        rows_info: list[dict[str, Any]] = [{"speed": float(infos["speed"][i])} for i in range(n)]
+        active = [True] * n
+        steps = [0] * n
+        for t in range(plan.steps):
+            chunks = [
+                env.advance(drivers[i](rows_obs[i], rows_info[i])) if active[i] else None
+                for i, env in enumerate(venv.envs)
+            ]
+            observations = venv.backend.step(chunks)
+            for i, env in enumerate(venv.envs):
+                if not active[i]:
+                    continue
+                rows_obs[i], _reward, terminated, truncated, rows_info[i] = env.finish_step(chunks[i], observations[i])
+                steps[i] = t + 1
+                active[i] = not (terminated or truncated)
+            if on_step is not None:
+                on_step(t + 1)
+            if not any(active):
+                break
+    finally:
+        venv.close()
+    return [
+        {
+            "policy": m.name,
+            "family": m.family,
+            "citation": m.citation,
+            "scenario": cell.scenario,
+            "seed": cell.seed,
+            "backend": cell.backend,
+            "policy_steps": steps[i],
+            **{k: float(v) for k, v in info["episode_metrics"].items()},
+        }
+        for i, (m, info) in enumerate(zip(members, rows_info, strict=True))
+    ]
+
+
+class Progress:
+    """``OUT/progress.json``: cells done and running, the cells' seconds so far and an estimate of
+    the rest (from the world-model and ground-truth cells' mean times so far, over the jobs)."""
+
+    def __init__(self, out: Path, plan: AgreementPlan, total: list[Cell], jobs: int) -> None:
+        self.path, self.plan, self.total, self.jobs = out / "progress.json", plan, total, jobs
+        # Wall time of the run's earlier invocations (a resumed run adds to it).
+        earlier = json.loads(self.path.read_text()) if self.path.exists() else {}
+        self.earlier_wall = float(earlier.get("wall_seconds", 0.0))
+        self.started = time.perf_counter()
+
+    def _step(self, cell: Cell) -> int:
+        path = cell.step_path(self.path.parent)
+        try:
+            return int(json.loads(path.read_text())["step"])
+        except (OSError, ValueError, KeyError):  # not started, or between two writes
+            return 0
+
+    @property
+    def wall_seconds(self) -> float:
+        return self.earlier_wall + time.perf_counter() - self.started
+
+    def update(self, done: list[dict[str, Any]], running: list[Cell]) -> None:
+        seconds = {b: [c["seconds"] for c in done if c["backend"] == b] for b in BACKEND_PAIR}
+        left = {b: sum(c.backend == b for c in self.total) - len(seconds[b]) for b in BACKEND_PAIR}
+        eta = sum(left[b] * float(np.mean(seconds[b])) for b in BACKEND_PAIR if seconds[b]) / self.jobs
+        estimated = all(seconds[b] or not left[b] for b in BACKEND_PAIR)
+        _write_json(
+            self.path,
+            {
+                "cells_done": len(done),
+                "cells": len(self.total),
+                "running": [{**asdict(c), "step": self._step(c), "steps": self.plan.steps} for c in running],
+                "cell_seconds": sum(sum(s) for s in seconds.values()),
+                "wall_seconds": self.wall_seconds,
+                "seconds_left_estimate": eta if estimated else None,
+            },
+        )
+
+
+def timed_cell(cell: Cell, plan: AgreementPlan, out: Path) -> dict[str, Any]:
+    """Run ``cell`` and write its result (records and seconds) to its file; returns the result."""
+    started = time.perf_counter()
+    records = run_cell(cell, plan, on_step=lambda t: _write_json(cell.step_path(out), {"step": t}))
+    result = {**asdict(cell), "seconds": time.perf_counter() - started, "records": records}
+    _write_json(cell.path(out), result)
+    cell.step_path(out).unlink(missing_ok=True)
+    return result
+
+
+def run_agreement(
+    plan: AgreementPlan,
+    out: str | Path,
+    *,
+    videos: int = DEFAULT_VIDEOS,
+    jobs: int = 1,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run (or resume) ``plan`` into ``out`` and write its report; returns the summary. ``jobs``:
+    cells run at once, each in a process of its own (the env's one torch thread each)."""
+    from tqdm import tqdm
+
+    from m4world_env import zoo
+
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    out = Path(out)
+    _check_plan(plan, out)
+    todo = cells(plan)
+    done = [json.loads(c.path(out).read_text()) for c in todo if c.path(out).exists()]
+    # The world model's cells first: they take most of the time, the ground truth's fill the gaps.
+    left = sorted((c for c in todo if not c.path(out).exists()), key=lambda c: c.backend != "world_model")
+    tracker = Progress(out, plan, todo, jobs)
+    bar = tqdm(total=len(todo), initial=len(done), desc="agreement", unit="cell", disable=not progress)
+    tracker.update(done, left[:jobs])
+    if jobs == 1:
+        for i, cell in enumerate(left):
+            done.append(timed_cell(cell, plan, out))
+            tracker.update(done, left[i + 1 : i + 2])
+            bar.update(1)
+    else:
+        import multiprocessing
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            running = {pool.submit(timed_cell, c, plan, out): c for c in left}
+            while running:
+                finished, _ = wait(running, timeout=PROGRESS_SECONDS, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    running.pop(future)
+                    done.append(future.result())
+                    bar.update(1)
+                tracker.update(done, list(running.values())[:jobs])
+    bar.close()
+    tracker.update(done, [])
+    records = [r for c in sorted(done, key=lambda c: (c["scenario"], c["seed"], c["backend"])) for r in c["records"]]
+    members = {
+        m.name: {"family": m.family, "citation": m.citation, "description": m.description}
+        for m in (zoo.member(p) for p in plan.policies)
+    }
+    summary = build_summary(
+        records,
+        checkpoint=plan.to_json()["checkpoint"],
+        scenarios=plan.scenarios,
+        seeds=plan.seeds,
+        steps=plan.steps,
+        seconds=tracker.wall_seconds,
+        members=members,
+    )
+    if videos:
+        summary["videos"] = write_videos(plan, summary["disagreements"][:videos], out / "videos", out)
+    tracker.update(done, [])
+    # The run's wall time, videos included, over every invocation that worked on it; and the
+    # cells' own seconds, which add up to more when several jobs ran at once.
+    summary["seconds"] = tracker.wall_seconds
+    summary["cell_seconds"] = sum(c["seconds"] for c in done)
+    summary["jobs"] = jobs
+    _write_json(out / "summary.json", summary)
+    (out / "report.md").write_text(markdown_report(summary))
+    scatter_plot(summary, out / "scatter.png")
+    return summary
+
+
+def write_videos(
+    plan: AgreementPlan, episodes: Sequence[dict[str, Any]], folder: Path, relative_to: Path
+) -> dict[str, str]:
+    """A side-by-side video of each episode (a summary's ``disagreements`` entries); returns each
+    episode's key and the video's path relative to ``relative_to``. A video already there is kept."""
+    from m4world_env.agreement.video import side_by_side_video
+
+    out: dict[str, str] = {}
+    for ep in episodes:
+        path = folder / f"{ep['policy']}__{ep['scenario']}__seed{ep['seed']}.mp4"
+        if not path.exists():
+            side_by_side_video(ep["policy"], ep["scenario"], int(ep["seed"]), plan.steps, plan.checkpoint, path)
+        out[ep["key"]] = path.relative_to(relative_to).as_posix()
+    return out
+
+
+def default_plan(*, full: bool = False, checkpoint: str | None = None) -> AgreementPlan:
+    """The default run (or the ``--full`` one) over the whole zoo."""
+    from m4world_env import zoo
+
+    return AgreementPlan(
+        policies=tuple(zoo.members()),
+        scenarios=FULL_SCENARIOS if full else DEFAULT_SCENARIOS,
+        seeds=tuple(range(FULL_SEEDS if full else DEFAULT_SEEDS)),
+        steps=FULL_STEPS if full else DEFAULT_STEPS,
+        checkpoint=checkpoint,
+    )
+
+
+def minutes(seconds: float) -> str:
+    return f"{seconds / 60:.1f} min" if math.isfinite(seconds) else "?"

@@ -1,0 +1,150 @@
+"""The agreement run: the zoo on both backends, cell by cell, resumable, each row the episode
+`m4world eval` runs; and the first frame shared by rows that start alike."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import m4world_env.agreement.run as agreement_run
+from m4world_env.agreement.run import AgreementPlan, cells, run_agreement
+from m4world_env.cli import main
+from m4world_env.evaluate import evaluate
+from m4world_env.vector import M4WorldVectorEnv
+
+POLICIES = ("gap_keeper", "gap_keeper_blind_front_lidar", "cruise_lane_keeper")
+
+
+def plan(bundle, steps: int = 3) -> AgreementPlan:
+    return AgreementPlan(
+        policies=POLICIES, scenarios=("highway_dense_rain_dusk",), seeds=(1,), steps=steps, checkpoint=str(bundle)
+    )
+
+
+@pytest.fixture(scope="module")
+def finished_run(active_bundle, tmp_path_factory):
+    out = tmp_path_factory.mktemp("agreement")
+    return out, run_agreement(plan(active_bundle), out, videos=1, progress=False)
+
+
+def test_a_run_writes_its_report_summary_plot_and_videos(finished_run):
+    out, summary = finished_run
+    assert sorted(summary["policies"]) == sorted(POLICIES)
+    assert summary["agreement"]["episodes"] == len(POLICIES)
+    assert json.loads((out / "summary.json").read_text()) == summary
+    assert "Agreement over the zoo" in (out / "report.md").read_text()
+    assert (out / "scatter.png").stat().st_size > 10_000
+    (key, video), *_ = summary["videos"].items()
+    assert key == summary["disagreements"][0]["key"] and (out / video).stat().st_size > 1_000
+    progress = json.loads((out / "progress.json").read_text())
+    assert progress["cells_done"] == progress["cells"] == 2 and progress["running"] == []
+    assert not list((out / "running").glob("*.json"))  # each cell's step file goes with the cell
+
+
+def test_each_row_is_the_episode_m4world_eval_runs(finished_run, active_bundle):
+    out, _ = finished_run
+    for backend in ("procedural", "world_model"):
+        cell = json.loads((out / "episodes" / backend / "highway_dense_rain_dusk" / "seed1.json").read_text())
+        for record in cell["records"]:
+            checkpoint = str(active_bundle) if backend == "world_model" else None
+            alone = evaluate(
+                record["policy"],
+                ["highway_dense_rain_dusk"],
+                seed=1,
+                backend=backend,
+                checkpoint=checkpoint,
+                max_steps=3,
+                progress=False,
+            )["episodes"][0]
+            for k in ("pdms", "collision", "progress", "distance_m", "comfort", "min_ttc_s"):
+                assert record[k] == alone[k], (backend, record["policy"], k)
+
+
+def test_a_stopped_run_resumes_the_cells_it_had_not_finished(finished_run, active_bundle, monkeypatch, tmp_path):
+    out, summary = finished_run
+    resumed = tmp_path / "resumed"
+    for f in (out / "episodes").rglob("*.json"):
+        target = resumed / f.relative_to(out)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(f.read_text())
+    (resumed / "episodes" / "world_model" / "highway_dense_rain_dusk" / "seed1.json").unlink()
+    ran = []
+    real = agreement_run.run_cell
+    monkeypatch.setattr(
+        agreement_run, "run_cell", lambda cell, p, on_step=None: ran.append(cell) or real(cell, p, on_step)
+    )
+    again = run_agreement(plan(active_bundle), resumed, videos=0, progress=False)
+    assert [c.backend for c in ran] == ["world_model"]
+    assert again["policies"] == summary["policies"] and again["agreement"] == summary["agreement"]
+
+
+def test_a_run_refuses_to_resume_with_other_settings(finished_run, active_bundle):
+    out, _ = finished_run
+    with pytest.raises(ValueError, match="steps"):
+        run_agreement(plan(active_bundle, steps=4), out, videos=0, progress=False)
+
+
+def test_plans_name_every_cell_and_refuse_what_cannot_run():
+    p = AgreementPlan(policies=("a", "b"), scenarios=("s", "t"), seeds=(0, 1), steps=2)
+    assert len(cells(p)) == 8 and p.to_json()["checkpoint"] == "shipped"
+    with pytest.raises(ValueError, match="repeat"):
+        AgreementPlan(policies=("a", "a"), scenarios=("s",), seeds=(0,), steps=2)
+    with pytest.raises(ValueError, match="steps"):
+        AgreementPlan(policies=("a",), scenarios=("s",), seeds=(0,), steps=0)
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--policies", "nobody"], "unknown zoo policy"),
+        (["--scenarios", "no_such_road"], "no_such_road"),
+        (["--checkpoint", "/no/such/bundle"], "no bundle"),
+    ],
+)
+def test_the_command_refuses_bad_options_before_any_work(args, message, tmp_path, capsys):
+    assert main(["agreement", "--out", str(tmp_path / "run"), *args]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "run" / "episodes").exists()
+
+
+def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch):
+    """Three rows of one scene and seed and one of another: the reference model samples two first
+    frames, and every row equals a vector env of its own."""
+    from world_model.runtime import WorldModel
+
+    sampled = []
+    real = WorldModel.batch_first_frames
+
+    def counting(self, cond, frames, seeds):
+        sampled.append(len(frames))
+        return real(self, cond, frames, seeds)
+
+    monkeypatch.setattr(WorldModel, "batch_first_frames", counting)
+    shared = M4WorldVectorEnv(4, "merge_cut_in", "world_model", str(active_bundle))
+    obs, _ = shared.reset(seed=[3, 3, 5, 3])
+    assert sampled == [2]
+    actions = np.array([[0.5, 0.0], [-0.5, 0.1], [0.0, 0.0], [0.5, 0.0]], dtype=np.float32)
+    for _ in range(2):
+        obs, *_ = shared.step(actions)
+    apart = M4WorldVectorEnv(2, "merge_cut_in", "world_model", str(active_bundle))
+    alone, _ = apart.reset(seed=[3, 5])
+    for _ in range(2):
+        alone, *_ = apart.step(actions[[1, 2]])
+    for k in obs:
+        assert np.array_equal(obs[k][1], alone[k][0]) and np.array_equal(obs[k][2], alone[k][1])
+        assert np.array_equal(obs[k][0], obs[k][3])
+    shared.close()
+    apart.close()
+
+
+def test_cells_in_parallel_processes_give_the_same_episodes(finished_run, active_bundle, tmp_path):
+    out, summary = finished_run
+    parallel = run_agreement(plan(active_bundle), tmp_path / "parallel", videos=0, jobs=2, progress=False)
+    assert parallel["policies"] == summary["policies"] and parallel["jobs"] == 2
+    for backend in ("procedural", "world_model"):
+        name = f"episodes/{backend}/highway_dense_rain_dusk/seed1.json"
+        one = json.loads((out / name).read_text())["records"]
+        two = json.loads((tmp_path / "parallel" / name).read_text())["records"]
+        assert one == two
