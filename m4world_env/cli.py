@@ -11,6 +11,13 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from m4world_env.agreement import (
+    DEFAULT_SCENARIOS,
+    DEFAULT_SEEDS,
+    DEFAULT_VIDEOS,
+    FULL_SCENARIOS,
+    FULL_SEEDS,
+)
 from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
 from world_model.train.cli import non_negative_int as _non_negative_int
@@ -23,7 +30,8 @@ MAX_DEFAULT_JOBS = 4
 
 def default_jobs() -> int:
     """The CPUs this process may run on, at most :data:`MAX_DEFAULT_JOBS`."""
-    return max(1, min(len(os.sched_getaffinity(0)), MAX_DEFAULT_JOBS))
+    usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return max(1, min(usable, MAX_DEFAULT_JOBS))
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -195,12 +203,15 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         raise ValueError("--report scores the world model on one machine; --ray runs policy episodes only")
     if args.report:
         return _cmd_report(args)
-    from m4world_env.evaluate import evaluate, format_table, write_report
+    from m4world_env import zoo
+    from m4world_env.evaluate import evaluate, format_table, is_zoo_policy, write_report
     from m4world_env.scenario import list_scenarios
 
     if args.workers is not None and args.ray is None:
         raise ValueError("--workers spreads the episodes over Ray workers: add --ray [ADDRESS]")
     scenarios = list_scenarios() if args.scenarios == ["all"] else args.scenarios
+    if is_zoo_policy(args.policy):
+        zoo.member(args.policy)  # a version the zoo does not have is refused before any env is built
     options = {
         "episodes": args.episodes,
         "seed": args.seed,
@@ -230,7 +241,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 def _cmd_agreement(args: argparse.Namespace) -> int:
     from m4world_env import zoo
-    from m4world_env.agreement.run import AgreementPlan, default_plan, minutes, run_agreement
+    from m4world_env.agreement.run import AgreementPlan, default_plan, run_agreement
     from m4world_env.scenario import load_scenario
 
     _check_out(args.out, "folder")
@@ -239,13 +250,19 @@ def _cmd_agreement(args: argparse.Namespace) -> int:
     base = default_plan(full=args.full, checkpoint=args.checkpoint)
     policies = tuple(zoo.member(p).name for p in args.policies) if args.policies else base.policies
     scenarios = tuple(args.scenarios) if args.scenarios else base.scenarios
-    for name in scenarios:
-        load_scenario(name)  # a bad name or file is refused now, not after the first cells
-    seeds = tuple(range(args.seed, args.seed + args.seeds)) if args.seeds else base.seeds
+    seeds = tuple(range(args.seed, args.seed + (args.seeds or len(base.seeds))))
     plan = AgreementPlan(
         policies=policies, scenarios=scenarios, seeds=seeds, steps=args.steps or base.steps, checkpoint=args.checkpoint
     )
-    summary = run_agreement(plan, args.out, videos=args.videos, jobs=args.jobs)
+    for name in scenarios:
+        load_scenario(name)  # an unknown or broken scenario is refused now, not after the first cells
+    _print_agreement(run_agreement(plan, args.out, videos=args.videos, jobs=args.jobs), Path(args.out))
+    return 0
+
+
+def _print_agreement(summary: dict, out: Path) -> None:
+    from m4world_env.agreement.run import minutes
+
     a = summary["agreement"]
 
     def num(x: float | None) -> str:
@@ -257,8 +274,7 @@ def _cmd_agreement(args: argparse.Namespace) -> int:
         f"MMRV {num(a['mmrv'])}, mean |dPDMS| {num(a['mean_abs_delta'])}, "
         f"collision agreement {num(a['collision_agreement'])}"
     )
-    print(f"wrote {Path(args.out) / 'report.md'}, summary.json, scatter.png")
-    return 0
+    print(f"wrote {out / 'report.md'}, summary.json, scatter.png")
 
 
 def _cmd_zoo(args: argparse.Namespace) -> int:
@@ -591,7 +607,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ag.add_argument("--out", required=True, help="the run's folder (resumed when it holds the same run)")
     ag.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
-    ag.add_argument("--full", action="store_true", help="the large run: six scenarios, four seeds")
+    ag.add_argument(
+        "--full",
+        action="store_true",
+        help=f"the large run: {len(FULL_SCENARIOS)} scenarios, {FULL_SEEDS} seeds (default: "
+        f"{len(DEFAULT_SCENARIOS)} scenarios, {DEFAULT_SEEDS} seeds)",
+    )
     ag.add_argument("--policies", nargs="+", default=None, help="zoo members (default: all; m4world zoo lists them)")
     ag.add_argument("--scenarios", nargs="+", default=None, help="scenarios (default: the run size's)")
     ag.add_argument("--seeds", type=_positive_int, default=None, help="seeds per scenario (--seed, --seed + 1, ...)")
@@ -607,7 +628,7 @@ def build_parser() -> argparse.ArgumentParser:
     ag.add_argument(
         "--videos",
         type=_non_negative_int,
-        default=3,
+        default=DEFAULT_VIDEOS,
         help="side-by-side videos of the episodes the backends disagree on most",
     )
     ag.set_defaults(func=_cmd_agreement)

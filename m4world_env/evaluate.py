@@ -33,11 +33,17 @@ AGGREGATED = ("collision", "off_road", "progress", "ttc_violation", "comfort", "
 ROUTE_AGGREGATED = ("off_route", "route_deviation_max_m")
 
 
+def episode_policy_seed(env: gym.Env) -> int:
+    """A named policy's seed for the episode ``env`` has just been reset into: drawn from the env's
+    generator, so an episode replays from the env's seed alone."""
+    return int(env.unwrapped.np_random.integers(2**31 - 1))
+
+
 def _builtin_policy(name: str, env: gym.Env) -> Policy:
     from m4world_env import policies, zoo
 
     base = env.unwrapped
-    seed = int(base.np_random.integers(2**31 - 1))
+    seed = episode_policy_seed(env)
     if is_zoo_policy(name):
         return zoo.member(name).build(zoo.SensorGeometry.of_env(env), seed)
     if name == "random":

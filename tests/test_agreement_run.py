@@ -87,12 +87,20 @@ def test_a_run_refuses_to_resume_with_other_settings(finished_run, active_bundle
 
 
 def test_plans_name_every_cell_and_refuse_what_cannot_run():
-    p = AgreementPlan(policies=("a", "b"), scenarios=("s", "t"), seeds=(0, 1), steps=2)
-    assert len(cells(p)) == 8 and p.to_json()["checkpoint"] == "shipped"
-    with pytest.raises(ValueError, match="repeat"):
-        AgreementPlan(policies=("a", "a"), scenarios=("s",), seeds=(0,), steps=2)
-    with pytest.raises(ValueError, match="steps"):
-        AgreementPlan(policies=("a",), scenarios=("s",), seeds=(0,), steps=0)
+    p = AgreementPlan(policies=("gap_keeper", "bc_lidar_small"), scenarios=("s", "t"), seeds=(0, 1), steps=2)
+    assert len(cells(p)) == 8
+    fingerprint = p.to_json()
+    assert fingerprint["checkpoint"] == "shipped" and fingerprint["citations"] == ["gap_keeper@v1", "bc_lidar_small@v1"]
+    assert list(fingerprint["member_files"]) == ["bc_lidar_small"]  # its weights' digest: retrained weights differ
+    for flag, kwargs in (
+        ("--policies", {"policies": ("a", "a")}),
+        ("--scenarios", {"scenarios": ("s", "s")}),
+        ("--seeds", {"seeds": (1, 1)}),
+        ("--scenarios", {"scenarios": ("my/road.yaml",)}),
+        ("--steps", {"steps": 0}),
+    ):
+        with pytest.raises(ValueError, match=flag):
+            AgreementPlan(**{"policies": ("a",), "scenarios": ("s",), "seeds": (0,), "steps": 2, **kwargs})
 
 
 @pytest.mark.parametrize(
@@ -107,6 +115,17 @@ def test_the_command_refuses_bad_options_before_any_work(args, message, tmp_path
     assert main(["agreement", "--out", str(tmp_path / "run"), *args]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run" / "episodes").exists()
+
+
+def test_the_command_builds_its_plan_from_the_run_size_and_the_flags(tmp_path, monkeypatch):
+    plans = []
+    monkeypatch.setattr(agreement_run, "run_agreement", lambda plan, out, **kw: plans.append(plan) or {})
+    monkeypatch.setattr("m4world_env.cli._print_agreement", lambda summary, out: None)
+    assert main(["agreement", "--out", str(tmp_path / "a"), "--seed", "5"]) == 0
+    assert main(["agreement", "--out", str(tmp_path / "b"), "--full", "--seeds", "1", "--policies", "gap_keeper"]) == 0
+    default, full = plans
+    assert default.seeds == (5, 6) and default.scenarios == agreement_run.DEFAULT_SCENARIOS
+    assert full.seeds == (0,) and full.policies == ("gap_keeper",) and full.scenarios == agreement_run.FULL_SCENARIOS
 
 
 def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch):

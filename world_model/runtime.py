@@ -289,11 +289,13 @@ def save_untrained_bundle(
     )
 
 
-def start_key(arrays: ConditionArrays, seed: int) -> bytes:
-    """A digest of a rollout's first-frame condition arrays and seed: rollouts with equal keys start
-    from the same first frame."""
+def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
+    """A digest of a rollout's first-frame condition arrays, seed and the categories of the frame's
+    objects (a completion adapter redraws a frame by those): rollouts with equal keys start from
+    the same first frame."""
     digest = hashlib.blake2b(digest_size=16)
     digest.update(int(seed).to_bytes(8, "little", signed=True))
+    digest.update(",".join(sorted(o.category for o in frame.objects)).encode())
     for f in fields(arrays):
         value = np.ascontiguousarray(getattr(arrays, f.name))
         digest.update(f"{f.name}:{value.dtype}:{value.shape}".encode())
@@ -416,8 +418,9 @@ class RolloutBatch:
             self.gens[row] = torch.Generator().manual_seed(int(seed))
             self.first[row] = frame
         # Rows that start from the same controls and seed (one scene and seed under several
-        # policies) get the same first frame: it is sampled once and copied.
-        keys = [start_key(a, s) for a, s in zip(arrays, seeds, strict=True)]
+        # policies) get the same first frame: it is sampled once and copied (on CPU bit for bit
+        # what each row's own call gives; on a GPU the smaller batch may round differently).
+        keys = [start_key(a, s, f) for a, s, f in zip(arrays, seeds, frames, strict=True)]
         unique = list(dict.fromkeys(keys))
         firsts = [keys.index(k) for k in unique]
         latents, obs = self.wm.batch_first_frames(

@@ -1,7 +1,7 @@
 """The agreement run: every zoo policy on both backends over the same scenarios and seeds.
 
-    m4world agreement --out out/agreement              # the default size (this CPU: < 30 min)
-    m4world agreement --full --out out/agreement_full  # >= 6 scenarios x 4 seeds
+    m4world agreement --out out/agreement              # 3 scenarios x 2 seeds
+    m4world agreement --full --out out/agreement_full  # 6 scenarios x 4 seeds
     m4world agreement --checkpoint MY_BUNDLE --out out/agreement_mine
 
 The work is cut into cells, one per (backend, scenario, seed). A cell runs every policy at once in
@@ -13,12 +13,14 @@ settings); ``OUT/progress.json`` tells how far it is. At the end: ``summary.json
 ``scatter.png`` and, for the episodes the backends disagree on most, side-by-side videos
 (ground truth | world model, the policy's action and the score so far) in ``videos/``.
 
-A row's episode is exactly ``m4world eval --policy P --scenarios S --seed SEED --backend B``'s (the
-vector env equals single envs bit for bit on CPU, and the policy's seed is drawn the same way).
+A row's episode is exactly ``m4world eval --policy P --scenarios S --seed SEED --backend B
+--max-steps STEPS``'s (the vector env equals single envs bit for bit on CPU, and the policy's seed is
+drawn the same way). A run's wall time and its cells' own times are in its report.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -31,29 +33,20 @@ from typing import Any
 
 import numpy as np
 
-from m4world_env.agreement.render import build_summary, markdown_report, scatter_plot
+from m4world_env.agreement import (
+    DEFAULT_SCENARIOS,
+    DEFAULT_SEEDS,
+    DEFAULT_STEPS,
+    DEFAULT_VIDEOS,
+    FULL_SCENARIOS,
+    FULL_SEEDS,
+    FULL_STEPS,
+)
+from m4world_env.agreement.render import DEFAULT_TOP_K, build_summary, markdown_report, scatter_plot
 from m4world_env.zoo.base import SENSOR_KEYS
+from world_model.bundle import load_bundle_files, resolve_bundle
 
 BACKEND_PAIR = ("procedural", "world_model")
-# The default run's size is set by the world model's cost on a 2-core CPU without native bf16
-# (~0.5 s per env step and thread): three scenarios of different roads and light, two seeds, 4 s
-# of driving (a policy step is 0.2 s in every bundled scenario).
-DEFAULT_SCENARIOS = ("highway_sunny_day", "merge_cut_in", "two_way_overtake_dusk")
-DEFAULT_SEEDS = 2
-DEFAULT_STEPS = 20
-# --full: six scenarios (highway in sun and rain, a merge, a two-way road, fog on a roundabout, snow
-# with a stopped vehicle), four seeds, the same 4 s episodes.
-FULL_SCENARIOS = (
-    "highway_sunny_day",
-    "highway_dense_rain_dusk",
-    "merge_cut_in",
-    "two_way_overtake_dusk",
-    "roundabout_fog",
-    "stopped_vehicle_snow",
-)
-FULL_SEEDS = 4
-FULL_STEPS = DEFAULT_STEPS
-DEFAULT_VIDEOS = 3
 PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
 SHIPPED_CHECKPOINT = "shipped"  # how a plan names the bundle that comes with the package
 
@@ -71,15 +64,34 @@ class AgreementPlan:
     def __post_init__(self) -> None:
         if not self.policies or not self.scenarios or not self.seeds:
             raise ValueError("an agreement run needs at least one policy, scenario and seed")
-        if len(set(self.policies)) != len(self.policies):
-            raise ValueError(f"policies repeat in {list(self.policies)}")
+        for flag, values in (("--policies", self.policies), ("--scenarios", self.scenarios), ("--seeds", self.seeds)):
+            if len(set(values)) != len(values):
+                raise ValueError(f"{flag}: {list(values)} names one twice; each runs once")
+        for name in self.scenarios:
+            if Path(name).name != name or name.endswith((".yaml", ".yml")):
+                raise ValueError(f"--scenarios {name}: give a bundled scenario's name (m4world scenarios lists them)")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
-            raise ValueError(f"steps must be a positive integer, got {self.steps!r}")
+            raise ValueError(f"--steps must be a positive integer, got {self.steps!r}")
 
     def to_json(self) -> dict[str, Any]:
-        d = asdict(self)
+        """The plan as ``plan.json`` keeps it: with each member's citation and the digests of its
+        weight files and of the bundle's manifest, so a run never resumes with other drivers or
+        another model under the same names."""
+        from m4world_env import zoo
+
+        d = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
         d["checkpoint"] = SHIPPED_CHECKPOINT if self.checkpoint is None else str(Path(self.checkpoint).resolve())
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        members = [zoo.member(p) for p in self.policies]
+        d["citations"] = [m.citation for m in members]
+        d["member_files"] = {m.name: [_digest(f) for f in m.files] for m in members if m.files}
+        d["checkpoint_manifest"] = _digest(resolve_bundle(self.checkpoint) / "manifest.json")
+        return d
+
+
+def _digest(path: Path) -> str:
+    """The SHA-256 of a file's bytes (a missing file: "missing")."""
+    path = Path(path)
+    return hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
 
 
 @dataclass(frozen=True)
@@ -101,17 +113,25 @@ def cells(plan: AgreementPlan) -> list[Cell]:
     return [Cell(b, s, seed) for s in plan.scenarios for seed in plan.seeds for b in BACKEND_PAIR]
 
 
-def _write_json(path: Path, data: Any) -> None:
-    """``data`` to ``path`` atomically (a stopped run never leaves half a file)."""
+FILE_MODE = 0o644  # the run's files are for anyone who reads the report
+
+
+def _write_text(path: Path, text: str) -> None:
+    """``text`` to ``path`` atomically (a stopped run never leaves half a file)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
+            f.write(text)
+        os.chmod(tmp, FILE_MODE)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _write_json(path: Path, data: Any) -> None:
+    _write_text(path, json.dumps(data, indent=1))
 
 
 def _check_plan(plan: AgreementPlan, out: Path) -> None:
@@ -135,6 +155,7 @@ def run_cell(cell: Cell, plan: AgreementPlan, on_step: Callable[[int], None] | N
     vector env; returns one record per policy (its ``episode_metrics`` and who, where, what).
     ``on_step(t)`` is called after each step ``t`` (1, 2, ...)."""
     from m4world_env import zoo
+    from m4world_env.evaluate import episode_policy_seed
     from m4world_env.vector import M4WorldVectorEnv
 
     members = [zoo.member(name) for name in plan.policies]
@@ -149,10 +170,7 @@ def run_cell(cell: Cell, plan: AgreementPlan, on_step: Callable[[int], None] | N
     try:
         obs, infos = venv.reset(seed=[cell.seed] * n)
         geometry = zoo.SensorGeometry.of_env(venv.envs[0])
-        # Drawn as `m4world eval` draws a named policy's seed: after the reset, from the env's generator.
-        drivers = [
-            m.build(geometry, int(env.np_random.integers(2**31 - 1))) for m, env in zip(members, venv.envs, strict=True)
-        ]
+        drivers = [m.build(geometry, episode_policy_seed(env)) for m, env in zip(members, venv.envs, strict=True)]
         rows_obs = [{k: obs[k][i] for k in obs} for i in range(n)]
         rows_info: list[dict[str, Any]] = [{"speed": float(infos["speed"][i])} for i in range(n)]
         active = [True] * n
@@ -257,6 +275,7 @@ def run_agreement(
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
     out = Path(out)
+    load_bundle_files(plan.checkpoint)  # a missing or broken bundle is refused before any cell runs
     _check_plan(plan, out)
     todo = cells(plan)
     done = [json.loads(c.path(out).read_text()) for c in todo if c.path(out).exists()]
@@ -276,13 +295,17 @@ def run_agreement(
 
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
             running = {pool.submit(timed_cell, c, plan, out): c for c in left}
-            while running:
-                finished, _ = wait(running, timeout=PROGRESS_SECONDS, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    running.pop(future)
-                    done.append(future.result())
-                    bar.update(1)
-                tracker.update(done, list(running.values())[:jobs])
+            try:
+                while running:
+                    finished, _ = wait(running, timeout=PROGRESS_SECONDS, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        running.pop(future)
+                        done.append(future.result())
+                        bar.update(1)
+                    tracker.update(done, list(running.values())[:jobs])
+            except BaseException:
+                pool.shutdown(cancel_futures=True)  # a failed cell stops the run; the finished cells are kept
+                raise
     bar.close()
     tracker.update(done, [])
     records = [r for c in sorted(done, key=lambda c: (c["scenario"], c["seed"], c["backend"])) for r in c["records"]]
@@ -298,6 +321,7 @@ def run_agreement(
         steps=plan.steps,
         seconds=tracker.wall_seconds,
         members=members,
+        top_k=max(videos, DEFAULT_TOP_K),
     )
     if videos:
         summary["videos"] = write_videos(plan, summary["disagreements"][:videos], out / "videos", out)
@@ -308,7 +332,7 @@ def run_agreement(
     summary["cell_seconds"] = sum(c["seconds"] for c in done)
     summary["jobs"] = jobs
     _write_json(out / "summary.json", summary)
-    (out / "report.md").write_text(markdown_report(summary))
+    _write_text(out / "report.md", markdown_report(summary))
     scatter_plot(summary, out / "scatter.png")
     return summary
 

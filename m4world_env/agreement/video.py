@@ -17,7 +17,13 @@ import numpy as np
 from m4world_env.zoo.base import SENSOR_KEYS
 
 TEXT_HEIGHT_PX = 18  # one line of the caption under the mosaics
+TEXT_MARGIN_PX = 6  # the caption's left margin
+TEXT_BASELINE_PX = 13  # the first line's baseline, from the caption's top
+TEXT_SCALE, END_TEXT_SCALE = 0.42, 0.5  # OpenCV font scales: ~9 px and ~11 px letters
+END_TEXT_WIDTH_PX = 120  # room at the caption's right end for "COLLISION" / "OFF ROAD"
 SCALE = 2  # integer upscaling: the views are 112 x 64
+GAP_PX = 4  # white space between the two sides
+VIDEO_QUALITY = 8  # imageio's 0-10 scale, as the demo's video
 TEXT_COLOUR = (255, 255, 255)
 FAIL_COLOUR = (255, 90, 90)
 
@@ -81,10 +87,13 @@ def _panel(row: dict, label: str, size: tuple[int, int] | None = None) -> np.nda
     else:
         what = "-"
     lines = [f"{label}  step {row['step']}  speed {row['info']['speed']:.1f} m/s  PDMS so far {pdms:.2f}", what]
+    font = cv2.FONT_HERSHEY_SIMPLEX
     for k, text in enumerate(lines):
-        cv2.putText(caption, text, (6, 13 + k * TEXT_HEIGHT_PX), cv2.FONT_HERSHEY_SIMPLEX, 0.42, TEXT_COLOUR, 1)
+        origin = (TEXT_MARGIN_PX, TEXT_BASELINE_PX + k * TEXT_HEIGHT_PX)
+        cv2.putText(caption, text, origin, font, TEXT_SCALE, TEXT_COLOUR, 1)
     if row["ended"]:
-        cv2.putText(caption, row["ended"], (img.shape[1] - 120, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.5, FAIL_COLOUR, 1)
+        origin = (img.shape[1] - END_TEXT_WIDTH_PX, TEXT_BASELINE_PX)
+        cv2.putText(caption, row["ended"], origin, font, END_TEXT_SCALE, FAIL_COLOUR, 1)
     return np.concatenate([img, caption], axis=0)
 
 
@@ -104,12 +113,12 @@ def side_by_side_video(
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.stem}.partial{path.suffix}")
     try:
-        with imageio.get_writer(partial, fps=fps, codec="libx264", quality=8, macro_block_size=2) as writer:
+        with imageio.get_writer(partial, fps=fps, codec="libx264", quality=VIDEO_QUALITY, macro_block_size=2) as writer:
             for t in range(max(len(truth), len(model))):
                 left = _panel(truth[min(t, len(truth) - 1)], "ground truth")
                 size = (left.shape[1], left.shape[0] - 2 * TEXT_HEIGHT_PX)
                 right = _panel(model[min(t, len(model) - 1)], "world model", size)
-                gap = np.full((left.shape[0], 4, 3), 255, dtype=np.uint8)
+                gap = np.full((left.shape[0], GAP_PX, 3), 255, dtype=np.uint8)
                 frame = np.concatenate([left, gap, right], axis=1)
                 writer.append_data(np.pad(frame, ((0, frame.shape[0] % 2), (0, frame.shape[1] % 2), (0, 0))))
         partial.replace(path)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Protocol
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -109,14 +110,15 @@ class SensorPolicy:
         speed = float(info["speed"])
         previous, self._last_speed = self._last_speed, speed
         accel = 0.0 if previous is None else (speed - previous) / self.geometry.step_seconds
-        return self.drive(obs, EgoStatus(speed=speed, acceleration=accel))
+        sensors = {k: obs[k] for k in SENSOR_KEYS if k in obs}  # never "state", whatever the env's keys
+        return self.drive(sensors, EgoStatus(speed=speed, acceleration=accel))
 
     def drive(self, obs: Mapping[str, np.ndarray], status: EgoStatus) -> np.ndarray:
         raise NotImplementedError
 
 
-class PolicyBuilder(Protocol):
-    def __call__(self, geometry: SensorGeometry, seed: int) -> SensorPolicy: ...
+# Makes a member's policy for one episode from the car's geometry and the episode's seeds.
+Builder = Callable[[SensorGeometry, np.random.SeedSequence], "SensorPolicy"]
 
 
 @dataclass(frozen=True)
@@ -130,7 +132,8 @@ class ZooMember:
     version: int
     seed: int
     description: str
-    builder: Callable[[SensorGeometry, np.random.SeedSequence], SensorPolicy]
+    builder: Builder
+    files: tuple[Path, ...] = ()  # what the member loads (its weights): part of a run's fingerprint
 
     def __post_init__(self) -> None:
         if self.family not in FAMILIES:

@@ -314,6 +314,7 @@ def learned_member(spec: LearnedSpec, weights_dir: Path = WEIGHTS_DIR) -> ZooMem
         seed=spec.seed,
         description=spec.description,
         builder=build,
+        files=(path,),
     )
 
 

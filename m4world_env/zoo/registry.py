@@ -4,17 +4,18 @@ version goes up, so a harness's citation ``name@vN`` always means the same drive
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 
-from m4world_env.zoo.base import SensorGeometry, SensorPolicy, ZooMember
+from m4world_env.zoo.base import Builder, SensorGeometry, SensorPolicy, ZooMember
 from m4world_env.zoo.modular import GapKeeping, LaneCentring, ModularDriver
 from m4world_env.zoo.perturbed import Perturbed
 
 BASE_GAP, BASE_LANE = GapKeeping(), LaneCentring()
-HORIZON_BEAMS_DEG = (-2.0, 2.0)  # the beams a car ahead stands in at any range
+# The beams near the horizon: they meet a car from ~8.5 m on and pass over its roof nearer (the
+# LiDAR is 1.84 m up, a car 1.6 m tall).
+HORIZON_BEAMS_DEG = (-2.0, 2.0)
 FORWARD_SECTOR_DEG = (-30.0, 30.0)  # what a blinded forward LiDAR loses
 
 # name: (gap keeping, lane centring, description)
@@ -84,7 +85,31 @@ PERTURBED: dict[str, tuple[str, dict, str]] = {
 }
 
 
-Builder = Callable[[SensorGeometry, np.random.SeedSequence], SensorPolicy]
+# Each member's own seed, fixed with its name: adding or moving a member changes no other's noise.
+SEEDS: dict[str, int] = {
+    "gap_keeper": 100,
+    "gap_keeper_horizon": 101,
+    "gap_keeper_close": 102,
+    "gap_keeper_far": 103,
+    "gap_keeper_fast": 104,
+    "gap_keeper_slow": 105,
+    "gap_keeper_eager": 106,
+    "gap_keeper_gentle": 107,
+    "gap_keeper_narrow": 108,
+    "gap_keeper_wide": 109,
+    "gap_keeper_straight": 110,
+    "gap_keeper_soft_steer": 111,
+    "gap_keeper_hard_steer": 112,
+    "gap_keeper_faint_lines": 113,
+    "cruise_lane_keeper": 114,
+    "gap_keeper_lidar_noise": 200,
+    "gap_keeper_lidar_dropout": 201,
+    "gap_keeper_camera_noise": 202,
+    "gap_keeper_delay_2": 203,
+    "gap_keeper_delay_5": 204,
+    "gap_keeper_blind_front_camera": 205,
+    "gap_keeper_blind_front_lidar": 206,
+}
 
 
 def _modular_builder(gap: GapKeeping, lane: LaneCentring) -> Builder:
@@ -106,11 +131,11 @@ def _perturbed_builder(base: str, perturbation: dict) -> Builder:
 def rule_members() -> list[ZooMember]:
     """The modular and perturbed members, version 1, each with its own seed."""
     members = [
-        ZooMember(name, "modular", 1, 100 + i, description, _modular_builder(gap, lane))
-        for i, (name, (gap, lane, description)) in enumerate(MODULAR.items())
+        ZooMember(name, "modular", 1, SEEDS[name], description, _modular_builder(gap, lane))
+        for name, (gap, lane, description) in MODULAR.items()
     ]
     members += [
-        ZooMember(name, "perturbed", 1, 200 + i, description, _perturbed_builder(base, perturbation))
-        for i, (name, (base, perturbation, description)) in enumerate(PERTURBED.items())
+        ZooMember(name, "perturbed", 1, SEEDS[name], description, _perturbed_builder(base, perturbation))
+        for name, (base, perturbation, description) in PERTURBED.items()
     ]
     return members
