@@ -5,7 +5,8 @@ import math
 
 import pytest
 
-from m4world_env.agreement.render import build_summary, markdown_report, scatter_plot
+from m4world_env.agreement.plot import scatter_plot
+from m4world_env.agreement.render import build_summary, markdown_report
 from m4world_env.agreement.stats import (
     MODEL,
     TRUTH,

@@ -286,6 +286,10 @@ class BevSpec:
         return cls(**d)
 
 
+# A pixel's centre in the continuous image coordinates of CameraSpec.K: pixel j spans [j, j + 1).
+PIXEL_CENTRE = 0.5
+
+
 def road_points(camera: CameraSpec, mount_height: float, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(..., 2) LiDAR-frame (x forward, y left) m of the flat road (``mount_height`` below the
     LiDAR) seen at continuous pixel coordinates ``u`` (right) and ``v`` (down), both (...);

@@ -42,7 +42,8 @@ from m4world_env.agreement import (
     FULL_SEEDS,
     FULL_STEPS,
 )
-from m4world_env.agreement.render import DEFAULT_TOP_K, build_summary, markdown_report, scatter_plot
+from m4world_env.agreement.plot import scatter_plot
+from m4world_env.agreement.render import DEFAULT_TOP_K, build_summary, markdown_report
 from m4world_env.zoo.base import SENSOR_KEYS
 from world_model.bundle import load_bundle_files, resolve_bundle
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from world_model.sensors import CameraSpec, LidarSpec, road_points
+from world_model.sensors import PIXEL_CENTRE, CameraSpec, LidarSpec, road_points
 
 # Higher than the range noise of a ground return (a 10% range error at 20 m on a -5 deg beam lifts
 # it by ~0.2 m) and lower than any vehicle's bumper.
@@ -29,7 +29,6 @@ MIN_MARKING_OFFSET_M = 0.3
 MAX_MARKING_OFFSET_M = 0.9 * LANE_WIDTH_M
 # A row's marking farther than this from the band's median on its side is another line.
 MARKING_OUTLIER_M = 0.5
-PIXEL_CENTRE = 0.5  # pixel j spans [j, j + 1) in the coordinates of CameraSpec.K
 
 
 def lidar_points(

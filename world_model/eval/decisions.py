@@ -33,7 +33,7 @@ import numpy as np
 from scipy import ndimage
 
 from world_model.eval.segmenter import SCENE_CLASSES
-from world_model.sensors import CameraSpec, LidarSpec, road_points
+from world_model.sensors import PIXEL_CENTRE, CameraSpec, LidarSpec, road_points
 
 # 12 sectors: "ahead", "ahead-left", "left", ... -- the resolution at which a policy tells the
 # car in its lane from the one in the next lane at a few tens of metres.
@@ -53,8 +53,6 @@ P50, P95 = 50.0, 95.0
 FRONT_VIEW = "FRONT"
 VEHICLE = SCENE_CLASSES.index("vehicle")
 MARKING = SCENE_CLASSES.index("marking")
-# A pixel's centre, in the continuous image coordinates of CameraSpec.K (pixel j spans [j, j + 1)).
-PIXEL_CENTRE = 0.5
 # Fewer vehicle pixels than this are segmenter speckle: a car (1.9 x 1.6 m) 40 m ahead covers
 # about 12 pixels of the 64x112 FRONT view, a 2x2 blob is one about 70 m ahead.
 MIN_LEAD_PIXELS = 4
