@@ -213,7 +213,9 @@ def test_a_decoder_extended_to_read_the_surface_starts_as_it_drew_and_then_follo
     z = torch.randn(2, cfg.vae.latent_channels, *cfg.latent_hw)
     style = torch.randn(2, cfg.text.dim)
     with torch.no_grad():
-        assert torch.equal(extended.decode(z, labels, style), vae.decode(z, labels, style))
+        # Equal up to float rounding: a convolution over one more (zero) input channel may sum in
+        # another order on some CPUs' kernels.
+        torch.testing.assert_close(extended.decode(z, labels, style), vae.decode(z, labels, style), rtol=0, atol=1e-5)
         torch.nn.init.normal_(extended.decoder.label_mods[0].conv.weight[:, -1:], std=0.5)
         resurfaced = labels.clone()
         resurfaced[:, SURFACE_PLANE] = 255 - resurfaced[:, SURFACE_PLANE]
