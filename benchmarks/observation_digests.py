@@ -74,7 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.compare is None:
         return 0
     before = json.loads(args.compare.read_text())
-    differing = sorted(key for key in before.keys() | digests.keys() if before.get(key) != digests.get(key))
+    missing = sorted(key for key in digests if key not in before)
+    if missing:
+        print(f"{args.compare} has no digest of {len(missing)} of these observations, e.g. {missing[0]}")
+        return 1
+    differing = sorted(key for key in digests if before[key] != digests[key])
     for key in differing:
         print(f"differs: {key}")
     print(f"{len(digests) - len(differing)} of {len(digests)} observations identical")
