@@ -106,12 +106,7 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.action_type not in ACTION_TYPES:
             raise InvalidOptionError(f"config.action_type must be one of {ACTION_TYPES}, got {self.action_type!r}")
-        self.observation_keys = tuple(self.observation_keys)
-        bad = [k for k in self.observation_keys if k not in OBSERVATION_KEYS]
-        if bad or not self.observation_keys:
-            raise InvalidOptionError(
-                f"config.observation_keys must be a non-empty subset of {OBSERVATION_KEYS}, got {self.observation_keys}"
-            )
+        self.observation_keys = _observation_keys(self.observation_keys)
         for name in ("height", "width"):
             _check_int_range(getattr(self, name), MIN_VIEW_PX, MAX_VIEW_PX, f"config.{name}")
         _check_int_range(self.state_objects, 1, MAX_STATE_OBJECTS, "config.state_objects")
@@ -164,6 +159,25 @@ class EnvConfig:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
+
+
+def _observation_keys(keys: Any) -> tuple[str, ...]:
+    """``config.observation_keys`` as a tuple of distinct names from :data:`OBSERVATION_KEYS`: given
+    as a list or tuple, or as a set (taken in :data:`OBSERVATION_KEYS` order, the same in every
+    process). A string or a dict is refused rather than read as its characters or keys."""
+    wanted = f"a non-empty list of distinct keys from {OBSERVATION_KEYS}"
+    if not isinstance(keys, list | tuple | set | frozenset | np.ndarray):
+        raise InvalidOptionError(f"config.observation_keys must be {wanted}, got {keys!r}")
+    items = keys.tolist() if isinstance(keys, np.ndarray) else list(keys)
+    bad = [k for k in items if not isinstance(k, str) or k not in OBSERVATION_KEYS]
+    if bad or not items:
+        raise InvalidOptionError(f"config.observation_keys must be {wanted}, got {keys!r}")
+    repeated = sorted({k for k in items if items.count(k) > 1})
+    if repeated:
+        raise InvalidOptionError(f"config.observation_keys must be {wanted}, got {keys!r} ({repeated} repeated)")
+    if isinstance(keys, set | frozenset):
+        return tuple(k for k in OBSERVATION_KEYS if k in keys)
+    return tuple(items)
 
 
 def _check_int_range(value: Any, low: int, high: int, name: str) -> None:

@@ -9,6 +9,7 @@ state, highway-env style (:mod:`m4world_env.rewards`).
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping
 from typing import Any
 
@@ -31,6 +32,37 @@ from world_model.sensors import BevSpec, LidarSpec, default_rig
 
 STATE_FEATURES = ("presence", "x", "y", "vx", "vy", "cos_yaw", "sin_yaw", "length", "width")
 RESET_OPTIONS = ("reference",)
+# rgb_array: the newest frame's mosaic (render_fps = policy frequency, one per step);
+# rgb_array_list: every sensor frame's mosaic since the last render() (render_fps = sensor frequency).
+RENDER_MODES = ("rgb_array", "rgb_array_list")
+BACKEND_METHODS = ("reset", "reset_many", "step")  # what a shared backend must offer (SensorBackend)
+
+
+def check_render_mode(render_mode: object) -> None:
+    """Refuse a ``render_mode`` that is neither None nor one of :data:`RENDER_MODES`."""
+    if render_mode is not None and not (isinstance(render_mode, str) and render_mode in RENDER_MODES):
+        raise InvalidOptionError(f"render_mode must be one of {list(RENDER_MODES)} or None, got {render_mode!r}")
+
+
+class _RenderModes(list):
+    """The env's ``metadata["render_modes"]``. ``gymnasium.make`` looks a requested mode up here
+    before it builds the env and, for a mode that is not a string, then fails inside itself
+    (``mode.endswith``): such a mode is refused here, by name, instead."""
+
+    def __contains__(self, mode: object) -> bool:
+        if mode is not None and not isinstance(mode, str):
+            check_render_mode(mode)
+        return super().__contains__(mode)
+
+
+def check_seed(seed: object, name: str = "reset(seed=...)") -> int | None:
+    """``seed`` as a Python int (numpy integers accepted), or None; a bool, a float, a negative
+    number or anything else is refused by ``name``."""
+    if seed is None:
+        return None
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise InvalidOptionError(f"{name} must be a non-negative integer or None, got {seed!r}")
+    return int(seed)
 
 
 def _reset_options(options: Any) -> dict[str, Any]:
@@ -82,12 +114,26 @@ def observation_dict(keys: tuple[str, ...], obs: Observation, state: np.ndarray 
     return {k: v for k, v in sensors.items() if k in keys}
 
 
+def _check_shared_backend(shared_backend: object, backend_index: object) -> None:
+    """Refuse a ``shared_backend`` that is not a sensor backend, and a ``backend_index`` that names
+    no row of it."""
+    if shared_backend is not None and not all(callable(getattr(shared_backend, m, None)) for m in BACKEND_METHODS):
+        raise InvalidOptionError(
+            f"shared_backend must be None or a sensor backend with methods {BACKEND_METHODS} (the vector env "
+            f"passes its own; users leave it unset), got {type(shared_backend).__name__} {shared_backend!r}"
+        )
+    if isinstance(backend_index, bool) or not isinstance(backend_index, numbers.Integral) or backend_index < 0:
+        raise InvalidOptionError(f"backend_index must be a non-negative integer, got {backend_index!r}")
+    if shared_backend is None and backend_index != 0:
+        raise InvalidOptionError(
+            f"backend_index={backend_index!r} names a rollout of a shared_backend; without one it must be 0"
+        )
+
+
 class M4WorldEnv(gym.Env):
     """The M4World driving env. See the README for options; ``config`` keys in :class:`EnvConfig`."""
 
-    # rgb_array: the newest frame's mosaic (render_fps = policy frequency, one per step);
-    # rgb_array_list: every sensor frame's mosaic since the last render() (render_fps = sensor frequency).
-    metadata = {"render_modes": ["rgb_array", "rgb_array_list"], "render_fps": 10}
+    metadata = {"render_modes": _RenderModes(RENDER_MODES), "render_fps": 10}
 
     def __init__(
         self,
@@ -103,10 +149,8 @@ class M4WorldEnv(gym.Env):
         backend over its sub-envs; users leave them unset."""
         if backend not in BACKENDS:
             raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise InvalidOptionError(
-                f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
-            )
+        check_render_mode(render_mode)
+        _check_shared_backend(shared_backend, backend_index)
         self.cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
         if self.cfg.workers and shared_backend is None:
             raise InvalidOptionError(
@@ -202,7 +246,7 @@ class M4WorldEnv(gym.Env):
         """First half of :meth:`reset`: seed, check the options, reset the traffic. Returns the first
         SceneFrame, the options and the backend's seed (the vector env samples the first frames of
         several sub-envs in one backend call, then calls :meth:`finish_reset` on each)."""
-        super().reset(seed=seed)
+        super().reset(seed=check_seed(seed))
         # Until this reset succeeds the env holds no valid episode: a failed reset (e.g. a bad
         # reference image) leaves it asking for another reset rather than half-reset.
         self._needs_reset = True

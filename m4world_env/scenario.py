@@ -45,6 +45,7 @@ MAX_ROAD_LENGTH_M = 10_000.0  # any straight road, approach, arm or road section
 MAX_LANE_WIDTH_M = 8.0
 MAX_RADIUS_M = 500.0  # roundabout ring, turning lanes
 MAX_SPEED_MPS = 90.0  # ~320 km/h: speed limits, the ego's and scripted objects' speeds
+MIN_SPEED_LIMIT_MPS = 1.0  # walking pace; below it a road's target speeds and progress scale vanish
 MAX_POSITION_M = 20_000.0  # |x|, |y|, positions and offsets along a lane
 MAX_LATERAL_M = 20.0  # offset from a lane's centre
 MAX_YAW_RAD = 4 * math.pi
@@ -53,6 +54,12 @@ MIN_POLICY_FREQUENCY_HZ = 0.1
 MAX_FREQUENCY_HZ = 100.0
 MAX_FRAMES_PER_STEP = 20  # sensor frames per env step: one causal chunk of the world model
 MAX_OBJECT_SIZE_M = 30.0
+MIN_OBJECT_SIZE_M = 0.05  # a few centimetres: below it no camera pixel or LiDAR beam can see the box
+MIN_LANE_CHANGE_S = 0.5  # a cut-in's lateral move; faster is a jump, not a manoeuvre
+MIN_TRAFFIC_DENSITY = 0.01  # a hundredth of highway-env's spacing density: sparser is an empty road
+MAX_TRAFFIC_DENSITY = 10.0
+MAX_TRAFFIC_COUNT = 200
+TIME_TOLERANCE = 1e-9  # float rounding in products and ratios of seconds and hertz
 MAX_OBJECTS = 64
 MAX_WAYPOINTS = 10_000
 
@@ -60,6 +67,8 @@ MAX_WAYPOINTS = 10_000
 # otherwise take as 1 (``lanes: yes`` would build a one-lane road); ints stay ints (no 2.7 -> 2).
 Float = Annotated[float, Strict()]
 Int = Annotated[int, Strict()]
+# Text must be written as text: pydantic would otherwise decode bytes (YAML's ``!!binary``) into a str.
+Str = Annotated[str, Strict()]
 
 Category = Literal[CATEGORIES]  # type: ignore[valid-type]
 VehicleCategory = Literal[VEHICLE_CATEGORIES]  # type: ignore[valid-type]
@@ -85,7 +94,7 @@ def _check_color(value: str | tuple[int, int, int]) -> str | tuple[int, int, int
     return tuple(int(c) for c in value)
 
 
-Color = str | tuple[Int, Int, Int]
+Color = Str | tuple[Int, Int, Int]
 
 # ---------------------------------------------------------------------------------------- roads
 
@@ -96,13 +105,18 @@ class HighwayRoad(_Strict):
     type: Literal["highway"] = "highway"
     lanes: Int = Field(4, ge=1, le=8)
     length: Float = Field(2000.0, gt=50, le=MAX_ROAD_LENGTH_M)
-    speed_limit: Float = Field(30.0, gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(30.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
         """Lanes of the edge the ego and lane-placed objects start on (what ``lane`` fields index)."""
         return self.lanes
+
+    def length_along(self, lane: int) -> float:
+        """Metres of road straight on from the start of start lane ``lane``: the farthest an ego may
+        be placed on it (``ego.longitudinal``) and still stand on the road."""
+        return self.length
 
 
 class MergeRoad(_Strict):
@@ -114,14 +128,18 @@ class MergeRoad(_Strict):
     converging: Float = Field(80.0, gt=10, le=MAX_ROAD_LENGTH_M, description="length of the ramp's S-curve, m")
     merge_length: Float = Field(80.0, gt=10, le=MAX_ROAD_LENGTH_M, description="length of the acceleration lane, m")
     after: Float = Field(800.0, gt=10, le=MAX_ROAD_LENGTH_M, description="main road after the merge, m")
-    speed_limit: Float = Field(30.0, gt=0, le=MAX_SPEED_MPS)
-    ramp_speed_limit: Float = Field(20.0, gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(30.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
+    ramp_speed_limit: Float = Field(20.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
         """The main road before the ramp joins."""
         return self.lanes
+
+    def length_along(self, lane: int) -> float:
+        """The main road's whole length: it runs straight on past the ramp."""
+        return self.before + self.converging + self.merge_length + self.after
 
 
 class RoundaboutRoad(_Strict):
@@ -132,13 +150,17 @@ class RoundaboutRoad(_Strict):
     lanes: Int = Field(2, ge=1, le=3, description="ring lanes")
     access_length: Float = Field(150.0, gt=20, le=MAX_ROAD_LENGTH_M, description="length of each straight approach, m")
     entry_angle_deg: Float = Field(24.0, gt=5, lt=40, description="half-angle between entry and exit")
-    speed_limit: Float = Field(12.0, gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(12.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
         """The south approach is one lane (``lanes`` counts the ring's)."""
         return 1
+
+    def length_along(self, lane: int) -> float:
+        """The straight approach; past it the road bends onto the ring."""
+        return self.access_length
 
 
 class IntersectionRoad(_Strict):
@@ -147,13 +169,17 @@ class IntersectionRoad(_Strict):
     type: Literal["intersection"] = "intersection"
     arm_length: Float = Field(100.0, gt=20, le=MAX_ROAD_LENGTH_M)
     turn_radius: Float = Field(10.0, ge=4, le=MAX_RADIUS_M, description="radius of the right-turn lanes, m")
-    speed_limit: Float = Field(12.0, gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(12.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
         """One lane per direction: the south arm's incoming lane."""
         return 1
+
+    def length_along(self, lane: int) -> float:
+        """The south arm up to the crossing."""
+        return self.arm_length
 
 
 class TwoWayRoad(_Strict):
@@ -163,13 +189,16 @@ class TwoWayRoad(_Strict):
     lanes: Int = Field(1, ge=1, le=4, description="lanes in the ego's direction")
     oncoming_lanes: Int = Field(1, ge=1, le=4)
     length: Float = Field(1000.0, gt=50, le=MAX_ROAD_LENGTH_M)
-    speed_limit: Float = Field(20.0, gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(20.0, ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
 
     @property
     def start_lanes(self) -> int:
         """The ego's direction (oncoming lanes are not lane-addressable)."""
         return self.lanes
+
+    def length_along(self, lane: int) -> float:
+        return self.length
 
 
 Point = tuple[
@@ -178,9 +207,13 @@ Point = tuple[
 ]
 
 
+def _polyline_length(points: list[tuple[float, float]]) -> float:
+    return float(np.hypot(*np.diff(np.asarray(points, dtype=np.float64), axis=0).T).sum())
+
+
 def _check_polyline(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     p = np.asarray(points, dtype=np.float64)
-    if np.hypot(*np.diff(p, axis=0).T).sum() > MAX_ROAD_LENGTH_M:
+    if _polyline_length(points) > MAX_ROAD_LENGTH_M:
         raise ValueError(f"a polyline may be at most {MAX_ROAD_LENGTH_M:g} m long")
     if np.all(np.hypot(*(p - p[0]).T) < 1e-3):
         raise ValueError("a polyline needs at least two distinct points")
@@ -217,7 +250,7 @@ class RouteRoad(_Strict):
         ..., min_length=1, max_length=8, description="lane centerlines, leftmost first, all in the driving direction"
     )
     reference_path: PolylinePoints = Field(..., description="the path progress is measured along (the logged one)")
-    speed_limit: Float = Field(..., gt=0, le=MAX_SPEED_MPS)
+    speed_limit: Float = Field(..., ge=MIN_SPEED_LIMIT_MPS, le=MAX_SPEED_MPS)
     lane_width: Float = Field(4.0, gt=2, le=MAX_LANE_WIDTH_M)
     map: RouteMap | None = Field(None, description="drawn map and drivable area; absent: the lanes' strips")
 
@@ -225,6 +258,10 @@ class RouteRoad(_Strict):
     def start_lanes(self) -> int:
         """Every lane runs the route's whole length."""
         return len(self.lanes)
+
+    def length_along(self, lane: int) -> float:
+        """The lane's centerline."""
+        return _polyline_length(self.lanes[lane])
 
 
 Road = Annotated[
@@ -244,16 +281,23 @@ class EgoSpec(_Strict):
 
 
 class TrafficSpec(_Strict):
-    count: Int = Field(10, ge=0, le=200)
-    density: Float = Field(1.0, gt=0, le=10, description="1 = highway-env's default spacing; 2 = twice as dense")
+    count: Int = Field(10, ge=0, le=MAX_TRAFFIC_COUNT)
+    density: Float = Field(
+        1.0,
+        ge=MIN_TRAFFIC_DENSITY,
+        le=MAX_TRAFFIC_DENSITY,
+        description="1 = highway-env's default spacing; 2 = twice as dense",
+    )
     mix: dict[VehicleCategory, Float] = Field(default_factory=lambda: dict(DEFAULT_TRAFFIC_MIX))
-    colors: list[str] = Field(default_factory=lambda: list(DEFAULT_TRAFFIC_COLORS), min_length=1)
+    colors: list[Str] = Field(default_factory=lambda: list(DEFAULT_TRAFFIC_COLORS), min_length=1)
 
     @field_validator("mix")
     @classmethod
     def _mix_positive(cls, mix: dict[str, float]) -> dict[str, float]:
-        if not mix or any(w < 0 for w in mix.values()) or sum(mix.values()) <= 0:
-            raise ValueError("mix needs non-negative weights with a positive sum")
+        # Each weight is finite (allow_inf_nan); their sum must be too, or the normalized mix is NaN.
+        total = sum(mix.values())
+        if not mix or any(w < 0 for w in mix.values()) or not 0 < total < math.inf:
+            raise ValueError(f"mix needs non-negative weights whose sum is finite and positive, got {mix}")
         return mix
 
     @field_validator("colors")
@@ -333,7 +377,7 @@ class CutInTrack(_Strict):
     start: Float = Field(0.0, ge=-MAX_POSITION_M, le=MAX_POSITION_M)
     speed: Float = Field(..., ge=0, le=MAX_SPEED_MPS)
     time: Float = Field(..., ge=0, le=MAX_DURATION_S)
-    duration: Float = Field(2.0, gt=0, le=MAX_DURATION_S)
+    duration: Float = Field(2.0, ge=MIN_LANE_CHANGE_S, le=MAX_DURATION_S)
 
 
 Track = Annotated[StaticTrack | LaneFollowTrack | WaypointsTrack | CutInTrack, Field(discriminator="kind")]
@@ -342,11 +386,11 @@ Track = Annotated[StaticTrack | LaneFollowTrack | WaypointsTrack | CutInTrack, F
 class ObjectSpec(_Strict):
     """One scripted object."""
 
-    id: str = Field(..., min_length=1)
+    id: Str = Field(..., min_length=1)
     category: Category
     color: Color = "gray"
-    description: str = ""
-    image: str | None = None
+    description: Str = ""
+    image: Str | None = None
     size: tuple[Float, Float, Float] | None = Field(None, description="length, width, height; default by category")
     track: Track
 
@@ -365,8 +409,8 @@ class ObjectSpec(_Strict):
     @field_validator("size")
     @classmethod
     def _size(cls, v: tuple[Float, Float, Float] | None) -> tuple[Float, Float, Float] | None:
-        if v is not None and any(not (math.isfinite(s) and 0 < s <= MAX_OBJECT_SIZE_M) for s in v):
-            raise ValueError(f"size must be three lengths in (0, {MAX_OBJECT_SIZE_M:g}] m, got {v}")
+        if v is not None and any(not (math.isfinite(s) and MIN_OBJECT_SIZE_M <= s <= MAX_OBJECT_SIZE_M) for s in v):
+            raise ValueError(f"size must be three lengths in [{MIN_OBJECT_SIZE_M:g}, {MAX_OBJECT_SIZE_M:g}] m, got {v}")
         return v
 
     @property
@@ -386,7 +430,7 @@ class ObjectSpec(_Strict):
 
 
 class Scenario(_Strict):
-    name: str = Field(..., min_length=1)
+    name: Str = Field(..., min_length=1)
     road: Road
     duration: Float = Field(30.0, gt=0, le=MAX_DURATION_S, description="seconds")
     policy_frequency: Float = Field(
@@ -394,13 +438,13 @@ class Scenario(_Strict):
     )
     sensor_frequency: Float = Field(10.0, gt=0, le=MAX_FREQUENCY_HZ, description="sensor frames per second")
     substeps: Int = Field(1, ge=1, le=20, description="simulation steps per sensor frame")
-    prompt_text: str = Field("", alias="prompt")
+    prompt_text: Str = Field("", alias="prompt")
     weather: Weather = "sunny"
     time_of_day: TimeOfDay = "day"
     ego: EgoSpec = Field(default_factory=EgoSpec)
     traffic: TrafficSpec = Field(default_factory=TrafficSpec)
     objects: list[ObjectSpec] = Field(default_factory=list, max_length=MAX_OBJECTS)
-    adapters: list[str] = Field(
+    adapters: list[Str] = Field(
         default_factory=list, description="LoRA adapter names or paths; each goes into the model it was trained on"
     )
 
@@ -409,7 +453,7 @@ class Scenario(_Strict):
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
         ratio = self.sensor_frequency / self.policy_frequency
-        if abs(ratio - round(ratio)) > 1e-9 or not 1 <= round(ratio) <= MAX_FRAMES_PER_STEP:
+        if abs(ratio - round(ratio)) > TIME_TOLERANCE or not 1 <= round(ratio) <= MAX_FRAMES_PER_STEP:
             raise ValueError(
                 f"sensor_frequency / policy_frequency (sensor frames per env step) must be an integer in "
                 f"[1, {MAX_FRAMES_PER_STEP}], got {self.sensor_frequency} / {self.policy_frequency}"
@@ -428,7 +472,7 @@ class Scenario(_Strict):
     @property
     def num_steps(self) -> int:
         """Env steps in ``duration``."""
-        return max(1, math.ceil(self.duration * self.policy_frequency - 1e-9))
+        return max(1, math.ceil(self.duration * self.policy_frequency - TIME_TOLERANCE))
 
     @property
     def sim_dt(self) -> float:
@@ -459,8 +503,21 @@ def _yaml_path(loc: tuple, data: object) -> str:
     return ".".join(parts) or "<root>"
 
 
+MAX_SHOWN_VALUE_CHARS = 80  # a refused value is quoted in the message up to this length
+
+
+def _shown_value(error: dict) -> str:
+    """ ", got <value>" for an error about one value (not about a mapping or list, where the value
+    would be the whole subtree, nor about a missing key, where it is the parent)."""
+    value = error.get("input")
+    if error["type"] == "missing" or isinstance(value, dict | list):
+        return ""
+    text = repr(value)
+    return f", got {text if len(text) <= MAX_SHOWN_VALUE_CHARS else text[:MAX_SHOWN_VALUE_CHARS] + '...'}"
+
+
 def _format_validation_error(source: str, err: ValidationError, data: object = None) -> str:
-    return "\n".join(f"{source}: {_yaml_path(e['loc'], data)}: {e['msg']}" for e in err.errors())
+    return "\n".join(f"{source}: {_yaml_path(e['loc'], data)}: {e['msg']}{_shown_value(e)}" for e in err.errors())
 
 
 def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
@@ -472,6 +529,7 @@ def scenario_from_dict(data: object, source: str = "<dict>") -> Scenario:
     except ValidationError as err:
         raise ScenarioError(_format_validation_error(source, err, data)) from None
     _check_lanes(scenario, source)
+    _check_extents(scenario, source)
     return scenario
 
 
@@ -495,6 +553,27 @@ def _check_lanes(scenario: Scenario, source: str) -> None:
         for path, lane in _lane_fields(scenario)
         if lane >= n
     ]
+    if errors:
+        raise ScenarioError("\n".join(errors))
+
+
+def _check_extents(scenario: Scenario, source: str) -> None:
+    """Bounds that involve two fields: an episode lasts at least one policy step, and the ego
+    starts on the road (its lane must exist: after :func:`_check_lanes`)."""
+    errors = []
+    step_s = 1.0 / scenario.policy_frequency
+    if scenario.duration * scenario.policy_frequency < 1.0 - TIME_TOLERANCE:
+        errors.append(
+            f"{source}: duration: {scenario.duration!r} s is shorter than one policy step "
+            f"(1 / policy_frequency = {step_s:g} s)"
+        )
+    ego, road = scenario.ego, scenario.road
+    length = road.length_along(ego.lane)
+    if ego.longitudinal > length:
+        errors.append(
+            f"{source}: ego.longitudinal: {ego.longitudinal!r} m is past the road's end; the {road.type} road "
+            f"runs {length:g} m along lane {ego.lane} from where the ego starts"
+        )
     if errors:
         raise ScenarioError("\n".join(errors))
 
@@ -595,10 +674,13 @@ def randomize_scenario(
     n_colors = int(rng.integers(config.min_colors, len(NAMED_COLORS) + 1))
     colors = [str(c) for c in rng.choice(sorted(NAMED_COLORS), size=n_colors, replace=False)]
     top = round(config.count_scale_max * s.traffic.count) if s.traffic.count else config.empty_count_max
+    # Drawn first, then kept within the scenario's bounds (the draws stay those of every scenario).
+    count = min(int(rng.integers(0, top + 1)), MAX_TRAFFIC_COUNT)
+    density = s.traffic.density * rng.uniform(*config.density_scale)
     traffic = s.traffic.model_copy(
         update={
-            "count": int(rng.integers(0, top + 1)),
-            "density": float(s.traffic.density * rng.uniform(*config.density_scale)),
+            "count": count,
+            "density": float(min(max(density, MIN_TRAFFIC_DENSITY), MAX_TRAFFIC_DENSITY)),
             "mix": mix,
             "colors": colors,
         }

@@ -32,9 +32,10 @@ from gymnasium.vector.utils import batch_space
 
 from m4world_env.backends import SensorBackend, make_backend
 from m4world_env.config import EnvConfig, InvalidOptionError
-from m4world_env.env import M4WorldEnv
+from m4world_env.env import M4WorldEnv, check_render_mode, check_seed
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
+from m4world_env.traffic.actions import detached
 from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs
 
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
@@ -42,13 +43,20 @@ MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation a
 
 def reset_seeds(seed: int | list[int | None] | None, num_envs: int) -> list[int | None]:
     """Each sub-env's seed of ``reset(seed=...)``: ``s + i`` for an int ``s``, the list's own, or
-    None throughout."""
-    if seed is None or isinstance(seed, int | np.integer):
-        return [None if seed is None else int(seed) + i for i in range(num_envs)]
-    seeds = list(seed)
+    None throughout. Anything else (a bool, a float, a string, a list of another length) is refused
+    before any sub-env is touched."""
+    if seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool)):
+        first = check_seed(seed)
+        return [None if first is None else first + i for i in range(num_envs)]
+    seeds = seed.tolist() if isinstance(seed, np.ndarray) else seed
+    if not isinstance(seeds, list | tuple):
+        raise InvalidOptionError(
+            f"reset(seed=...) must be a non-negative integer s (sub-env i gets s + i), a list of {num_envs} "
+            f"such integers or None (one per sub-env), or None, got {seed!r}"
+        )
     if len(seeds) != num_envs:
         raise InvalidOptionError(f"reset(seed=list) needs {num_envs} seeds, got {len(seeds)}")
-    return seeds
+    return [check_seed(s, f"reset(seed=list): seed {i}") for i, s in enumerate(seeds)]
 
 
 def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dict[str, Any] | None, np.ndarray | None]:
@@ -71,7 +79,7 @@ def split_reset_mask(options: dict[str, Any] | None, num_envs: int) -> tuple[dic
 def batched_actions(actions: Any, num_envs: int) -> np.ndarray:
     """``actions`` as one array with a leading dimension of ``num_envs`` (one action per sub-env)."""
     try:
-        arr = np.asarray(actions)
+        arr = np.asarray(detached(actions))
     except ValueError as e:  # ragged nested lists
         raise InvalidOptionError(
             f"vector env expects an array of {num_envs} actions of equal shape (one per sub-env): {e}"
@@ -143,6 +151,7 @@ class M4WorldVectorEnv(VectorEnv):
             raise InvalidOptionError(f"unknown M4World vector env option(s) {sorted(kwargs)}")
         if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= MAX_ENVS:
             raise InvalidOptionError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {num_envs!r}")
+        check_render_mode(render_mode)
         cfg = config if isinstance(config, EnvConfig) else EnvConfig.from_dict(config)
         if cfg.workers:
             _check_workers(cfg.workers, num_envs, backend, render_mode)

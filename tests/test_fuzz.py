@@ -8,6 +8,8 @@ every run; ``FUZZ_EXAMPLES`` scales the number of cases per property.
 
 import copy
 import json
+import math
+import numbers
 import os
 import shutil
 import zlib
@@ -16,15 +18,18 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import m4world_env  # noqa: F401 (registers M4World-v0)
-from m4world_env.config import InvalidOptionError, UnknownOptionError
+from m4world_env import scenario as bounds
+from m4world_env.config import OBSERVATION_KEYS, EnvConfig, InvalidOptionError, UnknownOptionError
+from m4world_env.env import RENDER_MODES
 from m4world_env.scenario import SCENARIOS_DIR, ScenarioError, scenario_from_dict
 from m4world_env.traffic import ActionError
-from m4world_env.traffic.population import UnknownObjectError
+from m4world_env.traffic.population import EDITABLE, UnknownObjectError
 from world_model.bundle import CheckpointError, load_bundle_files
 
 EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "200"))
@@ -77,6 +82,10 @@ def _paths(tree, prefix=()):
 BASES = {p.stem: yaml.safe_load(p.read_text()) for p in sorted(SCENARIOS_DIR.glob("*.yaml"))}
 
 
+# What a YAML file can hold besides: bytes (``!!binary``) where text belongs.
+NASTY_YAML = st.one_of(NASTY, st.binary(max_size=4))
+
+
 @st.composite
 def mutated_scenarios(draw):
     data = copy.deepcopy(BASES[draw(st.sampled_from(sorted(BASES)))])
@@ -87,10 +96,25 @@ def mutated_scenarios(draw):
         for k in path[:-1]:
             cur = cur[k]
         if draw(st.booleans()):
-            cur[path[-1]] = draw(NASTY)
+            cur[path[-1]] = draw(NASTY_YAML)
         elif isinstance(cur, dict):
             del cur[path[-1]]
     return data
+
+
+def _assert_within_documented_bounds(data, scenario) -> None:
+    """An accepted scenario holds no bytes and respects docs/scenarios.md's physical bounds."""
+    assert not any(isinstance(v, bytes) for _, v in _paths(data))
+    road, traffic = scenario.road, scenario.traffic
+    assert scenario.duration * scenario.policy_frequency >= 1 - bounds.TIME_TOLERANCE
+    limits = [road.speed_limit, getattr(road, "ramp_speed_limit", road.speed_limit)]
+    assert all(bounds.MIN_SPEED_LIMIT_MPS <= v <= bounds.MAX_SPEED_MPS for v in limits)
+    assert bounds.MIN_TRAFFIC_DENSITY <= traffic.density <= bounds.MAX_TRAFFIC_DENSITY
+    assert 0 < sum(traffic.mix.values()) < math.inf
+    assert scenario.ego.longitudinal <= road.length_along(scenario.ego.lane)
+    for obj in scenario.objects:
+        assert all(bounds.MIN_OBJECT_SIZE_M <= v <= bounds.MAX_OBJECT_SIZE_M for v in obj.box_size)
+        assert getattr(obj.track, "duration", bounds.MIN_LANE_CHANGE_S) >= bounds.MIN_LANE_CHANGE_S
 
 
 @FUZZ
@@ -101,6 +125,7 @@ def test_mutated_scenarios_are_refused_by_field_or_run_finite(data):
     except ScenarioError as e:
         assert "fuzz.yaml" in str(e)
         return
+    _assert_within_documented_bounds(data, scenario)
     env = gym.make("M4World-v0", scenario=scenario, config={**SMALL, "observation_keys": ["cameras", "lidar", "state"]})
     try:
         obs, _ = env.reset(seed=0)
@@ -162,6 +187,66 @@ def test_config_dicts_are_refused_by_name_or_run_finite(config):
         env.close()
 
 
+@settings(FUZZ, max_examples=max(EXAMPLES // 4, 10))
+@given(
+    keys=st.one_of(NASTY, st.lists(st.sampled_from([*OBSERVATION_KEYS, "x"]), max_size=5), st.sets(st.text(max_size=6)))
+)
+def test_observation_keys_are_refused_by_name_or_observed_once_each(keys):
+    try:
+        cfg = EnvConfig.from_dict({"observation_keys": keys})
+    except InvalidOptionError as e:
+        assert "config.observation_keys" in str(e)
+        return
+    assert isinstance(keys, list | tuple | set) and not isinstance(keys, str)
+    assert sorted(cfg.observation_keys) == sorted(set(keys)) and len(cfg.observation_keys) == len(keys)
+
+
+@settings(FUZZ, max_examples=max(EXAMPLES // 4, 10))
+@given(mode=st.one_of(NASTY, st.sampled_from([*RENDER_MODES, b"rgb_array", ("rgb_array",)])))
+def test_render_modes_are_refused_by_name_or_rendered(mode):
+    try:
+        env = gym.make("M4World-v0", scenario="highway_sunny_day", render_mode=mode, config=SMALL)
+    except InvalidOptionError as e:
+        assert "render_mode" in str(e)
+        return
+    try:
+        assert mode is None or mode in (*RENDER_MODES, "human")  # gymnasium draws "human" from rgb_array
+        if mode in RENDER_MODES:
+            env.reset(seed=0)
+            assert env.render() is not None
+    finally:
+        env.close()
+
+
+def _is_seed(seed) -> bool:
+    return seed is None or (isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and seed >= 0)
+
+
+SEEDS = st.one_of(
+    NASTY,
+    st.integers(0, 2**70),
+    st.sampled_from([np.int64(3), np.uint8(2), np.float64(3.0), np.bool_(True), np.array([1, 2]), np.array(2)]),
+    st.lists(st.one_of(st.none(), st.integers(-2, 9), st.booleans(), st.floats()), min_size=1, max_size=3),
+)
+
+
+@settings(FUZZ, max_examples=max(EXAMPLES // 4, 10))
+@given(seed=SEEDS)
+def test_seeds_are_refused_by_name_or_seed_the_single_and_the_vector_env(vector_env, procedural_envs, seed):
+    env = procedural_envs["continuous"]
+    try:
+        env.reset(seed=seed)
+        assert _is_seed(seed)
+    except InvalidOptionError as e:
+        assert "reset(seed=" in str(e) and not _is_seed(seed)
+    try:
+        vector_env.reset(seed=seed)
+        per_env = seed.tolist() if isinstance(seed, np.ndarray) else seed
+        assert _is_seed(seed) or (isinstance(per_env, list) and len(per_env) == 2 and all(map(_is_seed, per_env)))
+    except InvalidOptionError as e:
+        assert "reset(seed=" in str(e)
+
+
 ACTIONS = st.one_of(
     NASTY,
     st.lists(NASTY, min_size=0, max_size=3),
@@ -169,7 +254,21 @@ ACTIONS = st.one_of(
     st.sampled_from(
         [np.array([0.5 + 1j, 0]), np.array(["a", "b"]), np.array([True, False]), np.zeros((2, 1)), np.zeros(2, "M8[s]")]
     ),
+    # What a torch policy hands over: tensors that need grad, in bfloat16, complex, of ints or bools.
+    st.builds(
+        lambda values, dtype, grad: torch.tensor(values, dtype=dtype, requires_grad=grad and dtype.is_floating_point),
+        st.lists(st.floats(-2, 2), min_size=0, max_size=3),
+        st.sampled_from([torch.float32, torch.bfloat16, torch.float64, torch.complex64, torch.int64, torch.bool]),
+        st.booleans(),
+    ),
 )
+
+
+@pytest.fixture(scope="module")
+def vector_env():
+    venv = gym.make_vec("M4World-v0", num_envs=2, vectorization_mode="vector_entry_point", config=SMALL)
+    yield venv
+    venv.close()
 
 
 @pytest.fixture(scope="module")
@@ -194,6 +293,25 @@ def test_actions_are_refused_or_stepped_finite(procedural_envs, kind, action):
         assert "action" in str(e)
         return
     _assert_finite_inside(env, obs, reward)
+
+
+@settings(FUZZ, max_examples=max(EXAMPLES // 20, 5))
+@given(
+    values=st.lists(st.floats(-1, 1, width=16), min_size=2, max_size=2),
+    dtype=st.sampled_from([torch.float32, torch.float64, torch.bfloat16, torch.float16]),
+    grad=st.booleans(),
+)
+def test_a_tensor_action_steps_as_its_values(procedural_envs, values, dtype, grad):
+    """A policy's output is an action as it comes: any float dtype, with or without a gradient."""
+    env = procedural_envs["continuous"]
+    tensor = torch.tensor(values, dtype=dtype, requires_grad=grad)
+    env.reset(seed=0)
+    expected = env.step(tensor.detach().float().numpy())
+    env.reset(seed=0)
+    got = env.step(tensor)
+    for key in expected[0]:
+        assert np.array_equal(expected[0][key], got[0][key]), key
+    assert expected[1:4] == got[1:4]
 
 
 RESET_OPTIONS = st.one_of(
@@ -249,6 +367,30 @@ def test_the_object_api_refuses_bad_ids_and_specs_by_name(procedural_envs, track
             call()
         except (*REFUSALS, TypeError) as e:
             assert str(e)
+
+
+@settings(FUZZ, max_examples=max(EXAMPLES // 4, 10))
+@given(field=st.sampled_from([*EDITABLE, "wings"]), value=st.one_of(NASTY, st.binary(max_size=3)))
+def test_object_edits_are_refused_by_field_or_within_the_bounds(procedural_envs, field, value):
+    env = procedural_envs["continuous"].unwrapped
+    env.reset(seed=0)
+    track_id = env.bridge.object_ids()[0]
+    try:
+        env.edit_object(track_id, **{field: value})
+    except ScenarioError as e:
+        assert f"edit_object({track_id}): " in str(e) and (field in str(e) or "track" in str(e)), e
+        return
+    if field == "speed":
+        assert _is_real(value) and 0 <= value <= bounds.MAX_SPEED_MPS
+    if field == "size" and value is not None:  # None: the category's size
+        assert all(_is_real(v) and bounds.MIN_OBJECT_SIZE_M <= v <= bounds.MAX_OBJECT_SIZE_M for v in value)
+    assert not isinstance(value, bytes)
+    obs, reward, *_ = env.step(env.action_space.sample())
+    _assert_finite_inside(env, obs, reward)
+
+
+def _is_real(value) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 # ------------------------------------------------------------------------------ corrupted bundles

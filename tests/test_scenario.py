@@ -1,3 +1,4 @@
+import re
 from pathlib import Path
 
 import numpy as np
@@ -152,3 +153,107 @@ def test_scenarios_check_cli_lists_good_files_and_refuses_bad_ones(tmp_path, cap
     assert "tiny" in capsys.readouterr().out
     assert main(["scenarios", "--check", str(bad)]) == 2
     assert f"{bad}: objects.0.track.lane: lane 5 does not exist" in capsys.readouterr().err
+
+
+# Values at physical absurdity: each passed load (or crashed in numpy) though nothing a policy
+# meets looks like it. The refusal names the file, the field and the value.
+TINY_OR_HUGE = {
+    "duration": ("duration: 4", "duration: 1.0e-300", "duration: 1e-300 s is shorter than one policy step"),
+    "density": (
+        "duration: 4",
+        "duration: 4\ntraffic: {density: 1.0e-300}",
+        "traffic.density: Input should be greater than or equal to 0.01, got 1e-300",
+    ),
+    "speed_limit": (
+        "lanes: 3}",
+        "lanes: 3, speed_limit: 1.0e-300}",
+        "road.speed_limit: Input should be greater than or equal to 1, got 1e-300",
+    ),
+    "size": ("color: red", "color: red\n    size: [1.0e-300, 2.0, 2.0]", "objects.0.size: Value error, size must be"),
+    "cut_in_duration": (
+        "kind: lane_follow, lane: 0, start: 50, speed: 10",
+        "kind: cut_in, from_lane: 0, to_lane: 1, speed: 9, time: 1, duration: 1.0e-300",
+        "objects.0.track.duration: Input should be greater than or equal to 0.5, got 1e-300",
+    ),
+    "mix": (
+        "duration: 4",
+        "duration: 4\ntraffic: {mix: {car: 1.0e+308, truck: 1.0e+308}}",
+        "traffic.mix: Value error, mix needs non-negative weights whose sum is finite and positive, got {'car': 1e+308",
+    ),
+    "ego_past_the_end": (
+        "duration: 4",
+        "duration: 4\nego: {lane: 1, longitudinal: 5000.0}",
+        "ego.longitudinal: 5000.0 m is past the road's end; the highway road runs 2000 m along lane 1",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(TINY_OR_HUGE))
+def test_physically_absurd_values_are_refused_naming_file_field_and_value(tmp_path, case):
+    old, new, expected = TINY_OR_HUGE[case]
+    assert old in GOOD
+    p = tmp_path / f"{case}.yaml"
+    p.write_text(GOOD.replace(old, new, 1))
+    with pytest.raises(ScenarioError) as info:
+        load_scenario(p)
+    msg = str(info.value)
+    assert msg.startswith(f"{p}: ") and expected in msg, msg
+
+
+@pytest.mark.parametrize(
+    "road, longitudinal, length",
+    [
+        ({"type": "roundabout"}, 151.0, "150"),
+        ({"type": "merge"}, 1200.0, "1110"),
+        ({"type": "intersection"}, 101.0, "100"),
+    ],
+)
+def test_the_ego_starts_on_the_road_of_every_road_type(road, longitudinal, length):
+    data = {"name": "t", "road": road, "ego": {"lane": 0, "longitudinal": longitudinal}}
+    with pytest.raises(ScenarioError, match=rf"<dict>: ego\.longitudinal: {longitudinal!r} m .* runs {length} m"):
+        scenario_from_dict(data)
+    scenario_from_dict({**data, "ego": {"lane": 0, "longitudinal": float(length)}})  # at the end: on it
+
+
+def test_text_fields_must_be_strings_not_bytes(tmp_path):
+    p = tmp_path / "binary.yaml"
+    p.write_text(GOOD.replace("name: tiny", "name: !!binary dGlueQ=="))  # b"tiny"
+    with pytest.raises(ScenarioError, match=rf"^{p}: name: Input should be a valid string, got b'tiny'"):
+        load_scenario(p)
+    for field in ("prompt", "adapters", "objects.0.id", "objects.0.description", "objects.0.color"):
+        data = scenario_from_dict(_yaml(GOOD)).model_dump(by_alias=True)
+        cur = data
+        *parents, last = field.split(".")
+        for key in parents:
+            cur = cur[int(key)] if key.isdigit() else cur[key]
+        cur[last] = [b"x"] if last == "adapters" else b"red"
+        with pytest.raises(ScenarioError, match=re.escape(f"<dict>: {field}")):
+            scenario_from_dict(data)
+
+
+def _yaml(text: str) -> dict:
+    import yaml
+
+    return yaml.safe_load(text)
+
+
+def test_a_lane_placed_object_past_the_road_end_is_refused_where_the_road_is_built():
+    from m4world_env.traffic.bridge import check_reset
+
+    data = _yaml(GOOD)
+    data["objects"][0]["track"]["start"] = 5000.0
+    with pytest.raises(ScenarioError, match=r"objects\.box\.track: start: 5000\.0 m is past the road's end; .* 2000 m"):
+        check_reset(scenario_from_dict(data), "t.yaml")
+
+
+def test_randomized_scenarios_stay_within_the_bounds():
+    """Draws scale density by up to 1.6 and count by up to 2: near the bounds they are kept inside."""
+    data = _yaml(GOOD)
+    data["traffic"] = {"count": 150, "density": 9.0}
+    crowded = scenario_from_dict(data)
+    data["traffic"] = {"count": 0, "density": 0.011}
+    sparse = scenario_from_dict(data)
+    for k in range(12):
+        for s in (crowded, sparse):
+            drawn = randomize_scenario(s, np.random.default_rng(k))
+            scenario_from_dict(drawn.model_dump(by_alias=True))  # what the traffic bridge re-validates

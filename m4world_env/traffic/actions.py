@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from numbers import Integral
 
@@ -34,6 +35,22 @@ class ActionConfig:
         return np.linspace(lo * speed_limit, hi * speed_limit, self.target_speed_count)
 
 
+def detached(action: object) -> object:
+    """``action`` with a torch tensor in it (the action itself, or items of its list or tuple) as a
+    CPU numpy array, out of any autograd graph: a policy's output is an action as it comes, on any
+    device. Everything else is returned as it is."""
+    torch = sys.modules.get("torch")  # no tensor exists before torch is imported: nothing to convert
+    if torch is None:
+        return action
+    if isinstance(action, torch.Tensor):
+        tensor = action.detach()
+        # numpy has no bfloat16; float32 holds every bfloat16 value exactly.
+        return (tensor.float() if tensor.dtype == torch.bfloat16 else tensor).numpy(force=True)
+    if isinstance(action, list | tuple) and any(isinstance(a, torch.Tensor) for a in action):
+        return [detached(a) for a in action]
+    return action
+
+
 def _lmap(v: float, rng: tuple[float, float]) -> float:
     """highway-env's utils.lmap from [-1, 1] to ``rng``."""
     return rng[0] + (v + 1.0) * (rng[1] - rng[0]) / 2.0
@@ -45,7 +62,7 @@ def continuous_controls(action: object, cfg: ActionConfig) -> dict[str, float]:
     the RIGHT (policies trained on highway-env keep their meaning). ``EgoState.steering`` reports
     the same angle in our counter-clockwise convention (negated). Raises :class:`ActionError`."""
     try:
-        raw = np.asarray(action)
+        raw = np.asarray(detached(action))
     except (TypeError, ValueError, OverflowError) as err:
         raise ActionError(f"continuous action must be numeric [acceleration, steering], got {action!r}") from err
     # Only real numbers: strings, booleans, complex numbers, dates (and ints too large for any dtype,
@@ -70,6 +87,7 @@ def continuous_controls(action: object, cfg: ActionConfig) -> dict[str, float]:
 
 def meta_action(action: object) -> str:
     """0..4 -> "LANE_LEFT" .. "SLOWER". Raises :class:`ActionError` on bad input."""
+    action = detached(action)
     if isinstance(action, np.ndarray) and action.size == 1 and np.issubdtype(action.dtype, np.integer):
         action = action.reshape(()).item()
     if isinstance(action, bool) or not isinstance(action, Integral):

@@ -81,6 +81,18 @@ class LanePath:
             idx = (idx[1], to, min(idx[2], len(nxt[to]) - 1))
             self.lanes.append(network.get_lane(idx))
 
+    @property
+    def length(self) -> float:
+        return float(sum(lane.length for lane in self.lanes))
+
+    def check_placed(self, s: float, field: str) -> None:
+        """Raise ValueError if ``s`` (the track's ``field``, metres along the path) lies past the
+        road's end: the object would stand off the map."""
+        if s > self.length:
+            raise ValueError(
+                f"{field}: {s!r} m is past the road's end; the road runs {self.length:g} m along this lane"
+            )
+
     def locate(self, s: float) -> tuple[AbstractLane, float]:
         for lane in self.lanes[:-1]:
             if s <= lane.length:
@@ -104,22 +116,25 @@ def make_track(spec: ObjectSpec, network: RoadNetwork, edge: tuple[str, str]) ->
     tr = spec.track
     n_lanes = len(network.graph[edge[0]][edge[1]])
 
-    def lane_path(lane: int) -> LanePath:
+    def lane_path(lane: int, s: float, field: str) -> LanePath:
         if lane >= n_lanes:
             raise ValueError(f"object {spec.id!r}: lane {lane} does not exist; edge {edge} has {n_lanes} lanes")
-        return LanePath(network, (edge[0], edge[1], lane))
+        path = LanePath(network, (edge[0], edge[1], lane))
+        path.check_placed(s, field)
+        return path
 
     if isinstance(tr, StaticTrack):
         if tr.lane is not None:
-            pose = lane_path(tr.lane).pose(tr.longitudinal, -tr.lateral)  # our left = highway-env's -lateral
+            path = lane_path(tr.lane, tr.longitudinal, "longitudinal")
+            pose = path.pose(tr.longitudinal, -tr.lateral)  # our left = highway-env's -lateral
         else:
             pose = world_to_highway(tr.x, tr.y, tr.yaw)
         return lambda t: pose
     if isinstance(tr, LaneFollowTrack):
-        path = lane_path(tr.lane)
+        path = lane_path(tr.lane, tr.start, "start")
         return lambda t: path.pose(tr.start + tr.speed * t)
     if isinstance(tr, CutInTrack):
-        a, b = lane_path(tr.from_lane), lane_path(tr.to_lane)
+        a, b = lane_path(tr.from_lane, tr.start, "start"), lane_path(tr.to_lane, tr.start, "start")
 
         def cut_in(t: float) -> Pose:
             s = tr.start + tr.speed * t

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 from highway_env.road.road import Road
 
-from m4world_env.scenario import LaneFollowTrack, ObjectSpec, Scenario, ScenarioError
+from m4world_env.scenario import MAX_SPEED_MPS, LaneFollowTrack, ObjectSpec, Scenario, ScenarioError
 from m4world_env.traffic.objects import (
     CATEGORY_NOUNS,
     Appearance,
@@ -133,6 +134,7 @@ def make_scripted(road: Road, layout: RoadLayout, spec: ObjectSpec, source: str)
     try:
         if isinstance(spec.track, LaneFollowTrack) and spec.track.mode == "idm":
             path = LanePath(layout.network, (*layout.ego_edge, spec.track.lane))
+            path.check_placed(spec.track.start, "start")
             x, y, h = path.pose(spec.track.start)
             v = TrafficVehicle(
                 road, [x, y], h, spec.track.speed, target_speed=spec.track.speed, enable_lane_change=False
@@ -177,20 +179,26 @@ def departed(road: Road, ego: Vehicle, cfg: PopulationConfig) -> list:
 def edit(
     road: Road, layout: RoadLayout, obj: TrafficVehicle | ScriptedObject, changes: dict
 ) -> TrafficVehicle | ScriptedObject:
-    """Apply ``changes`` to ``obj``; returns the object to keep (a new one if the track changed)."""
+    """Apply ``changes`` to ``obj``; returns the object to keep (a new one if the track changed).
+    Raises :class:`ScenarioError` naming the field, and then changes nothing."""
+    source = f"edit_object({obj.track_id})"
     bad = sorted(set(changes) - set(EDITABLE))
     if bad:
-        raise ValueError(f"cannot edit {bad}; editable fields: {EDITABLE}")
+        raise ScenarioError(f"{source}: cannot edit {bad}; editable fields: {EDITABLE}")
     look = obj.appearance
     spec = getattr(obj, "spec", None)
     if "track" in changes:
         if spec is None:
-            raise ValueError(f"{obj.track_id!r} is IDM traffic: it has no scripted track to replace")
+            raise ScenarioError(
+                f"{source}: track: {obj.track_id!r} is IDM traffic: it has no scripted track to replace"
+            )
         data = {**spec.model_dump(), **changes}
-        return make_scripted(road, layout, parse_spec(data, f"edit_object({obj.track_id})"), "edit_object")
+        return make_scripted(road, layout, parse_spec(data, source), "edit_object")
     if "speed" in changes and not is_vehicle(obj):
-        raise ValueError(f"{obj.track_id!r} follows a scripted track: change its motion with track=..., not speed")
-    speed = _checked_speed(changes["speed"]) if "speed" in changes else None  # checked before anything changes
+        raise ScenarioError(
+            f"{source}: speed: {obj.track_id!r} follows a scripted track: change its motion with track=..., not speed"
+        )
+    speed = _checked_speed(changes["speed"], source) if "speed" in changes else None  # before anything changes
     category = changes.get("category", look.category)
     probe = {
         "id": obj.track_id,
@@ -203,7 +211,7 @@ def edit(
     }
     if isinstance(probe["color"], str) and probe["color"].startswith("rgb("):
         probe["color"] = look.color
-    checked = parse_spec(probe, f"edit_object({obj.track_id})")  # validates every appearance field
+    checked = parse_spec(probe, source)  # validates every appearance field
     keep_text = "description" not in changes and "category" not in changes and "color" not in changes
     new_look = Appearance(
         category=checked.category,
@@ -226,11 +234,8 @@ def edit(
     return obj
 
 
-def _checked_speed(value: object) -> float:
-    try:
-        speed = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        speed = math.nan
-    if not (math.isfinite(speed) and speed >= 0):
-        raise ValueError(f"speed must be a finite, non-negative number, got {value!r}")
-    return speed
+def _checked_speed(value: object, source: str) -> float:
+    """A target speed, m/s, within the scenarios' speed bounds (bools and strings are not numbers)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 <= value <= MAX_SPEED_MPS:
+        raise ScenarioError(f"{source}: speed: must be a number in [0, {MAX_SPEED_MPS:g}] m/s, got {value!r}")
+    return float(value)
