@@ -157,7 +157,6 @@ def test_non_string_config_keys_are_refused():
 def test_render_mode_must_be_a_known_mode():
     from m4world_env.env import M4WorldEnv
 
-    # (gymnasium.make itself fails on a non-string render_mode before it builds the env)
     for mode in (1, "human", "rgb"):
         with pytest.raises(InvalidOptionError, match="render_mode"):
             M4WorldEnv(scenario="highway_sunny_day", render_mode=mode, config=SMALL)
