@@ -50,6 +50,7 @@ from world_model.model.config import ModelConfig, with_student_settings  # noqa:
 from world_model.model.flow import gaussian, predict_x0  # noqa: E402
 from world_model.precision import DTYPES, resolve_bf16, resolve_device  # noqa: E402
 from world_model.student import StreamingEngine, StudentConfig, cat_frames, few_step_sample, rollout_blocks  # noqa: E402
+from world_model.student.config import TRAINING_STREAMING  # noqa: E402
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
 
@@ -217,14 +218,14 @@ def cache_vs_recompute(model: MultiViewDiT, envs: int, repeats: int) -> dict:
     a drift of the shared machine's speed hits all alike. ``cached_refresh_late``: the context
     frame refreshed at the last two denoising steps only (``refresh_steps``)."""
     out = {"envs": envs, "window": model.cfg.clip.context_frames}
-    n = StudentConfig().num_steps
+    no_refresh = StudentConfig(streaming=dataclasses.replace(TRAINING_STREAMING, context_refresh=False))
     configs = {
         "cached_refresh": StudentConfig(),
-        "cached_refresh_late": StudentConfig(refresh_steps=(n - 2, n - 1)),
-        "cached_no_refresh": StudentConfig(context_refresh=False),
+        "cached_refresh_late": StudentConfig(streaming=dataclasses.replace(TRAINING_STREAMING, refresh_steps=(-2, -1))),
+        "cached_no_refresh": no_refresh,
     }
     steps = {name: warm_engine(model, scfg, envs)[1] for name, scfg in configs.items()}
-    steps["recompute"] = warm_engine(model, StudentConfig(context_refresh=False), envs, RecomputeWindow)[1]
+    steps["recompute"] = warm_engine(model, no_refresh, envs, RecomputeWindow)[1]
     out |= interleaved(steps, repeats)
     for name in configs:
         if name != "recompute":

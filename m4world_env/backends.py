@@ -16,7 +16,7 @@ from typing import Protocol
 
 import numpy as np
 
-from m4world_env.config import BACKENDS, REFRESH_ALL, EnvConfig, InvalidOptionError
+from m4world_env.config import BACKENDS, STREAMING_NAMES, EnvConfig, InvalidOptionError
 from world_model.conditioning import ConditionBuilder
 from world_model.model.conditions import ConditionArrays
 from world_model.observation import Observation
@@ -24,6 +24,7 @@ from world_model.precision import resolve_device
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
 from world_model.sim.reference_crops import ReferenceCrops
+from world_model.streaming import StreamingConfigError
 
 
 class SensorBackend(Protocol):
@@ -180,18 +181,10 @@ class WorldModelBackend:
             torch.set_num_threads(mc.threads)
         self.wm = load_world_model(checkpoint, device=device, dtype=mc.dtype)
         try:
-            every_step = mc.refresh_steps == REFRESH_ALL
-            self.streaming = self.wm.streaming.override(
-                denoising_steps=mc.denoising_steps,
-                context_refresh=mc.context_refresh,
-                refresh_steps=None if every_step else mc.refresh_steps,
-                sink_frames=mc.sink_frames,
-            )
-            if every_step:
-                self.streaming = replace(self.streaming, refresh_steps=None)
-            self.wm.student_cfg = self.streaming.apply(self.wm.student_cfg)
-        except ValueError as e:  # e.g. refresh_steps beyond the denoising steps
-            raise InvalidOptionError(f"config.model: {e}") from e
+            self.streaming = self.wm.streaming.override(mc.streaming_changes(), STREAMING_NAMES)
+        except StreamingConfigError as e:  # e.g. refresh_steps beyond the bundle's denoising steps
+            raise InvalidOptionError(str(e)) from e
+        self.wm.student_cfg = replace(self.wm.student_cfg, streaming=self.streaming)
         if mc.compile:
             self.wm.student.compile_blocks()
         self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame)

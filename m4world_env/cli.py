@@ -8,7 +8,6 @@ import logging
 import os
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 from m4world_env.agreement import (
@@ -20,6 +19,7 @@ from m4world_env.agreement import (
 )
 from m4world_env.config import ACTION_TYPES
 from world_model.precision import DTYPES
+from world_model.streaming import STREAMING_BOUNDS
 from world_model.train.cli import non_negative_int as _non_negative_int
 from world_model.train.cli import positive_int as _positive_int
 
@@ -309,18 +309,28 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+# How m4world streaming spells each streaming setting in error messages.
+STREAMING_FLAGS = {
+    "denoising_steps": "--denoising-steps",
+    "context_refresh": "--[no-]refresh",
+    "refresh_steps": "--refresh-steps",
+    "sink_frames": "--sink-frames",
+}
+
+
 def _cmd_streaming(args: argparse.Namespace) -> int:
     from world_model.bundle import load_bundle_files, set_streaming
-    from world_model.student.streaming import STREAMING_FILE, StreamingConfig
+    from world_model.streaming import REFRESH_EVERY_STEP, STREAMING_FILE, StreamingConfig, check_changes
 
+    changes = {"denoising_steps": args.denoising_steps, "sink_frames": args.sink_frames}
+    if args.refresh_steps is not None:
+        every = args.refresh_steps == REFRESH_EVERY_STEP
+        changes["refresh_steps"] = REFRESH_EVERY_STEP if every else _step_list(args.refresh_steps)
+    changes["context_refresh"] = args.refresh
+    changes = check_changes({k: v for k, v in changes.items() if v is not None}, STREAMING_FLAGS)
     files = load_bundle_files(args.checkpoint)
     current = StreamingConfig.from_dict(files.streaming or {}, str(files.path / STREAMING_FILE))
-    refresh = None if args.refresh_steps in (None, "all") else _step_list(args.refresh_steps)
-    chosen = current.override(denoising_steps=args.denoising_steps, refresh_steps=refresh, sink_frames=args.sink_frames)
-    if args.refresh_steps == "all":
-        chosen = replace(chosen, refresh_steps=None)
-    if args.no_refresh:
-        chosen = replace(chosen, context_refresh=False)
+    chosen = current.override(changes, STREAMING_FLAGS)
     if args.write:
         set_streaming(files.path, chosen)
         print(f"wrote {files.path / STREAMING_FILE} and its manifest entry")
@@ -559,10 +569,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="show (or, with --write, set) a bundle's streaming.json: how the env and the report run the student",
     )
     st.add_argument("--checkpoint", default=None, help="bundle folder (default: the shipped one)")
-    st.add_argument("--denoising-steps", type=int, default=None)
-    st.add_argument("--refresh-steps", default=None, help="comma-separated step indices (-1 = the last), or all")
-    st.add_argument("--no-refresh", action="store_true", help="turn the context refresh off")
-    st.add_argument("--sink-frames", type=int, default=None)
+    st.add_argument(
+        "--denoising-steps",
+        type=int,
+        default=None,
+        help=f"denoising steps per chunk, {STREAMING_BOUNDS['denoising_steps']}",
+    )
+    st.add_argument(
+        "--refresh-steps",
+        default=None,
+        help="the denoising steps that refresh the context frame: comma-separated indices (0 = the first, "
+        "-1 = the last; each -n <= k < n for n denoising steps), or all",
+    )
+    st.add_argument(
+        "--refresh",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="turn the latent context refresh on or off (--no-refresh)",
+    )
+    st.add_argument(
+        "--sink-frames",
+        type=int,
+        default=None,
+        help=f"first frames of a rollout kept in context beside the window, {STREAMING_BOUNDS['sink_frames']}",
+    )
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)
 

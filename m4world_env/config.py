@@ -16,6 +16,7 @@ from typing import Any, get_args, get_origin, get_type_hints
 import numpy as np
 
 from world_model.precision import DTYPES
+from world_model.streaming import STREAMING_BOUNDS, StreamingConfigError, check_changes
 
 ACTION_TYPES = ("continuous", "discrete_meta")
 OBSERVATION_KEYS = ("cameras", "lidar", "bev", "state")
@@ -23,14 +24,11 @@ BACKENDS = ("procedural", "world_model")
 # Bounds that keep every call finite in time and memory and every reward finite.
 MAX_REWARD_WEIGHT = 1.0e3
 MAX_SPEED_RANGE_MPS = 100.0
-MAX_DENOISING_STEPS = 50  # the student is distilled for 4; the teacher's sampler uses 20
-MAX_SINK_FRAMES = 64
 MAX_STATE_OBJECTS = 256
 MIN_VIEW_PX, MAX_VIEW_PX = 16, 1024  # the procedural rig's height and width
 DEVICE_TYPES = ("cpu", "cuda", "auto")
 MAX_TORCH_THREADS = 256
 DEFAULT_TORCH_THREADS = 1  # ModelBackendConfig.threads
-REFRESH_ALL = "all"  # ModelBackendConfig.refresh_steps: refresh the context at every denoising step
 MAX_WORKERS = 256  # EnvConfig.workers: simulation worker processes of a vector env
 
 
@@ -63,14 +61,14 @@ class RewardConfig:
 class ModelBackendConfig:
     """Options of the world-model backend (ignored by the procedural one)."""
 
-    # Streaming: None takes the bundle's streaming.json (world_model.student.streaming.StreamingConfig,
-    # the shipped one: 4 denoising steps, context refresh at the last two, one sink frame); a value
-    # overrides it. refresh_steps: denoising-step indices that refresh the context frame (0 = the
-    # first, negative ones count from the last); sink_frames: the first frames of an episode kept in
-    # context beside the rolling window.
+    # Streaming (world_model.streaming.StreamingConfig: its fields, bounds and meanings):
+    # None takes the bundle's streaming.json (the shipped one: 4 denoising steps, context refresh
+    # at the last two, one sink frame); a value replaces it. refresh_steps: the denoising-step
+    # indices that refresh the context frame (0 = the first, -1 = the last) or "all"; sink_frames:
+    # the first frames of an episode kept in context beside the rolling window.
     denoising_steps: int | None = None
     context_refresh: bool | None = None
-    refresh_steps: tuple[int, ...] | str | None = None  # or "all": every denoising step (the paper's)
+    refresh_steps: tuple[int, ...] | str | None = None
     sink_frames: int | None = None
     # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
@@ -85,6 +83,14 @@ class ModelBackendConfig:
     # a step from collapsing when other processes (other envs, a learner) share the cores
     # (docs/performance.md, benchmarks/bench_threads.py). None leaves torch's setting as it is.
     threads: int | None = DEFAULT_TORCH_THREADS
+
+    def streaming_changes(self) -> dict[str, Any]:
+        """The streaming settings given (not None): changes to the bundle's streaming.json."""
+        return {key: getattr(self, key) for key in STREAMING_BOUNDS if getattr(self, key) is not None}
+
+
+# How the env's config spells each streaming setting in error messages.
+STREAMING_NAMES = {key: f"config.model.{key}" for key in STREAMING_BOUNDS}
 
 
 @dataclass
@@ -125,28 +131,13 @@ class EnvConfig:
                 f"got {r.speed_range!r}"
             )
         m = self.model
-        if m.refresh_steps is not None and m.refresh_steps != REFRESH_ALL:
-            steps = _int_tuple(m.refresh_steps)  # a string is characters, not ints: refused too
-            if steps is None:
-                raise InvalidOptionError(
-                    f"config.model.refresh_steps must be a list of denoising-step indices, {REFRESH_ALL!r} or None, "
-                    f"got {m.refresh_steps!r}"
-                )
-            m.refresh_steps = steps
-        if m.refresh_steps is not None and m.context_refresh is False:
-            raise InvalidOptionError(
-                "config.model.refresh_steps needs context refresh (leave it out to run without refresh)"
-            )
-        if m.context_refresh is not None and not isinstance(m.context_refresh, bool | np.bool_):
-            raise InvalidOptionError(
-                f"config.model.context_refresh must be True, False or None, got {m.context_refresh!r}"
-            )
+        try:
+            for key, value in check_changes(m.streaming_changes(), STREAMING_NAMES).items():
+                setattr(m, key, value)
+        except StreamingConfigError as e:
+            raise InvalidOptionError(str(e)) from e
         if m.threads is not None:
             _check_int_range(m.threads, 1, MAX_TORCH_THREADS, "config.model.threads")
-        if m.sink_frames is not None:
-            _check_int_range(m.sink_frames, 0, MAX_SINK_FRAMES, "config.model.sink_frames")
-        if m.denoising_steps is not None:
-            _check_int_range(m.denoising_steps, 1, MAX_DENOISING_STEPS, "config.model.denoising_steps")
         device = m.device.split(":", 1)
         if device[0] not in DEVICE_TYPES or (len(device) == 2 and (device[0] != "cuda" or not device[1].isdigit())):
             raise InvalidOptionError(f"config.model.device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {m.device!r}")
@@ -183,12 +174,6 @@ def _observation_keys(keys: Any) -> tuple[str, ...]:
 def _check_int_range(value: Any, low: int, high: int, name: str) -> None:
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or not low <= value <= high:
         raise InvalidOptionError(f"{name} must be an integer in [{low}, {high}], got {value!r}")
-
-
-def _int_tuple(x: Any) -> tuple[int, ...] | None:
-    """``x`` as a tuple of ints, or None when it is not an iterable of ints (bools refused)."""
-    items = _number_tuple(x, numbers.Integral)
-    return None if items is None else tuple(int(k) for k in items)
 
 
 def _number_tuple(x: Any, kind: type = numbers.Real) -> tuple[Any, ...] | None:

@@ -35,6 +35,7 @@ def test_the_recompute_baseline_is_the_computation_the_cache_replaces():
     from tests.model_fixtures import perturbed, tiny_conditions
     from world_model.model import MultiViewDiT, get_preset
     from world_model.student import StreamingEngine, StudentConfig
+    from world_model.student.config import TRAINING_STREAMING
 
     spec = importlib.util.spec_from_file_location("bench_student", ROOT / "benchmarks" / "bench_student.py")
     bench = importlib.util.module_from_spec(spec)
@@ -46,7 +47,7 @@ def test_the_recompute_baseline_is_the_computation_the_cache_replaces():
     model = perturbed(MultiViewDiT(cfg))
     cond = tiny_conditions(cfg, 1 + chunks * c, batch=2)
     first = torch.randn(2, *cfg.latent_shape(1), generator=torch.Generator().manual_seed(3))
-    scfg = StudentConfig(context_refresh=False)
+    scfg = StudentConfig(streaming=dataclasses.replace(TRAINING_STREAMING, context_refresh=False))
     outs = []
     for engine in (StreamingEngine, bench.RecomputeWindow):
         eng = engine(model, scfg, torch.Generator().manual_seed(1))

@@ -23,6 +23,7 @@ from world_model.model.reference import ReferenceGenerator, expand_teacher
 from world_model.model.sampler import sample_latents
 from world_model.model.text import TEXT_EMBEDDINGS_VARIABLE
 from world_model.student import StreamingEngine, StudentConfig
+from world_model.student.config import TRAINING_STREAMING
 
 pytestmark = [
     pytest.mark.cuda,
@@ -116,7 +117,8 @@ def test_the_streaming_engine_on_cuda_equals_the_cpu():
     first = torch.randn(2, 1, *cfg.latent_shape(1)[1:], generator=torch.Generator().manual_seed(1))
     outs = {}
     for device in ("cpu", "cuda"):
-        engine = StreamingEngine(model.to(device), StudentConfig(sink_frames=1), torch.Generator().manual_seed(2))
+        scfg = StudentConfig(streaming=replace(TRAINING_STREAMING, sink_frames=1))
+        engine = StreamingEngine(model.to(device), scfg, torch.Generator().manual_seed(2))
         with torch.no_grad():
             engine.start(first, cond.frames(0, 1))
             chunks = [engine.step(cond.frames(1 + k * c, 1 + (k + 1) * c)) for k in range(2)]

@@ -17,6 +17,7 @@ from world_model.model import MultiViewDiT, SensorVAE, get_preset
 from world_model.model.reference import ReferenceGenerator, expand_teacher
 from world_model.model.sampler import generate, sample_latents
 from world_model.runtime import RolloutBatch, load_world_model
+from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig
 from world_model.student import StreamingEngine, StudentConfig
 
 CFG = get_preset("tiny")
@@ -42,18 +43,17 @@ def test_the_guard_flags_a_factory_off_the_model_device_and_names_the_line():
 
 
 @pytest.mark.parametrize(
-    "student",
+    "streaming",
     [
-        StudentConfig(context_refresh=False),
-        StudentConfig(context_refresh=True, sink_frames=1),
-        StudentConfig(context_refresh=True, refresh_steps=(2, 3)),
+        StreamingConfig(context_refresh=False),
+        StreamingConfig(context_refresh=True, refresh_steps=REFRESH_EVERY_STEP, sink_frames=1),
+        StreamingConfig(context_refresh=True, refresh_steps=(2, 3), sink_frames=0),
     ],
     ids=["cache", "refresh+sink", "refresh_steps"],
 )
-def test_rollouts_reset_step_and_restart_on_the_model_device(tiny_bundle, student):
+def test_rollouts_reset_step_and_restart_on_the_model_device(tiny_bundle, streaming):
     wm = load_world_model(tiny_bundle, device="meta", dtype="float32")
-    streaming = ("context_refresh", "sink_frames", "refresh_steps")
-    wm.student_cfg = replace(wm.student_cfg, **{k: getattr(student, k) for k in streaming})
+    wm.student_cfg = replace(wm.student_cfg, streaming=streaming)
     frames = make_frames(wm.cfg, 9)
     chunk = wm.cfg.clip.chunk_frames
     guard = OnDevice(META)
@@ -135,7 +135,7 @@ def test_streaming_engine_start_step_restart_on_the_model_device():
     cond = tiny_conditions(student_cfg, 1 + 2 * c, batch=2)
     first = torch.zeros(2, 1, *student_cfg.latent_shape(1)[1:])
     with OnDevice(META):
-        engine = StreamingEngine(model, StudentConfig(context_refresh=True), generator=torch.Generator())
+        engine = StreamingEngine(model, StudentConfig(), generator=torch.Generator())
         engine.start(first, cond.frames(0, 1))
         out = engine.step(cond.frames(1, 1 + c))
         engine.start_rows([0], first[:1], cond.frames(0, 1).apply(lambda _, v: v[:1]))

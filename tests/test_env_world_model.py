@@ -12,7 +12,7 @@ from m4world_env.config import InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import CheckpointError, CheckpointNotFoundError
 from world_model.runtime import load_world_model
-from world_model.student.streaming import StreamingConfig
+from world_model.streaming import StreamingConfig
 
 from .model_fixtures import perturbed
 
@@ -299,17 +299,17 @@ def test_model_dtype_option_sets_the_dit_precision(tiny_bundle):
 
 
 def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
-    def episode(model: dict, want: tuple[int, ...] | None) -> list[np.ndarray]:
+    def episode(model: dict, want: tuple[int, ...]) -> list[np.ndarray]:
         env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
         perturbed(env.backend.wm.student)  # the untrained student's zero output ignores its context
         obs, _ = env.reset(seed=0)
         frames = [obs["lidar"]] + [env.step(np.zeros(2, np.float32))[0]["lidar"] for _ in range(3)]
-        assert env.backend.wm.student_cfg.refresh_steps == want
+        assert env.backend.wm.student_cfg.streaming.resolved_refresh_steps() == want
         env.close()
         return frames
 
     # The bundle's default refreshes at the last two of the 4 denoising steps; 'all' at every step.
-    default, every = episode({}, (2, 3)), episode({"refresh_steps": "all"}, None)
+    default, every = episode({}, (2, 3)), episode({"refresh_steps": "all"}, (0, 1, 2, 3))
     np.testing.assert_array_equal(default, episode({"refresh_steps": [-2, -1]}, (2, 3)))
     first = episode({"refresh_steps": [0]}, (0,))
     np.testing.assert_array_equal(every[0], first[0])  # the reset frame does not involve the student
@@ -317,8 +317,8 @@ def test_refresh_steps_option_reaches_the_student_and_is_checked(tiny_bundle):
         assert any(not np.array_equal(a, b) for a, b in zip(default[1:], other[1:], strict=True))
     # Negative indices count from the last of denoising_steps: here the last two of 2 are both.
     episode({"refresh_steps": [-2, -1], "denoising_steps": 2}, (0, 1))
-    episode({"denoising_steps": 1}, (0,))  # the default clamps at the first step
-    episode({"context_refresh": False}, None)  # the default is ignored without refresh
+    episode({"denoising_steps": 1}, (0,))  # of the bundle's last two, only the last names a step of one
+    episode({"context_refresh": False}, ())  # the default is ignored without refresh
     beyond = {"model": {"refresh_steps": [4]}}  # the student takes 4 steps: 0 to 3
     with pytest.raises(InvalidOptionError, match="refresh_steps"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config=beyond)
@@ -328,7 +328,8 @@ def test_sink_frames_option_keeps_the_first_frame_in_context(tiny_bundle):
     def episode(model: dict) -> tuple[list[np.ndarray], list[int], int]:
         """LiDAR of the reset and of 4 steps, the index of the frame each shows, the student's window."""
         env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"model": model})
-        assert env.backend.wm.student_cfg.sink_frames == model.get("sink_frames", StreamingConfig().sink_frames)
+        sink_frames = model.get("sink_frames", StreamingConfig().sink_frames)
+        assert env.backend.wm.student_cfg.streaming.sink_frames == sink_frames
         perturbed(env.backend.wm.student)
         engine = env.backend.rollouts.engine
         frames, index = [env.reset(seed=0)[0]["lidar"]], [0]
@@ -475,6 +476,5 @@ def test_env_streams_exactly_as_the_report_headline_row(tiny_bundle):
     env = M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle))
     report_wm = load_world_model(str(tiny_bundle))
     assert env.backend.wm.student_cfg == report_wm.student_cfg
-    assert env.backend.streaming == report_wm.streaming == StreamingConfig()
-    assert report_wm.student_cfg.refresh_steps == (2, 3) and report_wm.student_cfg.sink_frames == 1
+    assert env.backend.streaming == report_wm.streaming == report_wm.student_cfg.streaming == StreamingConfig()
     env.close()

@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from m4world_env.cli import main
+from world_model.eval.report import StudentStreaming
 from world_model.eval.report.rows import world_model_row
 from world_model.model import MultiViewDiT, get_preset
 from world_model.runtime import load_world_model, save_untrained_bundle
+from world_model.streaming import StreamingConfig, StreamingConfigError
 from world_model.train.checkpoint import export_weights
 
 
@@ -63,16 +65,18 @@ def test_report_with_geometry_only_and_teacher_rows(tiny_bundle, tmp_path):
 
 def test_student_rows_stream_with_the_refresh_they_are_named_for(tiny_bundle):
     wm = load_world_model(tiny_bundle)
-    assert world_model_row(wm, refresh_steps=(2, 3)).wm.student_cfg.refresh_steps == (2, 3)
-    off = world_model_row(wm, context_refresh=False).wm.student_cfg
-    assert not off.context_refresh and off.refresh_steps is None
-    partial = replace(wm, student_cfg=replace(wm.student_cfg, refresh_steps=(3,)))
-    assert world_model_row(partial, context_refresh=False).wm.student_cfg.refresh_steps is None
+
+    def streamed(row: StudentStreaming, bundle: StreamingConfig = wm.streaming) -> StreamingConfig:
+        return world_model_row(wm, streaming=row.streaming(bundle)).wm.student_cfg.streaming
+
+    # The headline row: the bundle's streaming.json (the last two steps refresh, one sink frame).
+    assert world_model_row(wm).wm.student_cfg.streaming == streamed(StudentStreaming()) == StreamingConfig()
+    assert streamed(StudentStreaming(refresh_steps=(2, 3))).resolved_refresh_steps() == (2, 3)
+    assert streamed(StudentStreaming(context_refresh=False)).resolved_refresh_steps() == ()
     # A bundle streaming without refresh still gets the partial-refresh row it is asked for.
-    no_refresh = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=False, refresh_steps=None))
-    scfg = world_model_row(no_refresh, refresh_steps=(0,)).wm.student_cfg
-    assert scfg.context_refresh and scfg.refresh_steps == (0,)
-    assert world_model_row(wm).wm.student_cfg.refresh_steps == (2, 3)  # the bundle's streaming.json: the last two
-    assert world_model_row(wm).wm.student_cfg.sink_frames == 1  # and one sink frame
-    sink = world_model_row(wm, refresh_steps=(2, 3), sink_frames=1).wm.student_cfg
-    assert sink.sink_frames == 1 and sink.refresh_steps == (2, 3)
+    off = replace(wm.streaming, context_refresh=False)
+    assert streamed(StudentStreaming(refresh_steps=(0,)), off).resolved_refresh_steps() == (0,)
+    sink = streamed(StudentStreaming(refresh_steps=(2, 3), sink_frames=0))
+    assert sink.sink_frames == 0 and sink.resolved_refresh_steps() == (2, 3)
+    with pytest.raises(StreamingConfigError, match=r"--refresh-steps \[4\] names no step of the 4 denoising steps"):
+        StudentStreaming(refresh_steps=(4,)).streaming(wm.streaming)

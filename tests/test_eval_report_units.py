@@ -173,6 +173,8 @@ def test_cache_key_changes_with_every_streaming_setting(tmp_path):
         StudentStreaming(sink_frames=1),
         StudentStreaming(refresh_steps=(0,), sink_frames=1),
         StudentStreaming(refresh_steps=(0,), sink_frames=2),
+        StudentStreaming(sink_frames=0),
+        StudentStreaming(refresh_steps="all"),
     ]
     cfg = ReportConfig()
 
@@ -196,12 +198,16 @@ def test_cache_key_changes_with_every_streaming_setting(tmp_path):
 
 
 def test_lineup_names_and_request_checks():
-    request = ReportRequest(refresh_steps=((0,), (1, 3)), sink_frames=(1,))
+    request = ReportRequest(refresh_steps=((0,), (1, 3)), sink_frames=(1, 0))
     names = [s.row_name for s in request.student_streamings()]
     assert names == ["student", "student_no_refresh", "student_refresh_0", "student_refresh_1_3", "student_sink_1",
-                     "student_refresh_0_sink_1", "student_refresh_1_3_sink_1"]  # fmt: skip
-    with pytest.raises(ValueError, match="sink_frames takes a number of frames >= 1, got 0"):
-        ReportRequest(sink_frames=(0,))
+                     "student_refresh_0_sink_1", "student_refresh_1_3_sink_1", "student_sink_0",
+                     "student_refresh_0_sink_0", "student_refresh_1_3_sink_0"]  # fmt: skip
+    assert StudentStreaming(refresh_steps="all").row_name == "student_refresh_all"
+    with pytest.raises(ValueError, match=r"--sink-frames must be an integer in \[0, 64\], got 65"):
+        ReportRequest(sink_frames=(65,))
+    with pytest.raises(ValueError, match=r"--refresh-steps must be 'all' or a non-empty list .*, got \[\]"):
+        ReportRequest(refresh_steps=((),))
     with pytest.raises(ValueError, match="seeds must be >= 1"):
         ReportRequest(seeds=0)
     with pytest.raises(ValueError, match="dtype must be one of"):

@@ -91,7 +91,8 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert {"student_refresh_0", "student_refresh_1_3"} <= set(rows)
     keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if r.startswith("student")}
     assert len(keys) == 4  # student, no-refresh, refresh at 0, at 1 and 3: each its own cached row
-    for bad, says in (("9", "refresh_steps must be increasing step indices in [0, 3]"), ("first", "--refresh-steps")):
+    beyond = "--refresh-steps [9] names no step of the 4 denoising steps"
+    for bad, says in (("9", beyond), ("first", "--refresh-steps")):
         assert main([*args, "--refresh-steps", bad]) == 2
         assert says in capsys.readouterr().err
     # Rows with an attention sink: with the bundle's own refresh and with each --refresh-steps row.
@@ -100,8 +101,8 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert {"student_sink_1", "student_refresh_0_sink_1"} <= set(rows)
     sink_keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if "sink" in r}
     assert len(sink_keys) == 2 and not sink_keys & keys
-    assert main([*args, "--sink-frames", "0"]) == 2
-    assert "sink_frames takes a number of frames >= 1, got 0" in capsys.readouterr().err
+    assert main([*args, "--sink-frames", "65"]) == 2
+    assert "--sink-frames must be an integer in [0, 64], got 65" in capsys.readouterr().err
 
 
 def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):

@@ -10,11 +10,18 @@ import torch
 from world_model.model import MultiViewDiT, get_preset
 from world_model.model.config import with_layout
 from world_model.model.flow import predict_x0
+from world_model.streaming import REFRESH_EVERY_STEP
 from world_model.student import StreamingEngine, StudentConfig, few_step_sample, rollout_blocks
+from world_model.student.config import TRAINING_STREAMING
 
 from .model_fixtures import perturbed, tiny_conditions
 
 TOL = 1e-4
+
+
+def streaming(renoise: str = "fresh", **changes) -> StudentConfig:
+    """A student config streaming as the training rollouts do, with ``changes`` to it."""
+    return StudentConfig(streaming=dataclasses.replace(TRAINING_STREAMING, **changes), renoise=renoise)
 
 
 def _model(chunk: int, window: int, seed: int = 0, layout: bool = False) -> MultiViewDiT:
@@ -27,9 +34,9 @@ def _model(chunk: int, window: int, seed: int = 0, layout: bool = False) -> Mult
 def _reference_rollout(model, scfg, first, cond, noises):
     """The same rollout from the model's full-sequence definition: every chunk recomputes all
     history from scratch (one block-causal forward), no cache object. Denoising steps are counted
-    here (the engine reads them from t) to pick where ``scfg.refresh_steps`` refreshes."""
+    here (the engine reads them from t) to pick where the refresh steps refresh."""
     c, f0, n = model.cfg.clip.chunk_frames, first.shape[1], model.cfg.tokens_per_frame
-    steps = range(scfg.num_steps) if scfg.refresh_steps is None else scfg.refresh_steps
+    steps = scfg.streaming.resolved_refresh_steps()
     hist, outs = first, []
     for k, noise in enumerate(noises):
         f = hist.shape[1]
@@ -38,7 +45,7 @@ def _reference_rollout(model, scfg, first, cond, noises):
         step = iter(range(scfg.num_steps))
 
         def x0_fn(x, t, hist=hist, f=f, ccond=ccond, blocks=blocks, step=step):
-            if not scfg.context_refresh or next(step) not in steps:
+            if next(step) not in steps:
                 tt = torch.cat([torch.ones(x.shape[0], f), t[:, None].expand(-1, c)], dim=1)
                 v = model(torch.cat([hist, x], 1), tt, ccond, causal=True, blocks=blocks)[:, f:]
                 return predict_x0(x, v, t)
@@ -64,8 +71,8 @@ def _reference_rollout(model, scfg, first, cond, noises):
 def test_cached_streaming_equals_full_recompute(refresh, chunk, layout):
     chunks, f0 = 3, 1
     model = _model(chunk, window=f0 + chunks * chunk, layout=layout)  # window holds everything: nothing evicted
-    steps = refresh if isinstance(refresh, tuple) else None
-    scfg = StudentConfig(context_refresh=bool(refresh), refresh_steps=steps, renoise="ddim")
+    steps = refresh if isinstance(refresh, tuple) else REFRESH_EVERY_STEP
+    scfg = streaming(context_refresh=bool(refresh), refresh_steps=steps, renoise="ddim")
     total = f0 + chunks * chunk
     cond = tiny_conditions(model.cfg, total, batch=2)
     gen = torch.Generator().manual_seed(1)
@@ -91,7 +98,7 @@ def test_context_refresh_recomputes_the_last_frame_keys():
     noise = [torch.randn(1, *model.cfg.latent_shape(2), generator=gen) for _ in range(2)]
     outs = {}
     for refresh in (False, True):
-        eng = StreamingEngine(model, StudentConfig(context_refresh=refresh, renoise="ddim"))
+        eng = StreamingEngine(model, streaming(context_refresh=refresh, renoise="ddim"))
         with torch.no_grad():
             eng.start(first, cond.frames(0, 1))
             eng.step(cond.frames(1, 3), noise[0])
@@ -126,7 +133,7 @@ def test_causality_later_inputs_do_not_reach_earlier_chunks():
 
 def test_restarted_row_equals_a_fresh_rollout():
     model = _model(chunk=1, window=3)
-    scfg = StudentConfig(renoise="ddim", sink_frames=1)
+    scfg = streaming(renoise="ddim", sink_frames=1)
     gen = torch.Generator().manual_seed(3)
     cond = tiny_conditions(model.cfg, 8, batch=2)
     first = torch.randn(2, *model.cfg.latent_shape(1), generator=gen)
@@ -174,7 +181,7 @@ def _live_tensor_mb() -> float:
 
 def test_kv_cache_memory_is_bounded_over_600_frames():
     model = _model(chunk=10, window=10)  # long chunks: 60 engine steps cover 600 frames
-    scfg = StudentConfig(sink_frames=1)
+    scfg = streaming(sink_frames=1)
     chunk, frames = model.cfg.clip.chunk_frames, 600
     cond = tiny_conditions(model.cfg, chunk + 1)
     eng = StreamingEngine(model, scfg, torch.Generator().manual_seed(0))
@@ -212,27 +219,26 @@ def test_bad_input_is_rejected():
     eng.start(torch.zeros(1, *model.cfg.latent_shape(1)), cond.frames(0, 1))
     with pytest.raises(ValueError, match="one chunk"):
         eng.step(cond)
-    with pytest.raises(ValueError, match="denoising_steps"):
-        StudentConfig(denoising_steps=(750, 1000))
-    with pytest.raises(ValueError, match="denoising_steps"):
-        StudentConfig(denoising_steps=(1000, 500, 500))
+    with pytest.raises(ValueError, match="streaming must be a StreamingConfig"):
+        StudentConfig(streaming={"denoising_steps": 4})
 
 
-@pytest.mark.parametrize("steps", [(), (4,), (-1,), (1, 0), (2, 2), (1.5,), (True,)])
-def test_refresh_steps_must_be_increasing_indices_of_the_denoising_steps(steps):
-    with pytest.raises(ValueError, match=r"refresh_steps must be increasing step indices in \[0, 3\]"):
-        StudentConfig(refresh_steps=steps)
-    with pytest.raises(ValueError, match="needs context_refresh=True"):
-        StudentConfig(context_refresh=False, refresh_steps=(3,))
-    assert StudentConfig(refresh_steps=[2, 3]).refresh_steps == (2, 3)  # a list is kept as a tuple
-    saved = json.loads(json.dumps(StudentConfig(refresh_steps=(2, 3)).to_dict()))  # as a bundle manifest holds it
-    assert StudentConfig.from_dict(saved).refresh_steps == (2, 3)
+def test_student_config_round_trips_its_streaming_and_reads_the_flat_form():
+    scfg = streaming(refresh_steps=(2, 3), sink_frames=1)
+    saved = json.loads(json.dumps(scfg.to_dict()))  # as a bundle manifest holds it
+    assert StudentConfig.from_dict(saved) == scfg
+    # A manifest that spells the streaming as flat fields: the diffusion-step list, null for every step.
+    flat = {"denoising_steps": [1000, 750, 500, 250], "context_refresh": True, "refresh_steps": None, "sink_frames": 0}
+    assert StudentConfig.from_dict(flat).streaming == TRAINING_STREAMING
+    assert StudentConfig.from_dict({**flat, "refresh_steps": [2, 3]}).streaming.refresh_steps == (2, 3)
+    with pytest.raises(ValueError, match="evenly spaced"):
+        StudentConfig.from_dict({**flat, "denoising_steps": [1000, 500, 400]})
 
 
 def test_partial_refresh_refuses_rows_at_different_times():
     model = _model(chunk=2, window=4)
     cond = tiny_conditions(model.cfg, 3, batch=2)
-    engine = StreamingEngine(model, StudentConfig(refresh_steps=(3,)))
+    engine = StreamingEngine(model, streaming(refresh_steps=(3,)))
     with torch.no_grad():
         engine.start(torch.randn(2, *model.cfg.latent_shape(1)), cond.frames(0, 1))
         x0_fn = engine.chunk_x0_fn(cond.frames(1, 3))

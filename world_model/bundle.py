@@ -11,7 +11,7 @@ Layout::
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       streaming.json           how the student streams at inference (denoising steps, context
-                               refresh, sink frames: :class:`~world_model.student.streaming.StreamingConfig`)
+                               refresh, sink frames: :class:`~world_model.streaming.StreamingConfig`)
       adapters/                optional LoRA adapters (``lora`` stage output)
 
 :func:`export_bundle` collects the stage exports of a training run; :func:`load_bundle_files`
@@ -35,7 +35,7 @@ from safetensors.torch import load_file
 
 from world_model.data.clips import sha256_file, write_json_atomic
 from world_model.lora import META, WEIGHTS
-from world_model.student.streaming import STREAMING_FILE, StreamingConfig
+from world_model.streaming import STREAMING_FILE, StreamingConfig
 
 BUNDLE_FORMAT = "m4world-bundle"
 BUNDLE_VERSION = 1

@@ -39,9 +39,9 @@ from world_model.precision import check_dtype, dit_precision, resolve_bf16, reso
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim.labels import CLASS_PLANE, NO_LABEL
+from world_model.streaming import STREAMING_FILE, StreamingConfig
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
-from world_model.student.streaming import STREAMING_FILE, StreamingConfig
 
 __all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle", "save_untrained_bundle"]
 
@@ -245,7 +245,8 @@ def load_world_model(
         bf16 = resolve_bf16(dtype, cfg.dit.autocast_bf16, device)
         cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
         streaming = StreamingConfig.from_dict(files.streaming or {}, f"{files.path / STREAMING_FILE}")
-        scfg = student or streaming.apply(StudentConfig.from_dict(files.manifest.get("student_config", {})))
+        trained = StudentConfig.from_dict(files.manifest.get("student_config", {}))
+        scfg = student or replace(trained, streaming=streaming)
         vae = SensorVAE(cfg)
         vae.load_state_dict(files.tensors["vae"])
         with dit_precision(bf16):  # the weights' dtype below, whatever precision context encloses the load

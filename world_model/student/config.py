@@ -23,24 +23,26 @@ import torch
 
 from world_model.model.config import ModelConfig
 from world_model.model.flow import shift_time
+from world_model.streaming import DIFFUSION_STEPS, REFRESH_EVERY_STEP, StreamingConfig
 
-DIFFUSION_STEPS = 1000  # the scale the step list is written in (1000 = pure noise)
+# How the student stages roll out: Self-Forcing's 4 steps, the context refreshed at every one
+# (the paper's), no attention sink.
+TRAINING_STREAMING = StreamingConfig(
+    denoising_steps=4, context_refresh=True, refresh_steps=REFRESH_EVERY_STEP, sink_frames=0
+)
+FLAT_STREAMING_KEYS = ("denoising_steps", "context_refresh", "refresh_steps", "sink_frames")
 
 
 @dataclass(frozen=True)
 class StudentConfig:
     """Everything the student stages and the streaming engine need beyond :class:`ModelConfig`."""
 
-    # -- streaming / inference --
-    denoising_steps: tuple[int, ...] = (1000, 750, 500, 250)  # Self-Forcing's list, 1000 = noise
-    timestep_shift: float = 1.0  # SD3 shift of that list; 1 matches the presets' FlowConfig.shift
+    # -- streaming --
+    # How the student stages roll the student out (export_bundle writes the env's own settings,
+    # StreamingConfig's defaults, beside it as the bundle's streaming.json).
+    streaming: StreamingConfig = TRAINING_STREAMING
+    timestep_shift: float = 1.0  # SD3 shift of the denoising steps; 1 matches the presets' FlowConfig.shift
     renoise: str = "fresh"  # "fresh" noise between steps (Self-Forcing) or "ddim" (implied noise)
-    context_refresh: bool = True  # §4.2 latent context refresh of the previous chunk's last frame
-    # Which denoising steps (indices into ``denoising_steps``) refresh the context frame; the others
-    # attend to the cache's copy of it, as without refresh. None: every step (the paper's). Each
-    # refresh costs a frame more per forward (refreshing at all 4 steps: ~1.4x a chunk's compute).
-    refresh_steps: tuple[int, ...] | None = None
-    sink_frames: int = 0  # first frames of a rollout kept in context forever (attention sink)
     prefix_frames: int = 1  # clean conditioning frames a rollout starts from (the reset frame)
 
     # -- Self-Forcing + DMD --
@@ -62,30 +64,12 @@ class StudentConfig:
     long_skip_chunks: int = 0
 
     def __post_init__(self) -> None:
-        steps = self.denoising_steps
-        if (
-            not steps
-            or any(not 0 < s <= DIFFUSION_STEPS for s in steps)
-            or any(a <= b for a, b in zip(steps, steps[1:], strict=False))
-        ):
-            raise ValueError(f"denoising_steps must be decreasing values in (0, {DIFFUSION_STEPS}], got {steps}")
-        if steps[0] != DIFFUSION_STEPS:
-            raise ValueError(f"denoising_steps must start at pure noise ({DIFFUSION_STEPS}), got {steps}")
-        if self.refresh_steps is not None:
-            idx = tuple(self.refresh_steps)
-            object.__setattr__(self, "refresh_steps", idx)  # a list from a caller: hashable like the rest
-            integral = all(isinstance(k, int) and not isinstance(k, bool) for k in idx)
-            if not integral or not idx or sorted(set(idx)) != list(idx) or not 0 <= idx[0] <= idx[-1] < len(steps):
-                raise ValueError(
-                    f"refresh_steps must be increasing step indices in [0, {len(steps) - 1}] (one per "
-                    f"denoising step to refresh at), or None for every step; got {idx}"
-                )
-            if not self.context_refresh:
-                raise ValueError("refresh_steps needs context_refresh=True (it says at which steps to refresh)")
+        if not isinstance(self.streaming, StreamingConfig):
+            raise ValueError(f"streaming must be a StreamingConfig, got {self.streaming!r}")
         if self.renoise not in ("fresh", "ddim"):
             raise ValueError(f"renoise must be 'fresh' or 'ddim', got {self.renoise!r}")
-        if self.prefix_frames < 1 or self.sink_frames < 0 or self.long_clip_chunks < 1 or self.long_frames < 1:
-            raise ValueError("prefix_frames, long_clip_chunks, long_frames must be >= 1 and sink_frames >= 0")
+        if self.prefix_frames < 1 or self.long_clip_chunks < 1 or self.long_frames < 1:
+            raise ValueError("prefix_frames, long_clip_chunks, long_frames must be >= 1")
         if self.long_skip_chunks < 0:
             raise ValueError(f"long_skip_chunks must be >= 0, got {self.long_skip_chunks}")
         if not 0.0 <= self.denoise_loss_prob <= 1.0:
@@ -97,20 +81,43 @@ class StudentConfig:
 
     @property
     def num_steps(self) -> int:
-        return len(self.denoising_steps)
+        return self.streaming.denoising_steps
 
     def times(self) -> torch.Tensor:
         """(num_steps,) increasing flow times t_k at which the student is evaluated (t_0 = 0)."""
-        sigma = torch.tensor(self.denoising_steps, dtype=torch.float64) / DIFFUSION_STEPS
+        sigma = torch.tensor(self.streaming.diffusion_steps(), dtype=torch.float64) / DIFFUSION_STEPS
         return shift_time(1.0 - sigma, self.timestep_shift).float()
 
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        return {**dataclasses.asdict(self), "streaming": self.streaming.to_dict()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StudentConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names})
+        """The config of a manifest's ``student_config`` (unknown keys ignored), its streaming given
+        as ``streaming`` or as the flat fields of :data:`FLAT_STREAMING_KEYS`."""
+        names = {f.name for f in dataclasses.fields(cls)} - {"streaming"}
+        kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items() if k in names}
+        if "streaming" in d:
+            kwargs["streaming"] = StreamingConfig.from_dict(d["streaming"], "student_config.streaming")
+        elif any(k in d for k in FLAT_STREAMING_KEYS):
+            kwargs["streaming"] = _flat_streaming(d)
+        return cls(**kwargs)
+
+
+def _flat_streaming(d: dict[str, Any]) -> StreamingConfig:
+    """The streaming of a ``student_config`` that spells it as flat fields: the denoising steps as
+    their diffusion-step list (evenly spaced from pure noise), refresh steps as indices or null for
+    every step."""
+    flat = {k: d[k] for k in FLAT_STREAMING_KEYS if k in d}
+    steps = tuple(flat.pop("denoising_steps", TRAINING_STREAMING.diffusion_steps()))
+    even = StreamingConfig(denoising_steps=len(steps), refresh_steps=REFRESH_EVERY_STEP) if steps else None
+    if even is None or even.diffusion_steps() != steps:
+        raise ValueError(
+            f"student_config.denoising_steps must be evenly spaced from pure noise ({DIFFUSION_STEPS}), "
+            f"such as {list(TRAINING_STREAMING.diffusion_steps())}, got {list(steps)}"
+        )
+    flat["denoising_steps"] = len(steps)
+    return StreamingConfig.from_dict({**dataclasses.asdict(TRAINING_STREAMING), **flat}, "student_config")
 
 
 def rollout_blocks(start: int, frames: int, prefix_frames: int, chunk_frames: int) -> torch.Tensor:

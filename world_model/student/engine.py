@@ -6,16 +6,16 @@ training rollouts (Self-Forcing, long tuning) and by inference (the gym env).
     latents = engine.step(next_controls)            # (B, chunk, V, C, h, w), controls of the chunk
     engine.start_rows([3], new_first, new_controls)  # reset one rollout, the others continue
 
-Per chunk: ``len(denoising_steps)`` student evaluations (:func:`few_step_sample`), then one
+Per chunk: ``StreamingConfig.denoising_steps`` student evaluations (:func:`few_step_sample`), then one
 forward of the clean chunk at t = 1 that writes its keys/values into the :class:`KVCache`
 (rolling window of ``clip.context_frames`` frames + optional sinks).
 
-Latent context refresh (§4.2, ``StudentConfig.context_refresh``): the previous chunk's last clean
-frame latent is fed again, at t = 1, in front of the noisy chunk at every denoising step; the
-two form one attention block, so its keys/values depend on the chunk noise and are recomputed
-each step; the cache's copy of that frame is left out of the context. ``refresh_steps`` limits the
-refresh to some denoising steps (the others attend to the cache's copy, as without refresh): a
-cheaper middle point between the two, measured in docs/MODEL_CARD.md.
+Latent context refresh (§4.2, ``context_refresh`` of ``StudentConfig.streaming``): the previous
+chunk's last clean frame latent is fed again, at t = 1, in front of the noisy chunk at every
+denoising step; the two form one attention block, so its keys/values depend on the chunk noise
+and are recomputed each step; the cache's copy of that frame is left out of the context.
+``refresh_steps`` limits the refresh to some denoising steps (the others attend to the cache's
+copy, as without refresh): a cheaper middle point between the two, measured in docs/MODEL_CARD.md.
 
 Time positions: one RoPE frame counter is shared by the batch. A row restarted with
 :meth:`start_rows` places its first frames just before the next chunk; RoPE only sees relative
@@ -34,6 +34,7 @@ from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import NoiseSource, gaussian, interpolate, predict_x0
 from world_model.model.tokens import ControlTokens
+from world_model.streaming import REFRESH_EVERY_STEP
 from world_model.student.cache import KVCache
 from world_model.student.config import StudentConfig, check_student
 
@@ -173,7 +174,8 @@ class StreamingEngine:
         self.position = f0
         self.last, self.last_controls = x[:, -1:].clone(), controls.frames(f0 - 1, f0)
         c = self.cfg
-        self.cache = KVCache(b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, self.scfg.sink_frames)
+        sink = self.scfg.streaming.sink_frames
+        self.cache = KVCache(b, c.sensors.num_views, c.tokens_per_frame, c.clip.context_frames, sink)
         self.cache.append(self._clean_kv(x, controls, 0), f0)
 
     def start_rows(self, rows: Sequence[int], first_latents: torch.Tensor, controls: Conditions) -> None:
@@ -216,13 +218,14 @@ class StreamingEngine:
     # -- one chunk --
     def chunk_x0_fn(self, controls: Conditions) -> X0Fn:
         """x0-prediction of the next chunk given the current context: (x_t, t (B,)) -> x0. With
-        ``StudentConfig.refresh_steps`` all rows share one time (the step is read from it)."""
+        ``StreamingConfig.refresh_steps`` other than every step all rows share one time (the step is read from it)."""
         return self._chunk(controls)[0]
 
     def _chunk(self, controls: Conditions) -> tuple[X0Fn, ControlTokens]:
         """:meth:`chunk_x0_fn` and the chunk's own control tokens for its commit."""
         m, c = self.model, self.cfg.clip.chunk_frames
-        if self.scfg.context_refresh:
+        streaming = self.scfg.streaming
+        if streaming.context_refresh:
             ctx, valid = self.cache.context(exclude_newest=True)
             tokens = m.tokenize(cat_frames(self.last_controls, controls))
 
@@ -240,7 +243,7 @@ class StreamingEngine:
                 return predict_x0(x, v, t)
 
             chunk_tokens = tokens.frames(1, 1 + c)  # the commit's: no second tokenization
-            if self.scfg.refresh_steps is None:
+            if streaming.refresh_steps == REFRESH_EVERY_STEP:
                 return refreshed, chunk_tokens
             return self._partly_refreshed(refreshed, self._cached_fn(chunk_tokens)), chunk_tokens
         tokens = m.tokenize(controls)
@@ -257,10 +260,11 @@ class StreamingEngine:
         return cached
 
     def _partly_refreshed(self, refreshed: X0Fn, cached: X0Fn) -> X0Fn:
-        """``refreshed`` at the denoising times of ``StudentConfig.refresh_steps``, ``cached`` at the
+        """``refreshed`` at the denoising times of ``StreamingConfig.refresh_steps``, ``cached`` at the
         others. The step is read from ``t`` (shared by the batch, as :func:`few_step_sample` passes
         it); a time off the schedule refreshes."""
-        skip = self.times[[k for k in range(len(self.times)) if k not in self.scfg.refresh_steps]]
+        refresh = self.scfg.streaming.resolved_refresh_steps()
+        skip = self.times[[k for k in range(len(self.times)) if k not in refresh]]
 
         def partly(x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
             if bool((t != t[0]).any()):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +32,9 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator
 from world_model.model.vae import SensorVAE, with_label_channels
 from world_model.sim.labels import LabelRasterizer
+from world_model.streaming import StreamingConfig
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
-from world_model.student.streaming import StreamingConfig
 from world_model.train.data import FrameSampler, load_clips
 from world_model.train.exports import (
     EXPORT,
@@ -89,7 +90,7 @@ def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig]:
         path = run.run_dir / stage / EXPORT
         if path.with_suffix(".safetensors").exists():
             student, scfg = load_student(path)
-            return student, StreamingConfig().apply(scfg)
+            return student, replace(scfg, streaming=StreamingConfig())
     raise FileNotFoundError(
         f"--stage {STAGE} rolls out the run's student: train --stage {STUDENT_STAGES[-1]} (or a later student "
         f"stage) with the same --run first"

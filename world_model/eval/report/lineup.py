@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from world_model.bundle import resolve_bundle, sha256_file
 from world_model.data import Clip, iter_clips
@@ -31,30 +32,54 @@ from world_model.eval.report.rows import (
 from world_model.eval.report.run import evaluate_rows, write_report
 from world_model.precision import DTYPES
 from world_model.runtime import WorldModel, load_world_model
+from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig, check_changes
+
+# How the report's flags spell the streaming settings in error messages.
+REPORT_NAMES = {"refresh_steps": "--refresh-steps", "sink_frames": "--sink-frames"}
 
 
 @dataclass(frozen=True)
 class StudentStreaming:
-    """How a student row streams its clips; the defaults are the bundle's own streaming.json."""
+    """A student row's changes to the bundle's streaming.json (:class:`StreamingConfig`'s settings,
+    bounds and meanings; None keeps the bundle's): the headline row changes nothing, so it streams
+    as the env does."""
 
-    context_refresh: bool = True  # False: the refresh-off ablation
-    refresh_steps: tuple[int, ...] | None = None  # refresh at these denoising steps only
+    context_refresh: bool | None = None  # False: the refresh-off ablation
+    refresh_steps: tuple[int, ...] | str | None = None  # refresh at these denoising steps (the refresh on)
     sink_frames: int | None = None  # keep each rollout's first N frames in context
 
     def __post_init__(self) -> None:
-        if self.sink_frames is not None and self.sink_frames < 1:
-            raise ValueError(f"sink_frames takes a number of frames >= 1, got {self.sink_frames}")
+        checked = check_changes(self.changes(), REPORT_NAMES)  # in their one form: a tuple of steps or "all"
+        object.__setattr__(self, "refresh_steps", checked.get("refresh_steps"))
+        object.__setattr__(self, "sink_frames", checked.get("sink_frames"))
+
+    def changes(self) -> dict[str, Any]:
+        """The settings this row gives :meth:`StreamingConfig.override`."""
+        changes: dict[str, Any] = {} if self.context_refresh is None else {"context_refresh": self.context_refresh}
+        if self.refresh_steps is not None:
+            changes |= {"context_refresh": True, "refresh_steps": self.refresh_steps}
+        if self.sink_frames is not None:
+            changes["sink_frames"] = self.sink_frames
+        return changes
+
+    def streaming(self, bundle: StreamingConfig) -> StreamingConfig:
+        """The row's streaming: ``bundle``'s with this row's changes."""
+        return bundle.override(self.changes(), REPORT_NAMES)
 
     @property
     def row_name(self) -> str:
-        if not self.context_refresh:
+        if self.context_refresh is False:
             return "student_no_refresh"
-        steps = "_refresh_" + "_".join(map(str, self.refresh_steps)) if self.refresh_steps else ""
-        sink = f"_sink_{self.sink_frames}" if self.sink_frames is not None else ""
-        return f"student{steps}{sink}"
+        name = "student"
+        if self.refresh_steps is not None:
+            steps = [self.refresh_steps] if self.refresh_steps == REFRESH_EVERY_STEP else self.refresh_steps
+            name += "_refresh_" + "_".join(map(str, steps))
+        if self.sink_frames is not None:
+            name += f"_sink_{self.sink_frames}"
+        return name
 
     def id_suffix(self) -> str:
-        """The part of a student row's id that names its streaming settings."""
+        """The part of a student row's id that names its streaming settings beyond ``refresh=``."""
         if self.sink_frames is not None:
             return f",refresh_steps={self.refresh_steps},sink_frames={self.sink_frames}"
         return f",refresh_steps={self.refresh_steps}" if self.refresh_steps is not None else ""
@@ -84,8 +109,7 @@ class ReportRequest:
             raise ValueError(f"seeds must be >= 1, got {self.seeds}")
         if self.dtype not in DTYPES:
             raise ValueError(f"dtype must be one of {DTYPES}, got {self.dtype!r}")
-        for sinks in self.sink_frames:
-            StudentStreaming(sink_frames=sinks)  # refuses < 1 before any model is loaded
+        self.student_streamings()  # refuses a bad step set or sink size before any model is loaded
 
     def student_streamings(self) -> list[StudentStreaming]:
         """Every student row's streaming settings, in the report's order."""
@@ -147,9 +171,10 @@ def bundle_rows(request: ReportRequest) -> tuple[dict[str, RowFn | list[RowFn]],
         baseline = load(request.baseline)
         rows["geometry_only"] = seeded(lambda s: world_model_row(baseline, seed=s))
         ids["geometry_only"] = ident.student(request.baseline)
-    for streaming in request.student_streamings():
-        rows[streaming.row_name] = seeded(lambda s, st=streaming: _student_row(wm, s, st))
-        ids[streaming.row_name] = ident.student(request.checkpoint, streaming)
+    for row in request.student_streamings():
+        streaming = row.streaming(wm.streaming)  # refuses refresh steps beyond the bundle's denoising steps
+        rows[row.row_name] = seeded(lambda s, st=streaming: world_model_row(wm, seed=s, streaming=st))
+        ids[row.row_name] = ident.student(request.checkpoint, row)
     if request.adapters:  # the same rollouts with LoRA adapters (§5), on a copy so the rows above stay plain
         adapted = load(request.checkpoint)
         adapted.apply_adapters(list(request.adapters))  # into the student or the reference model, as the env does
@@ -166,12 +191,6 @@ def bundle_rows(request: ReportRequest) -> tuple[dict[str, RowFn | list[RowFn]],
     return rows, ids
 
 
-def _student_row(wm: WorldModel, seed: int, streaming: StudentStreaming) -> RowFn:
-    refresh = None if streaming.context_refresh else False
-    return world_model_row(wm, seed=seed, context_refresh=refresh, refresh_steps=streaming.refresh_steps,
-                           sink_frames=streaming.sink_frames)  # fmt: skip
-
-
 @dataclass(frozen=True)
 class RowIdentity:
     """Cache ids of a request's model rows: what each row's scores depend on, as one string."""
@@ -182,7 +201,8 @@ class RowIdentity:
     def student(self, bundle: str | None, streaming: StudentStreaming = StudentStreaming()) -> str:
         r = self.request
         window = f",window={r.context_frames}" if r.context_frames else ""  # not the bundle's own
-        base = f"student,bundle={bundle_digest(bundle)},seed={r.seed},refresh={int(streaming.context_refresh)}"
+        refresh = int(streaming.context_refresh is not False)
+        base = f"student,bundle={bundle_digest(bundle)},seed={r.seed},refresh={refresh}"
         return f"{base},dtype={self.dtype}{window}{streaming.id_suffix()}"
 
     def autoencoder(self) -> str:

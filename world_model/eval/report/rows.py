@@ -24,6 +24,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.sampler import sample_latents
 from world_model.runtime import RolloutBatch, WorldModel
 from world_model.sim import ProceduralSimulator
+from world_model.streaming import StreamingConfig
 
 
 @dataclass
@@ -84,26 +85,17 @@ def world_model_row(
     wm: WorldModel,
     seed: int = 0,
     anchor_first_frame: bool = False,
-    context_refresh: bool | None = None,
     batch: int = 8,
-    refresh_steps: tuple[int, ...] | None = None,
-    sink_frames: int | None = None,
+    streaming: StreamingConfig | None = None,
 ) -> StudentRow:
     """A row generating each clip with ``wm``'s student (see :class:`StudentRow`).
 
     ``anchor_first_frame``: start from the clip's true first frame (all views, §6 task (a)) instead
-    of sampling it from the controls. ``context_refresh`` overrides the bundle's setting (ablation);
-    ``refresh_steps`` limits the refresh to those denoising steps (``StudentConfig.refresh_steps``);
-    ``sink_frames`` keeps each rollout's first frames in context (``StudentConfig.sink_frames``).
+    of sampling it from the controls. ``streaming``: how the student streams (None: as ``wm``
+    does, its bundle's streaming.json; :meth:`StreamingConfig.override` makes a variant of it).
     """
-    if context_refresh is not None:
-        steps = wm.student_cfg.refresh_steps if context_refresh else None
-        wm = replace(wm, student_cfg=replace(wm.student_cfg, context_refresh=context_refresh, refresh_steps=steps))
-    if refresh_steps is not None:
-        scfg = replace(wm.student_cfg, context_refresh=True, refresh_steps=tuple(refresh_steps))
-        wm = replace(wm, student_cfg=scfg)
-    if sink_frames is not None:
-        wm = replace(wm, student_cfg=replace(wm.student_cfg, sink_frames=sink_frames))
+    if streaming is not None:
+        wm = replace(wm, student_cfg=replace(wm.student_cfg, streaming=streaming))
     return StudentRow(wm, seed, anchor_first_frame, batch)
 
 
