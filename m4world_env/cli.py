@@ -174,7 +174,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _step_list(text: str) -> tuple[int, ...]:
-    """ "0,3" -> (0, 3): a --refresh-steps value (StudentConfig checks the indices)."""
+    """ "0,3" -> (0, 3): a --refresh-steps value (world_model.streaming checks the indices)."""
     try:
         return tuple(int(k) for k in text.split(","))
     except ValueError:

@@ -10,7 +10,6 @@ import copy
 import json
 import math
 import numbers
-import os
 import shutil
 import zlib
 from pathlib import Path
@@ -20,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import m4world_env  # noqa: F401 (registers M4World-v0)
@@ -30,16 +29,9 @@ from m4world_env.env import RENDER_MODES
 from m4world_env.scenario import SCENARIOS_DIR, ScenarioError, scenario_from_dict
 from m4world_env.traffic import ActionError
 from m4world_env.traffic.population import EDITABLE, UnknownObjectError
+from tests.fuzz_settings import EXAMPLES, FUZZ
 from world_model.bundle import CheckpointError, load_bundle_files
 
-EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "200"))
-FUZZ = settings(
-    max_examples=EXAMPLES,
-    derandomize=True,
-    database=None,
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
-)
 SMALL = {"height": 16, "width": 32}
 # What a user may be told: the project's own exceptions (and TypeError for a wrong Python type
 # in the reset options, as the standard library would).

@@ -4,20 +4,21 @@ input is either refused by the project's error naming the setting as that door s
 a streaming config inside the bounds table, whose refresh steps each name a denoising step and
 which survives its JSON form.
 
-Derandomized like ``tests/test_fuzz.py``; ``FUZZ_EXAMPLES`` scales the number of cases.
+Derandomized like ``tests/test_fuzz.py`` (``tests/fuzz_settings.py``); ``FUZZ_EXAMPLES`` scales the
+number of cases.
 """
 
 import json
-import os
 import shutil
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from m4world_env.cli import main
 from m4world_env.config import STREAMING_NAMES, EnvConfig, InvalidOptionError, UnknownOptionError
+from tests.fuzz_settings import EXAMPLES, FUZZ
 from world_model.bundle import STREAMING_FILE
 from world_model.streaming import (
     MAX_DENOISING_STEPS,
@@ -28,14 +29,6 @@ from world_model.streaming import (
     StreamingConfigError,
 )
 
-EXAMPLES = int(os.environ.get("FUZZ_EXAMPLES", "200"))
-FUZZ = settings(
-    max_examples=EXAMPLES,
-    derandomize=True,
-    database=None,
-    deadline=None,
-    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
-)
 # Each CLI case reads and re-seals a bundle (~0.1 s): a quarter of the cases keeps the file quick.
 CLI_FUZZ = settings(FUZZ, max_examples=max(1, EXAMPLES // 4))
 

@@ -11,7 +11,7 @@ import pytest
 from m4world_env.cli import main
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
-from world_model.bundle import STREAMING_FILE, CheckpointError, load_bundle_files, set_streaming
+from world_model.bundle import STREAMING_FILE, CheckpointError, load_bundle_files, reseal_bundle, set_streaming
 from world_model.eval.report import StudentStreaming
 from world_model.runtime import load_world_model
 from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig, StreamingConfigError
@@ -179,9 +179,12 @@ def test_bundle_carries_a_verified_streaming_file(bundle):
     set_streaming(root, StreamingConfig(sink_frames=0, refresh_steps="all"))
     wm = load_world_model(str(root))
     assert wm.streaming == wm.student_cfg.streaming == StreamingConfig(sink_frames=0, refresh_steps="all")
-    (root / STREAMING_FILE).write_text(json.dumps({**StreamingConfig().to_dict(), "sink_frames": 3}))
+    (root / STREAMING_FILE).write_text(json.dumps({**StreamingConfig().to_dict(), "sink_frames": 65}))
     with pytest.raises(CheckpointError, match="digest"):
         load_bundle_files(root)
+    reseal_bundle(root)  # a sealed file out of bounds: refused by its path and key, before any weights load
+    with pytest.raises(CheckpointError, match=r"streaming.json: sink_frames must be an integer in \[0, 64\], got 65"):
+        load_world_model(str(root))
 
 
 def test_cli_shows_and_writes_a_bundles_streaming(bundle, capsys):

@@ -39,7 +39,7 @@ from world_model.precision import check_dtype, dit_precision, resolve_bf16, reso
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
 from world_model.sim.labels import CLASS_PLANE, NO_LABEL
-from world_model.streaming import STREAMING_FILE, StreamingConfig
+from world_model.streaming import STREAMING_FILE, StreamingConfig, StreamingConfigError
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 
@@ -236,6 +236,10 @@ def load_world_model(
         raise ValueError(f"context_frames must be >= 1, got {context_frames}")
     files = load_bundle_files(path)
     try:
+        streaming = StreamingConfig.from_dict(files.streaming or {}, f"{files.path / STREAMING_FILE}")
+    except StreamingConfigError as e:  # a setting out of bounds, named by the file's path and key
+        raise CheckpointError(str(e)) from e
+    try:
         cfg = ModelConfig.from_dict(files.model_config)
         cfg = with_student_settings(cfg.with_depth(cfg.dit.depth), context_frames=context_frames)  # the student's
         own = files.component_config("reference") if files.has("reference") else None
@@ -244,7 +248,6 @@ def load_world_model(
             raise ValueError("the reference model's sensors, VAE or controls differ from the student's")
         bf16 = resolve_bf16(dtype, cfg.dit.autocast_bf16, device)
         cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
-        streaming = StreamingConfig.from_dict(files.streaming or {}, f"{files.path / STREAMING_FILE}")
         trained = StudentConfig.from_dict(files.manifest.get("student_config", {}))
         scfg = student or replace(trained, streaming=streaming)
         vae = SensorVAE(cfg)
