@@ -18,10 +18,14 @@ from m4world_env.agreement import (
     FULL_SEEDS,
 )
 from m4world_env.config import ACTION_TYPES
+from world_model.cli_args import check_in_folder as _check_in_folder
+from world_model.cli_args import check_out as _check_out
+from world_model.cli_args import non_negative_int as _non_negative_int
+from world_model.cli_args import positive_float as _positive_float
+from world_model.cli_args import positive_int as _positive_int
+from world_model.cli_args import seed as _seed
 from world_model.precision import DTYPES
 from world_model.streaming import STREAMING_BOUNDS
-from world_model.train.cli import non_negative_int as _non_negative_int
-from world_model.train.cli import positive_int as _positive_int
 
 VIDEO_SUFFIXES = (".mp4", ".mkv", ".mov")  # containers that take the demo's H.264
 # m4world agreement's default jobs: each holds a world model and a batch of ~30 rollouts (~2 GB).
@@ -181,22 +185,6 @@ def _step_list(text: str) -> tuple[int, ...]:
         raise ValueError(f"--refresh-steps takes comma-separated step indices such as 0 or 1,3, got {text!r}") from None
 
 
-def _check_out(path: str | None, kind: str, option: str = "--out") -> None:
-    """Refuse an output path of the wrong kind before any work is done (not after an hour of it)."""
-    if path is None:
-        return
-    p = Path(path)
-    if kind == "file" and p.is_dir():
-        raise ValueError(f"{option} {path} is a directory; give a file path for the JSON report")
-    if kind == "folder" and p.exists() and not p.is_dir():
-        raise ValueError(f"{option} {path} is a file; give a folder (it is created if missing)")
-    parent = p.parent if kind == "file" else p
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK):
-        raise ValueError(f"{option} {path}: {parent} is not a writable folder")
-
-
 def _cmd_eval(args: argparse.Namespace) -> int:
     _check_out(args.out, "folder" if args.report else "file")
     if args.report and args.ray is not None:
@@ -209,6 +197,13 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.ray is None:
         raise ValueError("--workers spreads the episodes over Ray workers: add --ray [ADDRESS]")
+    if args.ray:
+        from m4world_env.cluster import split_address
+
+        try:
+            split_address(args.ray)
+        except ValueError as e:
+            raise ValueError(f"--ray: {e}") from None
     scenarios = list_scenarios() if args.scenarios == ["all"] else args.scenarios
     if is_zoo_policy(args.policy):
         zoo.member(args.policy)  # a version the zoo does not have is refused before any env is built
@@ -305,6 +300,8 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     from world_model.bundle import export_bundle
 
+    _check_in_folder(args.run, "--run")
+    _check_out(args.out, "folder")
     print(f"wrote {export_bundle(args.run, args.out)}")
     return 0
 
@@ -345,6 +342,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     import shutil
     import subprocess
 
+    _check_out(args.out, "folder")
     root = Path(__file__).resolve().parents[1] / "benchmarks"
     if not root.is_dir():
         raise FileNotFoundError(f"benchmarks/ not found next to the package ({root}); run from a source checkout")
@@ -375,6 +373,7 @@ def _cmd_text_embeddings(args: argparse.Namespace) -> int:
     from m4world_env.scenario import list_scenarios
     from m4world_env.text_embeddings import precompute_text_embeddings
 
+    _check_out(args.out, "file")
     scenarios = list_scenarios() if args.scenario == ["all"] else args.scenario
     path, prompts, pooled = precompute_text_embeddings(
         scenarios, args.out, args.episodes, args.seed, args.steps, args.checkpoint
@@ -386,6 +385,7 @@ def _cmd_text_embeddings(args: argparse.Namespace) -> int:
 def _cmd_evalset(args: argparse.Namespace) -> int:
     from m4world_env.evalset import record_evalset
 
+    _check_out(args.out, "folder")
     clips = record_evalset(args.out)
     print(f"{len(clips)} evaluation clips in {args.out}")
     return 0
@@ -394,6 +394,7 @@ def _cmd_evalset(args: argparse.Namespace) -> int:
 def _cmd_gallery(args: argparse.Namespace) -> int:
     from m4world_env.gallery import make_gallery
 
+    _check_out(args.out, "folder")
     for path in make_gallery(args.out, seconds=args.seconds, height=args.height, width=args.width):
         print(f"wrote {path}")
     return 0
@@ -408,18 +409,20 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--backend", default="world_model", choices=("procedural", "world_model"))
     d.add_argument("--checkpoint", default=None)
     d.add_argument("--policy", default="idm", help="built-in (random, lane_keeping, idm) or module:callable")
-    d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--steps", type=int, default=0, help="stop after N steps (0 = the scenario's duration)")
+    d.add_argument("--seed", type=_seed, default=0)
+    d.add_argument(
+        "--steps", type=_non_negative_int, default=0, help="stop after N steps (0 = the scenario's duration)"
+    )
     d.add_argument("--out", default="out/demo.mp4")
-    d.add_argument("--scale", type=int, default=3, help="integer upscaling of the mosaic in the video")
+    d.add_argument("--scale", type=_positive_int, default=3, help="integer upscaling of the mosaic in the video")
     d.set_defaults(func=_cmd_demo)
 
     r = sub.add_parser("record", help="record training clips (procedural sensors) from scenarios")
     r.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
     r.add_argument("--episodes", type=_positive_int, default=1)
     r.add_argument("--out", required=True)
-    r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--duration", type=float, default=None, help="override the scenarios' duration (s)")
+    r.add_argument("--seed", type=_seed, default=0)
+    r.add_argument("--duration", type=_positive_float, default=None, help="override the scenarios' duration (s)")
     r.add_argument("--preset", default="default", help="model preset whose sensors (views, LiDAR, BEV) the clips match")
     r.add_argument("--height", type=_positive_int, default=None, help="camera height (default: the preset's)")
     r.add_argument("--width", type=_positive_int, default=None, help="camera width (default: the preset's)")
@@ -462,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--policy", default="idm")
     e.add_argument("--scenarios", nargs="+", default=["all"])
     e.add_argument("--episodes", type=_positive_int, default=1)
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--seed", type=_seed, default=0)
     e.add_argument(
         "--seeds",
         type=_positive_int,
@@ -496,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
         "refresh-off ablation, [teacher])",
     )
     e.add_argument("--evalset", default="data/evalset", help="--report: evaluation clips (m4world evalset)")
-    e.add_argument("--max-clips", type=int, default=0, help="--report: use only the first N clips")
+    e.add_argument("--max-clips", type=_non_negative_int, default=0, help="--report: use only the first N clips")
     e.add_argument(
         "--clips-prefix",
         default="",
@@ -521,7 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     e.add_argument(
         "--context-frames",
-        type=int,
+        type=_positive_int,
         default=None,
         help="--report: run the student rows with a rolling window of N frames instead of the one the "
         "checkpoint was trained with (a study of the window; part of those rows' key)",
@@ -538,7 +541,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument(
         "--sink-frames",
         action="append",
-        type=int,
+        type=_non_negative_int,
         default=[],
         metavar="N",
         help="--report: extra student rows keeping each rollout's first N frames in context beside the "
@@ -614,8 +617,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     te.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
     te.add_argument("--episodes", type=_positive_int, default=1, help="seeds --seed .. --seed + episodes - 1")
-    te.add_argument("--seed", type=int, default=0)
-    te.add_argument("--steps", type=int, default=None, help="steps per episode (default: to its end)")
+    te.add_argument("--seed", type=_seed, default=0)
+    te.add_argument("--steps", type=_positive_int, default=None, help="steps per episode (default: to its end)")
     te.add_argument("--checkpoint", default=None, help="bundle whose text encoder to use (default: the shipped one)")
     te.add_argument("--out", required=True, help="the .npz file to write")
     te.set_defaults(func=_cmd_text_embeddings)
@@ -626,9 +629,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("gallery", help="render PNG mosaics of scenarios under several weathers/times")
     g.add_argument("--out", default="docs/images")
-    g.add_argument("--seconds", type=float, default=3.0)
-    g.add_argument("--height", type=int, default=128)
-    g.add_argument("--width", type=int, default=224)
+    g.add_argument("--seconds", type=_positive_float, default=3.0)
+    g.add_argument("--height", type=_positive_int, default=128)
+    g.add_argument("--width", type=_positive_int, default=224)
     g.set_defaults(func=_cmd_gallery)
 
     ag = sub.add_parser(
@@ -646,7 +649,7 @@ def build_parser() -> argparse.ArgumentParser:
     ag.add_argument("--policies", nargs="+", default=None, help="zoo members (default: all; m4world zoo lists them)")
     ag.add_argument("--scenarios", nargs="+", default=None, help="scenarios (default: the run size's)")
     ag.add_argument("--seeds", type=_positive_int, default=None, help="seeds per scenario (--seed, --seed + 1, ...)")
-    ag.add_argument("--seed", type=_non_negative_int, default=0, help="the first seed")
+    ag.add_argument("--seed", type=_seed, default=0, help="the first seed")
     ag.add_argument("--steps", type=_positive_int, default=None, help="policy steps per episode")
     ag.add_argument(
         "--jobs",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
+from world_model import cli_args
 from world_model.heap import retain_freed_memory
 from world_model.precision import DTYPES
 
@@ -29,14 +30,14 @@ def add_lora_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None
     """The LoRA stage's objective flags (``--stage lora``)."""
     p.add_argument(
         "--lora-box-weight",
-        type=float,
+        type=cli_args.non_negative_float,
         default=0.0,
         help="lora: extra flow-loss weight on the latent cells inside the rare object's projected boxes "
         "(default 0 = the plain mean; e.g. 9 weighs them 10x); a run resumes only with the same value",
     )
     p.add_argument(
         "--lora-rank",
-        type=int,
+        type=cli_args.positive_int,
         default=None,
         help="lora: rank of the adapter's low-rank updates (default: world_model.lora.LoraConfig's, 8); its scale "
         "stays 1 (alpha = rank); a run resumes only with the same value",
@@ -48,13 +49,16 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
     meaning "the preset's" or "the stage's"."""
     p.add_argument(
         "--student-depth",
-        type=int,
+        type=cli_args.positive_int,
         default=None,
         help="blocks of the causal student (default: the preset's dit.student_depth, else the teacher's); "
         "starts from evenly spaced teacher blocks; give it to every student stage of the run",
     )
     p.add_argument(
-        "--context-frames", type=int, default=None, help="the student's rolling window (default: the preset's)"
+        "--context-frames",
+        type=cli_args.positive_int,
+        default=None,
+        help="the student's rolling window (default: the preset's)",
     )
     p.add_argument(
         "--dtype",
@@ -71,7 +75,7 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
     )
     p.add_argument(
         "--vae-object-weight",
-        type=float,
+        type=cli_args.non_negative_float,
         default=None,
         help="vae stage: extra L1 weight on camera pixels inside objects' boxes (default: the preset's "
         "vae.object_loss_weight; 0 = plain L1)",
@@ -85,24 +89,26 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
         "stage of one run must agree",
     )
     if long_frames:
-        p.add_argument("--long-frames", type=int, default=None, help="long stage: frames per self-rollout (600)")
+        p.add_argument(
+            "--long-frames", type=cli_args.positive_int, default=None, help="long stage: frames per self-rollout (600)"
+        )
     p.add_argument(
         "--long-skip-chunks",
-        type=int,
+        type=cli_args.non_negative_int,
         default=None,
         help="long stage: chunks a self-rollout advances untrained between trained clips (default 0: every "
         "clip is trained); lets a short tuning run reach a rollout's late frames",
     )
     p.add_argument(
         "--denoise-loss-prob",
-        type=float,
+        type=cli_args.probability,
         default=None,
         help="dmd and long stages: probability of adding the supervised denoising term on real latents "
         "to a step (default 0.1)",
     )
     p.add_argument(
         "--dmd-guidance-scale",
-        type=float,
+        type=cli_args.positive_float,
         default=None,
         help="dmd and long stages: guidance scale of the DMD real score, camera CFG and LiDAR APG alike "
         "(default: the teacher's sampler scales; 1 = unguided)",

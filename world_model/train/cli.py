@@ -11,6 +11,7 @@ import json
 import sys
 from pathlib import Path
 
+from world_model import cli_args
 from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_flags
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
@@ -29,28 +30,6 @@ PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference"
 DECODER_STAGES = ("decoder", "rollout_decoder")
 
 
-def positive_int(text: str) -> int:
-    """An argparse type: ``0`` or ``-3`` would otherwise mean "the default" or fail deep in a stage."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    """An argparse type for a count that may be zero (none)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be 0 or a positive integer, got {text!r}")
-    return value
-
-
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
     """Every flag of the training command."""
     p.add_argument("--stage", default=None, help="the stage to train (see below)")
@@ -65,14 +44,17 @@ def add_train_arguments(p: argparse.ArgumentParser) -> None:
         "copy RUN/vae and RUN/teacher/latents of the full run into it to share the autoencoder)",
     )
     p.add_argument(
-        "--steps", type=positive_int, default=None, help="total optimizer steps of --stage (default: preset's)"
+        "--steps", type=cli_args.positive_int, default=None, help="total optimizer steps of --stage (default: preset's)"
     )
-    p.add_argument("--batch-size", type=positive_int, default=None, help="global batch (default: the stage's)")
-    p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--batch-size", type=cli_args.positive_int, default=None, help="global batch (default: the stage's)")
+    p.add_argument("--lr", type=cli_args.positive_float, default=None)
     p.add_argument(
-        "--ckpt-every", type=positive_int, default=None, help="steps between checkpoints (default: the stage's)"
+        "--ckpt-every",
+        type=cli_args.positive_int,
+        default=None,
+        help="steps between checkpoints (default: the stage's)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=cli_args.seed, default=0)
     p.add_argument("--no-progress", action="store_true")
     p.add_argument(
         "--device",
@@ -108,6 +90,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {', '.join(stages.STAGES)}) or --all")
+    cli_args.check_out(args.run, "folder", "--run")
     apply_heap_flag(args)
     config = stage_config(args, get_preset(args.preset, geometry_only=args.geometry_only))
     place = init_place(args.device)

@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import os
 import subprocess
 import sys
@@ -42,6 +43,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+from world_model import cli_args
 
 CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
@@ -311,6 +314,29 @@ def stage_time_limit(spec: RecipeScale, stages_left: tuple[str, ...], elapsed_s:
     return max(1.0, left * share)
 
 
+def check_run_options(
+    out: Path, device: str, workers: int | None, seed: int, max_file_mib: float, from_bundle: str | Path | None
+) -> None:
+    """Refuse, before anything is recorded, the options of :func:`run_recipe` that would fail in a
+    later phase: a ValueError (FileNotFoundError for a missing folder) naming the flag and value."""
+    from world_model.bundle import CheckpointError, load_bundle_files
+    from world_model.train.device import resolve_device
+
+    cli_args.check_out(out, "folder")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise ValueError(f"--workers must be a positive integer (or None: every core), got {workers!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= cli_args.MAX_SEED:
+        raise ValueError(f"--seed must be an integer in [0, 2**63 - 1], got {seed!r}")
+    if not (isinstance(max_file_mib, int | float) and math.isfinite(max_file_mib) and max_file_mib * MIB >= 1):
+        raise ValueError(f"--max-file-mib must be a finite size of at least one byte (1/{MIB} MiB), got {max_file_mib}")
+    resolve_device(device)
+    if from_bundle is not None:
+        try:
+            load_bundle_files(from_bundle)  # a folder that is no bundle is named now, not after the recording
+        except CheckpointError as e:
+            raise ValueError(f"--from-bundle: {e}") from None
+
+
 def run_recipe(
     out: Path,
     scale: str = "gpu",
@@ -337,9 +363,10 @@ def run_recipe(
 
     spec = SCALES[scale]
     if time_limit_s is not None:
-        if not time_limit_s > 0:
-            raise ValueError(f"--time-limit-s must be positive, got {time_limit_s}")
+        if not 0 < time_limit_s < math.inf:
+            raise ValueError(f"--time-limit-s must be a finite number above 0, got {time_limit_s}")
         spec = replace(spec, time_limit_s=time_limit_s)
+    check_run_options(out, device, workers, seed, max_file_mib, from_bundle)
     out.mkdir(parents=True, exist_ok=True)
     data, run = out / "data", out / "run"
     data.mkdir(exist_ok=True)
@@ -424,11 +451,16 @@ def main(argv: list[str] | None = None) -> int:
         help="gpu (one H100/H200 in 9 minutes), cpu (a 2-core CPU in 2.5 hours) or dry (a CPU check)",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    p.add_argument("--workers", type=int, default=None, help="recording processes (default: every core)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-file-mib", type=float, default=16.0, help="largest file of bundle_parts/")
     p.add_argument(
-        "--time-limit-s", type=float, default=None, help="the whole recipe's wall time (default: the scale's)"
+        "--workers", type=cli_args.positive_int, default=None, help="recording processes (default: every core)"
+    )
+    p.add_argument("--seed", type=cli_args.seed, default=0)
+    p.add_argument("--max-file-mib", type=cli_args.positive_float, default=16.0, help="largest file of bundle_parts/")
+    p.add_argument(
+        "--time-limit-s",
+        type=cli_args.positive_float,
+        default=None,
+        help="the whole recipe's wall time (default: the scale's)",
     )
     p.add_argument("--from-bundle", default=None, help="start the run from this bundle's components (with --phases)")
     p.add_argument(
@@ -439,6 +471,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     try:
         if a.join:
+            cli_args.check_in_folder(a.join[0], "--join PARTS")
+            cli_args.check_out(a.join[1], "folder", "--join DEST")
             join_files(Path(a.join[0]), Path(a.join[1]))
             return 0
         if not a.out:
