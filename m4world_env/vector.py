@@ -36,7 +36,7 @@ from m4world_env.env import M4WorldEnv, check_render_mode, check_seed
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
 from m4world_env.traffic.actions import detached
-from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs
+from m4world_env.workers import SimulationWorkers, SubEnvStep, WorkerSubEnvs, check_main_guard
 
 MAX_ENVS = 4096  # sub-envs of one vector env (each holds a traffic simulation and a rollout)
 
@@ -265,7 +265,8 @@ class M4WorldVectorEnv(VectorEnv):
 
 
 def _check_workers(workers: int, num_envs: int, backend: str, render_mode: str | None) -> None:
-    """Refuse ``config.workers`` where it cannot apply."""
+    """Refuse ``config.workers`` where it cannot apply (before the model loads)."""
+    check_main_guard()
     if backend != "world_model":
         raise InvalidOptionError(
             f"config.workers={workers} needs backend='world_model': the procedural backend renders every "

@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import pickle
 import signal
+import threading
 import time
 import traceback
 import weakref
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, fields
-from multiprocessing import get_context
+from multiprocessing import current_process, get_context
 from multiprocessing.connection import Connection, wait
 from typing import Any
 
@@ -48,8 +49,15 @@ from world_model.model.conditions import ConditionArrays, condition_field_specs
 from world_model.model.config import ModelConfig
 from world_model.scene import SceneFrame
 
-START_TIMEOUT_S = 300.0  # a worker imports torch and builds its encoders
-REPLY_TIMEOUT_S = 1800.0  # a live worker that has not answered by then is stuck
+START_TIMEOUT_S = 300.0  # the workers import torch and build their encoders
+REPLY_TIMEOUT_S = 1800.0  # live workers that have not answered a request by then are stuck
+JOIN_TIMEOUT_S = 5.0  # a closing worker (or spec sender) that takes longer is stopped harder
+# Spawned workers import the main module: a script that makes the vector env at its top level
+# makes it again inside each worker, which then exits.
+MAIN_GUARD_HINT = (
+    "config.workers starts worker processes, which import the main script; a script that makes the "
+    "vector env needs `if __name__ == '__main__':` around its code"
+)
 OBJECT_METHODS = ("insert_object", "remove_object", "edit_object")
 WORKER_COMMANDS = ("reset", "check", "advance", "call", "seconds")  # SimulationWorker methods main may call
 
@@ -93,6 +101,13 @@ class WorkerSpec:
     vae_weights: dict[str, np.ndarray]
     layout: SharedLayout
     torch_threads: int
+
+
+def check_main_guard() -> None:
+    """Refuse to start workers from a process that is itself starting (a spawned process importing
+    a main script without a main guard): a :class:`SimulationWorkerError` with the hint."""
+    if getattr(current_process(), "_inheriting", False):  # set by multiprocessing while it imports
+        raise SimulationWorkerError(MAIN_GUARD_HINT)
 
 
 def worker_rows(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
@@ -249,11 +264,16 @@ def _blame(local: int) -> Iterator[None]:
         raise
 
 
-def run_worker(conn: Connection, spec: WorkerSpec) -> None:
-    """A worker process's body: build the sub-envs, then answer commands until "close"."""
+def run_worker(conn: Connection) -> None:
+    """A worker process's body: receive its :class:`WorkerSpec`, build the sub-envs, then answer
+    commands until "close"."""
     import torch
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle (it closes us)
+    try:
+        spec: WorkerSpec = conn.recv()
+    except EOFError:  # the main process gave up on the start
+        return
     torch.set_num_threads(spec.torch_threads)  # as main's: the encoders' numbers depend on it
     shared = SharedArrays.attach(spec.layout)
     try:
@@ -309,6 +329,7 @@ class SimulationWorkers:
         chunks_per_step: int,
         torch_threads: int,
     ) -> None:
+        check_main_guard()
         self.rows = worker_rows(num_envs, num_workers)
         self.owner = np.repeat(np.arange(num_workers), [hi - lo for lo, hi in self.rows])
         state = config.state_objects if "state" in config.observation_keys else None
@@ -316,8 +337,13 @@ class SimulationWorkers:
         ctx = get_context("spawn")
         self.conns: list[Connection] = []
         self.processes = []
+        # Each worker's spec (the VAE weights among it) goes through its pipe from a thread once the
+        # worker runs, not as the process's argument: multiprocessing writes those while it holds
+        # the pipe's other end itself, so a worker that exits before reading them (a script without
+        # a main guard) would block that write forever. Only the bounded wait below blocks.
+        self._senders: list[threading.Thread] = []
         self._broken: str | None = None
-        self._finalize = weakref.finalize(self, _shutdown, self.conns, self.processes, self.shared)
+        self._finalize = weakref.finalize(self, _shutdown, self.conns, self.processes, self._senders, self.shared)
         self.wait_s = 0.0  # main's wall seconds waiting for the workers
         try:
             for k, rows in enumerate(self.rows):
@@ -325,13 +351,19 @@ class SimulationWorkers:
                     k, rows, scenario, config, model_config, vae_weights, self.shared.layout, torch_threads
                 )
                 ours, theirs = ctx.Pipe()
-                process = ctx.Process(target=run_worker, args=(theirs, spec), name=f"m4world-sim-{k}", daemon=True)
+                process = ctx.Process(target=run_worker, args=(theirs,), name=f"m4world-sim-{k}", daemon=True)
                 self.conns.append(ours)
                 self.processes.append(process)
                 process.start()
                 theirs.close()
+                sender = threading.Thread(
+                    target=_send_quietly, args=(ours, spec), name=f"m4world-sim-{k}-spec", daemon=True
+                )
+                self._senders.append(sender)
+                sender.start()
+            deadline = time.monotonic() + START_TIMEOUT_S
             for k in range(num_workers):
-                self._receive(k, START_TIMEOUT_S, starting=True)
+                self._receive(k, deadline, starting=True)
         except BaseException:
             self.close()
             raise
@@ -351,9 +383,10 @@ class SimulationWorkers:
             except (BrokenPipeError, ConnectionResetError, EOFError) as e:
                 self._fail(k, f"its pipe closed ({e})")
         replies, errors = {}, []
+        deadline = time.monotonic() + REPLY_TIMEOUT_S
         for k in messages:
             try:
-                replies[k] = self._receive(k, REPLY_TIMEOUT_S)
+                replies[k] = self._receive(k, deadline)
             except SimulationWorkerError:
                 raise
             except Exception as e:  # noqa: BLE001 (the worker's error, raised below in sub-env order)
@@ -384,12 +417,12 @@ class SimulationWorkers:
         self._broken = self._broken or "the vector env was closed"
         self._finalize()
 
-    def _receive(self, k: int, timeout_s: float, starting: bool = False) -> Any:
+    def _receive(self, k: int, deadline: float, starting: bool = False) -> Any:
+        """Worker ``k``'s reply, waiting until ``deadline`` (``time.monotonic()``) at most and no
+        longer than the worker lives."""
         conn, process = self.conns[k], self.processes[k]
-        # Spawned workers import the main module: a script that makes the vector env at its top
-        # level starts workers from within the workers (multiprocessing refuses), and they exit.
-        hint = " while starting (a script needs `if __name__ == '__main__':` around its code)" if starting else ""
-        ready = wait([conn, process.sentinel], timeout_s)
+        hint = f" while starting ({MAIN_GUARD_HINT})" if starting else ""
+        ready = wait([conn, process.sentinel], max(0.0, deadline - time.monotonic()))
         if conn in ready:
             try:
                 status, *payload = conn.recv()
@@ -403,7 +436,7 @@ class SimulationWorkers:
         if process.sentinel in ready or not process.is_alive():
             process.join(1.0)
             self._fail(k, f"it exited with code {process.exitcode}{hint}")
-        self._fail(k, f"it did not answer within {timeout_s:.0f} s")
+        self._fail(k, f"it did not answer within {START_TIMEOUT_S if starting else REPLY_TIMEOUT_S:.0f} s")
 
     def _raise_remote(self, k: int, error: Exception, remote_traceback: str) -> None:
         lo, hi = self.rows[k]
@@ -428,21 +461,33 @@ class SimulationWorkers:
             raise SimulationWorkerError(f"{self._broken}; make a new vector env")
 
 
-def _shutdown(conns: list[Connection], processes: list, shared: SharedArrays) -> None:
+def _send_quietly(conn: Connection, message: Any) -> None:
+    """Send ``message`` (a thread's job); a worker gone before reading it is reported by
+    :meth:`SimulationWorkers._receive`, which watches the process."""
+    with suppress(OSError, ValueError):
+        conn.send(message)
+
+
+def _shutdown(conns: list[Connection], processes: list, senders: list[threading.Thread], shared: SharedArrays) -> None:
     """Ask every worker to stop, join (terminate, kill what stays), unlink the shared memory."""
-    for conn in conns:
-        with suppress(OSError, ValueError):  # already gone
-            conn.send(("close", ()))
-    for process in processes:
+    # A worker that has not read its spec yet is terminated at once: its pipe takes nothing else.
+    sending = [k < len(senders) and senders[k].is_alive() for k in range(len(conns))]
+    for conn, busy in zip(conns, sending, strict=True):
+        if not busy:
+            with suppress(OSError, ValueError):  # already gone
+                conn.send(("close", ()))
+    for process, busy in zip(processes, sending, strict=True):
         if process.pid is None:  # its start failed
             continue
-        process.join(5.0)
+        process.join(0.0 if busy else JOIN_TIMEOUT_S)
         if process.is_alive():
             process.terminate()
-            process.join(5.0)
+            process.join(JOIN_TIMEOUT_S)
         if process.is_alive():
             process.kill()
             process.join()
+    for sender in senders:  # its worker is gone: the send ends
+        sender.join(JOIN_TIMEOUT_S)
     for conn in conns:
         conn.close()
     shared.unlink()

@@ -1,6 +1,9 @@
 """config.workers: a world-model vector env's CPU side in worker processes (m4world_env.workers)
 gives the in-process results bit for bit; errors, dead workers and shared memory are handled."""
 
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import gymnasium as gym
@@ -19,6 +22,7 @@ from m4world_env.workers import SimulationWorkerError, worker_rows
 
 from .test_env_world_model import _wm_vector, assert_rows_equal_singles
 
+ROOT = Path(__file__).resolve().parents[1]
 KEYS = ["cameras", "lidar", "bev", "state"]
 ACTIONS = np.array([[0.5, 0.0], [-0.5, 0.2], [0.0, 0.0]], np.float32)
 
@@ -179,3 +183,34 @@ def test_workers_option_is_checked(tiny_bundle):
         )  # fmt: skip
     with pytest.raises(InvalidOptionError, match="a single env has none"):
         M4WorldEnv("merge_cut_in", backend="world_model", checkpoint=str(tiny_bundle), config={"workers": 1})
+
+
+NO_MAIN_GUARD = """\
+import gymnasium as gym
+
+import m4world_env  # noqa: F401
+
+venv = gym.make_vec(
+    "M4World-v0", num_envs=1, vectorization_mode="vector_entry_point", backend="world_model",
+    checkpoint={checkpoint!r}, config={{"workers": 1}},
+)
+print("built")
+venv.close()
+"""
+SCRIPT_TIMEOUT_S = 150  # two processes import torch and load a tiny bundle; a hang ends here, failing
+
+
+def test_a_script_without_a_main_guard_ends_with_the_hint_instead_of_hanging(tiny_bundle, tmp_path):
+    """The spawned worker imports the script, which makes the vector env again: the worker refuses
+    at once, and the main process, which sees it exit before it read its spec (VAE weights and all,
+    more than a pipe buffers), ends the script with the hint."""
+    script = tmp_path / "no_main_guard.py"
+    script.write_text(NO_MAIN_GUARD.format(checkpoint=str(tiny_bundle)))
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    done = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=SCRIPT_TIMEOUT_S
+    )
+    assert done.returncode != 0 and "built" not in done.stdout
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("m4world_env.workers.SimulationWorkerError: simulation worker 0"), done.stderr[-2000:]
+    assert "exited with code 1 while starting" in last and "if __name__ == '__main__':" in last
