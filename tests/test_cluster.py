@@ -4,6 +4,7 @@ trains over RayVectorEnv. One local Ray instance (2 CPUs) serves the whole modul
 
 import json
 import runpy
+import socket
 import sys
 from pathlib import Path
 
@@ -16,7 +17,7 @@ ray = pytest.importorskip("ray", reason="Ray is not installed: pip install 'm4wo
 
 import m4world_env  # noqa: E402,F401  (registers M4World-v0)
 from m4world_env.cli import main  # noqa: E402
-from m4world_env.cluster import RayVectorEnv, evaluate_on_ray  # noqa: E402
+from m4world_env.cluster import ClusterError, RayVectorEnv, connect, evaluate_on_ray  # noqa: E402
 from m4world_env.config import InvalidOptionError  # noqa: E402
 from m4world_env.evaluate import evaluate, format_table  # noqa: E402
 from m4world_env.scenario import load_scenario  # noqa: E402
@@ -145,3 +146,36 @@ def test_sb3_ray_example_trains_over_ray_vector_env(tmp_path, monkeypatch):
     )
     assert report["timesteps"] >= 64 and report["overall"]["episodes"] == 1
     assert (tmp_path / "ppo_m4world.zip").exists() and (tmp_path / "eval.json").exists()
+
+
+def test_more_workers_than_the_instance_holds_are_refused_before_any_starts():
+    """The instance has 2 CPUs: workers that could never start are refused at once, not waited for."""
+    with pytest.raises(ClusterError, match=r"workers=1000000 of 1 CPU each .* the Ray instance has 2: .* at most 2"):
+        evaluate_on_ray("idm", ["empty_highway"], workers=1_000_000, **EVAL)
+    with pytest.raises(ClusterError, match=r"workers=3 of 1 CPU each need 3 CPUs"):
+        RayVectorEnv(3, workers=3, scenario=SHORT, config=CONFIG)
+
+
+def test_workers_that_do_not_start_in_time_end_with_an_error():
+    """A worker imports torch before it answers: far longer than these timeouts."""
+    with pytest.raises(ClusterError, match="no Ray worker started within 0.01 s"):
+        evaluate_on_ray("idm", ["empty_highway"], workers=1, start_timeout_s=0.01, **EVAL)
+    with pytest.raises(ClusterError, match="1 of 1 Ray workers did not start within 0.01 s"):
+        RayVectorEnv(2, workers=1, scenario=SHORT, config=CONFIG, start_timeout_s=0.01)
+
+
+def test_an_address_where_nothing_listens_is_refused_before_ray_is_asked(monkeypatch):
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+
+    def never(**_):
+        raise AssertionError("ray.init was called (it retries such an address for minutes)")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", never)
+    with pytest.raises(ClusterError, match=f"no Ray instance answers at 127.0.0.1:{port}"):
+        connect(f"127.0.0.1:{port}")
+    monkeypatch.setenv("RAY_ADDRESS", f"127.0.0.1:{port}")
+    with pytest.raises(ClusterError, match=f"no Ray instance answers at 127.0.0.1:{port}"):
+        connect("auto")

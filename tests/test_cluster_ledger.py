@@ -1,9 +1,13 @@
-"""The cluster package's pure parts (no Ray needed): how sub-envs are shared, and the episode ledger
-that counts each episode once however often a lost worker's episodes run again."""
+"""The cluster package's pure parts (no Ray needed): how sub-envs are shared, the episode ledger
+that counts each episode once however often a lost worker's episodes run again, and Ray addresses."""
+
+import socket
+import time
 
 import pytest
 
-from m4world_env.cluster import EpisodeKey, EpisodeLedger, split_evenly
+from m4world_env.cluster import ClusterError, EpisodeKey, EpisodeLedger, split_address, split_evenly
+from m4world_env.cluster.runtime import check_reachable
 
 
 def test_split_evenly_is_contiguous_and_balanced():
@@ -31,3 +35,20 @@ def test_ledger_requeues_a_lost_workers_episodes_and_counts_each_once():
     assert ledger.lose("c") == [] and not ledger.complete
     assert ledger.finish("b", b1, {}) and ledger.take("b") == keys[3] and ledger.finish("b", keys[3], {})
     assert ledger.complete and ledger.take("b") is None and len(ledger.done) == 4
+
+
+def test_ray_addresses_are_parsed_and_one_where_nothing_listens_is_refused_at_once():
+    assert split_address("auto") is None
+    assert split_address("10.0.0.2:6379") == ("10.0.0.2", 6379)
+    assert split_address("ray://head.local:10001") == ("head.local", 10001)
+    assert split_address("[::1]:6379") == ("::1", 6379)
+    for bad in ("head", "head:", ":6379", "head:port", "head:0", "head:70000", "ray://"):
+        with pytest.raises(ValueError, match="give auto, HOST:PORT or ray://HOST:PORT"):
+            split_address(bad)
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    started = time.monotonic()
+    with pytest.raises(ClusterError, match=f"no Ray instance answers at ray://127.0.0.1:{port}"):
+        check_reachable(f"ray://127.0.0.1:{port}", timeout_s=5.0)
+    assert time.monotonic() - started < 5.0

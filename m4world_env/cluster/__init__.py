@@ -10,10 +10,11 @@ Ray is imported when one of them is used, so the package imports without it.
 """
 
 from m4world_env.cluster.evaluate import EpisodeDone, EpisodeKey, EpisodeLedger, evaluate_on_ray
-from m4world_env.cluster.runtime import connect, require_ray, split_evenly
+from m4world_env.cluster.runtime import ClusterError, connect, require_ray, split_address, split_evenly
 from m4world_env.cluster.vector import RayVectorEnv
 
 __all__ = [
+    "ClusterError",
     "EpisodeDone",
     "EpisodeKey",
     "EpisodeLedger",
@@ -21,5 +22,6 @@ __all__ = [
     "connect",
     "evaluate_on_ray",
     "require_ray",
+    "split_address",
     "split_evenly",
 ]

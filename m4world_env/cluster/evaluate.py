@@ -12,13 +12,20 @@ some of a scenario's episodes, not all of them in order.
 
 from __future__ import annotations
 
+import time
 import uuid
 from collections import deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from m4world_env.cluster.runtime import connect, require_ray
+from m4world_env.cluster.runtime import (
+    WORKER_START_TIMEOUT_S,
+    ClusterError,
+    check_capacity,
+    connect,
+    require_ray,
+)
 from m4world_env.config import EnvConfig
 from m4world_env.evaluate import build_report, check_max_steps, run_episode, scenario_policy
 from m4world_env.scenario import Scenario, load_scenario
@@ -133,7 +140,7 @@ class EpisodeRunner:
         return run_episode(self._env, self._episode_policy, seed=seed, max_steps=self.max_steps)
 
 
-def evaluate_on_ray(
+def evaluate_on_ray(  # evaluate()'s parameters, then the cluster's
     policy: str | Callable,
     scenarios: Sequence[str],
     episodes: int = 1,
@@ -148,12 +155,16 @@ def evaluate_on_ray(
     cpus_per_worker: float = 1.0,
     max_worker_losses: int | None = None,
     on_episode: Callable[[EpisodeDone], None] | None = None,
+    start_timeout_s: float = WORKER_START_TIMEOUT_S,
 ) -> dict[str, Any]:
     """:func:`m4world_env.evaluate.evaluate` on ``workers`` Ray actors (default: one per CPU of the
     instance), joined at ``address`` (:func:`~m4world_env.cluster.connect`). Returns the same report
     plus ``report["cluster"]``: workers, workers lost, episodes re-run. Lost workers are replaced up to
     ``max_worker_losses`` times (default ``workers``), then the evaluation stops with an error.
-    ``on_episode`` is called with each episode counted, as it is counted."""
+    ``on_episode`` is called with each episode counted, as it is counted. No wait is unbounded while
+    no worker runs: an address where nothing answers (:func:`~m4world_env.cluster.connect`), more
+    workers than the instance's CPUs hold, or no worker started within ``start_timeout_s`` of its
+    start is a :class:`~m4world_env.cluster.ClusterError`."""
     from tqdm import tqdm
 
     check_max_steps(max_steps)
@@ -170,12 +181,14 @@ def evaluate_on_ray(
     prefix = f"m4world-eval-{uuid.uuid4().hex[:8]}"
     handles: dict[str, Any] = {}
     calls: dict[Any, tuple[str, EpisodeKey | None]] = {}  # object ref -> (worker, episode; None: ready)
-    started = 0
+    up: set[str] = set()  # workers that answered `ready` and are not lost
+    started, start_deadline = 0, 0.0
 
     def start() -> None:
-        nonlocal started
+        nonlocal started, start_deadline
         name = f"{prefix}-{started}"
         started += 1
+        start_deadline = time.monotonic() + start_timeout_s
         handles[name] = runner.options(name=name, num_cpus=cpus_per_worker).remote(
             policy, backend, checkpoint, cfg, max_steps, threads
         )
@@ -190,12 +203,14 @@ def evaluate_on_ray(
     losses = 0
     try:
         count = workers or max(1, int(ray.cluster_resources().get("CPU", 1) // cpus_per_worker))
+        check_capacity(ray, count, cpus_per_worker)
         limit = count if max_worker_losses is None else max_worker_losses
         for _ in range(count):
             start()
         bar = tqdm(total=len(loaded) * episodes, desc="episodes", unit="ep", disable=not progress)
         while not ledger.complete:
-            [ref], _ = ray.wait(list(calls), num_returns=1)
+            # Ray reports a lost worker; a worker that never starts is bounded here.
+            ref = _first_done(ray, list(calls), None if up else start_deadline, start_timeout_s)
             name, key = calls.pop(ref)
             if name not in handles:
                 continue  # a call of a worker already counted lost
@@ -203,6 +218,7 @@ def evaluate_on_ray(
                 metrics = ray.get(ref)
             except ray.exceptions.RayActorError as e:
                 losses += 1
+                up.discard(name)
                 ray.kill(handles.pop(name))
                 for other in [r for r, (n, _) in calls.items() if n == name]:
                     del calls[other]
@@ -214,7 +230,9 @@ def evaluate_on_ray(
                 start()
                 continue
             done = None
-            if key is not None and ledger.finish(name, key, metrics):
+            if key is None:
+                up.add(name)
+            elif ledger.finish(name, key, metrics):
                 bar.update()
                 done = EpisodeDone(key, loaded[key.scenario].name, seed + key.episode, name, metrics)
             feed(name)
@@ -230,3 +248,16 @@ def evaluate_on_ray(
     report = build_report(policy, backend, seed, results)
     report["cluster"] = {"workers": count, "workers_lost": losses, "episodes_rerun": ledger.reruns}
     return report
+
+
+def _first_done(ray: Any, refs: list[Any], deadline: float | None, start_timeout_s: float) -> Any:
+    """The first of ``refs`` to finish; while no worker runs (``deadline`` set), a
+    :class:`ClusterError` once ``deadline`` (``time.monotonic()``) passes."""
+    timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
+    ready, _ = ray.wait(refs, num_returns=1, timeout=timeout)
+    if not ready:
+        raise ClusterError(
+            f"no Ray worker started within {start_timeout_s:g} s (the instance has no free CPUs for them, "
+            "or their start hangs)"
+        )
+    return ready[0]

@@ -22,7 +22,15 @@ from gymnasium.error import ResetNeeded
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from m4world_env.cluster.runtime import connect, require_ray, split_evenly
+from m4world_env.cluster.runtime import (
+    CLOSE_TIMEOUT_S,
+    WORKER_START_TIMEOUT_S,
+    check_capacity,
+    connect,
+    require_ray,
+    split_evenly,
+    wait_started,
+)
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
@@ -65,7 +73,8 @@ class RayVectorEnv(VectorEnv):
     ``address``: the Ray instance to join (:func:`~m4world_env.cluster.connect`); a process already
     connected to Ray stays on its instance. ``cpus_per_worker``: the CPUs Ray reserves for each actor
     (and its torch threads). ``scenario`` is loaded here and shipped to the actors; ``checkpoint`` must
-    be a path every node can read.
+    be a path every node can read. Workers that have not started within ``start_timeout_s`` (or
+    more than the instance's CPUs hold) are a :class:`~m4world_env.cluster.ClusterError`.
     """
 
     def __init__(
@@ -78,7 +87,8 @@ class RayVectorEnv(VectorEnv):
         config: dict[str, Any] | EnvConfig | None = None,
         address: str | None = None,
         cpus_per_worker: float = 1.0,
-    ) -> None:
+        start_timeout_s: float = WORKER_START_TIMEOUT_S,
+    ) -> None:  # the local vector env's parameters, then the cluster's
         if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= MAX_ENVS:
             raise InvalidOptionError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {num_envs!r}")
         if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or not 1 <= workers <= num_envs:
@@ -91,12 +101,15 @@ class RayVectorEnv(VectorEnv):
         self._actions_bridge = TrafficBridge(scenario, action_type=cfg.action_type)
         self.ray = require_ray()
         self._owns_ray = connect(address)
-        self.shares = split_evenly(num_envs, workers)
-        actor = self.ray.remote(VectorWorker).options(num_cpus=cpus_per_worker)
-        threads = max(1, int(cpus_per_worker))
-        self._workers = [actor.remote(len(s), scenario, backend, checkpoint, cfg, threads) for s in self.shares]
+        self._workers, self._started = [], False
         try:
-            spaces = self.ray.get([w.spaces.remote() for w in self._workers])
+            check_capacity(self.ray, workers, cpus_per_worker)
+            self.shares = split_evenly(num_envs, workers)
+            actor = self.ray.remote(VectorWorker).options(num_cpus=cpus_per_worker)
+            threads = max(1, int(cpus_per_worker))
+            self._workers = [actor.remote(len(s), scenario, backend, checkpoint, cfg, threads) for s in self.shares]
+            spaces = wait_started(self.ray, [w.spaces.remote() for w in self._workers], start_timeout_s)
+            self._started = True
         except BaseException:
             self.close_extras()
             raise
@@ -155,9 +168,11 @@ class RayVectorEnv(VectorEnv):
         return observations, rewards, terminated, truncated, infos
 
     def close_extras(self, **kwargs: Any) -> None:
-        # A worker that failed to start or died has nothing left to close.
-        with contextlib.suppress(self.ray.exceptions.RayError):
-            self.ray.get([w.close.remote() for w in self._workers])
+        # A worker that failed to start or died has nothing left to close; workers that never
+        # started (the start timed out) are killed without waiting for them.
+        if self._started:
+            with contextlib.suppress(self.ray.exceptions.RayError):
+                self.ray.get([w.close.remote() for w in self._workers], timeout=CLOSE_TIMEOUT_S)
         for worker in self._workers:
             self.ray.kill(worker)
         self._workers = []
