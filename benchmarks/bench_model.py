@@ -8,7 +8,7 @@ when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16
 ``--compile`` adds rows with the blocks compiled (env ``config.model.compile``).
 ``--device`` times another device than the CPU (cuda[:N], or auto: CUDA when available; its
 peak and rows alike). ``--heaps``: the process's allocator as the train CLIs set it on CPU (``retain``:
-world_model.heap.retain_freed_memory) and/or glibc's ``default``; with both, each runs in its own
+world_model.train.heap.retain_freed_memory) and/or glibc's ``default``; with both, each runs in its own
 fresh process, alternating over ``--rounds`` rounds, and the rows give the medians (each row also
 reports the minor page faults of one forward). It measures the machine's matmul peak in the same
 run (a 4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of peak is against
@@ -34,11 +34,11 @@ from dataclasses import replace
 
 import torch
 
-from world_model.heap import retain_freed_memory
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
 from world_model.precision import resolve_bf16, resolve_device
+from world_model.train.heap import retain_freed_memory
 
 ENVS = 8  # batched envs of one vector-env step
 DENOISE_FORWARDS = 4  # the 4-step causal student
@@ -46,7 +46,7 @@ CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
 CPU = torch.device("cpu")
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
-HEAPS = ("retain", "default")  # world_model.heap.retain_freed_memory, or glibc's allocator as is
+HEAPS = ("retain", "default")  # world_model.train.heap.retain_freed_memory, or glibc's allocator as is
 # Per-row numbers --heaps takes the median of over its rounds.
 NUMBERS = (
     "forward_s",

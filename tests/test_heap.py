@@ -1,4 +1,4 @@
-"""world_model.heap: freed memory stays in the heap once retain_freed_memory ran (glibc only)."""
+"""world_model.train.heap: freed memory stays in the heap once retain_freed_memory ran (glibc only)."""
 
 import platform
 import subprocess
@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from world_model.heap import HeapConfig, heap_retained, retain_freed_memory
+from world_model.train.heap import HeapConfig, heap_retained, retain_freed_memory
 
 GLIBC = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
 
@@ -19,7 +19,7 @@ CHURN = textwrap.dedent(
     """
     import resource, sys
     import numpy as np
-    from world_model.heap import retain_freed_memory
+    from world_model.train.heap import retain_freed_memory
     if sys.argv[1] == "retain":
         assert retain_freed_memory()
     faults = 0
@@ -53,7 +53,7 @@ def test_retain_is_idempotent_and_reported():
 
 
 def test_retain_does_nothing_off_glibc(monkeypatch):
-    import world_model.heap as heap
+    import world_model.train.heap as heap
 
     monkeypatch.setattr(heap, "_applied", None)
     monkeypatch.setattr(heap, "_glibc", lambda: None)

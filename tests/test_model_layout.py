@@ -250,7 +250,7 @@ def test_reference_model_keeps_the_teachers_layout_columns_and_samples_a_first_f
 def test_layout_training_flag_switches_the_stage_config():
     import argparse
 
-    from world_model.student_flags import add_student_flags, stage_config
+    from world_model.train.student_flags import add_student_flags, stage_config
 
     p = argparse.ArgumentParser()
     add_student_flags(p)

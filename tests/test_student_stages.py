@@ -195,8 +195,8 @@ def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_los
 
 
 def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypatch):
+    import world_model.train.student_flags as student_flags
     from m4world_env.cli import main as m4world
-    from world_model import student_flags
     from world_model.train import __main__ as train_module
     from world_model.train import stages
 

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from world_model import cli_args
-from world_model.student_flags import BASE_HELP, add_lora_flags, add_student_flags
+from world_model.train.student_flags import BASE_HELP, add_lora_flags, add_student_flags
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
@@ -84,9 +84,9 @@ def build_parser(prog: str = "python -m world_model.train") -> argparse.Argument
 def run_train(args: argparse.Namespace) -> int:
     """Train what ``args`` asks (one stage, or ``--all`` and a bundle); prints each stage's summary."""
     from world_model.model.config import get_preset
-    from world_model.student_flags import apply_heap_flag, stage_config, student_config
     from world_model.train import stages
     from world_model.train.device import close_place, init_place
+    from world_model.train.student_flags import apply_heap_flag, stage_config, student_config
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {', '.join(stages.STAGES)}) or --all")

@@ -10,8 +10,8 @@ import argparse
 from typing import TYPE_CHECKING
 
 from world_model import cli_args
-from world_model.heap import retain_freed_memory
 from world_model.precision import DTYPES
+from world_model.train.heap import retain_freed_memory
 
 if TYPE_CHECKING:
     from world_model.model.config import ModelConfig
@@ -70,7 +70,7 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
     p.add_argument(
         "--default-heap",
         action="store_true",
-        help="leave glibc's allocator as it is (default: keep freed memory in the heap, world_model.heap, "
+        help="leave glibc's allocator as it is (default: keep freed memory in the heap, world_model.train.heap, "
         "which spares eager CPU training most of its page faults)",
     )
     p.add_argument(
@@ -140,6 +140,6 @@ def stage_config(args: argparse.Namespace, preset: ModelConfig) -> ModelConfig:
 
 
 def apply_heap_flag(args: argparse.Namespace) -> None:
-    """The process-wide allocator setting of ``--default-heap`` (training on CPU; see world_model.heap)."""
+    """The process-wide allocator setting of ``--default-heap`` (training on CPU; see world_model.train.heap)."""
     if not args.default_heap:
         retain_freed_memory()
