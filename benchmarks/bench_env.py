@@ -242,11 +242,11 @@ def bench_backend(
     traffic_s = [0.0]
     for env in venv.unwrapped.envs:  # the traffic half of each sub-env's step, timed in place
         env.advance = _timed(env.advance, traffic_s)
-    backend_of_venv = venv.unwrapped.backend
+    stage_seconds = _stage_seconds_reader(venv.unwrapped.backend) if rollouts is not None else None
 
     def model_seconds() -> dict[str, float]:
-        seconds = dict(rollouts.seconds)
-        seconds["conditions"] = sum(_condition_seconds(backend_of_venv, rollouts).values())
+        seconds = stage_seconds()
+        seconds["conditions"] += seconds.pop("crops")
         return seconds
 
     policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
@@ -306,12 +306,24 @@ def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, w
     return json.loads(probe.stdout.strip().splitlines()[-1])
 
 
-def _condition_seconds(backend: object, rollouts: object) -> dict[str, float]:
-    """Seconds so far cutting crops and building condition arrays in this process: the env's own
-    (its ``RolloutConditions``; absent in a checkout without them) and the runtime's."""
-    conditions = getattr(backend, "conditions", None)
-    own = dict(conditions.seconds) if conditions is not None else {}
-    return {**own, "conditions": own.get("conditions", 0.0) + rollouts.seconds["conditions"]}
+def _stage_seconds_reader(backend: object):  # noqa: ANN202 (a reader of seconds)
+    """A reader of the world-model backend's seconds in this process per stage (crops, conditions,
+    student, decode), timed from now on by a ``StageTimer`` attached to its pipeline; a checkout
+    whose pipeline counts its own seconds (``--compare-tree``) is read from its counters."""
+    rollouts, conditions = backend.rollouts, getattr(backend, "conditions", None)
+    try:
+        from world_model.rollout.timing import StageTimer
+    except ImportError:
+
+        def counters() -> dict[str, float]:
+            own = dict(conditions.seconds) if conditions is not None else {}
+            seconds = {**rollouts.seconds, "crops": own.get("crops", 0.0)}
+            seconds["conditions"] += own.get("conditions", 0.0)
+            return seconds
+
+        return counters
+    timer = rollouts.timer = conditions.timer = StageTimer()
+    return lambda: dict(timer.seconds)
 
 
 def median_rounds(rounds: list[dict]) -> dict:
@@ -375,13 +387,15 @@ def bench_workers(
     say(f"reset in {reset_s:.1f} s")
     h = hashlib.sha256()
     _digest(h, obs.values())
-    rollouts = base.backend.rollouts
+    stages = _stage_seconds_reader(base.backend)
     pool = getattr(base, "simulation_workers", None)  # None at 0 workers (or in a checkout without them)
 
-    def cpu_parts() -> dict[str, float]:
+    def parts_so_far() -> dict[str, float]:
+        s = stages()
+        model = {"student": s["student"], "decode": s["decode"]}
         if pool is not None:
-            return {**pool.seconds(), "workers_wait": pool.wait_s}
-        return {"traffic": traffic_s[0], **_condition_seconds(base.backend, rollouts)}
+            return {**pool.seconds(), "workers_wait": pool.wait_s, **model}
+        return {"traffic": traffic_s[0], "crops": s["crops"], "conditions": s["conditions"], **model}
 
     traffic_s = [0.0]
     if pool is None:
@@ -390,11 +404,11 @@ def bench_workers(
     actions = np.zeros((num_envs, 2), np.float32)
     walls, parts = [], []
     for i in range(warmup + vector_steps):
-        before = {**cpu_parts(), "student": rollouts.seconds["student"], "decode": rollouts.seconds["decode"]}
+        before = parts_so_far()
         t0 = time.perf_counter()
         obs, rewards, terminated, truncated, _ = venv.step(actions)
         wall = time.perf_counter() - t0
-        after = {**cpu_parts(), "student": rollouts.seconds["student"], "decode": rollouts.seconds["decode"]}
+        after = parts_so_far()
         _digest(h, [*obs.values(), rewards, terminated, truncated])
         if i < warmup:
             continue

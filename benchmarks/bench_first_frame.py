@@ -27,7 +27,7 @@ from world_model.eval.report import Generated, ReportConfig, RowFn, evaluate_row
 from world_model.model.conditions import Conditions
 from world_model.model.config import SamplerConfig
 from world_model.model.reference import ReferenceGenerator
-from world_model.runtime import WorldModel, load_world_model
+from world_model.rollout.runtime import WorldModel, load_world_model
 
 SEED_SEPARATOR = "#seed"
 

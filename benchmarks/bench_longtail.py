@@ -48,18 +48,13 @@ import numpy as np
 
 from world_model.data import Clip, iter_clips
 from world_model.lora import apply_adapters, remove_adapters
-from world_model.model.conditions import (
-    Conditions,
-    build_condition_arrays,
-    camera_labels,
-    lidar_nearness_maps,
-    style_of_prompt,
-)
+from world_model.model.conditions import ConditionOptions, Conditions, build_condition_arrays, style_of_prompt
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.reference import ReferenceConfig, ReferenceGenerator
 from world_model.model.sampler import latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
+from world_model.raster.maps import camera_labels, lidar_nearness_maps
 from world_model.train.lora_stage import load_lora_base
 
 Scorer = Callable[[np.ndarray, np.ndarray], float]
@@ -123,9 +118,8 @@ def _condition_arrays(clips: Sequence[Clip], views: Sequence[RareView], vae: Sen
         c = clips[rv.clip]
         fr = c.frames[rv.frame]
         bev = np.asarray(c.bev[rv.frame : rv.frame + 1])
-        arrays.append(
-            build_condition_arrays([fr], bev, cfg, text, image, c.crops, first_ego=fr.ego, crop_since=c.crop_since)
-        )
+        options = ConditionOptions(image_encoder=image, crops=c.crops, crop_since=c.crop_since, first_ego=fr.ego)
+        arrays.append(build_condition_arrays([fr], bev, cfg, text, options))
     return arrays
 
 

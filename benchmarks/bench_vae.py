@@ -41,7 +41,7 @@ def load_any_vae(path: str | Path) -> SensorVAE:
     """A ``vae`` stage export (``RUN/vae/model``) or the VAE of a checkpoint bundle directory."""
     p = Path(path)
     if (p / "manifest.json").exists():
-        from world_model.runtime import load_world_model
+        from world_model.rollout.runtime import load_world_model
 
         return load_world_model(p, dtype="float32").vae
     from world_model.train import load_vae

@@ -28,7 +28,7 @@ import torch
 from world_model.data import list_clips, read_clip
 from world_model.data.clips import Clip
 from world_model.eval.metrics import masked_psnr, psnr
-from world_model.model import Conditions, build_condition_arrays, make_text_encoder
+from world_model.model import ConditionOptions, Conditions, build_condition_arrays, make_text_encoder
 from world_model.model.imagedesc import VaeCropEncoder
 from world_model.model.layout import LAYOUT_CHANNELS, layout_raster
 from world_model.model.sampler import latents_to_observations, sample_latents
@@ -104,15 +104,11 @@ def main(argv: list[str] | None = None) -> dict:
                 cfg, vae = model.cfg, vaes[name]
                 sampler = cfg.sampler if args.steps is None else replace(cfg.sampler, steps=args.steps)
                 frames = clip.frames[span.start : span.stop]
-                arrays = build_condition_arrays(
-                    frames,
-                    np.asarray(clip.bev[span.start : span.stop]),
-                    cfg,
-                    make_text_encoder(cfg.text),
-                    VaeCropEncoder(vae),
-                    clip.crops,
-                    crop_since=clip.crop_since,
+                options = ConditionOptions(
+                    image_encoder=VaeCropEncoder(vae), crops=clip.crops, crop_since=clip.crop_since
                 )
+                bev = np.asarray(clip.bev[span.start : span.stop])
+                arrays = build_condition_arrays(frames, bev, cfg, make_text_encoder(cfg.text), options)
                 cond = Conditions.collate([arrays])
                 for seed in args.seeds:
                     gen = torch.Generator().manual_seed(seed)

@@ -19,7 +19,7 @@ import json
 import statistics
 import sys
 import time
-from contextlib import nullcontext
+from contextlib import ExitStack, nullcontext
 from unittest import mock
 
 import gymnasium as gym
@@ -28,7 +28,8 @@ import torch
 
 import m4world_env  # noqa: F401
 import world_model.model.attention as attention_module
-import world_model.runtime as runtime
+import world_model.rollout.batch as batch
+import world_model.rollout.runtime as runtime
 
 
 def measure(checkpoint: str | None, rows: int, dtype: str, split: bool) -> dict[str, float]:
@@ -75,7 +76,7 @@ def measure(checkpoint: str | None, rows: int, dtype: str, split: bool) -> dict[
         for name, module in model.named_modules():
             if not list(module.children()):
                 module.register_forward_hook(hook(f"{root}.{name}"))
-    no_split = mock.patch.object(runtime.RolloutBatch, "_row_independent", lambda self: nullcontext())
+    no_split = mock.patch.object(batch.RolloutBatch, "_row_independent", lambda self: nullcontext())
     with mock.patch.object(attention_module, "attention", attention), no_split if not split else nullcontext():
         venv.reset(seed=5)
         for _ in range(2):
@@ -91,13 +92,19 @@ def time_split(checkpoint: str | None, rows: int, dtype: str, rounds: int) -> di
         "M4World-v0", num_envs=rows, vectorization_mode="vector_entry_point", scenario="highway_sunny_day",
         backend="world_model", checkpoint=checkpoint, config=config,
     )  # fmt: skip
-    unsplit = mock.patch.object(runtime, "split_rows", lambda n: nullcontext())
+
+    def unsplit() -> ExitStack:  # the split of the batched steps and of the batched first frames, both off
+        stack = ExitStack()
+        for module in (batch, runtime):
+            stack.enter_context(mock.patch.object(module, "split_rows", lambda n: nullcontext()))
+        return stack
+
     times: dict[str, list[float]] = {k: [] for k in ("step_split", "step_unsplit", "reset_split", "reset_unsplit")}
     venv.reset(seed=0)
     venv.step(np.zeros((rows, 2), np.float32))  # warm-up
     for r in range(rounds):
         for mode in ("split", "unsplit") if r % 2 == 0 else ("unsplit", "split"):
-            with unsplit if mode == "unsplit" else nullcontext():
+            with unsplit() if mode == "unsplit" else nullcontext():
                 t0 = time.perf_counter()
                 venv.step(np.zeros((rows, 2), np.float32))
                 t1 = time.perf_counter()

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import gymnasium as gym
 
-from world_model.runtime import save_untrained_bundle
+from world_model.rollout.runtime import save_untrained_bundle
 
 
 def rss_mb() -> float:

@@ -9,7 +9,6 @@ env is a batch of one.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Protocol
@@ -17,13 +16,12 @@ from typing import Protocol
 import numpy as np
 
 from m4world_env.config import BACKENDS, STREAMING_NAMES, EnvConfig, InvalidOptionError
-from world_model.conditioning import ConditionBuilder
 from world_model.model.conditions import ConditionArrays
 from world_model.observation import Observation
 from world_model.precision import resolve_device
+from world_model.rollout.conditions import RolloutConditions
 from world_model.scene import SceneFrame
 from world_model.sim import ProceduralSimulator, SimConfig
-from world_model.sim.reference_crops import ReferenceCrops
 from world_model.streaming import StreamingConfigError
 
 
@@ -109,51 +107,6 @@ def make_backend(
     raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
-class RolloutConditions:
-    """The CPU side of the world-model backend for a batch of rollouts: each rollout's first frame,
-    its reference crops (image descriptions cut from the procedural simulator's views by the rule
-    the recorder uses, :class:`~world_model.sim.reference_crops.ReferenceCrops`, so the model sees
-    in the env the conditions it was trained on) and its condition arrays, one step at a time.
-    :class:`WorldModelBackend` holds one for all its rollouts; each simulation worker of a vector
-    env holds one for its sub-envs (:mod:`m4world_env.workers`). ``every_frame``: the model decodes
-    every frame of a step, not only the last (:meth:`ConditionBuilder.chunk_arrays`)."""
-
-    def __init__(self, builder: ConditionBuilder, num_rollouts: int, every_frame: bool = False) -> None:
-        self.builder, self.every_frame = builder, every_frame
-        self._sim = ProceduralSimulator(
-            config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
-        )
-        self._crops = [ReferenceCrops(self._sim) for _ in range(num_rollouts)]
-        self._first: list[SceneFrame | None] = [None] * num_rollouts
-        # Wall seconds cutting crops and building arrays (benchmarks read them).
-        self.seconds = {"crops": 0.0, "conditions": 0.0}
-
-    def restart(self, index: int, frame: SceneFrame) -> ConditionArrays:
-        """Rollout ``index`` (re)starts at ``frame``: its crops start afresh; the arrays of ``frame``."""
-        t0 = time.perf_counter()
-        self._first[index] = frame
-        crops = self._crops[index] = ReferenceCrops(self._sim)
-        crops.update(frame)
-        t1 = time.perf_counter()
-        arrays = self.builder.arrays([frame], frame, crops.crops, crops.since)
-        self.seconds["crops"] += t1 - t0
-        self.seconds["conditions"] += time.perf_counter() - t1
-        return arrays
-
-    def advance(self, index: int, frames: Sequence[SceneFrame]) -> list[ConditionArrays]:
-        """Rollout ``index`` moves on by a step's ``frames``: crops of objects that came into view (or
-        were inserted), then the arrays of each causal chunk (:meth:`ConditionBuilder.chunk_arrays`)."""
-        t0 = time.perf_counter()
-        crops = self._crops[index]
-        for frame in frames:
-            crops.update(frame)
-        t1 = time.perf_counter()
-        arrays = self.builder.chunk_arrays(frames, self._first[index], crops.crops, crops.since, self.every_frame)
-        self.seconds["crops"] += t1 - t0
-        self.seconds["conditions"] += time.perf_counter() - t1
-        return arrays
-
-
 class WorldModelBackend:
     """The causal student of a checkpoint bundle (default: the shipped one) as the env's dynamics.
 
@@ -161,14 +114,16 @@ class WorldModelBackend:
     user's images when ``options["reference"]`` is given) and seeds the student's KV cache; each
     ``step`` runs one batched causal chunk for every rollout and decodes the newest frame.
     The BEV observation, when asked for, is the map raster the model is conditioned on.
-    The conditions come from a :class:`RolloutConditions` (in process); :meth:`start_many` and
-    :meth:`step_arrays` take them built elsewhere (simulation workers, :mod:`m4world_env.workers`).
+    The conditions come from a :class:`~world_model.rollout.conditions.RolloutConditions` (in
+    process); :meth:`start_many` and :meth:`step_arrays` take them built elsewhere (simulation
+    workers, :mod:`m4world_env.workers`).
     """
 
     def __init__(
         self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig, every_frame: bool = False
     ) -> None:
-        from world_model.runtime import RolloutBatch, load_world_model
+        from world_model.rollout.batch import RolloutBatch
+        from world_model.rollout.runtime import load_world_model
 
         mc = config.model
         try:
@@ -194,7 +149,7 @@ class WorldModelBackend:
         self.conditions = RolloutConditions(self.wm.conditions, num_rollouts, every_frame)
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
-        """Load a scenario's LoRA adapters (§5): :meth:`world_model.runtime.WorldModel.apply_adapters`."""
+        """Load a scenario's LoRA adapters (§5): :meth:`world_model.rollout.runtime.WorldModel.apply_adapters`."""
         return self.wm.apply_adapters(names)
 
     def reset(self, index: int, frame: SceneFrame, options: dict | None, seed: int) -> Observation:

@@ -35,10 +35,10 @@ from m4world_env.scenario import Scenario, list_scenarios, load_scenario, random
 from m4world_env.traffic import TrafficBridge
 from world_model.data import clip_exists, register_clip, write_clip
 from world_model.data.clips import write_json_atomic
+from world_model.raster.crops import ReferenceCrops
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
 from world_model.sim import ProceduralSimulator
-from world_model.sim.reference_crops import ReferenceCrops
 
 DEFAULT_STYLE = "steady"
 

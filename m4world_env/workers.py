@@ -3,7 +3,7 @@
 With ``config={"workers": K}``, :class:`~m4world_env.vector.M4WorldVectorEnv` splits its sub-envs
 into K contiguous slices, one per worker process (``spawn``). A worker owns its sub-envs' traffic,
 episode state, rewards and infos, cuts their reference crops and builds their condition arrays
-(:class:`~m4world_env.backends.RolloutConditions`, the code the in-process backend runs); the
+(:class:`~world_model.rollout.conditions.RolloutConditions`, the code the in-process backend runs); the
 main process keeps the batched student, the reference model and the VAE decoder. A step:
 
 1. main sends each worker its actions; every worker checks them (a bad one anywhere refuses the
@@ -39,14 +39,16 @@ from typing import Any
 import numpy as np
 from gymnasium.error import ResetNeeded
 
-from m4world_env.backends import RolloutConditions, WorldModelBackend
+from m4world_env.backends import WorldModelBackend
 from m4world_env.config import EnvConfig
 from m4world_env.env import STATE_FEATURES, M4WorldEnv, observation_dict
 from m4world_env.scenario import Scenario
 from m4world_env.shared_arrays import SharedArrays, SharedLayout
-from world_model.conditioning import ConditionBuilder
 from world_model.model.conditions import ConditionArrays, condition_field_specs
 from world_model.model.config import ModelConfig
+from world_model.rollout.builder import ConditionBuilder
+from world_model.rollout.conditions import RolloutConditions
+from world_model.rollout.timing import StageTimer
 from world_model.scene import SceneFrame
 
 START_TIMEOUT_S = 300.0  # the workers import torch and build their encoders
@@ -178,7 +180,7 @@ class SimulationWorker:
         builder = ConditionBuilder.from_vae_weights(spec.model_config, spec.vae_weights)
         # A worker's sub-envs never render (render_mode needs workers=0): only each step's last frame
         # is decoded.
-        self.conditions = RolloutConditions(builder, hi - lo, every_frame=False)
+        self.conditions = RolloutConditions(builder, hi - lo, every_frame=False, timer=StageTimer())
         backend = WorkerBackend(spec.model_config)
         self.envs = [
             M4WorldEnv(spec.scenario, "world_model", None, None, spec.config, shared_backend=backend, backend_index=i)
@@ -191,7 +193,14 @@ class SimulationWorker:
         """Wall seconds of the sub-envs' traffic, crops and condition arrays so far, of whole steps
         and resets (``busy``: those, rewards, infos, shared-memory writes), and the CPU seconds this
         process got meanwhile (``busy_cpu``: below ``busy`` when other processes took its core)."""
-        return {"traffic": self.traffic_s, **self.conditions.seconds, "busy": self.busy_s, "busy_cpu": self.busy_cpu_s}
+        stages = self.conditions.timer.seconds
+        return {
+            "traffic": self.traffic_s,
+            "crops": stages["crops"],
+            "conditions": stages["conditions"],
+            "busy": self.busy_s,
+            "busy_cpu": self.busy_cpu_s,
+        }
 
     def reset(self, local: Sequence[int], seeds: Sequence[int | None], options: dict | None) -> list[SubEnvReport]:
         t0, c0 = time.perf_counter(), time.process_time()

@@ -25,7 +25,7 @@ def _sb3_logs_in_test_tmp(tmp_path_factory):
 def tiny_bundle(tmp_path_factory):
     """An untrained tiny-preset checkpoint bundle (VAE + student + reference model): enough to
     exercise the world-model backend's plumbing, shapes, seeding and errors."""
-    from world_model.runtime import save_untrained_bundle
+    from world_model.rollout.runtime import save_untrained_bundle
 
     return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny")
 
@@ -34,7 +34,7 @@ def tiny_bundle(tmp_path_factory):
 def layout_bundle(tmp_path_factory):
     """An untrained tiny bundle with pixel-aligned layout conditioning: the DiT's layout channels
     and a decoder that draws each camera's label maps, their paint and the scene's style."""
-    from world_model.runtime import save_untrained_bundle
+    from world_model.rollout.runtime import save_untrained_bundle
 
     return save_untrained_bundle(tmp_path_factory.mktemp("bundle") / "tiny_layout", layout=True)
 

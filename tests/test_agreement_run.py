@@ -131,7 +131,7 @@ def test_the_command_builds_its_plan_from_the_run_size_and_the_flags(tmp_path, m
 def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch):
     """Three rows of one scene and seed and one of another: the reference model samples two first
     frames, and every row equals a vector env of its own."""
-    from world_model.runtime import WorldModel
+    from world_model.rollout.runtime import WorldModel
 
     sampled = []
     real = WorldModel.batch_first_frames

@@ -261,7 +261,7 @@ def test_the_manifest_digest_covers_the_configs(tiny_bundle, tmp_path):
 
 
 def test_unknown_config_keys_and_components_are_refused(tiny_bundle, tmp_path):
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     b = _copy_bundle(tiny_bundle, tmp_path / "b")
     _edit_manifest(b, lambda m: m["model_config"]["dit"].update(secret_knob=3))
@@ -283,7 +283,7 @@ def test_unknown_config_keys_and_components_are_refused(tiny_bundle, tmp_path):
     ],
 )
 def test_corrupt_manifest_fields_are_named(tiny_bundle, tmp_path, edit, match):
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     b = _copy_bundle(tiny_bundle, tmp_path / "b")
     _edit_manifest(b, edit)

@@ -10,7 +10,7 @@ import yaml
 
 from m4world_env.scenario import SCENARIOS_DIR
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
-from world_model.runtime import load_world_model
+from world_model.rollout.runtime import load_world_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_reset import main  # noqa: E402

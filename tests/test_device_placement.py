@@ -16,7 +16,10 @@ from tests.model_fixtures import make_frames, tiny_conditions
 from world_model.model import MultiViewDiT, SensorVAE, get_preset
 from world_model.model.reference import ReferenceGenerator, expand_teacher
 from world_model.model.sampler import generate, sample_latents
-from world_model.runtime import RolloutBatch, load_world_model
+from world_model.raster.crops import RecordedCrops
+from world_model.rollout.batch import RolloutBatch
+from world_model.rollout.conditions import RolloutConditions
+from world_model.rollout.runtime import load_world_model
 from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig
 from world_model.student import StreamingEngine, StudentConfig
 
@@ -58,13 +61,16 @@ def test_rollouts_reset_step_and_restart_on_the_model_device(tiny_bundle, stream
     chunk = wm.cfg.clip.chunk_frames
     guard = OnDevice(META)
     with guard:
+        conditions = RolloutConditions(wm.conditions, 2)
         rollouts = RolloutBatch(wm, num_rollouts=2)
         crop = np.full((12, 10, 3), 90, np.uint8)  # an object's image description, encoded by the VAE
         for row in range(2):
-            rollouts.reset_row(row, frames[0], seed=row, crops={"car0": crop})
-        obs = rollouts.step([frames[1 : 1 + chunk], frames[1 : 1 + chunk]])
-        rollouts.reset_row(1, frames[0], seed=5)  # one row restarts, the other continues
-        again = rollouts.step([frames[1 + chunk : 1 + 2 * chunk], None])
+            arrays = conditions.restart(row, frames[0], RecordedCrops({"car0": crop}))
+            rollouts.start_row(row, frames[0], row, arrays)
+        obs = rollouts.step_arrays([conditions.advance(row, frames[1 : 1 + chunk]) for row in range(2)])
+        restarted = conditions.restart(1, frames[0], RecordedCrops())
+        rollouts.start_row(1, frames[0], 5, restarted)  # one row restarts, the other continues
+        again = rollouts.step_arrays([conditions.advance(0, frames[1 + chunk : 1 + 2 * chunk]), None])
     assert obs[0][0].cameras.shape == (wm.cfg.sensors.num_cameras, wm.cfg.sensors.height, wm.cfg.sensors.width, 3)
     assert again[1] is None and len(again[0]) == 1
     assert guard.host_reads > 0  # the decoded frames were read back to the host

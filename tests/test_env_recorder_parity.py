@@ -13,9 +13,11 @@ from m4world_env.policies import IDMAutopilot
 from m4world_env.recorder import RecordConfig, record_episode
 from m4world_env.scenario import load_scenario
 from world_model.data import read_clip, write_clip
-from world_model.model.conditions import ConditionArrays, camera_labels, lidar_nearness_maps
-from world_model.runtime import WorldModel
-from world_model.sim.labels import CLASS_PLANE, ROAD, VEHICLE, LabelRasterizer
+from world_model.model.conditions import ConditionArrays
+from world_model.raster.classes import CLASS_PLANE, ROAD, VEHICLE
+from world_model.raster.maps import camera_labels, lidar_nearness_maps
+from world_model.rollout.runtime import WorldModel
+from world_model.sim.labels import LabelRasterizer
 from world_model.train.data import LatentWindows
 
 # A scene where a crop is cut at reset and another one mid-rollout (a car that comes close at 1 s).

@@ -11,7 +11,7 @@ import m4world_env  # noqa: F401
 from m4world_env.config import InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import CheckpointError, CheckpointNotFoundError
-from world_model.runtime import load_world_model
+from world_model.rollout.runtime import load_world_model
 from world_model.streaming import StreamingConfig
 
 from .model_fixtures import perturbed
@@ -199,7 +199,7 @@ def test_scenario_adapters_are_applied_to_the_student(active_bundle, tmp_path):
 
     from m4world_env.scenario import load_scenario
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, loaded_adapters, save_adapter
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     bundle = shutil.copytree(active_bundle, tmp_path / "bundle")  # the adapter is written into it
     wm = load_world_model(bundle)
@@ -239,7 +239,7 @@ def test_a_reference_model_adapter_goes_to_the_reference_model(tiny_bundle, tmp_
         remove_adapters,
         save_adapter,
     )
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     files = load_bundle_files(tiny_bundle)
     gen = torch.Generator().manual_seed(0)
@@ -353,7 +353,7 @@ def _bundle_with_completion_adapter(bundle, root):
     ``bundle``'s reference model (``active_bundle``: its output depends on its blocks), saved
     under ``root``. Returns the bundle and the adapter's path."""
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     wm = load_world_model(bundle)
     lora = LoraConfig(rank=2)
@@ -377,7 +377,7 @@ def test_a_completion_adapter_draws_its_category_into_the_first_frame_only(activ
     from m4world_env.scenario import load_scenario
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, read_adapter, remove_adapters, save_adapter
     from world_model.model.reference import category_region
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     bundle, path = _bundle_with_completion_adapter(active_bundle, tmp_path)
     assert read_adapter(path)[0].completes == "van"

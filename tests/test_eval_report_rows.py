@@ -10,7 +10,7 @@ from m4world_env.cli import main
 from world_model.eval.report import StudentStreaming
 from world_model.eval.report.rows import world_model_row
 from world_model.model import MultiViewDiT, get_preset
-from world_model.runtime import load_world_model, save_untrained_bundle
+from world_model.rollout.runtime import load_world_model, save_untrained_bundle
 from world_model.streaming import StreamingConfig, StreamingConfigError
 from world_model.train.checkpoint import export_weights
 

@@ -23,8 +23,9 @@ from world_model.eval.segmenter import (
     load_segmenter,
     scene_classes,
 )
+from world_model.raster.classes import LABEL_CLASSES
 from world_model.sim.demo import straight_road
-from world_model.sim.labels import LABEL_CLASSES, LabelRasterizer
+from world_model.sim.labels import LabelRasterizer
 
 BACKGROUND, ROAD, MARKING, VEHICLE, VULNERABLE, OTHER = range(NUM_SCENE_CLASSES)
 RIG = default_rig(width=112, height=64)

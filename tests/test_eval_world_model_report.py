@@ -110,7 +110,7 @@ def test_batched_student_row_equals_one_clip_at_a_time(tiny_bundle, tmp_path):
 
     from world_model.data import iter_clips
     from world_model.eval.report.rows import world_model_row
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     for i, duration in enumerate(("0.6", "0.3")):  # clips of different lengths share a batch
         args = ["record", "--scenario", "merge_cut_in", "--episodes", "1", "--duration", duration]
@@ -136,7 +136,7 @@ def test_report_row_with_lora_adapters(tmp_path, capsys):
     from world_model.bundle import save_bundle
     from world_model.lora import LoraConfig, add_adapter, base_fingerprint, save_adapter
     from world_model.model import MultiViewDiT, SensorVAE, get_preset
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     clips = tmp_path / "eval"
     rec = ["record", "--scenario", "merge_cut_in", "--episodes", "1", "--duration", "0.6", "--seed", "1000"]
@@ -193,7 +193,7 @@ def test_student_row_marks_each_causal_chunk_for_the_chunk_jump_scores(tiny_bund
     from world_model.eval import evaluate_rows, load_default_judge
     from world_model.eval.report import ReportConfig
     from world_model.eval.report.rows import world_model_row
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
     from world_model.student.engine import StreamingEngine
 
     args = ["record", "--scenario", "merge_cut_in", "--episodes", "1", "--duration", "0.6", "--out", str(tmp_path)]

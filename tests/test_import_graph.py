@@ -1,8 +1,11 @@
-"""The packages' modules import each other without a circle (module- and function-level imports alike)."""
+"""The packages' modules import each other without a circle (module- and function-level imports alike), and
+the model's config imports without the renderer."""
 
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,3 +99,14 @@ def test_a_from_import_of_a_submodule_counts_as_importing_it():
 def test_no_module_of_the_packages_imports_itself_through_others():
     cycle = find_cycle(import_graph())
     assert cycle is None, "import circle: " + " -> ".join(cycle)
+
+
+def test_the_model_config_and_decoder_import_without_the_renderer():
+    """The label maps' names live in world_model.raster.classes: the model's config and its VAE read
+    them without loading the procedural simulator that draws the maps."""
+    code = (
+        "import sys, world_model.model.config, world_model.model.vae\n"
+        "print(sorted(m for m in sys.modules if m.startswith(('world_model.sim', 'world_model.raster.maps'))))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

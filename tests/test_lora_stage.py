@@ -295,7 +295,7 @@ def test_lora_adapts_a_shallower_student_and_refuses_another_family(data, tmp_pa
 def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
     """``--base BUNDLE``: the bundle's student in the bundle's VAE latents; the adapter then loads
     onto the model the env serves from that bundle."""
-    from world_model.runtime import load_world_model, save_untrained_bundle
+    from world_model.rollout.runtime import load_world_model, save_untrained_bundle
 
     base, rare = data
     bundle = save_untrained_bundle(tmp_path / "bundle", preset="tiny", seed=3)
@@ -324,7 +324,7 @@ def test_lora_adapts_a_checkpoint_bundle_without_a_training_run(data, tmp_path):
 
 def test_a_bundle_loaded_in_float32_is_still_the_presets_family(tmp_path):
     """Loading rewrites ``dit.autocast_bf16`` per machine: the family check must not see it."""
-    from world_model.runtime import save_untrained_bundle
+    from world_model.rollout.runtime import save_untrained_bundle
     from world_model.train.lora_stage import load_lora_base
 
     cfg = replace(CFG, dit=replace(CFG.dit, autocast_bf16=True))

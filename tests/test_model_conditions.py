@@ -19,7 +19,7 @@ from world_model.model import (
     get_preset,
     view_adjacency,
 )
-from world_model.model.conditions import Conditions, style_of_prompt
+from world_model.model.conditions import ConditionOptions, Conditions, style_of_prompt
 
 
 def test_default_rig_cross_view_neighbours():
@@ -51,6 +51,18 @@ def test_condition_arrays_shapes_cap_and_nearest_first():
     assert arr.text_mask.any() and not arr.obj_has_image.any()
 
 
+def test_a_scene_raster_of_another_config_is_refused():
+    from world_model.model.config import with_layout
+    from world_model.raster.maps import SceneRaster
+
+    cfg = get_preset("tiny")
+    frames = make_frames(cfg, 1)
+    _, _, bev = make_sensors(cfg, 1)
+    options = ConditionOptions(raster=SceneRaster(with_layout(cfg, True)))
+    with pytest.raises(ValueError, match="options.raster draws the maps of another model config"):
+        build_condition_arrays(frames, bev, cfg, HashTextEncoder(cfg.text.dim), options)
+
+
 def test_bad_bev_shape_raises_actionable_error():
     cfg = get_preset("tiny")
     frames = make_frames(cfg, 2)
@@ -68,8 +80,7 @@ def test_image_descriptions_from_crops_and_object_image():
         bev,
         cfg,
         HashTextEncoder(cfg.text.dim),
-        enc,
-        crops={"car1": np.full((9, 7, 3), 200, np.uint8)},
+        ConditionOptions(image_encoder=enc, crops={"car1": np.full((9, 7, 3), 200, np.uint8)}),
     )
     assert arr.obj_has_image[0].sum() == 1 and arr.obj_image.shape[-1] == 2 * cfg.vae.latent_channels
     slot = int(np.flatnonzero(arr.obj_has_image[0])[0])
@@ -87,7 +98,8 @@ def test_field_specs_are_the_built_arrays_shapes_and_dtypes(layout):
     cfg = with_layout(get_preset("tiny"), layout)
     frames = make_frames(cfg, 3, num_objects=2)
     _, _, bev = make_sensors(cfg, 3)
-    arr = build_condition_arrays(frames, bev, cfg, HashTextEncoder(cfg.text.dim), VaeCropEncoder(SensorVAE(cfg)))
+    options = ConditionOptions(image_encoder=VaeCropEncoder(SensorVAE(cfg)))
+    arr = build_condition_arrays(frames, bev, cfg, HashTextEncoder(cfg.text.dim), options)
     specs = condition_field_specs(cfg, 3)
     assert {k: (getattr(arr, k).shape, getattr(arr, k).dtype) for k in specs} == {
         k: (s.shape, s.dtype) for k, s in specs.items()

@@ -19,7 +19,7 @@ from world_model.model.vae import (
     weighted_l1,
     with_label_channels,
 )
-from world_model.sim.labels import CLASS_PLANE, LABEL_CLASSES, NO_LABEL, PAINT_PLANE, SURFACE_PLANE
+from world_model.raster.classes import CLASS_PLANE, LABEL_CLASSES, NO_LABEL, PAINT_PLANE, SURFACE_PLANE
 
 
 def test_lidar_normalization_round_trip_and_no_return():

@@ -9,11 +9,12 @@ import torch
 
 from tests.model_fixtures import perturbed, tiny_conditions
 from world_model import precision
+from world_model.bundle import save_bundle
 from world_model.model import MultiViewDiT, get_preset
 from world_model.model.reference import reference_model_config
 from world_model.model.vae import SensorVAE
 from world_model.precision import bf16_is_fast, resolve_bf16
-from world_model.runtime import load_world_model, save_bundle
+from world_model.rollout.runtime import load_world_model
 
 
 def test_forced_dtypes_ignore_the_hardware(monkeypatch):

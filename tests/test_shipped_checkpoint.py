@@ -41,7 +41,7 @@ def test_every_shipped_adapter_fits_a_model_of_the_shipped_bundle():
     """adapters/: tree_truck_completion (the reference model's, for object completion: it completes
     tree trucks at reset) loads by name into the model it was trained on."""
     from world_model.lora import loaded_adapters, read_adapter
-    from world_model.runtime import load_world_model
+    from world_model.rollout.runtime import load_world_model
 
     wm = load_world_model(None, dtype="float32")
     names = sorted(p.name for p in (DEFAULT_BUNDLE / "adapters").iterdir() if p.is_dir())

@@ -6,10 +6,7 @@ import numpy as np
 import pytest
 
 from world_model import Box3D, EgoState, SceneFrame, SceneObject, ScenePrompt, default_rig
-from world_model.sim import ProceduralSimulator, ground
-from world_model.sim.config import SimConfig
-from world_model.sim.demo import demo_frame, straight_road
-from world_model.sim.labels import (
+from world_model.raster.classes import (
     CLASS_PLANE,
     LABEL_CLASSES,
     MAP_PLANES,
@@ -24,14 +21,15 @@ from world_model.sim.labels import (
     SURFACE_STEPS,
     VEHICLE,
     VULNERABLE,
-    LabelRasterizer,
     decode_paint,
     decode_surface,
     encode_paint,
     encode_surface,
-    label_maps,
-    scaled_rig,
 )
+from world_model.sim import ProceduralSimulator, ground
+from world_model.sim.config import SimConfig
+from world_model.sim.demo import demo_frame, straight_road
+from world_model.sim.labels import LabelRasterizer, label_maps, scaled_rig
 
 ROAD_MAP = straight_road(num_lanes=3)  # lanes centred at y = 0, -4, -8; road spans y in [-10, 2]
 RIG = default_rig(width=112, height=64)

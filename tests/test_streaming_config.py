@@ -13,7 +13,7 @@ from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
 from world_model.bundle import STREAMING_FILE, CheckpointError, load_bundle_files, reseal_bundle, set_streaming
 from world_model.eval.report import StudentStreaming
-from world_model.runtime import load_world_model
+from world_model.rollout.runtime import load_world_model
 from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig, StreamingConfigError
 from world_model.student.config import TRAINING_STREAMING, StudentConfig
 

@@ -13,7 +13,7 @@ from world_model.bundle import export_bundle
 from world_model.model import MultiViewDiT, get_preset
 from world_model.model.config import with_student_settings
 from world_model.model.reference import reference_model_config
-from world_model.runtime import load_world_model
+from world_model.rollout.runtime import load_world_model
 from world_model.student.init import nearest, student_from_teacher, teacher_blocks
 from world_model.train import train_stage
 from world_model.train.exports import load_student

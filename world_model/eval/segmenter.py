@@ -2,7 +2,7 @@
 
 It scores generated camera frames against the ground truth's label maps (:mod:`world_model.eval.scene_iou`):
 a frame that lost its road or its vehicles scores low however good its PSNR. The classes
-(:data:`SCENE_CLASSES`) merge the simulator's label classes (:mod:`world_model.sim.labels`) into
+(:data:`SCENE_CLASSES`) merge the simulator's label classes (:mod:`world_model.raster.classes`) into
 what the metric asks about; :func:`scene_classes` maps a label map onto them.
 
 :class:`SegNet` is a small U-Net (plain PyTorch) at the camera's own resolution; :class:`Segmenter`
@@ -25,7 +25,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from world_model.data.clips import sha256_file, write_json_atomic
-from world_model.sim.labels import LABEL_CLASSES, MARKING, OFFROAD, OTHER_OBJECT, ROAD, SKY, VEHICLE, VULNERABLE
+from world_model.raster.classes import LABEL_CLASSES, MARKING, OFFROAD, OTHER_OBJECT, ROAD, SKY, VEHICLE, VULNERABLE
 
 SCENE_CLASSES: tuple[str, ...] = (
     "background",  # sky and off-road ground
@@ -47,7 +47,7 @@ CONFIG_FILE = "segmenter.json"
 
 
 def scene_classes(label_map: np.ndarray) -> np.ndarray:
-    """Label map of :data:`~world_model.sim.labels.LABEL_CLASSES` ids (any shape, integer) -> the
+    """Label map of :data:`~world_model.raster.classes.LABEL_CLASSES` ids (any shape, integer) -> the
     same shape of :data:`SCENE_CLASSES` ids, uint8."""
     labels = np.asarray(label_map)
     if not np.issubdtype(labels.dtype, np.integer):

@@ -1,6 +1,12 @@
 """The neural world model (paper §3.1-§4.1): VAE, control tokenizer, multi-view DiT, flow, sampling."""
 
-from world_model.model.conditions import ConditionArrays, Conditions, build_condition_arrays, view_adjacency
+from world_model.model.conditions import (
+    ConditionArrays,
+    ConditionOptions,
+    Conditions,
+    build_condition_arrays,
+    view_adjacency,
+)
 from world_model.model.config import (
     ClipConfig,
     ControlConfig,
@@ -26,6 +32,7 @@ __all__ = [
     "AdaptiveProjectedGuidance",
     "ClipConfig",
     "ConditionArrays",
+    "ConditionOptions",
     "Conditions",
     "ControlConfig",
     "ControlTokenizer",

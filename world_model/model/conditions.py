@@ -25,14 +25,14 @@ layout             (T, V, Cl, h, w)      pixel-aligned layout at the latent reso
                                          ``layout.channels``, 0 when disabled
 labels             (T, Vc, 3, H, W)      each camera's label map at full resolution for the
                    uint8                 VAE decoder (``layout.decoder``): class ids
-                                         (:data:`~world_model.sim.labels.LABEL_CLASSES`),
+                                         (:data:`~world_model.raster.classes.LABEL_CLASSES`),
                                          the objects' paint, the ground's surface
-                                         (:meth:`~world_model.sim.labels.LabelRasterizer.maps`);
+                                         (:class:`~world_model.raster.maps.SceneRaster`);
                                          H = W = 0 without it. The DiTs do not read it.
 lidar_nearness     (T, H, W) uint8       the range map the scene implies on the LiDAR view at
                                          full resolution, for the decoder
                                          (``layout.decoder_lidar``,
-                                         :func:`~world_model.model.layout.lidar_nearness`);
+                                         :class:`~world_model.raster.maps.SceneRaster`);
                                          H = W = 0 without it. The DiTs do not read it.
 =================  ====================  ===============================================
 
@@ -46,17 +46,21 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
-from world_model.model.layout import layout_sequence, lidar_nearness
+from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
+from world_model.raster.classes import MAP_PLANES
 from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
-from world_model.sim.labels import MAP_PLANES, LabelRasterizer, blank_maps
+
+if TYPE_CHECKING:  # the scene raster's renderer loads only where a map is drawn
+    from world_model.raster.maps import SceneRaster
 
 
 def view_adjacency(rig: CameraRig) -> np.ndarray:
@@ -179,31 +183,41 @@ class ConditionArrays:
         return replace(self, **{k: getattr(self, k)[start:stop] for k in self.TIME_FIELDS})
 
 
+@dataclass(frozen=True)
+class ConditionOptions:
+    """What :func:`build_condition_arrays` reads beside a sequence's frames and map, each optional.
+
+    ``image_encoder`` encodes the objects' reference crops; without one every object's image
+    description counts as missing. ``crops`` by track id, each from frame ``crop_since[track]`` on
+    (a track absent from it: every frame; :mod:`world_model.raster.crops`). ``first_ego``: the
+    rollout's first ego state, which the ego condition is relative to (default: the first frame's).
+    ``layout``: the frames' layout raster when computed already
+    (:func:`world_model.model.layout.layout_sequence`, the training data's cache), else computed
+    when the config enables it. ``raster`` draws the decoder's maps (default: a new
+    :class:`~world_model.raster.maps.SceneRaster`; one kept across calls reuses its geometry), of the
+    frames flagged in ``labeled`` (default: all)."""
+
+    image_encoder: ImageDescriptionEncoder | None = None
+    crops: Mapping[str, np.ndarray] | None = None
+    crop_since: Mapping[str, int] | None = None
+    first_ego: EgoState | None = None
+    layout: np.ndarray | None = None
+    raster: SceneRaster | None = None
+    labeled: Sequence[bool] | None = None
+
+
 def build_condition_arrays(
     frames: Sequence[SceneFrame],
     bev: np.ndarray,
     cfg: ModelConfig,
     text_encoder: TextEncoder,
-    image_encoder: ImageDescriptionEncoder | None = None,
-    crops: Mapping[str, np.ndarray] | None = None,
-    first_ego: EgoState | None = None,
-    crop_since: Mapping[str, int] | None = None,
-    layout: np.ndarray | None = None,
-    label_rasterizer: LabelRasterizer | None = None,
-    labeled: Sequence[bool] | None = None,
+    options: ConditionOptions | None = None,
 ) -> ConditionArrays:
-    """Pure conversion of T frames (+ bev (T, h, w, c), + crops by track id) to condition arrays.
-
-    ``first_ego`` is the rollout's first ego state (default: ``frames[0].ego``). Without an
-    ``image_encoder`` every object's image description counts as missing. ``crop_since``: the frame
-    index from which each track's crop exists (:class:`world_model.sim.reference_crops.ReferenceCrops`);
-    a track absent from it has its crop at every frame. ``layout``: the frames' layout raster
-    when it is computed already (:func:`world_model.model.layout.layout_sequence`, the training
-    data's cache), else it is computed here when the config enables it. ``label_rasterizer``
-    and ``labeled`` render the decoder's label maps (:func:`camera_labels`, :func:`lidar_nearness_maps`).
-    """
+    """Pure conversion of T frames and their BEV rasters (T, h, w, c) to condition arrays, with
+    what ``options`` adds (crops, the rollout's first ego state, caches)."""
     if not frames:
         raise ValueError("build_condition_arrays needs at least one frame")
+    opts = options or ConditionOptions()
     t = len(frames)
     bev = np.asarray(bev)
     expected = (t, *cfg.sensors.bev.shape)
@@ -212,10 +226,45 @@ def build_condition_arrays(
     rig = frames[0].rig
     if rig.num_views != cfg.sensors.num_cameras:
         raise ValueError(f"frames carry {rig.num_views} cameras but the model has {cfg.sensors.num_cameras}")
-    o_max, dt, di = cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
-    crops, since = crops or {}, crop_since or {}
-    first = first_ego or frames[0].ego
+    raster = opts.raster or _new_raster(cfg)
+    if raster.cfg is not cfg and raster.cfg != cfg:
+        raise ValueError("options.raster draws the maps of another model config than cfg")
+    first = opts.first_ego or frames[0].ego
+    objects = _object_arrays(frames, cfg, text_encoder, opts)
+    layout = _layout_arrays(frames, bev, cfg, opts.layout)
+    labels = raster.labels(frames, opts.labeled)
+    nearness = raster.nearness(frames, opts.labeled)
+    tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
+    text = np.zeros((cfg.text.max_tokens, cfg.text.dim), np.float32)
+    text[: len(tokens)] = tokens
+    text_mask = np.arange(cfg.text.max_tokens) < len(tokens)
+    camera, adjacency = rig_conditions(rig)
+    return ConditionArrays(
+        camera=camera,
+        ego=np.stack([fr.ego_pose_condition(first) for fr in frames]).astype(np.float32),
+        bev=bev.astype(np.uint8),
+        **objects,
+        text=text,
+        text_mask=text_mask,
+        view_adjacency=adjacency,
+        layout=layout,
+        labels=labels,
+        lidar_nearness=nearness,
+    )
 
+
+def _new_raster(cfg: ModelConfig) -> SceneRaster:
+    from world_model.raster.maps import SceneRaster
+
+    return SceneRaster(cfg)
+
+
+def _object_arrays(
+    frames: Sequence[SceneFrame], cfg: ModelConfig, text_encoder: TextEncoder, opts: ConditionOptions
+) -> dict[str, np.ndarray]:
+    """The ``obj_*`` fields of ``frames``: the nearest ``control.max_objects`` objects of each frame."""
+    t, o_max, dt, di = len(frames), cfg.control.max_objects, cfg.text.dim, image_feature_dim(cfg)
+    image_encoder, crops, since = opts.image_encoder, opts.crops or {}, opts.crop_since or {}
     corners = np.zeros((t, o_max, 8, 3), np.float32)
     cat = np.zeros((t, o_max, dt), np.float32)
     txt = np.zeros((t, o_max, dt), np.float32)
@@ -249,42 +298,30 @@ def build_condition_arrays(
             if pairs:
                 img[f, [i for i, _ in pairs]] = image_encoder.encode([c for _, c in pairs])
                 has_img[f, [i for i, _ in pairs]] = True
+    return {
+        "obj_corners": corners,
+        "obj_category": cat,
+        "obj_text": txt,
+        "obj_image": img,
+        "obj_mask": mask,
+        "obj_has_text": has_txt,
+        "obj_has_image": has_img,
+    }
 
-    h, w = cfg.latent_hw
+
+def _layout_arrays(
+    frames: Sequence[SceneFrame], bev: np.ndarray, cfg: ModelConfig, layout: np.ndarray | None
+) -> np.ndarray:
+    """The ``layout`` field: ``layout`` when given (checked), else computed when the config enables it."""
+    t, (h, w) = len(frames), cfg.latent_hw
     if cfg.layout.enabled and layout is not None:
         expected = (t, cfg.sensors.num_views, cfg.layout.channels, h, w)
         if layout.shape != expected:
             raise ValueError(f"layout must have shape {expected} for this config, got {layout.shape}")
-    elif cfg.layout.enabled:
-        layout = layout_sequence(frames, bev, cfg.sensors.lidar, (h, w), cfg.layout.supersample)
-    else:
-        layout = np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
-
-    labels = camera_labels(frames, cfg, label_rasterizer, labeled)
-    nearness = lidar_nearness_maps(frames, cfg, labeled)
-    tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
-    text = np.zeros((cfg.text.max_tokens, dt), np.float32)
-    text[: len(tokens)] = tokens
-    text_mask = np.arange(cfg.text.max_tokens) < len(tokens)
-    camera, adjacency = rig_conditions(rig)
-    return ConditionArrays(
-        camera=camera,
-        ego=np.stack([fr.ego_pose_condition(first) for fr in frames]).astype(np.float32),
-        bev=bev.astype(np.uint8),
-        obj_corners=corners,
-        obj_category=cat,
-        obj_text=txt,
-        obj_image=img,
-        obj_mask=mask,
-        obj_has_text=has_txt,
-        obj_has_image=has_img,
-        text=text,
-        text_mask=text_mask,
-        view_adjacency=adjacency,
-        layout=layout,
-        labels=labels,
-        lidar_nearness=nearness,
-    )
+        return layout
+    if cfg.layout.enabled:
+        return layout_sequence(frames, bev, cfg.sensors.lidar, (h, w), cfg.layout.supersample)
+    return np.zeros((t, cfg.sensors.num_views, 0, h, w), np.float32)
 
 
 def prompt_tokens(prompt: ScenePrompt, cfg: ModelConfig, text_encoder: TextEncoder) -> np.ndarray:
@@ -310,50 +347,6 @@ def prompt_style(text: np.ndarray | torch.Tensor, text_mask: np.ndarray | torch.
     mask = np.asarray(text_mask, np.float32)[..., None]
     mean = (np.asarray(text, np.float32) * mask).sum(-2) / np.maximum(mask.sum(-2), 1.0)
     return mean / np.maximum(np.linalg.norm(mean, axis=-1, keepdims=True), 1e-8)
-
-
-def camera_labels(
-    frames: Sequence[SceneFrame],
-    cfg: ModelConfig,
-    rasterizer: LabelRasterizer | None = None,
-    labeled: Sequence[bool] | None = None,
-) -> np.ndarray:
-    """The ``labels`` field: each camera's label map of every frame, (T, Vc, 3, H, W) uint8 (class
-    ids, paint, surface: :meth:`LabelRasterizer.maps`), for a decoder that draws them
-    (``layout.decoder``); (T, Vc, 3, 0, 0) without one. ``rasterizer``: one
-    kept across calls reuses its ray geometry, road texture and meshes (default: a new one).
-    ``labeled`` (T,): the frames that will be decoded (default: all); the others' classes are left
-    :data:`~world_model.sim.labels.NO_LABEL`, which saves rendering maps nobody draws."""
-    s = cfg.sensors
-    if not cfg.layout.decoder:
-        return np.zeros((len(frames), s.num_cameras, MAP_PLANES, 0, 0), np.uint8)
-    if labeled is not None and len(labeled) != len(frames):
-        raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
-    raster = rasterizer or LabelRasterizer()
-    out = blank_maps((len(frames), s.num_cameras), s.height, s.width)
-    for t, frame in enumerate(frames):
-        if labeled is None or labeled[t]:
-            out[t] = raster.maps(frame, frame.rig, s.height, s.width)
-    return out
-
-
-def lidar_nearness_maps(
-    frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
-) -> np.ndarray:
-    """The ``lidar_nearness`` field: the LiDAR view's nearness map of every frame, (T, H, W) uint8
-    (:func:`~world_model.model.layout.lidar_nearness`), for a decoder that draws it
-    (``layout.decoder_lidar``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`: the
-    other frames' maps are left 0, nothing in range."""
-    s = cfg.sensors
-    if not cfg.layout.decoder_lidar:
-        return np.zeros((len(frames), 0, 0), np.uint8)
-    if labeled is not None and len(labeled) != len(frames):
-        raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
-    out = np.zeros((len(frames), s.height, s.width), np.uint8)
-    for t, frame in enumerate(frames):
-        if labeled is None or labeled[t]:
-            out[t] = lidar_nearness(frame, s.lidar, (s.height, s.width))
-    return out
 
 
 @dataclass(frozen=True)

@@ -19,8 +19,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from world_model.model.layout import LAYOUT_CHANNELS
+from world_model.raster.classes import LABEL_CLASSES
 from world_model.sensors import BevSpec, CameraRig, LidarSpec, default_rig
-from world_model.sim.labels import LABEL_CLASSES
 
 
 @dataclass(frozen=True)

@@ -31,8 +31,7 @@ from torch import nn
 from world_model.model.config import ModelConfig, VaeConfig
 from world_model.model.layout import NEARNESS_LEVELS
 from world_model.precision import bf16_autocast
-from world_model.sensors import LidarSpec
-from world_model.sim.labels import (
+from world_model.raster.classes import (
     CLASS_PLANE,
     LABEL_CLASSES,
     MAP_PLANES,
@@ -42,6 +41,7 @@ from world_model.sim.labels import (
     decode_paint,
     decode_surface,
 )
+from world_model.sensors import LidarSpec
 
 # Every paint byte's RGB in [0, 1] (256, 3): the decoder's paint channels are a lookup.
 _PAINT_RGB = torch.from_numpy(decode_paint(np.arange(256, dtype=np.uint8)))
@@ -267,7 +267,7 @@ class SensorVAE(nn.Module):
         """(N, 3, H, W) uint8 label maps (class ids, paint, surface: :meth:`LabelRasterizer.maps`) and
         (N, H, W) uint8 nearness maps (:func:`~world_model.model.layout.lidar_nearness`) ->
         (N, K, H, W), the channels of ``layout.label_channel_names``: the
-        :data:`~world_model.sim.labels.LABEL_CLASSES` one-hot (:data:`~world_model.sim.labels.NO_LABEL`
+        :data:`~world_model.raster.classes.LABEL_CLASSES` one-hot (:data:`~world_model.raster.classes.NO_LABEL`
         and None -> all zeros: no layout), then the paint as RGB in [0, 1] (``layout.decoder_paint``),
         then the surface variation in [-1, 1] (``layout.decoder_surface``), then the nearness in
         [0, 1] (``layout.decoder_lidar``; None -> zeros, a camera's). None for a decoder without

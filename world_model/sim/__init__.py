@@ -18,13 +18,12 @@ frame. Knows nothing of gymnasium or highway-env. How it works, module by module
 """
 
 from world_model.sim.config import SimConfig
-from world_model.sim.labels import LABEL_CLASSES, LabelRasterizer, label_maps
+from world_model.sim.labels import LabelRasterizer, label_maps
 from world_model.sim.lighting import Lighting, lighting_for
 from world_model.sim.mosaic import mosaic
 from world_model.sim.simulator import ProceduralSimulator
 
 __all__ = [
-    "LABEL_CLASSES",
     "LabelRasterizer",
     "Lighting",
     "ProceduralSimulator",

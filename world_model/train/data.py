@@ -19,21 +19,16 @@ from safetensors.torch import load_file, save_file
 from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
 from world_model.geometry import wrap_angle
-from world_model.model.conditions import (
-    ConditionArrays,
-    Conditions,
-    build_condition_arrays,
-    camera_labels,
-    lidar_nearness_maps,
-)
+from world_model.model.conditions import ConditionArrays, ConditionOptions, Conditions, build_condition_arrays
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.imagedesc import ImageDescriptionEncoder
 from world_model.model.layout import NEARNESS_LEVELS, layout_sequence
 from world_model.model.reference import ReferenceConfig
 from world_model.model.text import TextEncoder
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
+from world_model.raster.classes import LABEL_CLASSES, PAINT_BITS, SURFACE_STEPS
+from world_model.raster.maps import camera_labels, lidar_nearness_maps
 from world_model.scene import SceneFrame
-from world_model.sim.labels import LABEL_CLASSES, PAINT_BITS, SURFACE_STEPS
 
 NEAR_PLANE_M = ReferenceConfig().near_plane_m  # boxes clipped as the simulator and the reference masks do
 # Fewer frames than this are rastered in-process (layouts, label maps): starting spawned workers
@@ -275,9 +270,9 @@ def cached_label_maps(
     clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
 ) -> list[np.ndarray]:
     """Each clip's camera label maps (T, num_cameras, 3, H, W) uint8, class ids
-    (:data:`~world_model.sim.labels.LABEL_CLASSES`), paint and surface (:func:`camera_labels`), computed once per run as
-    :func:`cached_layouts` computes layouts: the decoder stages read them instead of rastering
-    every sample of every batch."""
+    (:data:`~world_model.raster.classes.LABEL_CLASSES`), paint and surface (:func:`camera_labels`),
+    computed once per run as :func:`cached_layouts` computes layouts: the decoder stages read them
+    instead of rastering every sample of every batch."""
     s = cfg.sensors
     key = (
         f"{s.height}x{s.width}x{s.num_cameras}:{','.join(LABEL_CLASSES)}"
@@ -395,16 +390,8 @@ class LatentWindows:
         static: dict[str, list[np.ndarray]] = {}
         dit_cfg = without_label_decoder(cfg)  # the DiTs never read the decoder's label maps
         for i, (c, lay) in enumerate(zip(clips, layouts, strict=True)):
-            arrays = build_condition_arrays(
-                c.frames,
-                np.asarray(c.bev),
-                dit_cfg,
-                text_encoder,
-                image_encoder,
-                c.crops,
-                crop_since=c.crop_since,
-                layout=lay,
-            )
+            options = ConditionOptions(image_encoder=image_encoder, crops=c.crops, crop_since=c.crop_since, layout=lay)
+            arrays = build_condition_arrays(c.frames, np.asarray(c.bev), dit_cfg, text_encoder, options)
             rows = slice(self.offsets[i], self.offsets[i] + self.lengths[i])
             for k in ConditionArrays.TIME_FIELDS:
                 value = getattr(arrays, k)

@@ -112,7 +112,7 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
     (None: the base's). Raises ``FileNotFoundError``/``ValueError`` saying what to train or pass instead."""
     in_bundle = bundle_model(base)
     if in_bundle is not None:
-        from world_model.runtime import load_world_model
+        from world_model.rollout.runtime import load_world_model
 
         bundle, component = in_bundle
         wm = load_world_model(bundle, dtype="float32")

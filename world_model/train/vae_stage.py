@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 
 from world_model.data.clips import Clip, write_json_atomic
-from world_model.model.conditions import lidar_nearness_maps, style_of_prompt
+from world_model.model.conditions import style_of_prompt
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.text import make_text_encoder
 from world_model.model.vae import (
@@ -38,8 +38,10 @@ from world_model.model.vae import (
     kl_loss,
     weighted_l1,
 )
+from world_model.raster.classes import blank_maps
+from world_model.raster.maps import lidar_nearness_maps
 from world_model.scene import SceneFrame
-from world_model.sim.labels import LabelRasterizer, blank_maps
+from world_model.sim.labels import LabelRasterizer
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import (
     FrameSampler,
@@ -113,7 +115,7 @@ def vae_metrics(
 
 def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
     """(N, 3, H, W) uint8 label maps (class ids, paint, surface) of ``views`` of ``frame``; the LiDAR view
-    gets a map that draws nothing (:func:`~world_model.sim.labels.blank_maps`), as it does when decoding frames."""
+    gets a map that draws nothing (:func:`~world_model.raster.classes.blank_maps`), as it does when decoding frames."""
     s = cfg.sensors
     maps = torch.from_numpy(raster.maps(frame, frame.rig, s.height, s.width))
     blank = torch.from_numpy(blank_maps((), s.height, s.width))
@@ -122,7 +124,7 @@ def view_labels(raster: LabelRasterizer, frame: SceneFrame, cfg: ModelConfig, vi
 
 def view_nearness(frame: SceneFrame, cfg: ModelConfig, views: Iterable[int]) -> torch.Tensor:
     """(N, H, W) uint8 nearness maps of ``views`` of ``frame``: the LiDAR view's
-    (:func:`~world_model.model.conditions.lidar_nearness_maps`), zeros for a camera, as when decoding frames."""
+    (:func:`~world_model.raster.maps.lidar_nearness_maps`), zeros for a camera, as when decoding frames."""
     s = cfg.sensors
     lidar = torch.from_numpy(lidar_nearness_maps([frame], cfg)[0])
     return torch.stack([lidar if v == s.lidar_view else torch.zeros_like(lidar) for v in views])

@@ -31,7 +31,7 @@ from world_model.eval.report.rows import (
 )
 from world_model.eval.report.run import evaluate_rows, write_report
 from world_model.precision import DTYPES
-from world_model.runtime import WorldModel, load_world_model
+from world_model.rollout.runtime import WorldModel, load_world_model
 from world_model.streaming import REFRESH_EVERY_STEP, StreamingConfig, check_changes
 
 # How the report's flags spell the streaming settings in error messages.

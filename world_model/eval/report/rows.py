@@ -22,7 +22,10 @@ from world_model.data.clips import Clip
 from world_model.model.conditions import Conditions
 from world_model.model.dit import MultiViewDiT
 from world_model.model.sampler import sample_latents
-from world_model.runtime import RolloutBatch, WorldModel
+from world_model.raster.crops import RecordedCrops
+from world_model.rollout.batch import RolloutBatch
+from world_model.rollout.conditions import RolloutConditions
+from world_model.rollout.runtime import WorldModel
 from world_model.sim import ProceduralSimulator
 from world_model.streaming import StreamingConfig
 
@@ -126,24 +129,22 @@ class StudentRow:
 
     def _rollout(self, clips: list[Clip]) -> list[Generated]:
         chunk = self.wm.cfg.clip.chunk_frames
+        conditions = RolloutConditions(self.wm.conditions, len(clips), every_frame=True)
         rollout = RolloutBatch(self.wm, len(clips), every_frame=True)
         obs = []
         for r, clip in enumerate(clips):
             reference = {"cameras": np.asarray(clip.cameras[0])} if self.anchor else None
-            obs.append(
-                [
-                    rollout.reset_row(
-                        r, clip.frames[0], self.seed, reference=reference, crops=clip.crops, crop_since=clip.crop_since
-                    )
-                ]
-            )
+            first = clip.frames[0]
+            arrays = conditions.restart(r, first, RecordedCrops(clip.crops, clip.crop_since))
+            obs.append([rollout.start_row(r, first, self.seed, arrays, reference=reference)])
         rests = [list(clip.frames[1:]) for clip in clips]
         for k in range(0, max(len(rest) for rest in rests), chunk):
-            chunks = []
-            for rest in rests:
+            arrays = []
+            for r, rest in enumerate(rests):
                 part = rest[k : k + chunk]
-                chunks.append(part + [part[-1]] * (chunk - len(part)) if part else None)  # pad the last chunk
-            for r, new in enumerate(rollout.step(chunks)):
+                part = part + [part[-1]] * (chunk - len(part)) if part else None  # pad the last chunk
+                arrays.append(None if part is None else conditions.advance(r, part))
+            for r, new in enumerate(rollout.step_arrays(arrays)):
                 if new is not None:
                     obs[r] += new
         gens = []
@@ -168,9 +169,9 @@ def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
         cams, lids = [], []
         for s in range(0, clip.num_frames, batch_frames):
             part = slice(s, s + batch_frames)
-            labels = wm.conditions.labels(clip.frames[part])
+            labels = wm.conditions.raster.labels(clip.frames[part])
             style = wm.conditions.style(clip.frames[0].prompt)
-            nearness = wm.conditions.nearness(clip.frames[part])
+            nearness = wm.conditions.raster.nearness(clip.frames[part])
             c, lid = wm.vae.reconstruct_frames(clip.cameras[part], clip.lidar[part], labels, style, nearness)
             cams.append(c)
             lids.append(lid)

@@ -12,28 +12,24 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import torch
 
-from world_model.model.conditions import (
-    ConditionArrays,
-    build_condition_arrays,
-    camera_labels,
-    lidar_nearness_maps,
-    style_of_prompt,
-)
+from world_model.model.conditions import ConditionArrays, ConditionOptions, build_condition_arrays, style_of_prompt
 from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
+from world_model.raster.maps import SceneRaster
 from world_model.scene import SceneFrame, ScenePrompt
-from world_model.sim import LabelRasterizer, ProceduralSimulator
+from world_model.sim import ProceduralSimulator
 
 
 class ConditionBuilder:
-    """The map raster, the text encoder and the image-description encoder of a model config."""
+    """The map raster, the text encoder, the image-description encoder and the scene raster (the
+    decoder's maps, :class:`~world_model.raster.maps.SceneRaster`) of a model config."""
 
     def __init__(self, cfg: ModelConfig, text: TextEncoder, image: ImageDescriptionEncoder) -> None:
         self.cfg, self.text, self.image = cfg, text, image
         self._bev = ProceduralSimulator(bev=cfg.sensors.bev)  # the map condition is a BEV raster
-        self._labels = LabelRasterizer()  # the decoder's label maps (``layout.decoder``)
+        self.raster = SceneRaster(cfg)
 
     @classmethod
     def from_vae_weights(cls, cfg: ModelConfig, vae_weights: Mapping[str, np.ndarray]) -> ConditionBuilder:
@@ -52,14 +48,6 @@ class ConditionBuilder:
         """The BEV map raster the model is conditioned on, (h, w, c) uint8."""
         return self._bev.render_bev(frame)
 
-    def labels(self, frames: Sequence[SceneFrame]) -> np.ndarray:
-        """The frames' camera label maps for the decoder (:func:`camera_labels`)."""
-        return camera_labels(frames, self.cfg, self._labels)
-
-    def nearness(self, frames: Sequence[SceneFrame]) -> np.ndarray:
-        """The frames' LiDAR nearness maps for the decoder (:func:`lidar_nearness_maps`)."""
-        return lidar_nearness_maps(frames, self.cfg)
-
     def style(self, prompt: ScenePrompt) -> np.ndarray:
         """(Dt,) the scene style the decoder reads for ``prompt`` (:func:`style_of_prompt`)."""
         return style_of_prompt(prompt, self.cfg, self.text)
@@ -76,18 +64,15 @@ class ConditionBuilder:
         ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame);
         ``labeled``: the frames whose label map the decoder will draw (default: all)."""
         bev = np.stack([self.bev(f) for f in frames])
-        return build_condition_arrays(
-            frames,
-            bev,
-            self.cfg,
-            self.text,
-            self.image,
-            dict(crops or {}),
-            first.ego,
+        options = ConditionOptions(
+            image_encoder=self.image,
+            crops=dict(crops or {}),
             crop_since=crop_since,
-            label_rasterizer=self._labels,
+            first_ego=first.ego,
+            raster=self.raster,
             labeled=labeled,
         )
+        return build_condition_arrays(frames, bev, self.cfg, self.text, options)
 
     def chunk_arrays(
         self,
@@ -99,8 +84,8 @@ class ConditionBuilder:
     ) -> list[ConditionArrays]:
         """:meth:`arrays` of a step's frames, one per causal chunk of :attr:`chunk_frames` frames (the
         student's unit); ``len(chunk)`` must be a multiple of it. Without ``every_frame`` only the
-        step's last frame is decoded (:class:`~world_model.runtime.RolloutBatch`), so only it gets a
-        label map."""
+        step's last frame is decoded (:class:`~world_model.rollout.batch.RolloutBatch`), so only it
+        gets a label map."""
         if not chunk or len(chunk) % self.chunk_frames:
             raise ValueError(f"a step's frames must be a positive multiple of {self.chunk_frames}, got {len(chunk)}")
         last = len(chunk) - 1

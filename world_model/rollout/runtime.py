@@ -1,31 +1,26 @@
-"""Run a trained world model: load a checkpoint bundle and stream batched rollouts from SceneFrames.
+"""A trained world model: load a checkpoint bundle into the modules that stream rollouts.
 
     wm = load_world_model()                        # the shipped default bundle (or a path)
-    rollouts = RolloutBatch(wm, num_rollouts=8)
-    obs0 = rollouts.reset_row(0, first_frame, seed=0)          # first frame via the reference model (§6)
-    obs = rollouts.step([chunk_0, ..., chunk_7])               # one causal chunk per rollout (§4.2)
 
-Each rollout owns a ``torch.Generator`` seeded at its reset, and every noise tensor of that rollout
-(first frame, every chunk, every re-noising) is drawn from it, so a rollout's observations do not
-depend on which other rollouts share its batch: a vector env equals N single envs.
+:class:`WorldModel` holds the VAE, the causal student, the reference model and what turns
+SceneFrames into their conditions (:class:`~world_model.rollout.builder.ConditionBuilder`); it
+samples first frames and decodes latents. Streaming many rollouts through it:
+:mod:`world_model.rollout.batch`.
 """
 
 from __future__ import annotations
 
-import hashlib
-import time
 from collections.abc import Mapping, Sequence
-from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, field, fields, replace
+from contextlib import nullcontext
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from world_model.bundle import CheckpointError, load_bundle_files, save_bundle  # noqa: F401 (re-export)
-from world_model.conditioning import ConditionBuilder
+from world_model.bundle import CheckpointError, load_bundle_files, save_bundle
 from world_model.lora import loaded_adapters, only_adapters
-from world_model.model.conditions import ConditionArrays, Conditions
+from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
@@ -36,14 +31,13 @@ from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
 from world_model.observation import Observation
 from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
+from world_model.rollout.builder import ConditionBuilder
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
-from world_model.sim.labels import CLASS_PLANE, NO_LABEL
 from world_model.streaming import STREAMING_FILE, StreamingConfig, StreamingConfigError
 from world_model.student.config import StudentConfig
-from world_model.student.engine import StreamingEngine
 
-__all__ = ["RolloutBatch", "WorldModel", "load_world_model", "save_bundle", "save_untrained_bundle"]
+__all__ = ["WorldModel", "load_world_model", "save_untrained_bundle"]
 
 
 @dataclass
@@ -291,245 +285,3 @@ def save_untrained_bundle(
     return save_bundle(
         out_dir, student_cfg.to_dict(), parts, stages=stages, component_configs={"reference": ref_cfg.to_dict()}
     )
-
-
-def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
-    """A digest of a rollout's first-frame condition arrays, seed and the categories of the frame's
-    objects (a completion adapter redraws a frame by those): rollouts with equal keys start from
-    the same first frame."""
-    digest = hashlib.blake2b(digest_size=16)
-    digest.update(int(seed).to_bytes(8, "little", signed=True))
-    digest.update(",".join(sorted(o.category for o in frame.objects)).encode())
-    for f in fields(arrays):
-        value = np.ascontiguousarray(getattr(arrays, f.name))
-        digest.update(f"{f.name}:{value.dtype}:{value.shape}".encode())
-        digest.update(value.tobytes())
-    return digest.digest()
-
-
-class RolloutBatch:
-    """``num_rollouts`` independent rollouts advanced together, one causal chunk per :meth:`step`."""
-
-    def __init__(self, wm: WorldModel, num_rollouts: int, every_frame: bool = False) -> None:
-        self.wm = wm
-        self.n = num_rollouts
-        self.every_frame = every_frame
-        self.engine = StreamingEngine(wm.student, wm.student_cfg, generator=self._noise)
-        self.gens: list[torch.Generator | None] = [None] * num_rollouts
-        self.first: list[SceneFrame | None] = [None] * num_rollouts
-        # Per rollout: reference crops by track id, and the frame index each applies from.
-        self.crops: list[dict[str, np.ndarray]] = [{} for _ in range(num_rollouts)]
-        self.crop_since: list[dict[str, int]] = [{} for _ in range(num_rollouts)]
-        self.last_arrays: list[ConditionArrays | None] = [None] * num_rollouts
-        self._pending: dict[int, tuple[torch.Tensor, ConditionArrays]] = {}
-        # Wall seconds spent by step() building conditions (BEV raster, text, crops: outside the
-        # networks), in the student and in VAE decoding; benchmarks read and reset them.
-        self.seconds = {"conditions": 0.0, "student": 0.0, "decode": 0.0}
-
-    @property
-    def chunk_frames(self) -> int:
-        return self.wm.cfg.clip.chunk_frames
-
-    def _row_independent(self) -> AbstractContextManager:
-        """Batched student calls computed row for row as a batch of one would on CPU
-        (:mod:`world_model.model.rows`), so a rollout never depends on the others in its batch."""
-        return split_rows(self.n) if self._on_cpu else nullcontext()
-
-    @property
-    def _device(self) -> torch.device:
-        return next(self.wm.student.parameters()).device
-
-    @property
-    def _on_cpu(self) -> bool:
-        return self._device.type == "cpu"
-
-    def _finish_device_work(self) -> None:
-        """Wait for the student's kernels on an asynchronous device (CUDA), so that ``seconds``
-        charges them to the student rather than to the decoder's first read of its latents."""
-        if self._device.type == "cuda":
-            torch.cuda.synchronize(self._device)
-
-    def _noise(self, shape: Sequence[int]) -> torch.Tensor:
-        """Batch noise, each row from its own rollout's (CPU) generator; the engine moves it to the
-        model's device, so a seed gives the same rollout noise on every device."""
-        return torch.stack([torch.randn(tuple(shape[1:]), generator=g) for g in self.gens])
-
-    def reset_row(
-        self,
-        row: int,
-        frame: SceneFrame,
-        seed: int,
-        reference: Mapping[str, np.ndarray] | None = None,
-        crops: Mapping[str, np.ndarray] | None = None,
-        crop_since: Mapping[str, int] | None = None,
-    ) -> Observation:
-        """(Re)start rollout ``row`` at ``frame``: its first frame comes from the reference model,
-        anchored on ``reference`` images when given (§6), and seeds the student's cache. ``crops``
-        and ``crop_since``: as :meth:`ConditionBuilder.arrays`; set ``self.crops[row]`` and
-        ``self.crop_since[row]`` between steps as new crops are cut."""
-        self.crops[row], self.crop_since[row] = dict(crops or {}), dict(crop_since or {})
-        arrays = self.wm.conditions.arrays([frame], frame, self.crops[row], self.crop_since[row])
-        return self.start_row(row, frame, seed, arrays, reference)
-
-    def start_row(
-        self,
-        row: int,
-        frame: SceneFrame,
-        seed: int,
-        arrays: ConditionArrays,
-        reference: Mapping[str, np.ndarray] | None = None,
-    ) -> Observation:
-        """:meth:`reset_row` given the first frame's condition arrays, built by the caller."""
-        self.gens[row] = torch.Generator().manual_seed(int(seed))
-        self.first[row] = frame
-        with torch.no_grad():
-            latents, obs = self.wm.first_frame(Conditions.collate([arrays]), frame, reference, seed=int(seed))
-        self._start([row], latents, [arrays])
-        return obs
-
-    def reset_rows(
-        self,
-        rows: Sequence[int],
-        frames: Sequence[SceneFrame],
-        seeds: Sequence[int],
-        crops: Sequence[Mapping[str, np.ndarray] | None] | None = None,
-        crop_since: Sequence[Mapping[str, int] | None] | None = None,
-    ) -> list[Observation]:
-        """:meth:`reset_row` of several rows from controls, their first frames sampled in one
-        batched reference-model call (:meth:`WorldModel.batch_first_frames`); each row exactly as
-        its own :meth:`reset_row` would be. ``crops`` and ``crop_since``: one per row, or None."""
-        crops = list(crops) if crops is not None else [None] * len(rows)
-        since = list(crop_since) if crop_since is not None else [None] * len(rows)
-        if not len(rows) == len(frames) == len(seeds) == len(crops) == len(since) or len(set(rows)) != len(rows):
-            raise ValueError(f"need distinct rows and one frame, seed and crops per row, got rows {list(rows)}")
-        arrays = []
-        for row, frame, crop, first_seen in zip(rows, frames, crops, since, strict=True):
-            self.crops[row], self.crop_since[row] = dict(crop or {}), dict(first_seen or {})
-            arrays.append(self.wm.conditions.arrays([frame], frame, self.crops[row], self.crop_since[row]))
-        return self.start_rows(rows, frames, seeds, arrays)
-
-    def start_rows(
-        self,
-        rows: Sequence[int],
-        frames: Sequence[SceneFrame],
-        seeds: Sequence[int],
-        arrays: Sequence[ConditionArrays],
-    ) -> list[Observation]:
-        """:meth:`reset_rows` given each row's first-frame condition arrays, built by the caller."""
-        if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
-            raise ValueError(f"need distinct rows and one frame, seed and arrays per row, got rows {list(rows)}")
-        for row, frame, seed in zip(rows, frames, seeds, strict=True):
-            self.gens[row] = torch.Generator().manual_seed(int(seed))
-            self.first[row] = frame
-        # Rows that start from the same controls and seed (one scene and seed under several
-        # policies) get the same first frame: it is sampled once and copied (on CPU bit for bit
-        # what each row's own call gives; on a GPU the smaller batch may round differently).
-        keys = [start_key(a, s, f) for a, s, f in zip(arrays, seeds, frames, strict=True)]
-        unique = list(dict.fromkeys(keys))
-        firsts = [keys.index(k) for k in unique]
-        latents, obs = self.wm.batch_first_frames(
-            Conditions.collate([arrays[i] for i in firsts]),
-            [frames[i] for i in firsts],
-            [int(seeds[i]) for i in firsts],
-        )
-        source = [unique.index(k) for k in keys]
-        latents = latents[source]
-        obs = [replace(obs[j], cameras=obs[j].cameras.copy(), lidar=obs[j].lidar.copy()) for j in source]
-        self._start(list(rows), latents, list(arrays))
-        return obs
-
-    def _start(self, rows: list[int], latents: torch.Tensor, arrays: list[ConditionArrays]) -> None:
-        """Seed the student's cache of ``rows`` with their first frames (R, 1, V, C, h, w)."""
-        for row, a in zip(rows, arrays, strict=True):
-            self.last_arrays[row] = a
-        if self.engine.batch_size == self.n and self.n > 1:
-            with torch.no_grad(), split_rows(len(rows)) if self._on_cpu else nullcontext():
-                self.engine.start_rows(rows, latents, Conditions.collate(arrays))
-            return
-        # The first start, or a single rollout: a fresh engine, so frame positions restart at 0
-        # and a reset with the same seed repeats the episode bit for bit.
-        for i, row in enumerate(rows):
-            self._pending[row] = (latents[i : i + 1], arrays[i])
-        if len(self._pending) == self.n:
-            order = sorted(self._pending)
-            first = torch.cat([self._pending[r][0] for r in order])
-            with torch.no_grad(), self._row_independent():
-                self.engine.start(first, Conditions.collate([self._pending[r][1] for r in order]))
-            self._pending.clear()
-
-    def step(self, chunks: Sequence[Sequence[SceneFrame] | None]) -> list[list[Observation] | None]:
-        """Advance every rollout whose chunk is given (``None``: idle, its output is discarded)."""
-        if len(chunks) != self.n:
-            raise ValueError(f"need one chunk (or None) per rollout: {self.n}, got {len(chunks)}")
-        t0 = time.perf_counter()
-        arrays = [
-            None
-            if chunk is None
-            else self.wm.conditions.chunk_arrays(
-                chunk, self.first[i], self.crops[i], self.crop_since[i], self.every_frame
-            )
-            for i, chunk in enumerate(chunks)
-        ]
-        self.seconds["conditions"] += time.perf_counter() - t0
-        return self.step_arrays(arrays)
-
-    def step_arrays(self, arrays: Sequence[Sequence[ConditionArrays] | None]) -> list[list[Observation] | None]:
-        """:meth:`step` given each rollout's condition arrays, built by the caller
-        (:meth:`ConditionBuilder.chunk_arrays`): one per causal chunk of the step, or ``None`` for an
-        idle rollout. Returns each active rollout's observations of the step's last frame (of every
-        frame with ``every_frame``)."""
-        if len(arrays) != self.n:
-            raise ValueError(f"need one list of condition arrays (or None) per rollout: {self.n}, got {len(arrays)}")
-        if self.engine.batch_size != self.n:
-            missing = [i for i in range(self.n) if i not in self._pending]
-            raise RuntimeError(f"rollouts {missing} were never reset; reset every rollout before stepping")
-        shapes = {tuple(a.num_frames for a in row) for row in arrays if row is not None}
-        if len(shapes) > 1 or any(k != self.chunk_frames for shape in shapes for k in shape):
-            raise ValueError(
-                f"every rollout's step must be the same number of the model's {self.chunk_frames}-frame chunks, "
-                f"got chunks of {sorted(shapes)} frames"
-            )
-        steps = len(next(iter(shapes), ()))
-        outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
-        with torch.no_grad():
-            for k in range(steps):
-                batch = []
-                for i, row in enumerate(arrays):
-                    if row is not None:
-                        self.last_arrays[i] = row[k]
-                    # An idle row repeats its last controls: its output is thrown away.
-                    arr = self.last_arrays[i]
-                    batch.append(arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames))
-                cond = Conditions.collate(batch)
-                t0 = time.perf_counter()
-                with self._row_independent():
-                    latents = self.engine.step(cond)
-                self._finish_device_work()
-                self.seconds["student"] += time.perf_counter() - t0
-                for i in range(self.n):
-                    outs[i].append(latents[i : i + 1])
-        t0 = time.perf_counter()
-        active = [i for i, row in enumerate(arrays) if row is not None]
-        results: list[list[Observation] | None] = [None] * self.n
-        if active:  # one decoder call for every active rollout's frames
-            lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
-            labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
-            nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
-            if not self.every_frame:
-                lat, labels, nearness = lat[:, -1:], labels[:, -1:], nearness[:, -1:]
-            if self.wm.vae.draws_labels and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
-                raise RuntimeError(
-                    "a frame to decode has no label map: build each step's conditions with the rollouts' "
-                    "every_frame (ConditionBuilder.chunk_arrays)"
-                )
-            style = np.stack([arrays[i][0].style for i in active])
-            for i, obs in zip(active, self.wm.decode(lat, labels, style, nearness), strict=True):
-                results[i] = obs
-        self.seconds["decode"] += time.perf_counter() - t0
-        return results
-
-
-def _repeat_frames(arrays: ConditionArrays, frames: int) -> ConditionArrays:
-    """The last frame of ``arrays`` repeated ``frames`` times (controls of an idle rollout)."""
-    last = arrays.frames(arrays.num_frames - 1, arrays.num_frames)
-    return replace(last, **{k: np.repeat(getattr(last, k), frames, axis=0) for k in ConditionArrays.TIME_FIELDS})

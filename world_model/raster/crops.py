@@ -8,9 +8,15 @@ that frame, and keep it for the rest of the rollout. A track's crop conditions t
 one it was cut at (``since``), so training on a recorded clip sees it exactly where the env would.
 An object whose scenario names an image file (``image_path``) gets that image instead, from the
 first frame it is in; an object carrying its own in-memory ``image`` needs no crop.
+
+A recording keeps the crops it cut (a clip's ``crops`` and ``crop_since``): :class:`RecordedCrops`
+replays them, so a rollout over a recorded clip is conditioned on exactly what training saw.
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -20,6 +26,17 @@ from world_model.sim.simulator import ProceduralSimulator
 
 # One look per second at 10 Hz: a rollout's cameras are rendered for crops at most this often.
 CROP_EVERY_FRAMES = 10
+
+
+class CropSource(Protocol):
+    """A rollout's reference crops so far: ``crops`` by track id, ``since`` the frame index from
+    which each conditions the frames (a track absent from ``since`` has its crop at every frame)."""
+
+    crops: dict[str, np.ndarray]
+    since: dict[str, int]
+
+    def update(self, frame: SceneFrame, cameras: np.ndarray | None = None) -> None:
+        """The rollout reached ``frame`` (``cameras``: its rendered images if at hand)."""
 
 
 class ReferenceCrops:
@@ -54,3 +71,14 @@ class ReferenceCrops:
         for tid, crop in self.sim.object_crops(frame, cameras).items():
             if tid not in self.crops:
                 self.crops[tid], self.since[tid] = crop, frame.frame_index
+
+
+class RecordedCrops:
+    """The crops of a recorded rollout, given whole: none is cut as the rollout goes on."""
+
+    def __init__(self, crops: Mapping[str, np.ndarray] | None = None, since: Mapping[str, int] | None = None) -> None:
+        self.crops: dict[str, np.ndarray] = dict(crops or {})
+        self.since: dict[str, int] = dict(since or {})
+
+    def update(self, frame: SceneFrame, cameras: np.ndarray | None = None) -> None:
+        """Nothing to cut: the recording cut every crop it has."""

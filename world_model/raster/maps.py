@@ -1,0 +1,86 @@
+"""The decoder's maps of a scene: each camera's label map and the LiDAR view's nearness.
+
+The VAE decoder draws the scene's layout from these at the views' full resolution, beside the
+student's latents (``layout.decoder``, ``layout.decoder_lidar``; docs/layout.md): each camera's
+class ids, the objects' paint and the ground's surface (:meth:`LabelRasterizer.maps
+<world_model.sim.labels.LabelRasterizer.maps>`), and the range map the scene implies on the LiDAR
+view (:func:`~world_model.model.layout.lidar_nearness`). Frames that will not be decoded may be
+left out (``labeled``): their maps draw nothing.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from world_model.model.config import ModelConfig
+from world_model.model.layout import lidar_nearness
+from world_model.raster.classes import MAP_PLANES, blank_maps
+from world_model.scene import SceneFrame
+from world_model.sim.labels import LabelRasterizer
+
+
+class SceneRaster:
+    """Draws the decoder's maps of frames for a model config. One kept across calls (a rollout's
+    frames, every rollout of a vector env) reuses its rasterizer's ray geometry, road textures and
+    meshes."""
+
+    def __init__(self, cfg: ModelConfig, rasterizer: LabelRasterizer | None = None) -> None:
+        self.cfg = cfg
+        self.rasterizer = rasterizer or LabelRasterizer()
+
+    def labels(self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None) -> np.ndarray:
+        """The frames' camera label maps (:func:`camera_labels`)."""
+        return camera_labels(frames, self.cfg, self.rasterizer, labeled)
+
+    def nearness(self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None) -> np.ndarray:
+        """The frames' LiDAR nearness maps (:func:`lidar_nearness_maps`)."""
+        return lidar_nearness_maps(frames, self.cfg, labeled)
+
+
+def _check_labeled(frames: Sequence[SceneFrame], labeled: Sequence[bool] | None) -> None:
+    if labeled is not None and len(labeled) != len(frames):
+        raise ValueError(f"labeled must flag each of the {len(frames)} frames, got {len(labeled)}")
+
+
+def camera_labels(
+    frames: Sequence[SceneFrame],
+    cfg: ModelConfig,
+    rasterizer: LabelRasterizer | None = None,
+    labeled: Sequence[bool] | None = None,
+) -> np.ndarray:
+    """The ``labels`` condition: each camera's label map of every frame, (T, Vc, 3, H, W) uint8
+    (class ids, paint, surface: :meth:`~world_model.sim.labels.LabelRasterizer.maps`), for a
+    decoder that draws them (``layout.decoder``); (T, Vc, 3, 0, 0) without one. ``rasterizer``: one
+    kept across calls reuses its ray geometry, road texture and meshes (default: a new one).
+    ``labeled`` (T,): the frames that will be decoded (default: all); the others' classes are left
+    :data:`~world_model.raster.classes.NO_LABEL`, which saves rendering maps nobody draws."""
+    s = cfg.sensors
+    if not cfg.layout.decoder:
+        return np.zeros((len(frames), s.num_cameras, MAP_PLANES, 0, 0), np.uint8)
+    _check_labeled(frames, labeled)
+    raster = rasterizer or LabelRasterizer()
+    out = blank_maps((len(frames), s.num_cameras), s.height, s.width)
+    for t, frame in enumerate(frames):
+        if labeled is None or labeled[t]:
+            out[t] = raster.maps(frame, frame.rig, s.height, s.width)
+    return out
+
+
+def lidar_nearness_maps(
+    frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
+) -> np.ndarray:
+    """The ``lidar_nearness`` condition: the LiDAR view's nearness map of every frame, (T, H, W)
+    uint8 (:func:`~world_model.model.layout.lidar_nearness`), for a decoder that draws it
+    (``layout.decoder_lidar``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`: the
+    other frames' maps are left 0, nothing in range."""
+    s = cfg.sensors
+    if not cfg.layout.decoder_lidar:
+        return np.zeros((len(frames), 0, 0), np.uint8)
+    _check_labeled(frames, labeled)
+    out = np.zeros((len(frames), s.height, s.width), np.uint8)
+    for t, frame in enumerate(frames):
+        if labeled is None or labeled[t]:
+            out[t] = lidar_nearness(frame, s.lidar, (s.height, s.width))
+    return out
