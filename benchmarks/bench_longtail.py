@@ -238,7 +238,7 @@ def evaluate(
         model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px, category
     )
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
-    text = make_text_encoder(vae.cfg.text) if vae.draws_style else None
+    text = make_text_encoder(vae.cfg.text) if vae.draws_labels else None
     autoencoded = [autoencode(vae, clips[rv.clip], rv.frame, text)[rv.view] for rv in views]
     base = [o.cameras[rv.view] for o, rv in zip(base_obs, views, strict=True)]
     adapted = [o.cameras[rv.view] for o, rv in zip(adapted_obs, views, strict=True)]
@@ -274,7 +274,7 @@ def autoencode(vae: SensorVAE, clip: Clip, frame: int, text: TextEncoder | None 
     cfg = vae.cfg
     labels = camera_labels(clip.frames[frame : frame + 1], cfg)
     nearness = lidar_nearness_maps(clip.frames[frame : frame + 1], cfg)
-    style = style_of_prompt(clip.frames[frame].prompt, cfg, text) if vae.draws_style else None
+    style = style_of_prompt(clip.frames[frame].prompt, cfg, text) if vae.draws_labels else None
     cams, _ = vae.reconstruct_frames(
         clip.cameras[frame : frame + 1], clip.lidar[frame : frame + 1], labels, style, nearness
     )

@@ -50,20 +50,13 @@ def test_the_decoder_stage_gives_the_bundle_its_vae_and_label_maps(tmp_path):
     files = load_bundle_files(export_bundle(run, tmp_path / "bundle"))
     assert files.manifest["components"]["vae"]["stage"] == "decoder"
     assert torch.equal(files.tensors["vae"]["w"], torch.full((3,), 2.0))
-    plain_labels = {
-        "decoder": True,
-        "decoder_style": False,
-        "decoder_paint": False,
-        "decoder_surface": False,
-        "decoder_lidar": False,
-    }
-    assert files.model_config == {"name": "tiny", "layout": plain_labels}
-    # a decoder stage that drew the scene's style, the objects' paint, the ground's surface and the
-    # LiDAR's nearness says so
-    drawn = {"decoder_style": True, "decoder_paint": True, "decoder_surface": True, "decoder_lidar": True}
-    (run / "decoder" / "model.json").write_text(json.dumps({"model_config": {"layout": drawn}}))
-    files = load_bundle_files(export_bundle(run, tmp_path / "styled"))
-    assert files.model_config == {"name": "tiny", "layout": {"decoder": True, **drawn}}
+    assert files.model_config == {"name": "tiny", "layout": {"decoder": True}}
+    # a student trained for a label decoder, bundled with the plain VAE: the bundle's decoder is plain
+    (run / "decoder" / "model.safetensors").unlink()
+    student = {"stage": "dmd", "model_config": {"name": "tiny", "layout": {"enabled": True, "decoder": True}}}
+    (run / "dmd" / "model.json").write_text(json.dumps(student))
+    files = load_bundle_files(export_bundle(run, tmp_path / "plain_vae"))
+    assert files.model_config == {"name": "tiny", "layout": {"enabled": True, "decoder": False}}
 
 
 def test_missing_and_corrupt_checkpoints_are_named(tmp_path):

@@ -196,12 +196,9 @@ def test_bad_layout_settings_raise():
         replace(cfg, layout=replace(cfg.layout, supersample=0))
 
 
-def test_config_round_trip_and_old_configs_load_without_layout():
+def test_config_round_trip():
     cfg = with_layout(get_preset("tiny"), True)
     assert ModelConfig.from_dict(cfg.to_dict()) == cfg
-    old = get_preset("tiny").to_dict()
-    del old["layout"]
-    assert ModelConfig.from_dict(old).layout.channels == 0
 
 
 def test_tiny_teacher_forward_backward_with_layout():
@@ -260,22 +257,22 @@ def test_layout_training_flag_switches_the_stage_config():
     assert stage_config(p.parse_args([]), preset).layout == preset.layout
 
 
-def test_a_bundle_written_before_layout_existed_loads_unchanged_with_layout_off(tmp_path):
-    from safetensors.torch import load_file, save_file
+def test_one_decoder_switch_turns_every_label_map_channel_on_and_the_config_refuses_the_old_flags():
+    from world_model.bundle import load_bundle_files
+    from world_model.model.config import DECODER_LABEL_CHANNELS, without_label_decoder
+    from world_model.sim.labels import LABEL_CLASSES
 
-    old = get_preset("tiny").to_dict()
-    del old["layout"]  # model_config.json of a bundle written before layout conditioning
-    cfg = ModelConfig.from_dict(old)
-    assert cfg.layout.channels == 0
-    no_layout = with_layout(get_preset("tiny"), False)
-    shapes = {k: v.shape for k, v in MultiViewDiT(no_layout).state_dict().items()}
-    assert {k: v.shape for k, v in MultiViewDiT(cfg).state_dict().items()} == shapes
-    torch.manual_seed(0)
-    save_file(MultiViewDiT(cfg).state_dict(), tmp_path / "student.safetensors")
-    student = MultiViewDiT(cfg)
-    student.load_state_dict(load_file(tmp_path / "student.safetensors"))  # strict: the patch embedding's width
-    cond = tiny_conditions(cfg, 1)
-    assert cond.layout.shape[3] == 0
-    with torch.no_grad():
-        v = student(torch.zeros(1, *cfg.latent_shape(1)), torch.full((1,), 0.5), cond)
-    assert v.shape == (1, *cfg.latent_shape(1)) and torch.isfinite(v).all()
+    on = with_layout(get_preset("tiny"), True)
+    assert on.layout.decoder and on.layout.label_channels == len(LABEL_CLASSES) + 5
+    assert DECODER_LABEL_CHANNELS[-1] == "lidar_nearness" and without_label_decoder(on).layout.label_channels == 0
+    shipped = ModelConfig.from_dict(load_bundle_files().model_config)
+    assert shipped.layout.decoder and shipped.layout.label_channels == len(DECODER_LABEL_CHANNELS)
+    for flag in ("decoder_style", "decoder_paint", "decoder_surface", "decoder_lidar"):
+        old = on.to_dict()
+        old["layout"][flag] = True
+        with pytest.raises(ValueError, match=flag):
+            ModelConfig.from_dict(old)
+    missing = on.to_dict()
+    del missing["layout"]
+    with pytest.raises(KeyError, match="layout"):
+        ModelConfig.from_dict(missing)

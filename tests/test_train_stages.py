@@ -78,7 +78,7 @@ def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_p
     assert out["step"] == 4 and {"camera_psnr_db", "lidar_range_mae_m"} <= set(out["metrics"])
     plain = load_vae(run / "vae" / "model")
     drawn = load_vae(run / "decoder" / "model")
-    assert not plain.draws_labels and drawn.draws_labels and drawn.draws_style and drawn.cfg.layout.decoder_style
+    assert not plain.draws_labels and drawn.draws_labels and drawn.cfg.layout.decoder
     mine = drawn.state_dict()
     for key, value in plain.state_dict().items():  # the DiTs' latents stay the encoder's
         if not key.startswith("decoder."):
@@ -113,7 +113,7 @@ def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tm
         assert not torch.equal(rolled[:1], encoded[:1])  # the first frame generated, as the env does
         assert not torch.equal(rolled[1:], encoded[1:])
     tuned, drawn = load_vae(run / "rollout_decoder" / "model"), load_vae(run / "decoder" / "model")
-    assert tuned.cfg == drawn.cfg and tuned.draws_style
+    assert tuned.cfg == drawn.cfg and tuned.draws_labels
     assert torch.equal(tuned.encoder.conv_in.weight, plain.encoder.conv_in.weight)  # the latents stay the encoder's
     assert not torch.equal(tuned.decoder.conv_out.weight, drawn.decoder.conv_out.weight)
 
@@ -124,7 +124,7 @@ def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tm
     bundle = export_bundle(run, tmp_path / "bundle")
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
-    assert manifest["model_config"]["layout"]["decoder"] and manifest["model_config"]["layout"]["decoder_style"]
+    assert manifest["model_config"]["layout"]["decoder"]
 
 
 def test_the_lidar_view_is_decoded_from_a_lagged_latent_for_a_share_of_its_samples():

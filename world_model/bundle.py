@@ -102,20 +102,10 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
-    # not depend on it): the bundle's VAE draws label maps exactly when the decoder stage made it,
-    # in the scene's style, with the objects' paint, the ground's surface and the LiDAR's nearness
-    # when that stage's config says so.
-    draws_labels = found["vae"][0] in ("rollout_decoder", "decoder")
-    if draws_labels or config.get("layout", {}).get("decoder"):
-        vae_layout = (_export_config(found["vae"][1]) or {}).get("layout", {}) if draws_labels else {}
-        config["layout"] = {
-            **config.get("layout", {}),
-            "decoder": draws_labels,
-            "decoder_style": bool(vae_layout.get("decoder_style", False)),
-            "decoder_paint": bool(vae_layout.get("decoder_paint", False)),
-            "decoder_surface": bool(vae_layout.get("decoder_surface", False)),
-            "decoder_lidar": bool(vae_layout.get("decoder_lidar", False)),
-        }
+    # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it.
+    draws = found["vae"][0] in ("rollout_decoder", "decoder")
+    if config.get("layout", {}).get("decoder", False) != draws:
+        config["layout"] = {**config.get("layout", {}), "decoder": draws}
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)

@@ -31,7 +31,7 @@ labels             (T, Vc, 3, H, W)      each camera's label map at full resolut
                                          H = W = 0 without it. The DiTs do not read it.
 lidar_nearness     (T, H, W) uint8       the range map the scene implies on the LiDAR view at
                                          full resolution, for the decoder
-                                         (``layout.decoder_lidar``,
+                                         (``layout.decoder``,
                                          :class:`~world_model.raster.maps.SceneRaster`);
                                          H = W = 0 without it. The DiTs do not read it.
 =================  ====================  ===============================================
@@ -336,7 +336,7 @@ def style_of_prompt(prompt: ScenePrompt, cfg: ModelConfig, text_encoder: TextEnc
 
 
 def prompt_style(text: np.ndarray | torch.Tensor, text_mask: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
-    """The scene's style the label decoder reads (``layout.decoder_style``): the prompt's pooled
+    """The scene's style the label decoder reads (``layout.decoder``): the prompt's pooled
     embedding, the unit-length mean of its unmasked tokens (the sentence encoder's own pooling), so
     the weather and light the prompt names reach the decoder. text (..., L, Dt), text_mask (..., L)
     -> (..., Dt), numpy or torch as given."""
@@ -366,7 +366,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     h, w = cfg.latent_hw
     layout_channels = cfg.layout.channels if cfg.layout.enabled else 0
     label_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
-    nearness_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder_lidar else (0, 0)
+    nearness_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
     f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
     return {
         "camera": FieldSpec((vc, 7, 3), f32),

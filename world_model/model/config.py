@@ -100,71 +100,45 @@ class ControlConfig:
     object_descriptions: bool = True
 
 
+# The decoder's label-map input channels in order (:attr:`LayoutConfig.label_channels`): the classes
+# one-hot, the object's paint as RGB, the ground's surface variation, the LiDAR view's nearness.
+DECODER_LABEL_CHANNELS = (*LABEL_CLASSES, "paint_red", "paint_green", "paint_blue", "surface", "lidar_nearness")
+
+
 @dataclass(frozen=True)
 class LayoutConfig:
     """Pixel-aligned layout conditioning (:mod:`world_model.model.layout`): per view, at the latent
     resolution, the road, lane lines, road edges, each object's projected box by category group
     and the nearness of the first hit, concatenated to the DiT's input channels beside the noisy
-    latent. The map and object tokens stay. Disabled: no extra channels (older checkpoints).
+    latent. The map and object tokens stay. Disabled: no extra channels, the paper's tokens alone.
 
-    ``decoder``: the VAE decoder also sees the layout, at full resolution: each camera's label map
-    (sky, off-road, road, markings, objects by group) modulates its features at every level
-    (SPADE), so a lane line or a car lands on its pixels however coarse the latent grid is. The
-    latents stay the encoder's: the ``decoder`` stage fine-tunes the decoder alone, and the DiTs do
-    not depend on it.
-
-    ``decoder_style``: that modulation also reads the prompt's pooled text embedding, per scene
-    class (how the sky, the off-road ground, the road and its markings look in this weather and
-    light), so the scene's weather and time of day reach every pixel of those classes whatever
-    colour the latents drifted to.
-
-    ``decoder_paint``: the modulation also reads each object pixel's paint, the unlit albedo of the
-    face it shows (the label map's paint plane, as RGB: the object's colour on its body, its glass,
-    tyres and lamps their own), so a red car comes out red with dark windows however little of a
-    10-pixel car's colour the latents keep.
-
-    ``decoder_surface``: the modulation also reads the road's and the off-road ground's surface
-    variation (the label map's surface plane: the world-aligned patches that brighten or darken the
-    asphalt and the grass), so the ground streams past the cameras as the ego moves over it, at the
-    ego's speed, however little of that texture the latents keep.
-
-    ``decoder_lidar``: the LiDAR view's modulation reads the range map the scene implies at full
-    resolution (:func:`~world_model.model.layout.lidar_nearness`; ``ConditionArrays.lidar_nearness``),
-    so the returns of a car ahead stand at its distance in this frame however far the DiT's range
-    latents lag; the cameras read zeros there."""
+    ``decoder``: the VAE decoder also draws the scene at full resolution, whatever the latents
+    keep. Each view's features are modulated at every level (SPADE) by its label map
+    (:data:`DECODER_LABEL_CHANNELS`): per pixel the class (sky, off-road, road, markings, objects by
+    group), so a lane line or a car lands on its pixels however coarse the latent grid is; the
+    object's paint, the unlit albedo of the face it shows, so a red car comes out red with dark
+    windows however little of a 10-pixel car's colour the latents keep; the road's and the
+    off-road ground's surface variation, so the ground streams past at the ego's speed. The
+    modulation also reads the prompt's pooled text embedding per scene class, so the weather and
+    the time of day reach every pixel of the sky, the ground and the road whatever colour the
+    latents drifted to. The LiDAR view reads the range map the scene implies
+    (:func:`~world_model.model.layout.lidar_nearness`), so the returns of a car ahead stand at its
+    distance in this frame however far the DiT's range latents lag; the cameras read zeros there.
+    The latents stay the encoder's: the ``decoder`` stages fine-tune the decoder alone, and the
+    DiTs do not depend on it."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
-    decoder_style: bool = False
-    decoder_paint: bool = False
-    decoder_surface: bool = False
-    decoder_lidar: bool = False
-
-    def __post_init__(self) -> None:
-        for name in ("decoder_style", "decoder_paint", "decoder_surface", "decoder_lidar"):
-            if getattr(self, name) and not self.decoder:
-                raise ValueError(f"layout.{name} needs layout.decoder (it modulates the label maps)")
 
     @property
     def channels(self) -> int:
         return len(LAYOUT_CHANNELS) if self.enabled else 0
 
     @property
-    def label_channel_names(self) -> tuple[str, ...]:
-        """The decoder's label-map input channels in order: the classes one-hot, then the paint's
-        RGB with ``decoder_paint``, then the surface with ``decoder_surface``, then the LiDAR view's
-        nearness with ``decoder_lidar`` (none without ``decoder``)."""
-        if not self.decoder:
-            return ()
-        paint = ("paint_red", "paint_green", "paint_blue") if self.decoder_paint else ()
-        surface = ("surface",) if self.decoder_surface else ()
-        return (*LABEL_CLASSES, *paint, *surface, *(("lidar_nearness",) if self.decoder_lidar else ()))
-
-    @property
     def label_channels(self) -> int:
-        """Number of :attr:`label_channel_names` (0 without ``decoder``)."""
-        return len(self.label_channel_names)
+        """The decoder's label-map input channels (:data:`DECODER_LABEL_CHANNELS`; 0 without ``decoder``)."""
+        return len(DECODER_LABEL_CHANNELS) if self.decoder else 0
 
 
 @dataclass(frozen=True)
@@ -178,9 +152,8 @@ class DitConfig:
     # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
     # 4 denoising forwards per env step, so its depth sets the env's speed (benchmarks/bench_env.py);
     # a shallower one starts from evenly spaced teacher blocks (world_model.student.init) while the
-    # teacher and the reference model keep all ``depth`` blocks. The shipped student has all 10: a
-    # 6-block one (2.7 M parameters) ran the env 1.5x faster but lost its camera images to a grey
-    # mean scene in long-video tuning (docs/MODEL_CARD.md, "Tried").
+    # teacher and the reference model keep all ``depth`` blocks. Fewer blocks trade image quality
+    # for speed: long-video tuning can collapse a shallow student's cameras to a grey mean scene.
     student_depth: int | None = None
     # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
     # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).
@@ -372,7 +345,7 @@ class ModelConfig:
             flow=build(FlowConfig, d["flow"]),
             sampler=build(SamplerConfig, d["sampler"]),
             clip=build(ClipConfig, d["clip"]),
-            layout=build(LayoutConfig, d.get("layout", {})),
+            layout=build(LayoutConfig, d["layout"]),
         )
 
 
@@ -433,25 +406,13 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
     if enabled is None:
         return cfg
     on = bool(enabled)
-    layout = replace(
-        cfg.layout,
-        enabled=on,
-        decoder=on,
-        decoder_style=on,
-        decoder_paint=on,
-        decoder_surface=on,
-        decoder_lidar=on,
-    )
-    return replace(cfg, layout=layout)
+    return replace(cfg, layout=replace(cfg.layout, enabled=on, decoder=on))
 
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps)."""
-    plain = replace(
-        cfg.layout, decoder=False, decoder_style=False, decoder_paint=False, decoder_surface=False, decoder_lidar=False
-    )
-    return replace(cfg, layout=plain)
+    return replace(cfg, layout=replace(cfg.layout, decoder=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

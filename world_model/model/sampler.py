@@ -106,20 +106,21 @@ def latents_to_observations(
     Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
     attached to the observations unchanged. ``labels`` (B, T, Vc, 3, H, W): the frames' camera label
-    maps, for a decoder that draws them (``Conditions.labels``); ``style`` (B, Dt): each sample's
-    scene style, for a decoder that draws it (``Conditions.style``); ``nearness`` (B, T, H, W): the
-    LiDAR view's nearness maps, for a decoder that draws them (``Conditions.lidar_nearness``).
+    maps (``Conditions.labels``), ``style`` (B, Dt): each sample's scene style (``Conditions.style``)
+    and ``nearness`` (B, T, H, W): the LiDAR view's nearness maps (``Conditions.lidar_nearness``),
+    read by a decoder that draws the scene.
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
     if b * t == 0:
         return [[] for _ in range(b)]
     device = latents.device  # the label maps travel as uint8, once
-    draws_labels, draws_style = labels is not None and vae.draws_labels, style is not None and vae.draws_style
-    flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draws_labels else None
-    flat_style = torch.as_tensor(style, device=device).repeat_interleave(t, dim=0) if draws_style else None
-    draws_lidar = nearness is not None and vae.draws_lidar
-    flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draws_lidar else None
+    draws = vae.draws_labels
+    flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draws and labels is not None else None
+    flat_style = (
+        torch.as_tensor(style, device=device).repeat_interleave(t, dim=0) if draws and style is not None else None
+    )
+    flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draws and nearness is not None else None
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],

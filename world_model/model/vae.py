@@ -21,8 +21,6 @@ flow expects) and :meth:`SensorVAE.decode` undoes it.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -212,9 +210,8 @@ class SensorVAE(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.encoder = Encoder(cfg.vae)
-        style_dim = cfg.text.dim if cfg.layout.decoder_style else 0
-        gate = cfg.layout.decoder and cfg.layout.decoder_lidar
-        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, style_dim, gate)
+        draws = cfg.layout.decoder
+        self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim if draws else 0, nearness_gate=draws)
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
         self.register_buffer("latent_std", torch.ones(c))
@@ -236,24 +233,15 @@ class SensorVAE(nn.Module):
 
     @property
     def draws_labels(self) -> bool:
-        """Whether the decoder needs each camera's label map (``layout.decoder``)."""
+        """Whether the decoder draws the scene (``layout.decoder``): it needs each camera's label
+        map, the scene's style and the LiDAR view's nearness map."""
         return self.decoder.label_mods is not None
-
-    @property
-    def draws_lidar(self) -> bool:
-        """Whether the decoder also needs the LiDAR view's nearness map (``layout.decoder_lidar``)."""
-        return self.draws_labels and self.cfg.layout.decoder_lidar
-
-    @property
-    def draws_style(self) -> bool:
-        """Whether the decoder also needs the scene's style with the label maps (``layout.decoder_style``)."""
-        return self.decoder.style_dim > 0
 
     def _style(
         self, style: torch.Tensor | None, labels: torch.Tensor | None, like: torch.Tensor
     ) -> torch.Tensor | None:
         """(N, S) style for the decoder: required with label maps, zeros without (nothing to style)."""
-        if not self.draws_style:
+        if not self.draws_labels:
             return None
         if style is None:
             if labels is not None:
@@ -266,21 +254,19 @@ class SensorVAE(nn.Module):
     ) -> torch.Tensor | None:
         """(N, 3, H, W) uint8 label maps (class ids, paint, surface: :meth:`LabelRasterizer.maps`) and
         (N, H, W) uint8 nearness maps (:func:`~world_model.model.layout.lidar_nearness`) ->
-        (N, K, H, W), the channels of ``layout.label_channel_names``: the
+        (N, K, H, W), the channels of :data:`~world_model.model.config.DECODER_LABEL_CHANNELS`: the
         :data:`~world_model.raster.classes.LABEL_CLASSES` one-hot (:data:`~world_model.raster.classes.NO_LABEL`
-        and None -> all zeros: no layout), then the paint as RGB in [0, 1] (``layout.decoder_paint``),
-        then the surface variation in [-1, 1] (``layout.decoder_surface``), then the nearness in
-        [0, 1] (``layout.decoder_lidar``; None -> zeros, a camera's). None for a decoder without
-        label modulation."""
+        and None -> all zeros: no layout), then the paint as RGB in [0, 1], then the surface
+        variation in [-1, 1], then the nearness in [0, 1] (None -> zeros, a camera's). None for a
+        decoder without label modulation."""
         if not self.draws_labels:
             return None
-        layout = self.cfg.layout
         classes = len(LABEL_CLASSES)
         h, w = self.cfg_hw
         n = like.shape[0]
         channels = []
-        if labels is None:
-            channels.append(like.new_zeros(n, layout.label_channels - layout.decoder_lidar, h, w))
+        if labels is None:  # every channel but the nearness
+            channels.append(like.new_zeros(n, self.cfg.layout.label_channels - 1, h, w))
         else:
             if labels.shape != (n, MAP_PLANES, h, w):
                 raise ValueError(
@@ -289,19 +275,16 @@ class SensorVAE(nn.Module):
             labels = labels.to(like.device).long()
             ids = labels[:, CLASS_PLANE].clamp(max=classes)  # NO_LABEL -> the dropped extra class
             channels.append(F.one_hot(ids, classes + 1)[..., :classes].movedim(-1, 1).to(like.dtype))
-            if layout.decoder_paint:
-                rgb = _PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]]
-                channels.append(rgb.movedim(-1, 1))
-            if layout.decoder_surface:
-                channels.append(_SURFACE.to(device=like.device, dtype=like.dtype)[labels[:, SURFACE_PLANE]][:, None])
-        if layout.decoder_lidar:
-            if nearness is None:
-                channels.append(like.new_zeros(n, 1, h, w))
-            elif nearness.shape != (n, h, w):
-                raise ValueError(f"nearness must be {(n, h, w)} uint8 maps, got {tuple(nearness.shape)}")
-            else:
-                channels.append(nearness.to(device=like.device, dtype=like.dtype)[:, None] / NEARNESS_LEVELS)
-        return torch.cat(channels, dim=1) if len(channels) > 1 else channels[0]
+            rgb = _PAINT_RGB.to(device=like.device, dtype=like.dtype)[labels[:, PAINT_PLANE]]
+            channels.append(rgb.movedim(-1, 1))
+            channels.append(_SURFACE.to(device=like.device, dtype=like.dtype)[labels[:, SURFACE_PLANE]][:, None])
+        if nearness is None:
+            channels.append(like.new_zeros(n, 1, h, w))
+        elif nearness.shape != (n, h, w):
+            raise ValueError(f"nearness must be {(n, h, w)} uint8 maps, got {tuple(nearness.shape)}")
+        else:
+            channels.append(nearness.to(device=like.device, dtype=like.dtype)[:, None] / NEARNESS_LEVELS)
+        return torch.cat(channels, dim=1)
 
     # -- normalized latents (what the DiT sees) --
     def _norm(self, z: torch.Tensor) -> torch.Tensor:
@@ -323,9 +306,8 @@ class SensorVAE(nn.Module):
         ``labels``: (N, 3, H, W) uint8 label maps (class ids, paint, surface), read when the decoder draws them
         (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
         scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
-        when the decoder draws it (:attr:`draws_style`). ``nearness``: (N, H, W) uint8, the LiDAR
-        view's range map the scene implies, read when the decoder draws it (:attr:`draws_lidar`);
-        None there means none (a camera)."""
+        when the decoder draws them. ``nearness``: (N, H, W) uint8, the LiDAR view's range map the
+        scene implies, read when the decoder draws the labels; None there means none (a camera)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
@@ -371,39 +353,14 @@ class SensorVAE(nn.Module):
 
         ``labels``: the frames' camera label maps (T, V, 3, H, W) uint8, required when the decoder
         draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
-        ``style``: the scene's style, (S,) for every frame or (T, S), required when the decoder draws
-        it (:attr:`draws_style`; ``ConditionArrays.style``). ``nearness``: the LiDAR view's nearness
-        maps (T, H, W) uint8, required when the decoder draws them (:attr:`draws_lidar`;
+        ``style``: the scene's style, (S,) for every frame or (T, S), and ``nearness``: the LiDAR
+        view's nearness maps (T, H, W) uint8, required with the labels (``ConditionArrays.style``,
         ``ConditionArrays.lidar_nearness``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
-        cam_labels = cam_style = None
-        if self.draws_style:
-            s = self.decoder.style_dim
-            if style is None or tuple(style.shape) not in ((s,), (t, s)):
-                got = None if style is None else tuple(style.shape)
-                raise ValueError(
-                    f"this VAE's decoder draws the scene's style: need style ({s},) or ({t}, {s}), got {got}"
-                )
-            per_frame = torch.as_tensor(style, dtype=torch.float32, device=latents.device).expand(t, s)
-            cam_style = per_frame.repeat_interleave(v1 - 1, dim=0)
+        cam_labels = cam_style = lidar_near = None
         if self.draws_labels:
-            if labels is None or tuple(labels.shape[:2]) != (t, v1 - 1):
-                got = None if labels is None else tuple(labels.shape)
-                raise ValueError(
-                    f"this VAE's decoder draws each camera's label map: "
-                    f"need labels ({t}, {v1 - 1}, {MAP_PLANES}, H, W), got {got}"
-                )
-            cam_labels = torch.as_tensor(labels, device=latents.device).flatten(0, 1)  # uint8: the small copy
-        lidar_near = None
-        if self.draws_lidar:
-            if nearness is None or tuple(nearness.shape) != (t, *self.cfg_hw):
-                got = None if nearness is None else tuple(nearness.shape)
-                raise ValueError(
-                    f"this VAE's decoder draws the LiDAR view's nearness: need nearness ({t}, {self.cfg_hw[0]}, "
-                    f"{self.cfg_hw[1]}), got {got}"
-                )
-            lidar_near = torch.as_tensor(nearness, device=latents.device)
+            cam_labels, cam_style, lidar_near = self._frame_maps(t, v1 - 1, labels, style, nearness, latents.device)
         # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
         # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
         with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
@@ -415,6 +372,38 @@ class SensorVAE(nn.Module):
             self.cfg.vae.lidar_no_return_fraction,
         )
         return cams, lid
+
+    def _frame_maps(
+        self,
+        t: int,
+        cameras: int,
+        labels: np.ndarray | torch.Tensor | None,
+        style: np.ndarray | torch.Tensor | None,
+        nearness: np.ndarray | torch.Tensor | None,
+        device: torch.device,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`decode_frames`'s maps of ``t`` frames checked and flattened for :meth:`decode`: the
+        cameras' label maps (T * cameras, 3, H, W) uint8 and style (T * cameras, S), the LiDAR
+        view's nearness (T, H, W) uint8."""
+        s = self.decoder.style_dim
+        if style is None or tuple(style.shape) not in ((s,), (t, s)):
+            got = None if style is None else tuple(style.shape)
+            raise ValueError(f"this VAE's decoder draws the scene's style: need style ({s},) or ({t}, {s}), got {got}")
+        per_frame = torch.as_tensor(style, dtype=torch.float32, device=device).expand(t, s)
+        if labels is None or tuple(labels.shape[:2]) != (t, cameras):
+            got = None if labels is None else tuple(labels.shape)
+            raise ValueError(
+                f"this VAE's decoder draws each camera's label map: "
+                f"need labels ({t}, {cameras}, {MAP_PLANES}, H, W), got {got}"
+            )
+        if nearness is None or tuple(nearness.shape) != (t, *self.cfg_hw):
+            got = None if nearness is None else tuple(nearness.shape)
+            raise ValueError(
+                f"this VAE's decoder draws the LiDAR view's nearness: need nearness ({t}, {self.cfg_hw[0]}, "
+                f"{self.cfg_hw[1]}), got {got}"
+            )
+        cam_labels = torch.as_tensor(labels, device=device).flatten(0, 1)  # uint8: the small copy
+        return cam_labels, per_frame.repeat_interleave(cameras, dim=0), torch.as_tensor(nearness, device=device)
 
     def reconstruct_frames(
         self,
@@ -433,37 +422,6 @@ class SensorVAE(nn.Module):
     @property
     def cfg_hw(self) -> tuple[int, int]:
         return self.cfg.sensors.height, self.cfg.sensors.width
-
-
-def with_label_channels(vae: SensorVAE, cfg: ModelConfig) -> SensorVAE:
-    """``vae`` under ``cfg``, whose decoder reads label-map channels that ``vae``'s does not (the
-    surface beside the paint, say): every weight copied, the new channels' weights zero, so that it
-    draws exactly as ``vae`` does until it is trained. The label modulations' convolutions are the
-    only weights that read those channels; every other setting of the two must agree."""
-    old, new = vae.cfg.layout.label_channel_names, cfg.layout.label_channel_names
-    # cfg's layout with vae's choice of label channels: all that may differ is which channels are read
-    same_channels = replace(
-        cfg.layout,
-        decoder_paint=vae.cfg.layout.decoder_paint,
-        decoder_surface=vae.cfg.layout.decoder_surface,
-        decoder_lidar=vae.cfg.layout.decoder_lidar,
-    )
-    same_otherwise = (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) == (cfg.sensors, cfg.vae, same_channels)
-    if not (vae.draws_labels and set(old) <= set(new) and same_otherwise):
-        raise ValueError(
-            f"a decoder reading {list(old) or 'no label maps'} cannot be extended to read {list(new)} under "
-            "another preset or layout: train it again with the same preset and --layout"
-        )
-    out = SensorVAE(cfg)
-    state = vae.state_dict()
-    columns = [new.index(name) for name in old]
-    for name, target in out.state_dict().items():
-        source = state.get(name, target)  # the nearness gate, new with the nearness: zero
-        if source.shape != target.shape:  # a label modulation's (2c, K, 3, 3) convolution
-            source = torch.zeros_like(target).index_copy_(1, torch.tensor(columns), source)
-        state[name] = source
-    out.load_state_dict(state)
-    return out.train(vae.training)
 
 
 def weighted_l1(reconstruction: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:

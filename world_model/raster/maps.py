@@ -1,7 +1,7 @@
 """The decoder's maps of a scene: each camera's label map and the LiDAR view's nearness.
 
 The VAE decoder draws the scene's layout from these at the views' full resolution, beside the
-student's latents (``layout.decoder``, ``layout.decoder_lidar``; docs/layout.md): each camera's
+student's latents (``layout.decoder``; docs/layout.md): each camera's
 class ids, the objects' paint and the ground's surface (:meth:`LabelRasterizer.maps
 <world_model.sim.labels.LabelRasterizer.maps>`), and the range map the scene implies on the LiDAR
 view (:func:`~world_model.model.layout.lidar_nearness`). Frames that will not be decoded may be
@@ -73,10 +73,10 @@ def lidar_nearness_maps(
 ) -> np.ndarray:
     """The ``lidar_nearness`` condition: the LiDAR view's nearness map of every frame, (T, H, W)
     uint8 (:func:`~world_model.model.layout.lidar_nearness`), for a decoder that draws it
-    (``layout.decoder_lidar``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`: the
+    (``layout.decoder``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`: the
     other frames' maps are left 0, nothing in range."""
     s = cfg.sensors
-    if not cfg.layout.decoder_lidar:
+    if not cfg.layout.decoder:
         return np.zeros((len(frames), 0, 0), np.uint8)
     _check_labeled(frames, labeled)
     out = np.zeros((len(frames), s.height, s.width), np.uint8)

@@ -234,14 +234,11 @@ def layout_cache_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "teacher" / "layouts"
 
 
-DECODER_LAYOUT_FIELDS = ("decoder", "decoder_style", "decoder_paint", "decoder_surface", "decoder_lidar")
-
-
 def layout_key(cfg: ModelConfig) -> str:
     """What decides a clip's layout raster besides the clip: the layout settings, the LiDAR and the
     latent resolution."""
-    # The raster is the DiT's: the decoder's settings do not change it.
-    dit_layout = {k: v for k, v in asdict(cfg.layout).items() if k not in DECODER_LAYOUT_FIELDS}
+    # The raster is the DiT's: the decoder's switch does not change it.
+    dit_layout = {k: v for k, v in asdict(cfg.layout).items() if k != "decoder"}
     blob = json.dumps([dit_layout, asdict(cfg.sensors.lidar), list(cfg.latent_hw)], sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -291,9 +288,9 @@ def cached_nearness_maps(
     clips: list[Clip], cfg: ModelConfig, cache_dir: Path, workers: int | None = None
 ) -> list[np.ndarray] | None:
     """Each clip's LiDAR nearness maps (T, H, W) uint8 (:func:`lidar_nearness_maps`), computed once
-    per run as :func:`cached_label_maps`; None for a decoder that does not draw them
-    (``layout.decoder_lidar``)."""
-    if not cfg.layout.decoder_lidar:
+    per run as :func:`cached_label_maps`; None for a decoder that does not draw the scene
+    (``layout.decoder``)."""
+    if not cfg.layout.decoder:
         return None
     s = cfg.sensors
     key = f"{s.height}x{s.width}:nearness{NEARNESS_LEVELS}:{json.dumps(asdict(s.lidar), sort_keys=True)}"

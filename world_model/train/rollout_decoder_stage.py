@@ -9,7 +9,7 @@ a bundle without one), then chunk by chunk with the env's streaming settings
 (:class:`StreamingConfig`'s defaults); the decoder then learns to draw each recorded frame from the student's
 latents of it, the frame's label maps and the prompt's style. :data:`ROLLOUT_SHARE` of every batch
 comes from these rollouts, the rest is the decoder stage's batch, so that the decoder keeps
-following the latents (docs/experiments.md compares the shares).
+following the latents rather than drawing the scene from the label maps alone.
 
     RUN/rollout_decoder/rollouts.pt     the student's latents of the rolled-out clips (bf16), reused on resume
     RUN/rollout_decoder/progress.json   clips rolled out so far, then the training's progress
@@ -30,7 +30,7 @@ from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator
-from world_model.model.vae import SensorVAE, with_label_channels
+from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.streaming import StreamingConfig
 from world_model.student.config import StudentConfig
@@ -61,10 +61,10 @@ from world_model.train.vae_stage import (
 
 STAGE = "rollout_decoder"
 STUDENT_STAGES = ("long", "dmd", "ode")  # the student rolled out: the first that has an export
-ROLLOUT_CLIPS = 32  # training clips rolled out, spread evenly over the dataset (7 min on 2 CPU cores)
+ROLLOUT_CLIPS = 32  # training clips rolled out, spread evenly over the dataset (minutes on a CPU)
 # Clips streamed together on a CPU, where the work is the same at any batch and a smaller one
-# holds less memory; on a GPU a step of a few clips is bound by kernel launches (8 clips took 73 s
-# on an H200), so all of them stream at once.
+# holds less memory; on a GPU a step of a few clips is bound by kernel launches, so all of them
+# stream at once.
 ROLLOUT_BATCH_CPU = 8
 ROLLOUT_SHARE = 0.5  # of each batch: frames of the student's rollouts; the rest as in the decoder stage
 ROLLOUTS_FILE = "rollouts.pt"
@@ -137,16 +137,14 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
 
 
 def load_decoder_export(run_dir: Path, cfg: ModelConfig) -> SensorVAE:
-    """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout); one whose
-    decoder reads fewer of the label map's channels than ``cfg`` says starts as it drew, the new
-    channels' weights zero (:func:`with_label_channels`)."""
+    """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout)."""
     vae = load_vae(require_export(run_dir / "decoder" / EXPORT, "decoder"))
-    if (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) == (cfg.sensors, cfg.vae, cfg.layout):
-        return vae
-    try:
-        return with_label_channels(vae, cfg)
-    except ValueError as e:
-        raise ValueError(f"{run_dir / 'decoder'} was trained with another config: {e}") from None
+    if (vae.cfg.sensors, vae.cfg.vae, vae.cfg.layout) != (cfg.sensors, cfg.vae, cfg.layout):
+        raise ValueError(
+            f"{run_dir / 'decoder'} was trained with another preset or layout: train --stage decoder again "
+            "with the same --preset and --layout"
+        )
+    return vae
 
 
 def rollout_decoder_stage(run: StageRun) -> dict:
@@ -168,10 +166,9 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     raster = LabelRasterizer()
     styles = clip_styles(vae, clips)
     from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
-    # The LiDAR view only when it reads its nearness map: without a layout, tuned on the student's
-    # latents it answers the ego's actions less (docs/experiments.md); with one, the rollouts teach
-    # it to stand the returns where the scene says however the latents lag.
-    views = cfg.sensors.num_views if vae.draws_lidar else cfg.sensors.num_cameras
+    # The LiDAR view too: the rollouts teach it to stand the returns where the scene's nearness map
+    # says however the student's range latents lag.
+    views = cfg.sensors.num_views
     clip_lengths, rollout_lengths = [len(x) for x in latents], [len(x) for x in rollouts]
 
     def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:

@@ -6,12 +6,11 @@ every DiT is trained on stay what they were and the stage may run at any point a
 decoder starts as the plain one (its label modulations zero-initialized) and learns, on the run's
 cached latents, to draw the road, the markings and the objects where the label maps put them.
 The latents it decodes are jittered with Gaussian noise: the student's are not the encoder's.
-A decoder that draws the scene's style (``layout.decoder_style``) reads each clip's prompt too, and
-its latents also drift by a smooth random field: the student's colours wander (a rainy day's sky
-turning dusk-orange), so the sky, road and ground must take their look from the prompt.
-A decoder that reads the LiDAR's nearness map (``layout.decoder_lidar``) decodes half of its
-LiDAR-view samples from the latent of a nearby frame (:func:`latent_frames`): the returns must
-stand where the scene's objects are, not where a lagging latent has them.
+The decoder reads each clip's prompt too (the scene's style), and its latents also drift by a
+smooth random field: the student's colours wander (a rainy day's sky turning dusk-orange), so the
+sky, road and ground must take their look from the prompt. It decodes half of its LiDAR-view
+samples from the latent of a nearby frame (:func:`latent_frames`): the returns must stand where
+the scene's nearness map puts the objects, not where a lagging latent has them.
 
 Layout: ``RUN/vae/`` and ``RUN/decoder/`` each hold checkpoints/, model.safetensors + model.json
 (EMA weights, latent statistics, reconstruction metrics) and metrics.json.
@@ -60,12 +59,12 @@ STATS_FRAMES = 64  # frames used to fit the latent normalization
 # Largest standard deviation of the noise added to a decoder-stage latent (normalized units, drawn
 # uniformly per sample from [0, this]): the student's latents are near the encoder's, not on them.
 DECODER_LATENT_NOISE = 0.3
-# Largest amplitude of the smooth drift added to a styled decoder's latents (normalized units, a
+# Largest amplitude of the smooth drift added to a label decoder's latents (normalized units, a
 # per-sample amplitude drawn uniformly from [0, this] times a bilinear field over a coarse grid of
 # Gaussian values, DRIFT_GRID cells): regional, like the student's colour drift.
 DECODER_STYLE_DRIFT = 0.8
 DRIFT_GRID = (2, 4)
-# A decoder that reads the LiDAR's nearness map decodes this share of its LiDAR-view samples from
+# A label decoder decodes this share of its LiDAR-view samples from
 # the latent of another frame of the clip, up to LIDAR_LATENT_LAG frames away: the student's LiDAR
 # objects lag the scene (they hardly follow the ego's braking), and the decoder must learn to stand
 # the returns where the nearness map says rather than where the latent has them.
@@ -81,8 +80,8 @@ def vae_metrics(
     styles: Sequence[np.ndarray] | None = None,
 ) -> dict[str, float]:
     """Camera PSNR (dB, uint8 images) and LiDAR range MAE (m, on true returns) + no-return accuracy.
-    ``labels`` renders the label maps of a decoder that draws them; ``styles``: each clip's scene
-    style, for a decoder that draws it."""
+    ``labels`` renders the label maps and ``styles`` holds each clip's scene style, for a decoder
+    that draws the scene."""
     cfg = vae.cfg
     spec = cfg.sensors.lidar
     device = next(vae.parameters()).device
@@ -93,7 +92,7 @@ def vae_metrics(
         x = torch.stack([sampler.image(ci, f, v) for v in range(cfg.sensors.num_views)]).to(device)
         views = range(cfg.sensors.num_views)
         ids = view_labels(labels, clip.frames[f], cfg, views).to(device) if labels else None
-        near = view_nearness(clip.frames[f], cfg, views).to(device) if vae.draws_lidar else None
+        near = view_nearness(clip.frames[f], cfg, views).to(device) if vae.draws_labels else None
         style = None if styles is None else torch.from_numpy(styles[ci]).to(device).expand(len(x), -1)
         rec = vae.decode(vae.encode(x), ids, style, near).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
@@ -224,8 +223,8 @@ def decoder_maps(run: StageRun, clips: list[Clip]) -> tuple[list[np.ndarray], li
 
 def clip_styles(vae: SensorVAE, clips: Sequence[Clip]) -> list[np.ndarray] | None:
     """Each clip's scene style (its prompt's, ``ConditionArrays.style``) for a decoder that draws
-    it; None for one that does not."""
-    if not vae.draws_style:
+    the scene; None for one that does not."""
+    if not vae.draws_labels:
         return None
     text = make_text_encoder(vae.cfg.text)
     return [style_of_prompt(c.frames[0].prompt, vae.cfg, text) for c in clips]
@@ -253,7 +252,7 @@ def decoder_loss(
 ) -> tuple[torch.Tensor, int]:
     """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
     with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; its LiDAR
-    ``nearness`` maps, :func:`cached_nearness_maps`, for a decoder that draws them; and their
+    ``nearness`` maps, :func:`cached_nearness_maps`; and their
     clips' ``styles``), and the batch size."""
     cfg = vae.cfg
     batch = sampler.batch(picks)
@@ -289,8 +288,8 @@ def export_decoder(
 def latent_frames(
     rng: np.random.Generator, picks: Sequence[tuple[int, int, int]], lengths: Sequence[int], cfg: ModelConfig
 ) -> list[int]:
-    """The frame whose latent each (clip, frame, view) pick is decoded from, for a decoder that
-    reads the LiDAR's nearness map: the pick's own frame, except for :data:`LIDAR_LAG_SHARE` of the
+    """The frame whose latent each (clip, frame, view) pick is decoded from, for a label decoder:
+    the pick's own frame, except for :data:`LIDAR_LAG_SHARE` of the
     LiDAR view's, a frame up to :data:`LIDAR_LATENT_LAG` away within the clip (``lengths``: frames
     per clip). The draws do not depend on the picks' views, so a batch's random stream stays put."""
     lagged = rng.random(len(picks)) < LIDAR_LAG_SHARE
@@ -306,8 +305,8 @@ def decoded_frames(
     rng: np.random.Generator, vae: SensorVAE, picks: Sequence[tuple[int, int, int]], lengths: Sequence[int]
 ) -> list[int]:
     """The frame whose latent each (clip, frame, view) pick is decoded from: :func:`latent_frames`
-    for a decoder that reads the LiDAR's nearness map, else the pick's own (no random draw)."""
-    return latent_frames(rng, picks, lengths, vae.cfg) if vae.draws_lidar else [f for _, f, _ in picks]
+    for a decoder that draws the scene, else the pick's own (no random draw)."""
+    return latent_frames(rng, picks, lengths, vae.cfg) if vae.draws_labels else [f for _, f, _ in picks]
 
 
 def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
