@@ -26,8 +26,7 @@ Rerunning resumes: recorded clips are skipped and each stage resumes from its la
 ``OUT/run`` starts from the bundle's components as stage exports
 (:func:`world_model.train.seed_run.seed_run`), only the phases named train, and the bundle is
 written from the run as usual. The decoder phases, say, train again on a shipped checkpoint whose
-encoder and DiTs stay as they are (a decoder that reads fewer of the label map's channels than the
-scale's config starts as it drew, the new channels' weights zero).
+encoder and DiTs stay as they are.
 """
 
 from __future__ import annotations
@@ -48,8 +47,9 @@ from world_model import cli_args
 
 CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
-# name -> (component adapted, extra loss weight inside the rare object's boxes). A student adapter
-# for the same object did not help (docs/experiments.md) and is not trained.
+# name -> (component adapted, extra loss weight inside the rare object's boxes). The reference
+# model is the one adapted: it draws the rare object into reset()'s first frame, where the student
+# streams on from (docs/experiments.md weighs a student adapter).
 RARE_CATEGORY = "tree_truck"
 ADAPTERS = {f"{RARE_CATEGORY}_completion": ("reference", 9.0)}
 PHASES = CHAIN + tuple(ADAPTERS)
@@ -108,10 +108,8 @@ SCALES = {
             "lora": (1500, 32),
         },
         time_limit_s=540.0,
-        # Measured on one H200 with 16 cores (recording: 41 s): the label maps take the decoder 38 s
-        # before its first step, the latent and layout caches the teacher 34 s, the student's
-        # rollouts 73 s at the CPU's 8 clips a batch (a GPU streams all 32 at once); the painting
-        # decoder gets a minute, for a few hundred steps after its rollouts.
+        # Each phase's wall time on one H200 with 16 cores, its setup included: the decoder's
+        # label maps, the teacher's latent and layout caches, the rollout decoder's rollouts.
         phase_seconds={
             "vae": 60,
             "decoder": 55,
@@ -177,9 +175,8 @@ SCALES = {
 }
 
 
-# The recipe trains the design that puts the scene where the pixels are: pixel-aligned layout
-# channels (docs/layout.md: its tiny-preset ablation won on every region), at 2 rays per latent cell
-# side, which keeps the env's per-frame raster cheap (benchmarks/bench_layout.py).
+# The recipe puts the scene where the pixels are: pixel-aligned layout channels (docs/layout.md), at
+# 2 rays per latent cell side, which keeps the env's per-frame raster cheap (benchmarks/bench_layout.py).
 LAYOUT_SUPERSAMPLE = 2
 # An ego that brakes, accelerates and changes lanes, so that actions have consequences to learn.
 RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
