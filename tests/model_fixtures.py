@@ -9,6 +9,9 @@ import numpy as np
 from world_model import Box3D, EgoState, MapGeometry, SceneFrame, SceneObject, ScenePrompt
 from world_model.data import write_clip
 from world_model.model import ModelConfig
+from world_model.train.run import StageRuntime
+
+QUIET = StageRuntime(progress=False)  # a training stage without a progress bar
 
 
 def make_frames(cfg: ModelConfig, num_frames: int, num_objects: int = 3, seed: int = 0) -> list[SceneFrame]:

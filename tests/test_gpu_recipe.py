@@ -16,16 +16,16 @@ import pytest
 import torch
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
-from world_model.train import train_stage
+from world_model.train import StageRuntime, train_stage
 from world_model.train.device import TrainPlace
 from world_model.train.recipe import (
     ADAPTERS,
     BUNDLE_RESERVE_S,
     CHAIN,
     PHASES,
-    RARE_CATEGORY,
     SCALES,
     join_files,
+    phase_options,
     rare_dir,
     recipe_config,
     stage_time_limit,
@@ -130,25 +130,11 @@ def test_every_stage_trains_with_the_model_on_another_device(dry_recipe, tmp_pat
     for p in (work / "run" / stage).glob("*"):  # the stage trains anew; the run's caches stay
         if p.name not in ("latents", "layouts", "labels", "rollouts.pt"):
             shutil.rmtree(p) if p.is_dir() else p.unlink()
-    options = {}
-    if phase in ADAPTERS:
-        component, box_weight = ADAPTERS[phase]
-        options = {"case": RARE_CATEGORY, "case_data": rare_dir(work / "data"), "lora_box_weight": box_weight}
-        options["base"] = str(work / "bundle" / "reference.safetensors")
     spec = SCALES["dry"]
+    options = phase_options(phase, spec, recipe_config(spec), 0, work / "data", work / "bundle")
+    runtime = StageRuntime(progress=False, place=TrainPlace(torch.device("meta")))
     with pytest.raises((RuntimeError, NotImplementedError), match="meta tensor") as raised:
-        train_stage(
-            stage,
-            work / "data",
-            work / "run",
-            spec.preset,
-            1,
-            batch_size=2,
-            progress=False,
-            config=recipe_config(spec),
-            place=TrainPlace(torch.device("meta")),
-            **options,
-        )
+        train_stage(stage, work / "data", work / "run", replace(options, steps=1), runtime)
     own = [f for f in traceback.extract_tb(raised.value.__traceback__) if "world_model" in f.filename]
     assert Path(own[-1].filename).name in ("trainer.py", "student_stages.py", "flow.py"), own[-1]
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from tests.model_fixtures import kill_after_checkpoint, make_frames, make_sensors, perturbed, tiny_conditions
+from tests.model_fixtures import QUIET, kill_after_checkpoint, make_frames, make_sensors, perturbed, tiny_conditions
 from world_model.data import write_clip
 from world_model.lora import apply_adapters, base_fingerprint, loaded_adapters, read_adapter, remove_adapters
 from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
 from world_model.model.reference import ReferenceConfig, object_region
-from world_model.train import load_latest, load_teacher, train_stage
+from world_model.train import load_latest, load_teacher, stage_options, train_stage
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
 from world_model.train.exports import EXPORT
@@ -53,7 +53,8 @@ def data(tmp_path_factory):
 def train_lora(data, run: Path, steps: int, **kw) -> dict:
     """``--stage lora`` of the tiny preset on the fixture's datasets (rare clips from ``rare``)."""
     base, rare = data
-    return train_stage("lora", base, run, preset="tiny", steps=steps, progress=False, case=CASE, case_data=rare, **kw)
+    options = stage_options("lora", preset="tiny", steps=steps, case=CASE, case_data=rare, **kw)
+    return train_stage("lora", base, run, options, QUIET)
 
 
 def lora_argv(data, run: Path) -> list[str]:
@@ -190,7 +191,7 @@ def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_pat
         other, perturbed(load_teacher(run / "teacher" / EXPORT)).state_dict(), {"model_config": CFG.to_dict()}
     )
     with pytest.raises(ValueError, match="base_sha256"):  # resuming on another base model
-        train_lora(data, run, 2, base=other, lora_box_weight=4.0)
+        train_lora(data, run, 2, base=other, box_weight=4.0)
 
 
 def test_the_stage_feeds_box_weights_and_completion_masks_to_the_loss(data, tmp_path, monkeypatch):
@@ -219,7 +220,7 @@ def test_the_stage_feeds_box_weights_and_completion_masks_to_the_loss(data, tmp_
         perturbed(reference_model).state_dict(),
         {"model_config": reference_model.cfg.to_dict()},
     )
-    train_lora(data, run, 6, base=run / "reference" / EXPORT, lora_box_weight=9.0)
+    train_lora(data, run, 6, base=run / "reference" / EXPORT, box_weight=9.0)
     assert len(seen["weights"]) == 6 and all(w is not None and w.min() == 1.0 for w in seen["weights"])
     assert max(float(w.max()) for w in seen["weights"]) == 10.0
     masks = torch.cat([m.flatten() for m in seen["masks"]])
@@ -255,11 +256,13 @@ def test_lora_stage_trains_only_the_adapter_and_exports_it(data, tmp_path):
 def test_lora_stage_errors_are_actionable(data, tmp_path):
     base, _ = data
     with pytest.raises(ValueError, match="needs --case"):
-        train_stage("lora", base, tmp_path / "r", preset="tiny", steps=1, progress=False)
+        train_stage("lora", base, tmp_path / "r", stage_options("lora", preset="tiny", steps=1), QUIET)
     with pytest.raises(FileNotFoundError, match="run --stage teacher first"):
-        train_stage("lora", base, tmp_path / "r", preset="tiny", steps=1, progress=False, case=CASE)
+        train_stage("lora", base, tmp_path / "r", stage_options("lora", preset="tiny", steps=1, case=CASE), QUIET)
     with pytest.raises(ValueError, match="no rare-case clips"):
-        train_stage("lora", base, make_run(tmp_path / "r2"), preset="tiny", steps=1, progress=False, case="bus")
+        train_stage(
+            "lora", base, make_run(tmp_path / "r2"), stage_options("lora", preset="tiny", steps=1, case="bus"), QUIET
+        )
 
 
 def test_killed_lora_run_resumes_from_last_checkpoint(data, tmp_path):

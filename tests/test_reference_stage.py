@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from tests.model_fixtures import kill_after_checkpoint, make_dataset, perturbed, tiny_conditions
+from tests.model_fixtures import QUIET, kill_after_checkpoint, make_dataset, perturbed, tiny_conditions
 from world_model.model import MultiViewDiT, SensorVAE, get_preset
 from world_model.model.reference import TASKS, ReferenceConfig, ReferenceGenerator, reference_channels
-from world_model.train import load_latest, load_teacher, load_vae, train_stage
+from world_model.train import load_latest, load_teacher, load_vae, stage_options, train_stage
 from world_model.train.checkpoint import export_weights
 from world_model.train.exports import EXPORT
 from world_model.train.reference_stage import reference_batch
@@ -57,14 +57,20 @@ def test_reference_batches_mix_tasks_with_the_documented_probabilities(dataset, 
 
 def test_reference_stage_end_to_end_exports_and_resumes_exactly(dataset, tmp_path):
     run = make_run(tmp_path / "run")
-    out = train_stage("reference", dataset, run, preset="tiny", steps=2, ckpt_every=1, progress=False)
+    out = train_stage(
+        "reference", dataset, run, stage_options("reference", preset="tiny", steps=2, ckpt_every=1), QUIET
+    )
     assert out["step"] == 2 and sum(out["task_counts"].values()) == 2 * 4
     ck = load_latest(run / "reference" / "checkpoints")
     assert ck.meta["model_config"]["dit"]["in_channels_extra"] == reference_channels(CFG)
-    again = train_stage("reference", dataset, run, preset="tiny", steps=4, ckpt_every=1, progress=False)
+    again = train_stage(
+        "reference", dataset, run, stage_options("reference", preset="tiny", steps=4, ckpt_every=1), QUIET
+    )
     assert again["resumed_from"] == 2 and again["step"] == 4
     # Resume is exact: an uninterrupted run sees the same losses.
-    straight = train_stage("reference", dataset, make_run(tmp_path / "b"), preset="tiny", steps=4, progress=False)
+    straight = train_stage(
+        "reference", dataset, make_run(tmp_path / "b"), stage_options("reference", preset="tiny", steps=4), QUIET
+    )
     assert straight["losses"][2:] == again["losses"]
     model = load_teacher(run / "reference" / "model")
     assert model.cfg.dit.in_channels_extra == reference_channels(CFG)
@@ -76,7 +82,7 @@ def test_reference_stage_end_to_end_exports_and_resumes_exactly(dataset, tmp_pat
 
 def test_reference_stage_needs_the_teacher(dataset, tmp_path):
     with pytest.raises(FileNotFoundError, match="run --stage teacher first"):
-        train_stage("reference", dataset, tmp_path / "empty", preset="tiny", steps=1, progress=False)
+        train_stage("reference", dataset, tmp_path / "empty", stage_options("reference", preset="tiny", steps=1), QUIET)
 
 
 def test_killed_reference_run_resumes_from_last_checkpoint(dataset, tmp_path):
@@ -86,5 +92,7 @@ def test_killed_reference_run_resumes_from_last_checkpoint(dataset, tmp_path):
     kill_after_checkpoint([*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], checkpoints)
     ck = load_latest(run / "reference" / "checkpoints")
     assert ck is not None and ck.step >= 4
-    out = train_stage("reference", dataset, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
+    out = train_stage(
+        "reference", dataset, run, stage_options("reference", preset="tiny", steps=ck.step + 2, ckpt_every=2), QUIET
+    )
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2

@@ -15,10 +15,10 @@ from world_model.model.config import with_student_settings
 from world_model.model.reference import reference_model_config
 from world_model.rollout.runtime import load_world_model
 from world_model.student.init import nearest, student_from_teacher, teacher_blocks
-from world_model.train import train_stage
+from world_model.train import stage_options, train_stage
 from world_model.train.exports import load_student
 
-from .model_fixtures import make_dataset, perturbed, tiny_conditions
+from .model_fixtures import QUIET, make_dataset, perturbed, tiny_conditions
 
 SRC = Path(__file__).resolve().parents[1]
 
@@ -105,7 +105,7 @@ def test_shallow_student_through_every_stage_and_the_bundle(tmp_path):
     run = tmp_path / "run"
     for stage in ("vae", "teacher", "ode", "dmd", "long", "reference"):
         config = first if stage in ("vae", "teacher") else cfg
-        train_stage(stage, data, run, steps=1, batch_size=1, ckpt_every=1, progress=False, config=config)
+        train_stage(stage, data, run, stage_options(stage, steps=1, batch_size=1, ckpt_every=1, config=config), QUIET)
         if stage == "teacher":  # tf from the CLI: its flags set the student-only settings
             cmd = [sys.executable, "-m", "world_model.train", "--stage", "tf", "--data", str(data), "--run", str(run)]
             cmd += ["--preset", "tiny", "--steps", "1", "--batch-size", "1", "--no-progress", "--student-depth", "1"]

@@ -6,9 +6,10 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.model_fixtures import QUIET
 from world_model.model import get_preset
 from world_model.student import StreamingEngine
-from world_model.train import train_stage
+from world_model.train import stage_options, train_stage
 from world_model.train.exports import load_student
 from world_model.train.rollouts import reflected_index
 
@@ -21,7 +22,7 @@ def run(tmp_path_factory):
     root = tmp_path_factory.mktemp("student")
     data = make_dataset(root / "data", get_preset("tiny"), lengths=(4, 3))
     for stage in ("vae", "teacher"):
-        train_stage(stage, data, root / "run", preset="tiny", steps=2, ckpt_every=2, progress=False)
+        train_stage(stage, data, root / "run", stage_options(stage, preset="tiny", steps=2, ckpt_every=2), QUIET)
     return data, root / "run"
 
 
@@ -53,7 +54,7 @@ def test_student_stages_end_to_end_from_the_cli_and_resume(run):
 def test_student_stage_needs_its_predecessor(run, tmp_path):
     data, _ = run
     with pytest.raises(FileNotFoundError, match="run --stage ode"):
-        train_stage("dmd", data, tmp_path / "fresh", preset="tiny", steps=1, progress=False)
+        train_stage("dmd", data, tmp_path / "fresh", stage_options("dmd", preset="tiny", steps=1), QUIET)
 
 
 def test_reflected_playback_keeps_frames_adjacent():
@@ -70,7 +71,7 @@ def _run_through_ode(run, tmp_path) -> tuple[Path, Path]:
     for stage in ("vae", "teacher"):
         shutil.copytree(rundir / stage, mine / stage, ignore=shutil.ignore_patterns("checkpoints"))
     for stage in ("tf", "ode"):
-        train_stage(stage, data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+        train_stage(stage, data, mine, stage_options(stage, preset="tiny", steps=1, batch_size=1), QUIET)
     return data, mine
 
 
@@ -78,9 +79,11 @@ def test_diverging_dmd_run_stops_clearly_and_keeps_the_last_good_checkpoint(run,
     from world_model.train import TrainingDivergedError, load_latest
 
     data, mine = _run_through_ode(run, tmp_path)
-    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, ckpt_every=1, progress=False)
+    train_stage("dmd", data, mine, stage_options("dmd", preset="tiny", steps=1, batch_size=1, ckpt_every=1), QUIET)
     with pytest.raises(TrainingDivergedError, match="loss is (nan|inf).*last good checkpoint"):
-        train_stage("dmd", data, mine, preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30, progress=False)
+        train_stage(
+            "dmd", data, mine, stage_options("dmd", preset="tiny", steps=4, batch_size=1, ckpt_every=1, lr=1e30), QUIET
+        )
     assert load_latest(mine / "dmd" / "checkpoints").step == 1
 
 
@@ -103,7 +106,7 @@ def test_dmd_and_long_stages_add_the_supervised_denoising_term_at_its_probabilit
     scfg = StudentConfig(denoise_loss_prob=prob, long_frames=4)
     for stage in ("dmd", "long"):
         calls.clear()
-        train_stage(stage, data, mine, preset="tiny", steps=2, batch_size=1, progress=False, student=scfg)
+        train_stage(stage, data, mine, stage_options(stage, preset="tiny", steps=2, batch_size=1, student=scfg), QUIET)
         assert len(calls) == expected, (stage, calls)
 
 
@@ -112,9 +115,11 @@ def test_long_stage_advances_its_rollout_by_the_untrained_chunks_between_trained
     from world_model.student import StudentConfig
 
     data, mine = _run_through_ode(run, tmp_path)
-    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    train_stage("dmd", data, mine, stage_options("dmd", preset="tiny", steps=1, batch_size=1), QUIET)
     scfg = StudentConfig(long_skip_chunks=skip, long_frames=100)
-    out = train_stage("long", data, mine, preset="tiny", steps=3, batch_size=1, progress=False, student=scfg)
+    out = train_stage(
+        "long", data, mine, stage_options("long", preset="tiny", steps=3, batch_size=1, student=scfg), QUIET
+    )
     c = get_preset("tiny").clip.chunk_frames
     # Step 1 trains the fresh rollout's first clip; steps 2 and 3 each skip, then train a clip.
     assert out["rollout_frames"] == scfg.prefix_frames + (3 * scfg.long_clip_chunks + 2 * skip) * c
@@ -124,10 +129,12 @@ def test_long_stage_restarts_a_rollout_that_cannot_hold_the_skipped_and_trained_
     from world_model.student import StudentConfig
 
     data, mine = _run_through_ode(run, tmp_path)
-    train_stage("dmd", data, mine, preset="tiny", steps=1, batch_size=1, progress=False)
+    train_stage("dmd", data, mine, stage_options("dmd", preset="tiny", steps=1, batch_size=1), QUIET)
     c = get_preset("tiny").clip.chunk_frames
     scfg = StudentConfig(long_skip_chunks=1, long_clip_chunks=1, long_frames=1 + 2 * c)
-    out = train_stage("long", data, mine, preset="tiny", steps=2, batch_size=1, progress=False, student=scfg)
+    out = train_stage(
+        "long", data, mine, stage_options("long", preset="tiny", steps=2, batch_size=1, student=scfg), QUIET
+    )
     assert out["rollout_frames"] == scfg.prefix_frames + c  # step 2 would pass long_frames: a fresh rollout
     with pytest.raises(ValueError, match="long_skip_chunks"):
         StudentConfig(long_skip_chunks=-1)
@@ -153,14 +160,14 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     from world_model.train import stages
 
     seen = []
-    monkeypatch.setattr(stages, "train_stage", lambda *a, **kw: seen.append((kw["student"], kw["dtype"])) or {})
+    monkeypatch.setattr(stages, "train_stage", lambda *a: seen.append((a[3].student, a[4].dtype)) or {})
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
     flags = ["--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]
     flags += ["--dtype", "float32"]
     assert m4world([*args, *flags]) == 0
     assert m4world(args) == 0
     want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5)
-    assert seen == [(want, "float32"), (None, "auto")]  # None: the stage's defaults
+    assert seen == [(want, "float32"), (StudentConfig(), "auto")]  # no flag: the stage's defaults
 
 
 def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_loss():

@@ -19,7 +19,7 @@ from tests.model_fixtures import make_dataset
 from world_model.model import get_preset
 from world_model.model.conditions import Conditions
 from world_model.model.text import make_text_encoder
-from world_model.train import load_latest, train_stage
+from world_model.train import StageRuntime, load_latest, stage_options, train_stage
 from world_model.train.data import LatentWindows, load_clips
 from world_model.train.device import TrainPlace, resolve_device
 
@@ -31,7 +31,13 @@ def vae_run(tmp_path_factory):
     """A tiny dataset and a run with a trained VAE (what every later stage starts from)."""
     root = tmp_path_factory.mktemp("device")
     data = make_dataset(root / "data", get_preset("tiny"), lengths=(6, 5, 4))
-    train_stage("vae", data, root / "run", preset="tiny", steps=2, progress=False, device="cpu")
+    train_stage(
+        "vae",
+        data,
+        root / "run",
+        stage_options("vae", preset="tiny", steps=2),
+        StageRuntime(progress=False, device="cpu"),
+    )
     return data, root / "run"
 
 
@@ -96,7 +102,11 @@ def _train(data: Path, run: Path, stage: str, nproc: int, steps: int) -> dict:
     ``torchrun --nproc-per-node nproc``."""
     if nproc == 1:
         return train_stage(
-            stage, data, run, preset="tiny", steps=steps, batch_size=4, ckpt_every=1, progress=False, device="cpu"
+            stage,
+            data,
+            run,
+            stage_options(stage, preset="tiny", steps=steps, batch_size=4, ckpt_every=1),
+            StageRuntime(progress=False, device="cpu"),
         )
     args = ["--stage", stage, "--data", str(data), "--run", str(run), "--preset", "tiny", "--no-progress"]
     args += ["--steps", str(steps), "--batch-size", "4", "--ckpt-every", "1", "--device", "cpu"]
@@ -117,7 +127,13 @@ def chain_run(vae_run, tmp_path_factory):
     run = tmp_path_factory.mktemp("chain") / "run"
     shutil.copytree(vae, run)
     for stage in ("teacher", "tf", "ode"):
-        train_stage(stage, data, run, preset="tiny", steps=1, batch_size=2, progress=False, device="cpu")
+        train_stage(
+            stage,
+            data,
+            run,
+            stage_options(stage, preset="tiny", steps=1, batch_size=2),
+            StageRuntime(progress=False, device="cpu"),
+        )
     return data, run
 
 

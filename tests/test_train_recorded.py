@@ -6,10 +6,10 @@ import json
 import pytest
 
 from m4world_env.cli import main
-from tests.model_fixtures import kill_after_checkpoint
+from tests.model_fixtures import QUIET, kill_after_checkpoint
 from world_model.data import list_clips, read_clip
 from world_model.model import get_preset
-from world_model.train import load_latest, train_stage
+from world_model.train import load_latest, stage_options, train_stage
 
 
 @pytest.fixture(scope="module")
@@ -40,6 +40,8 @@ def test_vae_and_teacher_train_on_recorded_clips_and_a_killed_teacher_resumes(re
     )
     ck = load_latest(run / "teacher" / "checkpoints")
     assert ck is not None and ck.step >= 4
-    out = train_stage("teacher", recorded, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
+    out = train_stage(
+        "teacher", recorded, run, stage_options("teacher", preset="tiny", steps=ck.step + 2, ckpt_every=2), QUIET
+    )
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
     assert (run / "teacher" / "model.safetensors").exists()

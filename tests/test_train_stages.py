@@ -10,7 +10,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from tests.model_fixtures import kill_after_checkpoint, make_dataset
+from tests.model_fixtures import QUIET, kill_after_checkpoint, make_dataset
 from world_model.bundle import export_bundle
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
@@ -19,17 +19,22 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.vae import SensorVAE
 from world_model.student.config import StudentConfig
 from world_model.train import (
+    StageRuntime,
     TrainConfig,
     Trainer,
     TrainingDivergedError,
     load_latest,
     load_teacher,
     load_vae,
+    stage_options,
     train_stage,
 )
 from world_model.train.checkpoint import export_weights, save_checkpoint
 from world_model.train.data import cached_latents, encoder_digest, latent_cache_dir, load_clips
+from world_model.train.trainer import LoopOptions
 from world_model.train.vae_stage import LIDAR_LAG_SHARE, LIDAR_LATENT_LAG, latent_frames
+
+QUIET_LOOP = LoopOptions(progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -39,20 +44,20 @@ def dataset(tmp_path_factory):
 
 def test_vae_then_teacher_end_to_end_and_resume(dataset, tmp_path):
     run = tmp_path / "run"
-    out = train_stage("vae", dataset, run, preset="tiny", steps=4, ckpt_every=2, progress=False)
+    out = train_stage("vae", dataset, run, stage_options("vae", preset="tiny", steps=4, ckpt_every=2), QUIET)
     assert out["step"] == 4 and out["resumed_from"] is None
     assert {"camera_psnr_db", "lidar_range_mae_m", "lidar_return_accuracy"} <= set(out["metrics"])
-    again = train_stage("vae", dataset, run, preset="tiny", steps=6, ckpt_every=2, progress=False)
+    again = train_stage("vae", dataset, run, stage_options("vae", preset="tiny", steps=6, ckpt_every=2), QUIET)
     assert again["resumed_from"] == 4 and again["step"] == 6 and len(again["losses"]) == 2
     vae = load_vae(run / "vae" / "model")
     assert vae.latent_std.ne(1.0).any()  # latent normalization was fitted
 
-    t1 = train_stage("teacher", dataset, run, preset="tiny", steps=3, ckpt_every=1, progress=False)
+    t1 = train_stage("teacher", dataset, run, stage_options("teacher", preset="tiny", steps=3, ckpt_every=1), QUIET)
     assert t1["step"] == 3 and all(torch.isfinite(torch.tensor(t1["losses"])))
     cache = sorted((run / "teacher" / "latents").glob("*.safetensors"))
     assert len(cache) == 2
     stamp = [p.stat().st_mtime_ns for p in cache]
-    t2 = train_stage("teacher", dataset, run, preset="tiny", steps=5, ckpt_every=1, progress=False)
+    t2 = train_stage("teacher", dataset, run, stage_options("teacher", preset="tiny", steps=5, ckpt_every=1), QUIET)
     assert t2["resumed_from"] == 3 and t2["step"] == 5
     assert [p.stat().st_mtime_ns for p in cache] == stamp  # latents encoded once, then reused
     model = load_teacher(run / "teacher" / "model")
@@ -72,9 +77,11 @@ def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_p
     data = make_dataset(tmp_path / "data", cfg, lengths=(3,))
     run = tmp_path / "run"
     with pytest.raises(ValueError, match="--layout"):
-        train_stage("decoder", data, run, preset="tiny", steps=2, progress=False)
-    train_stage("vae", data, run, preset="tiny", config=cfg, steps=3, progress=False)
-    out = train_stage("decoder", data, run, preset="tiny", config=cfg, steps=4, ckpt_every=2, progress=False)
+        train_stage("decoder", data, run, stage_options("decoder", preset="tiny", steps=2), QUIET)
+    train_stage("vae", data, run, stage_options("vae", preset="tiny", config=cfg, steps=3), QUIET)
+    out = train_stage(
+        "decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=4, ckpt_every=2), QUIET
+    )
     assert out["step"] == 4 and {"camera_psnr_db", "lidar_range_mae_m"} <= set(out["metrics"])
     plain = load_vae(run / "vae" / "model")
     drawn = load_vae(run / "decoder" / "model")
@@ -91,16 +98,24 @@ def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tm
     cfg = with_layout(get_preset("tiny"), True)
     data = make_dataset(tmp_path / "data", cfg, lengths=(5, 3))
     run = tmp_path / "run"
-    train_stage("vae", data, run, preset="tiny", config=cfg, steps=2, progress=False)
-    train_stage("decoder", data, run, preset="tiny", config=cfg, steps=2, progress=False)
+    train_stage("vae", data, run, stage_options("vae", preset="tiny", config=cfg, steps=2), QUIET)
+    train_stage("decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=2), QUIET)
     with pytest.raises(FileNotFoundError, match="--stage ode"):
-        train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=2, progress=False)
+        train_stage(
+            "rollout_decoder", data, run, stage_options("rollout_decoder", preset="tiny", config=cfg, steps=2), QUIET
+        )
     student_cfg = cfg.for_student()
     torch.manual_seed(0)
     meta = {"stage": "ode", "model_config": student_cfg.to_dict(), "student_config": StudentConfig().to_dict()}
     export_weights(run / "ode" / "model", MultiViewDiT(student_cfg).state_dict(), meta)
 
-    out = train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=3, ckpt_every=1, progress=False)
+    out = train_stage(
+        "rollout_decoder",
+        data,
+        run,
+        stage_options("rollout_decoder", preset="tiny", config=cfg, steps=3, ckpt_every=1),
+        QUIET,
+    )
     assert out["step"] == 3 and out["rollout_clips"] == 2
     rollouts_file = run / "rollout_decoder" / "rollouts.pt"
     rollouts = torch.load(rollouts_file)
@@ -118,7 +133,13 @@ def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tm
     assert not torch.equal(tuned.decoder.conv_out.weight, drawn.decoder.conv_out.weight)
 
     stamp = rollouts_file.stat().st_mtime_ns
-    again = train_stage("rollout_decoder", data, run, preset="tiny", config=cfg, steps=4, ckpt_every=1, progress=False)
+    again = train_stage(
+        "rollout_decoder",
+        data,
+        run,
+        stage_options("rollout_decoder", preset="tiny", config=cfg, steps=4, ckpt_every=1),
+        QUIET,
+    )
     assert again["resumed_from"] == 3 and again["step"] == 4
     assert rollouts_file.stat().st_mtime_ns == stamp  # rolled out once, then reused
     bundle = export_bundle(run, tmp_path / "bundle")
@@ -167,9 +188,13 @@ def test_latent_cache_key_is_the_encoder_not_the_decoder():
 
 
 def test_resume_gives_the_same_state_as_uninterrupted(dataset, tmp_path):
-    straight = train_stage("vae", dataset, tmp_path / "a", preset="tiny", steps=4, ckpt_every=2, progress=False)
-    train_stage("vae", dataset, tmp_path / "b", preset="tiny", steps=2, ckpt_every=2, progress=False)
-    resumed = train_stage("vae", dataset, tmp_path / "b", preset="tiny", steps=4, ckpt_every=2, progress=False)
+    straight = train_stage(
+        "vae", dataset, tmp_path / "a", stage_options("vae", preset="tiny", steps=4, ckpt_every=2), QUIET
+    )
+    train_stage("vae", dataset, tmp_path / "b", stage_options("vae", preset="tiny", steps=2, ckpt_every=2), QUIET)
+    resumed = train_stage(
+        "vae", dataset, tmp_path / "b", stage_options("vae", preset="tiny", steps=4, ckpt_every=2), QUIET
+    )
     assert resumed["losses"] == straight["losses"][2:]
     a = load_file(str(tmp_path / "a" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))
     b = load_file(str(tmp_path / "b" / "vae" / "checkpoints" / "step_00000004" / "model.safetensors"))
@@ -184,13 +209,13 @@ def test_killed_run_resumes_from_last_checkpoint(dataset, tmp_path):
     )
     ck = load_latest(run / "vae" / "checkpoints")
     assert ck is not None and ck.step >= 4
-    out = train_stage("vae", dataset, run, preset="tiny", steps=ck.step + 2, ckpt_every=2, progress=False)
+    out = train_stage("vae", dataset, run, stage_options("vae", preset="tiny", steps=ck.step + 2, ckpt_every=2), QUIET)
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
 
 
 def test_nan_loss_stops_with_clear_error_and_keeps_last_checkpoint(tmp_path):
     model = torch.nn.Linear(2, 1)
-    trainer = Trainer(tmp_path, model, TrainConfig(steps=10, batch_size=1, lr=1e-2, ckpt_every=1), {}, False)
+    trainer = Trainer(tmp_path, model, TrainConfig(steps=10, batch_size=1, lr=1e-2, ckpt_every=1), {}, loop=QUIET_LOOP)
 
     def step(tr):
         loss = model(torch.ones(1, 2)).sum() ** 2
@@ -203,7 +228,7 @@ def test_nan_loss_stops_with_clear_error_and_keeps_last_checkpoint(tmp_path):
 
 def test_progress_file_follows_the_run(tmp_path):
     model = torch.nn.Linear(2, 1)
-    trainer = Trainer(tmp_path, model, TrainConfig(steps=4, batch_size=1, lr=1e-2, ckpt_every=2), {}, False)
+    trainer = Trainer(tmp_path, model, TrainConfig(steps=4, batch_size=1, lr=1e-2, ckpt_every=2), {}, loop=QUIET_LOOP)
     trainer.run(lambda tr: (model(torch.ones(1, 2)).sum() ** 2, 1), "toy")
     report = json.loads((tmp_path / "progress.json").read_text())
     assert report["stage"] == "toy" and report["step"] == report["total_steps"] == 4
@@ -223,11 +248,16 @@ def test_half_written_checkpoint_is_ignored(tmp_path):
 
 def test_stage_errors_are_actionable(dataset, tmp_path):
     with pytest.raises(FileNotFoundError, match="run --stage vae"):
-        train_stage("teacher", dataset, tmp_path / "run", preset="tiny", steps=1, progress=False)
+        train_stage("teacher", dataset, tmp_path / "run", stage_options("teacher", preset="tiny", steps=1), QUIET)
     with pytest.raises(ValueError, match="unknown stage"):
-        train_stage("student", dataset, tmp_path / "run", preset="tiny", steps=1, progress=False)
+        train_stage("student", dataset, tmp_path / "run", stage_options("student", preset="tiny", steps=1), QUIET)
     with pytest.raises(ValueError, match="expects"):
-        train_stage("vae", dataset, tmp_path / "run2", preset="default", steps=1, progress=False)
+        train_stage("vae", dataset, tmp_path / "run2", stage_options("vae", preset="default", steps=1), QUIET)
+    with pytest.raises(ValueError, match="--stage dmd takes StudentStageOptions, got StageOptions"):
+        train_stage("dmd", dataset, tmp_path / "run3", stage_options("vae", preset="tiny", steps=1), QUIET)
+    with pytest.raises(ValueError, match="--lora-rank is a setting of --stage lora, not of 'vae'"):
+        stage_options("vae", preset="tiny", rank=4)
+    assert not (tmp_path / "run3").exists()  # refused before anything is written
 
 
 def test_vae_stage_resumes_after_a_dit_only_config_change(dataset, tmp_path):
@@ -235,26 +265,26 @@ def test_vae_stage_resumes_after_a_dit_only_config_change(dataset, tmp_path):
 
     tiny = get_preset("tiny")
     run = tmp_path / "run"
-    train_stage("vae", dataset, run, config=tiny, steps=2, ckpt_every=1, progress=False)
+    train_stage("vae", dataset, run, stage_options("vae", config=tiny, steps=2, ckpt_every=1), QUIET)
     wider_dit = replace(tiny, dit=replace(tiny.dit, heads=1))  # the VAE does not depend on the DiT
-    out = train_stage("vae", dataset, run, config=wider_dit, steps=3, ckpt_every=1, progress=False)
+    out = train_stage("vae", dataset, run, stage_options("vae", config=wider_dit, steps=3, ckpt_every=1), QUIET)
     assert out["resumed_from"] == 2 and out["step"] == 3
     other_vae = replace(tiny, vae=replace(tiny.vae, kl_weight=tiny.vae.kl_weight * 2))
     with pytest.raises(ValueError, match="different config"):
-        train_stage("vae", dataset, run, config=other_vae, steps=4, progress=False)
-    train_stage("teacher", dataset, run, config=tiny, steps=1, progress=False)
+        train_stage("vae", dataset, run, stage_options("vae", config=other_vae, steps=4), QUIET)
+    train_stage("teacher", dataset, run, stage_options("teacher", config=tiny, steps=1), QUIET)
     with pytest.raises(ValueError, match="different config"):  # the teacher depends on everything
-        train_stage("teacher", dataset, run, config=wider_dit, steps=2, progress=False)
+        train_stage("teacher", dataset, run, stage_options("teacher", config=wider_dit, steps=2), QUIET)
 
 
 def test_expensive_stages_have_their_own_default_step_counts():
     from world_model.train.stages import DEFAULT_STEPS, _train_config
 
     cfg = get_preset("default")
-    teacher = _train_config("teacher", cfg, None, None, None, None, 0).steps
+    teacher = _train_config("teacher", cfg, stage_options("teacher")).steps
     assert teacher == DEFAULT_STEPS["default"]
-    assert _train_config("dmd", cfg, None, None, None, None, 0).steps < teacher
-    assert _train_config("dmd", cfg, 7, None, None, None, 0).steps == 7  # explicit steps win
+    assert _train_config("dmd", cfg, stage_options("dmd")).steps < teacher
+    assert _train_config("dmd", cfg, stage_options("dmd", steps=7)).steps == 7  # explicit steps win
 
 
 def test_latent_cache_is_keyed_by_vae_and_clip(dataset, tmp_path):
@@ -279,17 +309,29 @@ def test_latent_cache_is_keyed_by_vae_and_clip(dataset, tmp_path):
 
 def test_train_dtype_reaches_the_stage_models_not_the_checkpoint(dataset, tmp_path):
     with pytest.raises(ValueError, match="float16"):
-        train_stage("teacher", dataset, tmp_path / "none", preset="tiny", steps=1, dtype="float16")
+        train_stage(
+            "teacher",
+            dataset,
+            tmp_path / "none",
+            stage_options("teacher", preset="tiny", steps=1),
+            StageRuntime(dtype="float16"),
+        )
     assert not (tmp_path / "none").exists()  # refused before anything is written
     vae_run = tmp_path / "vae_run"
-    train_stage("vae", dataset, vae_run, preset="tiny", steps=2, progress=False)
+    train_stage("vae", dataset, vae_run, stage_options("vae", preset="tiny", steps=2), QUIET)
     losses = {}
     for dtype in ("float32", "bfloat16"):  # the tiny preset's config says float32
         run = tmp_path / dtype
         (run / "vae").mkdir(parents=True)
         for f in (vae_run / "vae").glob("model.*"):
             (run / "vae" / f.name).write_bytes(f.read_bytes())
-        out = train_stage("teacher", dataset, run, preset="tiny", steps=2, progress=False, dtype=dtype)
+        out = train_stage(
+            "teacher",
+            dataset,
+            run,
+            stage_options("teacher", preset="tiny", steps=2),
+            StageRuntime(progress=False, dtype=dtype),
+        )
         losses[dtype] = out["losses"]
         meta = json.loads((run / "teacher" / "model.json").read_text())
         assert meta["model_config"]["dit"]["autocast_bf16"] is False  # the preset's: dtype is a run-time choice
@@ -304,10 +346,11 @@ def test_a_time_limit_stops_the_run_checkpointed_and_a_rerun_resumes_to_its_step
         time.sleep(0.02)
         return model(torch.ones(1, 2)).sum() ** 2, 1
 
-    out = Trainer(tmp_path, model, tcfg, {}, False, deadline=time.perf_counter() + 0.05).run(slow_step, "toy")
+    loop = LoopOptions(progress=False, deadline=time.perf_counter() + 0.05)
+    out = Trainer(tmp_path, model, tcfg, {}, loop=loop).run(slow_step, "toy")
     assert out["stopped_by_time_limit"] and 1 <= out["step"] < 50
     assert load_latest(tmp_path / "checkpoints").step == out["step"]  # saved where it stopped
-    again = Trainer(tmp_path, model, tcfg, {}, False).run(slow_step, "toy")
+    again = Trainer(tmp_path, model, tcfg, {}, loop=QUIET_LOOP).run(slow_step, "toy")
     assert again["resumed_from"] == out["step"] and again["step"] == 50
     assert not again["stopped_by_time_limit"]
 
@@ -322,6 +365,12 @@ def test_a_stage_time_limit_counts_its_setup_and_still_takes_one_step(dataset, t
         return spec.train(run, **kw)
 
     monkeypatch.setitem(stages.REGISTRY, "vae", replace(spec, train=slow_setup_then_train))
-    out = train_stage("vae", dataset, tmp_path / "run", preset="tiny", steps=50, progress=False, time_limit_s=0.2)
+    out = train_stage(
+        "vae",
+        dataset,
+        tmp_path / "run",
+        stage_options("vae", preset="tiny", steps=50),
+        StageRuntime(progress=False, time_limit_s=0.2),
+    )
     assert out["stopped_by_time_limit"] and out["step"] == 1  # the setup used the time: one step, checkpointed
     assert load_latest(tmp_path / "run" / "vae" / "checkpoints").step == 1

@@ -4,7 +4,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from tests.model_fixtures import make_dataset, make_frames
+from tests.model_fixtures import QUIET, make_dataset, make_frames
 from world_model.data import iter_clips
 from world_model.model import get_preset
 from world_model.sim import ProceduralSimulator
@@ -45,7 +45,7 @@ def test_frame_sampler_weights_cameras_not_the_lidar_map(tmp_path):
 
 def test_vae_object_weight_flag_reaches_the_vae_stage_and_later_stages_accept_that_vae(tmp_path, capsys):
     from m4world_env.cli import main as m4world
-    from world_model.train import load_vae, train_stage
+    from world_model.train import load_vae, stage_options, train_stage
     from world_model.train.__main__ import main as train
 
     data = make_dataset(tmp_path / "data", get_preset("tiny"), lengths=(4, 3))
@@ -54,7 +54,7 @@ def test_vae_object_weight_flag_reaches_the_vae_stage_and_later_stages_accept_th
     assert train(["--stage", "vae", *common, "--steps", "2", "--vae-object-weight", "0"]) == 0
     assert load_vae(run / "vae" / "model").cfg.vae.object_loss_weight == 0.0
     # The teacher (preset weight) takes that VAE: the weight is a training-only setting.
-    train_stage("teacher", data, run, preset="tiny", steps=1, batch_size=1, progress=False)
+    train_stage("teacher", data, run, stage_options("teacher", preset="tiny", steps=1, batch_size=1), QUIET)
     for cli in (lambda a: m4world(["train", *a]), train):
         assert cli(["--stage", "vae", *common, "--vae-object-weight", "-1"]) == 2
         assert "object loss weight must be >= 0" in capsys.readouterr().err

@@ -5,7 +5,7 @@ faster where the hardware multiplies it natively: CUDA GPUs that support it, and
 AVX512-BF16 or AMX tiles. Elsewhere (AVX2 laptops, AVX512 CPUs without the BF16 extension)
 PyTorch emulates bf16 matrix products and they run several times *slower* than float32
 (``benchmarks/bench_model.py`` measures both peaks). ``dtype="auto"`` therefore picks bf16 only
-where it is fast. Training stages resolve the same choice (``train_stage(dtype="auto")``) through
+where it is fast. Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
 :func:`dit_precision`.
 """
 
@@ -88,7 +88,7 @@ _built_bf16: ContextVar[bool | None] = ContextVar("dit_autocast_bf16", default=N
 @contextmanager
 def dit_precision(bf16: bool | None) -> Iterator[None]:
     """DiTs constructed inside run bf16 autocast iff ``bf16`` (None: as their ``dit.autocast_bf16``
-    says). Training wraps each stage in it (``train_stage(dtype=...)``): its models hold float32
+    says). Training wraps each stage in it (``StageRuntime(dtype=...)``): its models hold float32
     weights, so either choice is valid for them."""
     token = _built_bf16.set(bf16)
     try:

@@ -14,6 +14,8 @@ from typing import TYPE_CHECKING
 _EXPORTS = {
     "EMA": "world_model.train.ema",
     "STAGES": "world_model.train.stages",
+    "StageOptions": "world_model.train.run",
+    "StageRuntime": "world_model.train.run",
     "TrainConfig": "world_model.train.trainer",
     "Trainer": "world_model.train.trainer",
     "TrainingDivergedError": "world_model.train.trainer",
@@ -23,11 +25,14 @@ _EXPORTS = {
     "load_vae": "world_model.train.exports",
     "open_run_latents": "world_model.train.exports",
     "save_checkpoint": "world_model.train.checkpoint",
+    "stage_options": "world_model.train.stages",
     "train_stage": "world_model.train.stages",
 }
 __all__ = [
     "EMA",
     "STAGES",
+    "StageOptions",
+    "StageRuntime",
     "TrainConfig",
     "Trainer",
     "TrainingDivergedError",
@@ -37,6 +42,7 @@ __all__ = [
     "load_vae",
     "open_run_latents",
     "save_checkpoint",
+    "stage_options",
     "train_stage",
 ]
 
@@ -44,7 +50,8 @@ if TYPE_CHECKING:
     from world_model.train.checkpoint import load_latest, save_checkpoint
     from world_model.train.ema import EMA
     from world_model.train.exports import load_student, load_teacher, load_vae, open_run_latents
-    from world_model.train.stages import STAGES, train_stage
+    from world_model.train.run import StageOptions, StageRuntime
+    from world_model.train.stages import STAGES, stage_options, train_stage
     from world_model.train.trainer import TrainConfig, Trainer, TrainingDivergedError
 
 

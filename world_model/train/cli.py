@@ -10,9 +10,13 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from world_model import cli_args
 from world_model.train.student_flags import BASE_HELP, add_lora_flags, add_student_flags
+
+if TYPE_CHECKING:
+    from world_model.model.config import ModelConfig
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
@@ -86,7 +90,8 @@ def run_train(args: argparse.Namespace) -> int:
     from world_model.model.config import get_preset
     from world_model.train import stages
     from world_model.train.device import close_place, init_place
-    from world_model.train.student_flags import apply_heap_flag, stage_config, student_config
+    from world_model.train.run import StageRuntime
+    from world_model.train.student_flags import apply_heap_flag, stage_config
 
     if args.all == (args.stage is not None):
         raise ValueError(f"give exactly one of --stage (one of {', '.join(stages.STAGES)}) or --all")
@@ -94,34 +99,14 @@ def run_train(args: argparse.Namespace) -> int:
     apply_heap_flag(args)
     config = stage_config(args, get_preset(args.preset, geometry_only=args.geometry_only))
     place = init_place(args.device)
+    runtime = StageRuntime(progress=not args.no_progress, dtype=args.dtype, place=place, compile_model=args.compile)
     try:
         # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
         # rerunning the same command after an interruption loses nothing.
         chain = [s for s in PIPELINE if s not in DECODER_STAGES or config.layout.decoder]
         for stage in chain if args.all else (args.stage,):
-            summary = stages.train_stage(
-                stage,
-                args.data,
-                args.run,
-                preset=args.preset,
-                config=config,
-                steps=None if args.all else args.steps,
-                batch_size=args.batch_size,
-                lr=args.lr,
-                ckpt_every=args.ckpt_every,
-                seed=args.seed,
-                progress=not args.no_progress,
-                case=args.case,
-                case_data=args.case_data,
-                case_clips=args.case_clips.split(",") if args.case_clips else None,
-                base=args.base,
-                lora_box_weight=args.lora_box_weight,
-                lora_rank=args.lora_rank,
-                student=student_config(args),
-                dtype=args.dtype,
-                place=place,
-                compile_model=args.compile,
-            )
+            options = stages.stage_options(stage, **chain_settings(args, config))
+            summary = stages.train_stage(stage, args.data, args.run, options, runtime)
             summary.pop("losses", None)
             if place.is_main:
                 print(json.dumps(summary, indent=1, default=float))
@@ -132,6 +117,31 @@ def run_train(args: argparse.Namespace) -> int:
     finally:
         close_place(place)
     return 0
+
+
+def chain_settings(args: argparse.Namespace, config: ModelConfig) -> dict[str, object]:
+    """Every stage option the command line sets (:func:`world_model.train.stages.stage_options`
+    keeps a stage's own): ``--all`` trains each stage at the preset's steps; without a student flag
+    the student stages keep their default student config."""
+    from world_model.train.student_flags import student_config
+
+    student = student_config(args)
+    settings = {
+        "preset": args.preset,
+        "config": config,
+        "steps": None if args.all else args.steps,
+        "batch_size": args.batch_size,
+        "lr": args.lr,
+        "ckpt_every": args.ckpt_every,
+        "seed": args.seed,
+        "case": args.case,
+        "case_data": args.case_data,
+        "case_clips": args.case_clips.split(",") if args.case_clips else None,
+        "base": args.base,
+        "box_weight": args.lora_box_weight,
+        "rank": args.lora_rank,
+    }
+    return settings if student is None else {**settings, "student": student}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -56,8 +56,8 @@ from world_model.model.reference import TASKS, ReferenceConfig, category_region,
 from world_model.model.vae import SensorVAE
 from world_model.train.data import LatentWindows, encoder_digest, load_clips
 from world_model.train.exports import EXPORT, latent_windows, load_teacher, run_vae
-from world_model.train.run import StageRun
-from world_model.train.trainer import Trainer
+from world_model.train.run import StageOptions, StageRun
+from world_model.train.trainer import StepFn, Trainer
 
 LORA_STEPS = 300  # "a few hundred iterations" (§5), whatever the preset
 
@@ -138,20 +138,43 @@ def load_lora_base(base: str | Path | None, run_dir: Path, cfg: ModelConfig | No
     return LoraBase(model, vae, digest, file, file_sha256)
 
 
-def lora_options(
-    case: str | None = None,
-    case_data: str | Path | None = None,
-    case_clips: list[str] | None = None,
-    base: str | Path | None = None,
-    lora_box_weight: float = 0.0,
-    lora_rank: int | None = None,
-) -> dict:
-    """The keyword arguments of :func:`lora_stage` from the stage's options, checked before anything
-    is written (the adapter's name, box weight and rank)."""
-    lora = LoraConfig() if lora_rank is None else LoraConfig().with_rank(lora_rank)
-    scfg = LoraStageConfig(box_weight=lora_box_weight, lora=lora)
-    lora_stage_dir(".", case)
-    return {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base, "scfg": scfg}
+@dataclass(frozen=True, kw_only=True)
+class LoraStageOptions(StageOptions):
+    """The ``lora`` stage's options: :class:`StageOptions` and the adapter's, checked when made,
+    before anything is written.
+
+    ``case`` names the adapter (and the rare category), ``case_data`` an extra dataset of rare
+    clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted (default
+    ``RUN/teacher/model``; module docstring), ``box_weight`` the extra loss weight inside the rare
+    object's boxes (:attr:`LoraStageConfig.box_weight`), ``rank`` the adapter's rank (None:
+    :class:`LoraConfig`'s)."""
+
+    case: str | None = None
+    case_data: str | Path | None = None
+    case_clips: list[str] | None = None
+    base: str | Path | None = None
+    box_weight: float = 0.0
+    rank: int | None = None
+
+    def __post_init__(self) -> None:
+        self.stage_config()
+        lora_stage_dir(".", self.case)
+
+    def stage_config(self) -> LoraStageConfig:
+        """The adapter's training config: its box weight and rank."""
+        lora = LoraConfig() if self.rank is None else LoraConfig().with_rank(self.rank)
+        return LoraStageConfig(box_weight=self.box_weight, lora=lora)
+
+
+def lora_setup(options: LoraStageOptions) -> dict:
+    """The keyword arguments of :func:`lora_stage` from the stage's options."""
+    return {
+        "case": options.case,
+        "case_data": options.case_data,
+        "case_clips": options.case_clips,
+        "base": options.base,
+        "scfg": options.stage_config(),
+    }
 
 
 def lora_stage_dir(run_dir: str | Path, case: str | None) -> Path:
@@ -274,6 +297,12 @@ def select_clips(
     return clips, list(range(len(ordinary), len(clips))), list(range(len(ordinary)))
 
 
+# Entries of the checkpoint's metadata a resumed run must share, each with the value a checkpoint
+# without it was trained with: the loss, the frozen base (resuming on another base would silently
+# train against the old one's weights, or fail on a shape), the adapter's shapes and the objective.
+RESUME_KEYS = {"box_weight": 0.0, "base_sha256": None, "lora_rank": LoraConfig.rank, "reference_tasks": False}
+
+
 def lora_stage(
     run: StageRun,
     *,
@@ -285,16 +314,16 @@ def lora_stage(
 ) -> dict:
     """Train (or resume) adapter ``case`` on top of the frozen ``base`` (module docstring)."""
     scfg = scfg or LoraStageConfig()
-    cfg, tcfg, run_dir, stage_dir = run.cfg, run.tcfg, run.run_dir, run.stage_dir
+    cfg, run_dir = run.cfg, run.run_dir
     lb = load_lora_base(base, run_dir, cfg)
-    model, vae, digest = lb.model, lb.vae, lb.vae_digest
+    model = lb.model
     clips, rare, ordinary = select_clips(run.data_dir, Path(case_data) if case_data else None, cfg, case, case_clips)
-    windows = latent_windows(clips, vae, digest, run_dir, cfg, run.place.device)
+    windows = latent_windows(clips, lb.vae, lb.vae_digest, run_dir, cfg, run.place.device)
     sampler = BalancedSampler(windows, rare, ordinary, case, scfg.rare_fraction)
 
-    extra_channels = model.cfg.dit.in_channels_extra
+    reference_tasks = bool(model.cfg.dit.in_channels_extra)  # a reference model: completion / the task mix
     fingerprint = base_fingerprint(model)
-    torch.manual_seed(tcfg.seed)
+    torch.manual_seed(run.tcfg.seed)
     add_adapter(model, case, scfg.lora)
     model.train()
     meta = {
@@ -302,20 +331,46 @@ def lora_stage(
         "base_sha256": fingerprint,
         "box_weight": scfg.box_weight,
         "lora_rank": scfg.lora.rank,
-        "reference_tasks": bool(extra_channels),
+        "reference_tasks": reference_tasks,
         "model_config": model.cfg.to_dict(),
     }
-    # The frozen base is part of the checkpoint: resuming on another base would silently train
-    # against the old one's weights (or fail on a shape), so it is a resume key like the loss, the
-    # rank (the adapter's shapes) and the objective (checkpoints from before reference-model bases
-    # learned the completion task read as controls-only).
-    resume_keys = {"box_weight": 0.0, "base_sha256": None, "lora_rank": LoraConfig.rank, "reference_tasks": False}
-    trainer = run.trainer(model, "lora", resume_keys, **meta)
-    rcfg = ReferenceConfig()
+    trainer = run.trainer(model, "lora", RESUME_KEYS, **meta)
     drawn = {"rare": 0, "ordinary": 0}
+    summary = trainer.run(_lora_step(model, sampler, cfg, scfg, drawn), f"lora:{case}")
+    ema = trainer.ema.model_state(model)
+    # Only adapter tensors come from the EMA: the frozen base stays bit-identical.
+    model.load_state_dict({k: v for k, v in ema.items() if ".lora_" in k}, strict=False)
+    train_info = {
+        "case": case,  # the rare category (the adapter may be renamed; lora.AdapterInfo.completes)
+        "step": trainer.step,
+        "rare_clips": [clips[i].name for i in rare],
+        "ordinary_clips": len(ordinary),
+        "rare_fraction": scfg.rare_fraction,
+        "box_weight": scfg.box_weight,
+        # a reference-model base: rare windows completed, ordinary ones the task mix
+        "reference_tasks": reference_tasks,
+    }
+    adapter_meta = {
+        "base_file": lb.file.name,  # the base is identified by its hashes; a path would name this machine
+        "base_file_sha256": lb.file_sha256,
+        "model_config": model.cfg.to_dict(),
+        "train": train_info,
+    }
+    save_adapter(model, case, run.stage_dir, scfg.lora, fingerprint, adapter_meta)
+    return {**summary, "drawn": drawn, "adapter_dir": str(run.stage_dir), "config": asdict(scfg)}
+
+
+def _lora_step(
+    model: MultiViewDiT, sampler: BalancedSampler, cfg: ModelConfig, scfg: LoraStageConfig, drawn: dict[str, int]
+) -> StepFn:
+    """The adapter's training step: a balanced batch (counted in ``drawn``), the base's
+    flow-matching loss, weighted in the rare object's boxes; a reference-model base completes the
+    rare objects or does the task mix (module docstring)."""
+    extra_channels = model.cfg.dit.in_channels_extra
+    rcfg = ReferenceConfig()
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        batch = sampler.sample(tr.rng, tcfg.batch_size, scfg.box_weight)
+        batch = sampler.sample(tr.rng, tr.tcfg.batch_size, scfg.box_weight)
         x0, is_rare = batch.x0, batch.is_rare
         drawn["rare"] += int(is_rare.sum())
         drawn["ordinary"] += int((~is_rare).sum())
@@ -335,30 +390,4 @@ def lora_stage(
             loss = flow_matching_loss(lambda xt, tt: model(xt, tt, cond), x0, t, noise, weights)
         return loss, b * x0.shape[1]
 
-    summary = trainer.run(step, f"lora:{case}")
-    ema = trainer.ema.model_state(model)
-    # Only adapter tensors come from the EMA: the frozen base stays bit-identical.
-    model.load_state_dict({k: v for k, v in ema.items() if ".lora_" in k}, strict=False)
-    save_adapter(
-        model,
-        case,
-        stage_dir,
-        scfg.lora,
-        fingerprint,
-        {
-            "base_file": lb.file.name,  # the base is identified by its hashes; a path would name this machine
-            "base_file_sha256": lb.file_sha256,
-            "model_config": model.cfg.to_dict(),
-            "train": {
-                "case": case,  # the rare category (the adapter may be renamed; lora.AdapterInfo.completes)
-                "step": trainer.step,
-                "rare_clips": [clips[i].name for i in rare],
-                "ordinary_clips": len(ordinary),
-                "rare_fraction": scfg.rare_fraction,
-                "box_weight": scfg.box_weight,
-                # a reference-model base: rare windows completed, ordinary ones the task mix
-                "reference_tasks": bool(extra_channels),
-            },
-        },
-    )
-    return {**summary, "drawn": drawn, "adapter_dir": str(stage_dir), "config": asdict(scfg)}
+    return step

@@ -42,6 +42,11 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from world_model.model.config import ModelConfig
+    from world_model.train.run import StageOptions
 
 from world_model import cli_args
 
@@ -334,6 +339,23 @@ def check_run_options(
             raise ValueError(f"--from-bundle: {e}") from None
 
 
+def phase_options(
+    phase: str, spec: RecipeScale, config: ModelConfig, seed: int, data: Path, bundle: Path
+) -> StageOptions:
+    """The stage options of ``phase``: a stage of the chain at the scale's steps and global batch,
+    or an adapter (:data:`ADAPTERS`) of ``bundle``'s own weights, from the rare clips beside ``data``."""
+    from world_model.train.stages import stage_options
+
+    stage = phase if phase in CHAIN else "lora"
+    steps, batch = spec.stages[stage]
+    settings = {"preset": spec.preset, "config": config, "steps": steps, "batch_size": batch, "seed": seed}
+    if phase in ADAPTERS:
+        component, box_weight = ADAPTERS[phase]
+        base = bundle / "reference.safetensors" if component == "reference" else bundle
+        settings |= {"case": RARE_CATEGORY, "case_data": rare_dir(data), "base": str(base), "box_weight": box_weight}
+    return stage_options(stage, **settings)
+
+
 def run_recipe(
     out: Path,
     scale: str = "gpu",
@@ -356,6 +378,7 @@ def run_recipe(
         raise ValueError(f"--phases takes one or more of {', '.join(PHASES)}, got {', '.join(unknown) or 'none'}")
     phases = tuple(p for p in PHASES if p in phases)  # the chain's order
     from world_model.bundle import export_bundle
+    from world_model.train.run import StageRuntime
     from world_model.train.stages import train_stage
 
     spec = SCALES[scale]
@@ -383,33 +406,17 @@ def run_recipe(
     config = recipe_config(spec)
     bundle = out / "bundle"
     for k, phase in enumerate(phases):
-        stage = phase if phase in CHAIN else "lora"
-        steps, batch = spec.stages[stage]
         t = time.perf_counter()
         limit = stage_time_limit(spec, phases[k:], t - t0)
-        say(f"{phase}: up to {steps} steps at batch {batch}" + (f", {limit:.0f} s with its setup" if limit else ""))
-        options = {}
-        if phase in ADAPTERS:
-            if phase == next(p for p in phases if p in ADAPTERS):  # adapters adapt the bundle's own (bf16) weights
-                export_bundle(run, bundle)
-            component, box_weight = ADAPTERS[phase]
-            base = bundle / "reference.safetensors" if component == "reference" else bundle
-            options = {"case": RARE_CATEGORY, "case_data": rare_dir(data), "base": str(base)}
-            options["lora_box_weight"] = box_weight
-        summary = train_stage(
-            stage,
-            data,
-            run,
-            spec.preset,
-            steps,
-            batch_size=batch,
-            seed=seed,
-            progress=progress,
-            config=config,
-            device=device,
-            time_limit_s=limit,
-            **options,
+        options = phase_options(phase, spec, config, seed, data, bundle)
+        say(
+            f"{phase}: up to {options.steps} steps at batch {options.batch_size}"
+            + (f", {limit:.0f} s with its setup" if limit else "")
         )
+        if phase == next((p for p in phases if p in ADAPTERS), None):  # adapters adapt the bundle's own (bf16) weights
+            export_bundle(run, bundle)
+        runtime = StageRuntime(progress=progress, device=device, time_limit_s=limit)
+        summary = train_stage(phase if phase in CHAIN else "lora", data, run, options, runtime)
         if phase in ADAPTERS:
             rename_adapter(Path(summary["stage_dir"]), phase)
         times[phase], losses[phase] = time.perf_counter() - t, summary["final_loss"]

@@ -11,55 +11,75 @@ A run directory holds one sub-directory per stage::
 
 Each stage reads the exports of the stages before it. Rerunning a command resumes from the stage's
 latest checkpoint; a finished stage rerun with a larger ``steps`` continues training.
+
+Each stage owns an options type (:attr:`Stage.options`): :class:`StageOptions` (the config and the
+schedule), which the student stages extend with their student config
+(:class:`~world_model.train.student_stages.StudentStageOptions`) and the ``lora`` stage with the
+adapter's settings (:class:`~world_model.train.lora_stage.LoraStageOptions`);
+:func:`stage_options` picks a stage's from a whole chain's settings, as the command line does.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 from world_model.data.clips import write_json_atomic
 from world_model.model.config import ModelConfig, get_preset, without_label_decoder
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
-from world_model.student.config import StudentConfig
 from world_model.train.device import TrainPlace, resolve_device
-from world_model.train.lora_stage import LORA_STEPS, lora_options, lora_stage, lora_stage_dir
+from world_model.train.lora_stage import LORA_STEPS, LoraStageOptions, lora_setup, lora_stage, lora_stage_dir
 from world_model.train.reference_stage import reference_stage
 from world_model.train.rollout_decoder_stage import rollout_decoder_stage
-from world_model.train.run import StageRun
-from world_model.train.student_stages import student_stage
+from world_model.train.run import StageOptions, StageRun, StageRuntime
+from world_model.train.student_stages import StudentStageOptions, student_setup, student_stage
 from world_model.train.teacher_stage import teacher_stage
-from world_model.train.trainer import TrainConfig
+from world_model.train.trainer import LoopOptions, TrainConfig
 from world_model.train.vae_stage import check_decoder_config, decoder_stage, vae_stage
 
 
 @dataclass(frozen=True)
 class Stage:
-    """One stage of the registry: how it trains, its defaults and the options it owns.
+    """One stage of the registry: how it trains, its defaults and the options type it owns.
 
-    ``options``: the keyword arguments of :func:`train_stage` (and so the CLI flags) that only this
-    stage reads; any other stage refuses those that change a model by name. ``setup`` turns them
-    into the keyword arguments of ``train`` (checked before anything is written) and ``directory``
-    places the stage in the run (default ``RUN/<name>``). ``config_sections``: the config sections
-    its weights depend on (None: the whole config; ``"teacher"``: :meth:`ModelConfig.teacher_settings`).
+    ``options``: the type :func:`train_stage` takes for it; ``setup`` turns its stage-specific
+    fields into the keyword arguments of ``train`` and ``directory`` places the stage in the run
+    (default ``RUN/<name>``). ``config_sections``: the config sections its weights depend on (None:
+    the whole config; ``"teacher"``: :meth:`ModelConfig.teacher_settings`).
     """
 
     name: str
-    train: Callable[..., dict]  # (StageRun, **options) -> summary
+    train: Callable[..., dict]  # (StageRun, **setup(options)) -> summary
     batch_size: int  # CPU-sized defaults
     lr: float
     ckpt_every: int
-    options: tuple[str, ...] = ()
-    setup: Callable[..., dict] | None = None  # (**options) -> keyword arguments of train
-    directory: Callable[[Path, dict], Path] | None = None  # (RUN, options) -> the stage's directory
+    options: type[StageOptions] = StageOptions
+    setup: Callable[[Any], dict] | None = None  # (options) -> keyword arguments of train
+    directory: Callable[[Path, Any], Path] | None = None  # (RUN, options) -> the stage's directory
     config_sections: tuple[str, ...] | str | None = None
     # Default steps where a step costs far more than a teacher's: per preset, or one count for all.
     steps: dict[str, int] | int | None = None
     check: Callable[[ModelConfig], None] | None = None  # refuses a config before anything is written
+
+
+def _student(kind: str, batch_size: int, lr: float, ckpt_every: int, steps: int) -> Stage:
+    """A student stage: its options carry the student config."""
+    return Stage(
+        kind,
+        partial(student_stage, kind),
+        batch_size,
+        lr,
+        ckpt_every,
+        StudentStageOptions,
+        student_setup,
+        steps={"default": steps},
+    )
 
 
 # Sized for the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step
@@ -80,12 +100,10 @@ REGISTRY: dict[str, Stage] = {
             check=check_decoder_config,
         ),
         Stage("teacher", teacher_stage, 4, 1e-3, 100, config_sections="teacher"),
-        Stage("tf", partial(student_stage, "tf"), 4, 5e-4, 100, steps={"default": 500}),
-        # an ode step runs a 20-step guided ODE: checkpoint often
-        Stage("ode", partial(student_stage, "ode"), 4, 5e-4, 20, steps={"default": 80}),
-        # each dmd/long step = 1 + critic_updates self-rollouts
-        Stage("dmd", partial(student_stage, "dmd"), 2, 1e-4, 10, steps={"default": 50}),
-        Stage("long", partial(student_stage, "long"), 2, 5e-5, 10, steps={"default": 20}),
+        _student("tf", 4, 5e-4, 100, 500),
+        _student("ode", 4, 5e-4, 20, 80),  # an ode step runs a 20-step guided ODE: checkpoint often
+        _student("dmd", 2, 1e-4, 10, 50),  # each dmd/long step = 1 + critic_updates self-rollouts
+        _student("long", 2, 5e-5, 10, 20),
         Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
         # the decoder once more, on the trained student's own rollouts streamed as the env does
         Stage(
@@ -104,28 +122,51 @@ REGISTRY: dict[str, Stage] = {
             4,
             1e-3,
             50,
-            ("case", "case_data", "case_clips", "base", "lora_box_weight", "lora_rank"),
-            setup=lora_options,
-            directory=lambda run, options: lora_stage_dir(run, options["case"]),
+            LoraStageOptions,
+            lora_setup,
+            directory=lambda run, options: lora_stage_dir(run, options.case),
             steps=LORA_STEPS,
         ),
     )
 }
 STAGES = tuple(REGISTRY)
 DEFAULT_STEPS = {"tiny": 50, "default": 3000, "gpu": 100_000}
-# The CLI flag of each stage option, for the errors that refuse one.
-OPTION_FLAGS = {
-    "case": "--case",
-    "case_data": "--case-data",
-    "case_clips": "--case-clips",
-    "base": "--base",
-    "lora_box_weight": "--lora-box-weight",
-    "lora_rank": "--lora-rank",
-}
+# The stage options that change a model, by their CLI flags: a stage that does not own one refuses
+# it when given (the data options are dropped: one command line may carry a whole chain's flags,
+# as ``--all`` does).
+MODEL_OPTION_FLAGS = {"base": "--base", "box_weight": "--lora-box-weight", "rank": "--lora-rank"}
 
 
-def _stage_config(stage_dir: Path, stage: Stage, preset: str, config: ModelConfig | None) -> ModelConfig:
-    cfg = config or get_preset(preset)
+def _spec(stage: str) -> Stage:
+    if stage not in REGISTRY:
+        raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
+    return REGISTRY[stage]
+
+
+def _fields(kind: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(kind)}
+
+
+def stage_options(stage: str, **settings: Any) -> StageOptions:
+    """``stage``'s options (its :attr:`Stage.options` type) from a whole chain's ``settings`` (the
+    fields of every stage's options type): those of its type are kept and the others dropped, save
+    a model setting of another stage given (:data:`MODEL_OPTION_FLAGS`), refused by its flag."""
+    spec = _spec(stage)
+    unknown = sorted(set(settings) - set().union(*(_fields(s.options) for s in REGISTRY.values())))
+    if unknown:
+        raise TypeError(f"unknown stage option(s) {unknown}")
+    own = _fields(spec.options)
+    for name, flag in MODEL_OPTION_FLAGS.items():
+        value = settings.get(name)
+        if name in own or value is None or (name == "box_weight" and not value):
+            continue
+        owners = " and ".join(f"--stage {s.name}" for s in REGISTRY.values() if name in _fields(s.options))
+        raise ValueError(f"{flag} is a setting of {owners}, not of {stage!r}")
+    return spec.options(**{name: value for name, value in settings.items() if name in own})
+
+
+def _stage_config(stage_dir: Path, stage: Stage, options: StageOptions) -> ModelConfig:
+    cfg = options.config or get_preset(options.preset)
     saved = stage_dir / "model_config.json"
 
     def relevant(c: ModelConfig) -> object:
@@ -148,121 +189,59 @@ def _stage_config(stage_dir: Path, stage: Stage, preset: str, config: ModelConfi
     return cfg
 
 
-def _train_config(
-    stage: str,
-    cfg: ModelConfig,
-    steps: int | None,
-    batch_size: int | None,
-    lr: float | None,
-    ckpt_every: int | None,
-    seed: int,
-) -> TrainConfig:
+def _train_config(stage: str, cfg: ModelConfig, options: StageOptions) -> TrainConfig:
     spec = REGISTRY[stage]
     preset_steps = DEFAULT_STEPS.get(cfg.name, DEFAULT_STEPS["default"])
     if isinstance(spec.steps, int):
         preset_steps = spec.steps
     elif spec.steps:
         preset_steps = spec.steps.get(cfg.name, preset_steps)
-    n = steps if steps is not None else preset_steps
+    n = options.steps if options.steps is not None else preset_steps
     if n < 1:
         raise ValueError(f"steps must be >= 1, got {n}")
     return TrainConfig(
         steps=n,
-        batch_size=batch_size or spec.batch_size,
-        lr=lr or spec.lr,
-        ckpt_every=ckpt_every or spec.ckpt_every,
-        seed=seed,
+        batch_size=options.batch_size or spec.batch_size,
+        lr=options.lr or spec.lr,
+        ckpt_every=options.ckpt_every or spec.ckpt_every,
+        seed=options.seed,
     )
-
-
-def _check_options(stage: str, given: dict[str, object]) -> None:
-    """Refuse an option that belongs to another stage, naming its flag and its stages."""
-    for name, value in given.items():
-        if value is None or (name == "lora_box_weight" and not value) or name in REGISTRY[stage].options:
-            continue
-        owners = " and ".join(f"--stage {s.name}" for s in REGISTRY.values() if name in s.options)
-        raise ValueError(f"{OPTION_FLAGS[name]} is a setting of {owners}, not of {stage!r}")
 
 
 def train_stage(
     stage: str,
-    data_dir: str | Path,
-    run_dir: str | Path,
-    preset: str = "default",
-    steps: int | None = None,
-    *,
-    batch_size: int | None = None,
-    lr: float | None = None,
-    ckpt_every: int | None = None,
-    seed: int = 0,
-    progress: bool = True,
-    config: ModelConfig | None = None,
-    case: str | None = None,
-    case_data: str | Path | None = None,
-    case_clips: list[str] | None = None,
-    base: str | Path | None = None,
-    lora_box_weight: float = 0.0,
-    lora_rank: int | None = None,
-    student: StudentConfig | None = None,
-    dtype: str = "auto",
-    device: str = "cpu",
-    place: TrainPlace | None = None,
-    compile_model: bool = False,
-    time_limit_s: float | None = None,
+    data: str | Path,
+    run: str | Path,
+    options: StageOptions | None = None,
+    runtime: StageRuntime | None = None,
 ) -> dict:
-    """Train (or resume) one stage into ``run_dir/<stage>/``; returns a summary dict.
+    """Train (or resume) one stage of the dataset ``data`` into ``run/<stage>/``; returns a summary dict.
 
-    ``config`` overrides the preset's config (it must then stay the same across resumes);
-    ``student`` configures the student stages (``tf``, ``ode``, ``dmd``, ``long``).
-    ``lora`` only: ``case`` names the adapter (and the rare category), ``case_data`` an extra
-    dataset of rare clips, ``case_clips`` explicit rare clip names, ``base`` the model adapted
-    (default ``run_dir/teacher/model``), ``lora_box_weight`` the extra loss weight inside the rare
-    object's boxes (``LoraStageConfig.box_weight``), ``lora_rank`` the adapter's rank (None: ``LoraConfig``'s).
-    ``dtype``: the DiTs' autocast in this process, "auto" (bf16 when the config asks for it and the
-    device multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32"
-    or "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
-    ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it. ``compile_model``:
-    ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops this many seconds after
-    this call, its setup (caches, rollouts) counted, checkpointed and exported, even short of
-    ``steps`` (after one step at least). Precision, device, compilation
-    and time limit are run-time choices: checkpoints and their configs do not record them.
-    """
-    deadline = None if time_limit_s is None else time.perf_counter() + time_limit_s
-    if stage not in REGISTRY:
-        raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
-    spec = REGISTRY[stage]
-    # The settings that change a model are refused by any other stage; the data options are not
-    # (one command line may carry a whole chain's flags, as ``--all`` does).
-    _check_options(stage, {"base": base, "lora_box_weight": lora_box_weight, "lora_rank": lora_rank})
-    check_dtype(dtype)
-    place = place or TrainPlace(resolve_device(device))
-    given = {"case": case, "case_data": case_data, "case_clips": case_clips, "base": base}
-    given |= {"lora_box_weight": lora_box_weight, "lora_rank": lora_rank}
-    options = {name: given[name] for name in spec.options}
-    kwargs = spec.setup(**options) if spec.setup else {}
-    run_root = Path(run_dir)
+    ``options``: the stage's own options type (:attr:`Stage.options`; None: its defaults; see
+    :func:`stage_options`). ``runtime``: how this process trains it (:class:`StageRuntime`: precision,
+    device, compilation and time limit, which checkpoints and their configs do not record)."""
+    runtime = runtime or StageRuntime()
+    deadline = None if runtime.time_limit_s is None else time.perf_counter() + runtime.time_limit_s
+    spec = _spec(stage)
+    options = spec.options() if options is None else options
+    if type(options) is not spec.options:
+        raise ValueError(f"--stage {stage} takes {spec.options.__name__}, got {type(options).__name__}")
+    check_dtype(runtime.dtype)
+    place = runtime.place or TrainPlace(resolve_device(runtime.device))
+    kwargs = spec.setup(options) if spec.setup else {}
+    run_root = Path(run)
     stage_dir = spec.directory(run_root, options) if spec.directory else run_root / stage
     if spec.check:
-        spec.check(config or get_preset(preset))
+        spec.check(options.config or get_preset(options.preset))
     if place.is_main:  # writes the stage's config; the other ranks then check theirs against it
-        _stage_config(stage_dir, spec, preset, config)
+        _stage_config(stage_dir, spec, options)
     place.barrier()
-    cfg = _stage_config(stage_dir, spec, preset, config)
-    tcfg = _train_config(stage, cfg, steps, batch_size, lr, ckpt_every, seed)
+    cfg = _stage_config(stage_dir, spec, options)
+    tcfg = _train_config(stage, cfg, options)
     place.local_rows(tcfg.batch_size)  # an uneven shard is refused before any training
-    run = StageRun(
-        Path(data_dir),
-        run_root,
-        stage_dir,
-        cfg,
-        tcfg,
-        place,
-        progress,
-        student or StudentConfig(),
-        compile_model,
-        deadline,
-    )
-    with dit_precision(resolve_bf16(dtype, cfg.dit.autocast_bf16, place.device)):
-        out = spec.train(run, **kwargs)
+    loop = LoopOptions(progress=runtime.progress, compile_model=runtime.compile_model, deadline=deadline)
+    stage_run = StageRun(Path(data), run_root, stage_dir, cfg, tcfg, place, loop)
+    with dit_precision(resolve_bf16(runtime.dtype, cfg.dit.autocast_bf16, place.device)):
+        out = spec.train(stage_run, **kwargs)
     place.barrier()  # rank 0's export is written before any rank starts the stage that reads it
     return {"stage": stage, "stage_dir": str(stage_dir), **out}

@@ -35,6 +35,7 @@ back and forth (reflected), which keeps consecutive frames physically adjacent.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -62,7 +63,7 @@ from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
 from world_model.train.exports import CRITIC, EXPORT, load_teacher, require_export
 from world_model.train.rollouts import rollout_conditions, rollout_starts
-from world_model.train.run import StageRun
+from world_model.train.run import StageOptions, StageRun
 from world_model.train.trainer import Trainer, TrainingDivergedError
 
 PREDECESSOR = {"tf": "teacher", "ode": "tf", "dmd": "ode", "long": "dmd"}
@@ -116,8 +117,8 @@ def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, sc
 # -- tf / ode ------------------------------------------------------------------------------------
 
 
-def _tf_stage(run: StageRun, windows: LatentWindows) -> dict:
-    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
+def _tf_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dict:
+    cfg, tcfg = run.cfg, run.tcfg
     teacher = _load_same(run.run_dir / "teacher" / EXPORT, "teacher", cfg)
     model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
     del teacher
@@ -140,8 +141,8 @@ def _tf_stage(run: StageRun, windows: LatentWindows) -> dict:
     return summary
 
 
-def _ode_stage(run: StageRun, windows: LatentWindows) -> dict:
-    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
+def _ode_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dict:
+    cfg, tcfg = run.cfg, run.tcfg
     tf_path = run.run_dir / "tf" / EXPORT
     ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()), run.device)
     student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
@@ -222,8 +223,8 @@ def _denoising_loss(
     return teacher_forcing_loss(model, tr.shard(x0), tr.shard(cond), t, noise, scfg.prefix_frames)
 
 
-def _dmd_stage(run: StageRun, windows: LatentWindows) -> dict:
-    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
+def _dmd_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dict:
+    cfg, tcfg = run.cfg, run.tcfg
     pair, real = _pair(run, "ode")
     guidance = real_score_guidance(real, scfg)
     trainer = run.trainer(pair, "dmd")
@@ -253,8 +254,8 @@ def _dmd_stage(run: StageRun, windows: LatentWindows) -> dict:
     return summary
 
 
-def _long_stage(run: StageRun, windows: LatentWindows) -> dict:
-    cfg, scfg, tcfg = run.cfg, run.scfg, run.tcfg
+def _long_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dict:
+    cfg, tcfg = run.cfg, run.tcfg
     pair, real = _pair(run, "dmd")
     guidance = real_score_guidance(real, scfg)
     trainer = run.trainer(pair, "long")
@@ -321,9 +322,22 @@ def _long_stage(run: StageRun, windows: LatentWindows) -> dict:
 STUDENT_STAGE_FNS = {"tf": _tf_stage, "ode": _ode_stage, "dmd": _dmd_stage, "long": _long_stage}
 
 
-def student_stage(stage: str, run: StageRun) -> dict:
-    """Train (or resume) student stage ``stage`` (tf, ode, dmd, long) of ``run`` (module docstring)."""
+@dataclass(frozen=True, kw_only=True)
+class StudentStageOptions(StageOptions):
+    """The student stages' options: :class:`StageOptions` and the student's config."""
+
+    student: StudentConfig = field(default_factory=StudentConfig)
+
+
+def student_setup(options: StudentStageOptions) -> dict:
+    """The keyword arguments of :func:`student_stage` from the stage's options."""
+    return {"scfg": options.student}
+
+
+def student_stage(stage: str, run: StageRun, scfg: StudentConfig) -> dict:
+    """Train (or resume) student stage ``stage`` (tf, ode, dmd, long) of ``run`` with the student
+    config ``scfg`` (module docstring)."""
     require_export(run.run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
     windows = run.latents(stage)
     torch.manual_seed(run.tcfg.seed)
-    return STUDENT_STAGE_FNS[stage](run, windows)
+    return STUDENT_STAGE_FNS[stage](run, windows, scfg)

@@ -60,6 +60,21 @@ class TrainConfig:
 StepFn = Callable[["Trainer"], tuple[torch.Tensor, int]]
 
 
+@dataclass(frozen=True)
+class LoopOptions:
+    """How this process runs a stage's loop: run-time choices that no checkpoint records.
+
+    ``progress``: a tqdm bar (rank 0). ``compile_model``: ``torch.compile`` the model's forward
+    (each trained network of a container module). ``deadline``: a :func:`time.perf_counter` time at
+    which :meth:`Trainer.run` stops, checkpointed, even short of ``tcfg.steps`` (rerunning resumes
+    towards ``tcfg.steps``); it takes at least one step, so that a stage whose setup used up its
+    time still leaves a checkpoint."""
+
+    progress: bool = True
+    compile_model: bool = False
+    deadline: float | None = None
+
+
 class Trainer:
     def __init__(
         self,
@@ -67,33 +82,28 @@ class Trainer:
         model: nn.Module,
         tcfg: TrainConfig,
         meta: dict,
-        progress: bool = True,
         resume_keys: dict[str, object] | None = None,
         place: TrainPlace | None = None,
-        compile_model: bool = False,
-        deadline: float | None = None,
+        loop: LoopOptions | None = None,
     ):
         """``resume_keys``: entries of ``meta`` a resumed run must share with its checkpoint (a
         setting that changes the objective mid-run), else :meth:`resume` raises ``ValueError``; each
-        maps to the value meant by a checkpoint written before the entry existed. ``place``: the
-        device and rank (default: one process on the CPU); the model moves there. ``compile_model``:
-        ``torch.compile`` the model's forward (each trained network of a container module).
-        ``deadline``: a :func:`time.perf_counter` time at which :meth:`run` stops, checkpointed, even
-        short of ``tcfg.steps`` (rerunning resumes towards ``tcfg.steps``); it takes at least one
-        step, so that a stage whose setup used up its time still leaves a checkpoint."""
-        self.deadline = deadline
+        maps to the value a checkpoint without the entry was trained with. ``place``: the device and
+        rank (default: one process on the CPU); the model moves there. ``loop``: :class:`LoopOptions`."""
+        loop = loop or LoopOptions()
+        self.deadline = loop.deadline
         self.resume_keys = dict(resume_keys or {})
         self.place = place or TrainPlace(torch.device("cpu"))
         self.dir = Path(stage_dir)
         self.ckpt_dir = self.dir / "checkpoints"
         self.model = model.to(self.place.device)
-        if compile_model:
+        if loop.compile_model:
             own_forward = type(model).forward is not nn.Module.forward
             for m in [model] if own_forward else list(model.children()):
                 m.compile()
         self.tcfg = tcfg
         self.meta = meta
-        self.progress = progress and self.place.is_main
+        self.progress = loop.progress and self.place.is_main
         self.opt = torch.optim.AdamW(model.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
         self.ema = EMA(model, tcfg.ema_decay)
         self.rng = np.random.default_rng(tcfg.seed)
