@@ -20,7 +20,7 @@ from stable_baselines3 import PPO
 from stable_baselines3.common.env_util import make_vec_env
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
-from m4world_env.evaluate import evaluate, format_table
+from m4world_env.evaluate import EvalRequest, evaluate, format_table
 from m4world_env.wrappers import SB3Observations
 
 
@@ -73,16 +73,16 @@ def main(argv: list[str] | None = None) -> dict:
     def policy_factory(env):  # the harness's env gives raw observations; wrap them like in training
         return lambda obs, info: model.predict(wrapper.observation(obs), deterministic=True)[0]
 
-    report = evaluate(
+    request = EvalRequest(
         policy_factory,
         [args.scenario],
         episodes=args.eval_episodes,
         seed=10_000 + args.seed,
         backend=args.backend,
         max_steps=args.eval_max_steps,
-        progress=False,
         config={"observation_keys": ["cameras", "lidar", "state"], "height": args.height, "width": args.width},
     )
+    report = evaluate(request, progress=False)
     print(format_table(report))
     (args.out / "eval.json").write_text(json.dumps(report, indent=1, default=float))
     return report

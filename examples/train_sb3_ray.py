@@ -20,7 +20,7 @@ from pathlib import Path
 from stable_baselines3 import PPO
 
 from m4world_env.cluster import RayVectorEnv, connect, evaluate_on_ray, require_ray
-from m4world_env.evaluate import format_table
+from m4world_env.evaluate import EvalRequest, format_table
 from m4world_env.sb3 import SB3VecEnv
 from m4world_env.wrappers import SB3ObservationMap
 
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> dict:
         args.out.mkdir(parents=True, exist_ok=True)
         model.save(args.out / "ppo_m4world")
 
-        report = evaluate_on_ray(
+        request = EvalRequest(
             saved_policy(str((args.out / "ppo_m4world.zip").resolve())),
             [args.scenario],
             episodes=args.eval_episodes,
@@ -86,9 +86,8 @@ def main(argv: list[str] | None = None) -> dict:
             backend=args.backend,
             config=config,
             max_steps=args.eval_max_steps,
-            progress=False,
-            workers=args.workers,
         )
+        report = evaluate_on_ray(request, progress=False, workers=args.workers)
     finally:
         if owns_ray:
             require_ray().shutdown()

@@ -192,7 +192,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if args.report:
         return _cmd_report(args)
     from m4world_env import zoo
-    from m4world_env.evaluate import evaluate, format_table, is_zoo_policy, write_report
+    from m4world_env.evaluate import EvalRequest, evaluate, format_table, is_zoo_policy, write_report
     from m4world_env.scenario import list_scenarios
 
     if args.workers is not None and args.ray is None:
@@ -207,15 +207,17 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     scenarios = list_scenarios() if args.scenarios == ["all"] else args.scenarios
     if is_zoo_policy(args.policy):
         zoo.member(args.policy)  # a version the zoo does not have is refused before any env is built
-    options = {
-        "episodes": args.episodes,
-        "seed": args.seed,
-        "backend": args.backend,
-        "checkpoint": args.checkpoint,
-        "max_steps": args.max_steps,
-    }
+    request = EvalRequest(
+        args.policy,
+        scenarios,
+        episodes=args.episodes,
+        seed=args.seed,
+        backend=args.backend,
+        checkpoint=args.checkpoint,
+        max_steps=args.max_steps,
+    )
     if args.ray is None:
-        report = evaluate(args.policy, scenarios, **options)
+        report = evaluate(request)
     else:
         from m4world_env.cluster import evaluate_on_ray, require_ray
 
@@ -223,7 +225,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
             require_ray()
         except ImportError as e:  # a user's missing extra: one line, as a bad option
             raise ValueError(str(e)) from None
-        report = evaluate_on_ray(args.policy, scenarios, **options, workers=args.workers, address=args.ray or None)
+        report = evaluate_on_ray(request, workers=args.workers, address=args.ray or None)
     print(format_table(report))
     if "cluster" in report:
         c = report["cluster"]

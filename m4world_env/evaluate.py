@@ -17,6 +17,7 @@ import importlib
 import inspect
 import json
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,6 +27,8 @@ from m4world_env.scenario import load_scenario
 
 if TYPE_CHECKING:
     import gymnasium as gym
+
+    from m4world_env.config import EnvConfig
 
 Policy = Callable[[dict, dict], Any]
 AGGREGATED = ("collision", "off_road", "progress", "ttc_violation", "comfort", "pdms", "return", "distance_m")
@@ -131,38 +134,54 @@ def aggregate(episodes: Sequence[dict[str, float]]) -> dict[str, float]:
     return out
 
 
-def evaluate(
-    policy: str | Callable,
-    scenarios: Sequence[str],
-    episodes: int = 1,
-    seed: int = 0,
-    backend: str = "procedural",
-    checkpoint: str | None = None,
-    config: dict | None = None,
-    max_steps: int | None = None,
-    progress: bool = True,
-) -> dict[str, Any]:
-    """Run ``policy`` for ``episodes`` episodes on each scenario. Seeds: ``seed + episode``.
+@dataclass(frozen=True)
+class EvalRequest:
+    """What an evaluation runs, on one machine (:func:`evaluate`) or on Ray workers
+    (:func:`m4world_env.cluster.evaluate_on_ray`): ``policy`` for ``episodes`` episodes on each of
+    ``scenarios`` (names or YAML paths), episode ``e`` seeded ``seed + e``, in envs of ``backend``
+    with ``checkpoint`` and the env ``config``, each episode at most ``max_steps`` steps (None: to
+    its end). Checked when made, before any env is built.
 
     ``policy`` is a spec for :func:`make_policy`, or a callable: a factory taking the env and
-    returning ``policy(obs, info) -> action``, or such a policy itself.
-    """
+    returning ``policy(obs, info) -> action``, or such a policy itself."""
+
+    policy: str | Callable
+    scenarios: Sequence[str]
+    episodes: int = 1
+    seed: int = 0
+    backend: str = "procedural"
+    checkpoint: str | None = None
+    config: dict | EnvConfig | None = None
+    max_steps: int | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.scenarios, str):
+            raise ValueError(f"scenarios must be a list of scenario names or paths, got the string {self.scenarios!r}")
+        object.__setattr__(self, "scenarios", tuple(self.scenarios))
+        if isinstance(self.episodes, bool) or not isinstance(self.episodes, int) or self.episodes < 1:
+            raise ValueError(f"episodes must be a positive integer, got {self.episodes!r}")
+        check_max_steps(self.max_steps)
+
+
+def evaluate(request: EvalRequest, progress: bool = True) -> dict[str, Any]:
+    """Run ``request``'s policy for its episodes on each of its scenarios (:class:`EvalRequest`);
+    the report (:func:`build_report`). ``progress``: a bar per scenario."""
     import gymnasium as gym
     from tqdm import tqdm
 
-    check_max_steps(max_steps)
+    r = request
     results: list[tuple[str, list[dict[str, float]]]] = []
-    for name in scenarios:
+    for name in r.scenarios:
         scenario = load_scenario(name)
-        env = gym.make("M4World-v0", scenario=scenario, backend=backend, checkpoint=checkpoint, config=config)
-        episode_policy = scenario_policy(policy, env)
+        env = gym.make("M4World-v0", scenario=scenario, backend=r.backend, checkpoint=r.checkpoint, config=r.config)
+        episode_policy = scenario_policy(r.policy, env)
         eps = [
-            run_episode(env, episode_policy, seed=seed + e, max_steps=max_steps)
-            for e in tqdm(range(episodes), desc=scenario.name, unit="ep", disable=not progress)
+            run_episode(env, episode_policy, seed=r.seed + e, max_steps=r.max_steps)
+            for e in tqdm(range(r.episodes), desc=scenario.name, unit="ep", disable=not progress)
         ]
         env.close()
         results.append((scenario.name, eps))
-    return build_report(policy, backend, seed, results)
+    return build_report(r, results)
 
 
 def check_max_steps(max_steps: int | None) -> None:
@@ -178,16 +197,15 @@ def scenario_policy(policy: str | Callable, env: gym.Env) -> Policy | str:
     return policy if is_named_policy(policy) else make_policy(policy, env)
 
 
-def build_report(
-    policy: str | Callable, backend: str, seed: int, results: Sequence[tuple[str, Sequence[dict[str, float]]]]
-) -> dict[str, Any]:
-    """The report of :func:`evaluate`: ``results`` holds each scenario's name and its episodes'
-    metrics in episode order."""
+def build_report(request: EvalRequest, results: Sequence[tuple[str, Sequence[dict[str, float]]]]) -> dict[str, Any]:
+    """The report of ``request``'s evaluation: ``results`` holds each scenario's name and its
+    episodes' metrics in episode order."""
     records = [{"scenario": name, "episode": e, **m} for name, eps in results for e, m in enumerate(eps)]
+    policy = request.policy
     return {
         "policy": policy if isinstance(policy, str) else getattr(policy, "__qualname__", repr(policy)),
-        "backend": backend,
-        "seed": seed,
+        "backend": request.backend,
+        "seed": request.seed,
         "per_scenario": {name: aggregate(eps) for name, eps in results},
         "overall": aggregate(records),
         "episodes": records,

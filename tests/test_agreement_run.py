@@ -11,7 +11,7 @@ import pytest
 import m4world_env.agreement.run as agreement_run
 from m4world_env.agreement.run import AgreementPlan, cells, run_agreement
 from m4world_env.cli import main
-from m4world_env.evaluate import evaluate
+from m4world_env.evaluate import EvalRequest, evaluate
 from m4world_env.vector import M4WorldVectorEnv
 
 POLICIES = ("gap_keeper", "gap_keeper_blind_front_lidar", "cruise_lane_keeper")
@@ -50,12 +50,14 @@ def test_each_row_is_the_episode_m4world_eval_runs(finished_run, active_bundle):
         for record in cell["records"]:
             checkpoint = str(active_bundle) if backend == "world_model" else None
             alone = evaluate(
-                record["policy"],
-                ["highway_dense_rain_dusk"],
-                seed=1,
-                backend=backend,
-                checkpoint=checkpoint,
-                max_steps=3,
+                EvalRequest(
+                    record["policy"],
+                    ["highway_dense_rain_dusk"],
+                    seed=1,
+                    backend=backend,
+                    checkpoint=checkpoint,
+                    max_steps=3,
+                ),
                 progress=False,
             )["episodes"][0]
             for k in ("pdms", "collision", "progress", "distance_m", "comfort", "min_ttc_s"):

@@ -19,7 +19,7 @@ import m4world_env  # noqa: E402,F401  (registers M4World-v0)
 from m4world_env.cli import main  # noqa: E402
 from m4world_env.cluster import ClusterError, RayVectorEnv, connect, evaluate_on_ray  # noqa: E402
 from m4world_env.config import InvalidOptionError  # noqa: E402
-from m4world_env.evaluate import evaluate, format_table  # noqa: E402
+from m4world_env.evaluate import EvalRequest, evaluate, format_table  # noqa: E402
 from m4world_env.scenario import load_scenario  # noqa: E402
 from m4world_env.traffic import ActionError  # noqa: E402
 from m4world_env.vector_infos import unbatch_infos  # noqa: E402
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {"height": 32, "width": 56, "observation_keys": ["cameras", "lidar", "state"]}
 SHORT = load_scenario("merge_cut_in").model_copy(update={"duration": 1.0})  # 5 steps an episode
 ACTIONS = np.array([[0.3, 0.0], [0.0, 0.0], [-0.3, 0.1]], np.float32)
-EVAL = {"episodes": 2, "seed": 3, "max_steps": 10, "progress": False, "config": {"height": 32, "width": 56}}
+EVAL = {"episodes": 2, "seed": 3, "max_steps": 10, "config": {"height": 32, "width": 56}}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -102,7 +102,7 @@ def test_ray_vector_env_equals_the_local_vector_env_on_the_world_model(active_bu
 
 def test_eval_on_ray_reruns_a_killed_workers_episodes_and_counts_each_once():
     scenarios = ["empty_highway", "merge_cut_in"]
-    local = evaluate("idm", scenarios, **{**EVAL, "episodes": 3})  # 6 episodes
+    local = evaluate(EvalRequest("idm", scenarios, **{**EVAL, "episodes": 3}), progress=False)  # 6 episodes
     counted, killed = [], []
 
     def kill_the_first_worker_done(done):
@@ -112,7 +112,10 @@ def test_eval_on_ray_reruns_a_killed_workers_episodes_and_counts_each_once():
             ray.kill(ray.get_actor(done.worker))
 
     on_ray = evaluate_on_ray(
-        "idm", scenarios, workers=2, on_episode=kill_the_first_worker_done, **{**EVAL, "episodes": 3}
+        EvalRequest("idm", scenarios, **{**EVAL, "episodes": 3}),
+        progress=False,
+        workers=2,
+        on_episode=kill_the_first_worker_done,
     )
     cluster = on_ray.pop("cluster")
     assert cluster["workers_lost"] == 1 and cluster["episodes_rerun"] >= 1, cluster

@@ -253,12 +253,14 @@ def _stop(env):
 def test_replay_on_the_map_scores_progress_along_the_logged_route(replay_files, backend, tiny_bundle):
     import gymnasium as gym
 
-    from m4world_env.evaluate import evaluate, format_table
+    from m4world_env.evaluate import EvalRequest, evaluate, format_table
     from m4world_env.scenario import load_scenario
 
     kwargs = {"checkpoint": str(tiny_bundle)} if backend == "world_model" else {}
     path = str(replay_files[1])
-    runs = [evaluate("lane_keeping", [path], episodes=1, seed=3, backend=backend, **kwargs) for _ in range(2)]
+    runs = [
+        evaluate(EvalRequest("lane_keeping", [path], episodes=1, seed=3, backend=backend, **kwargs)) for _ in range(2)
+    ]
     assert runs[0] == runs[1]
     follow = runs[0]["episodes"][0]
     assert follow["steps"] == 5  # 1 s of log at 5 decisions per second: run to the end
@@ -266,7 +268,7 @@ def test_replay_on_the_map_scores_progress_along_the_logged_route(replay_files, 
     assert follow["route_progress"] == pytest.approx(1.0, abs=0.05) and follow["progress"] == follow["route_progress"]
     assert follow["off_route"] == 0.0 and follow["off_road"] == 0.0 and follow["collision"] == 0.0
     assert follow["route_deviation_max_m"] < 1.0  # the controller lags into a 10 m radius turn
-    stop = evaluate(_stop, [path], episodes=1, seed=3, backend=backend, **kwargs)["episodes"][0]
+    stop = evaluate(EvalRequest(_stop, [path], episodes=1, seed=3, backend=backend, **kwargs))["episodes"][0]
     assert stop["route_progress"] < 0.6 and stop["pdms"] < follow["pdms"]
     assert "off_route" in format_table(runs[0]).splitlines()[0]
     env = gym.make("M4World-v0", scenario=load_scenario(path), backend=backend, **kwargs)
@@ -277,10 +279,13 @@ def test_replay_on_the_map_scores_progress_along_the_logged_route(replay_files, 
 
 @pytest.mark.parametrize("backend", ["procedural", "world_model"])
 def test_replay_scenario_runs_to_its_end_and_scores_deterministically(replay_files, backend, tiny_bundle):
-    from m4world_env.evaluate import evaluate
+    from m4world_env.evaluate import EvalRequest, evaluate
 
     kwargs = {"checkpoint": str(tiny_bundle)} if backend == "world_model" else {}
-    runs = [evaluate("idm", [str(replay_files[0])], episodes=1, seed=3, backend=backend, **kwargs) for _ in range(2)]
+    runs = [
+        evaluate(EvalRequest("idm", [str(replay_files[0])], episodes=1, seed=3, backend=backend, **kwargs))
+        for _ in range(2)
+    ]
     assert runs[0] == runs[1]
     episode = runs[0]["episodes"][0]
     assert episode["steps"] == 5  # 1 s of log at 5 decisions per second: run to the end

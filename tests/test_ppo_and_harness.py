@@ -7,20 +7,22 @@ import numpy as np
 import pytest
 
 from m4world_env.cli import main
-from m4world_env.evaluate import evaluate
+from m4world_env.evaluate import EvalRequest, evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_harness_builtin_policies_and_replayable_seeds():
     rep = evaluate(
-        "idm",
-        ["merge_cut_in", "empty_highway"],
-        episodes=2,
-        seed=5,
-        max_steps=15,
+        EvalRequest(
+            "idm",
+            ["merge_cut_in", "empty_highway"],
+            episodes=2,
+            seed=5,
+            max_steps=15,
+            config={"height": 32, "width": 56},
+        ),
         progress=False,
-        config={"height": 32, "width": 56},
     )
     assert set(rep["per_scenario"]) == {"merge_cut_in", "empty_highway"}
     for agg in [*rep["per_scenario"].values(), rep["overall"]]:
@@ -28,11 +30,13 @@ def test_harness_builtin_policies_and_replayable_seeds():
             assert 0.0 <= agg[k] <= 1.0
     assert [e["seed"] for e in rep["episodes"]] == [5, 6, 5, 6]
     again = evaluate(
-        "idm", ["merge_cut_in"], episodes=1, seed=6, max_steps=15, progress=False, config={"height": 32, "width": 56}
+        EvalRequest("idm", ["merge_cut_in"], episodes=1, seed=6, max_steps=15, config={"height": 32, "width": 56}),
+        progress=False,
     )
     assert again["episodes"][0]["distance_m"] == rep["episodes"][1]["distance_m"]  # replay from the seed
     rand = evaluate(
-        "random", ["merge_cut_in"], episodes=1, seed=0, max_steps=10, progress=False, config={"height": 32, "width": 56}
+        EvalRequest("random", ["merge_cut_in"], episodes=1, seed=0, max_steps=10, config={"height": 32, "width": 56}),
+        progress=False,
     )
     assert rand["overall"]["episodes"] == 1
 
@@ -94,3 +98,16 @@ def test_sb3_ppo_example_runs_a_few_hundred_steps(tmp_path, monkeypatch):
     )
     assert (tmp_path / "ppo_m4world.zip").exists() and (tmp_path / "eval.json").exists()
     assert np.isfinite(report["overall"]["pdms"])
+
+
+def test_an_eval_request_is_checked_when_made_before_any_env_exists():
+    for bad, message in (
+        ({"episodes": 0}, "episodes must be a positive integer, got 0"),
+        ({"episodes": True}, "episodes must be a positive integer"),
+        ({"max_steps": 0}, "max_steps must be a positive integer or None"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            EvalRequest("idm", ["merge_cut_in"], **bad)
+    with pytest.raises(ValueError, match="list of scenario names or paths, got the string 'merge_cut_in'"):
+        EvalRequest("idm", "merge_cut_in")
+    assert EvalRequest("idm", ["merge_cut_in", "empty_highway"]).scenarios == ("merge_cut_in", "empty_highway")

@@ -12,7 +12,7 @@ import pytest
 
 import m4world_env  # noqa: F401  (registers M4World-v0)
 from m4world_env import zoo
-from m4world_env.evaluate import evaluate, make_policy
+from m4world_env.evaluate import EvalRequest, evaluate, make_policy
 from m4world_env.zoo.base import EGO_STATUS_KEYS, SENSOR_KEYS, SensorGeometry
 from m4world_env.zoo.modular import GapKeeping, LaneCentring, ModularDriver
 from m4world_env.zoo.perception import (
@@ -118,20 +118,24 @@ def test_no_member_reads_the_traffic_state(name):
 def test_m4world_eval_runs_every_member():
     """``--policy NAME`` builds every member per episode, and replays an episode from its seed."""
     for name in zoo.members():
-        report = evaluate(name, ["highway_sunny_day"], episodes=1, seed=4, max_steps=2, progress=False)
+        report = evaluate(EvalRequest(name, ["highway_sunny_day"], episodes=1, seed=4, max_steps=2), progress=False)
         assert report["episodes"][0]["steps"] == 2
         assert report["policy"] == name
-    again = evaluate("gap_keeper@v1", ["highway_sunny_day"], episodes=1, seed=4, max_steps=2, progress=False)
-    first = evaluate("gap_keeper", ["highway_sunny_day"], episodes=1, seed=4, max_steps=2, progress=False)
+    again = evaluate(
+        EvalRequest("gap_keeper@v1", ["highway_sunny_day"], episodes=1, seed=4, max_steps=2), progress=False
+    )
+    first = evaluate(EvalRequest("gap_keeper", ["highway_sunny_day"], episodes=1, seed=4, max_steps=2), progress=False)
     assert again["episodes"] == first["episodes"]
 
 
 def test_a_member_that_sees_nothing_ahead_crashes_where_one_that_sees_keeps_its_distance():
     """On the rainy highway, seed 1, a car ahead is slower: the gap keeper brakes for it; the same
     driver with its forward LiDAR sector blinded drives into it."""
-    kwargs = {"episodes": 1, "seed": 1, "max_steps": 30, "progress": False}
-    sees = evaluate("gap_keeper", ["highway_dense_rain_dusk"], **kwargs)["episodes"][0]
-    blind = evaluate("gap_keeper_blind_front_lidar", ["highway_dense_rain_dusk"], **kwargs)["episodes"][0]
+    kwargs = {"episodes": 1, "seed": 1, "max_steps": 30}
+    sees = evaluate(EvalRequest("gap_keeper", ["highway_dense_rain_dusk"], **kwargs), progress=False)["episodes"][0]
+    blind = evaluate(
+        EvalRequest("gap_keeper_blind_front_lidar", ["highway_dense_rain_dusk"], **kwargs), progress=False
+    )["episodes"][0]
     assert sees["collision"] == 0.0 and blind["collision"] == 1.0
     assert sees["pdms"] > 0.4 > blind["pdms"]
 

@@ -3,8 +3,9 @@
 * :class:`RayVectorEnv`: one Gymnasium ``VectorEnv`` whose sub-envs live in ``workers`` Ray actors,
   each running a batched :class:`~m4world_env.vector.M4WorldVectorEnv` of its share; equal to the
   local vector env of the same size and seed.
-* :func:`evaluate_on_ray`: :func:`m4world_env.evaluate.evaluate` with its episodes run as tasks on
-  ``workers`` actors (``m4world eval --ray``); a lost worker's episodes run again elsewhere.
+* :func:`evaluate_on_ray`: :func:`m4world_env.evaluate.evaluate` of the same
+  :class:`~m4world_env.evaluate.EvalRequest` with its episodes run as tasks on ``workers`` actors
+  (``m4world eval --ray``); a lost worker's episodes run again elsewhere.
 
 Ray is imported when one of them is used, so the package imports without it.
 """
