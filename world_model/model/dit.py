@@ -48,16 +48,29 @@ from world_model.precision import bf16_autocast, built_autocast_bf16
 MODULATIONS = 6  # shift, scale, gate for attention and for the MLP
 
 
+@dataclass(frozen=True)
+class _Hooks:
+    """The streaming hooks of one :meth:`MultiViewDiT.forward` (its keyword arguments, documented there)."""
+
+    causal: bool
+    frame_offset: int
+    kv_context: list[KV] | None
+    return_kv: bool
+    blocks: torch.Tensor | None
+    context_valid: torch.Tensor | None
+    context_only_frames: int
+
+
 @dataclass
 class _Run:
-    """Per-forward state shared by all blocks."""
+    """Per-forward state shared by all blocks: B samples of V views, T frames of N tokens each."""
 
     b: int
     v: int
     t: int
     n: int
-    mod: torch.Tensor  # (B, T, 6, D)
-    cos: torch.Tensor
+    mod: torch.Tensor  # (B, T, 6, D) timestep modulation
+    cos: torch.Tensor  # RoPE tables of the T * N tokens (rope.rotation_tables)
     sin: torch.Tensor
     # Attention masks as additive biases (attention.mask_bias) in the blocks' compute dtype.
     self_mask: torch.Tensor | None  # (S, Sc + S) or (B*V, 1, S, Sc + S)
@@ -276,12 +289,26 @@ class MultiViewDiT(nn.Module):
             tokens.cross_kv = [block.cross_kv(tokens) for block in self.blocks]
             return tokens
 
-    def _check(self, x: torch.Tensor) -> None:
+    def _check(self, x: torch.Tensor, t: torch.Tensor, hooks: _Hooks) -> torch.Tensor:
+        """Refuse inputs of the wrong shape; ``t`` as (B, T)."""
         cfg = self.cfg
         want = (cfg.sensors.num_views, cfg.vae.latent_channels + cfg.dit.in_channels_extra, *cfg.latent_hw)
         if x.ndim != 6 or tuple(x.shape[2:]) != want:
             raise ValueError(f"x must be (B, T, V, C, h, w) with (V, C, h, w) = {want}, got {tuple(x.shape)}")
+        b, t_len = x.shape[:2]
+        if t.ndim == 1:
+            t = t[:, None].expand(b, t_len)
+        if t.shape != (b, t_len):
+            raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
+        if not 0 <= hooks.context_only_frames <= t_len:
+            raise ValueError(f"context_only_frames must be in [0, {t_len}], got {hooks.context_only_frames}")
+        if hooks.kv_context is not None and len(hooks.kv_context) != len(self.blocks):
+            raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(hooks.kv_context)}")
+        if hooks.blocks is not None and hooks.blocks.shape != (t_len,):
+            raise ValueError(f"blocks must be ({t_len},) block indices, got {tuple(hooks.blocks.shape)}")
+        return t
 
+    # function-size: ten keyword-only hooks, the streaming engine's; the steps are the methods below
     def forward(
         self,
         x: torch.Tensor,
@@ -318,78 +345,103 @@ class MultiViewDiT(nn.Module):
             velocity (B, T - context_only_frames, V, C, h, w) float32 [and the list of per-block
             (k, v) of all T frames].
         """
-        self._check(x)
-        cfg = self.cfg
-        b, t_len, v = x.shape[:3]
-        c_lat = cfg.vae.latent_channels
-        p, (th, tw) = cfg.dit.patch, cfg.token_hw
-        n = th * tw
-        if t.ndim == 1:
-            t = t[:, None].expand(b, t_len)
-        if t.shape != (b, t_len):
-            raise ValueError(f"t must be (B,) or (B, T) = {(b, t_len)}, got {tuple(t.shape)}")
-        if not 0 <= context_only_frames <= t_len:
-            raise ValueError(f"context_only_frames must be in [0, {t_len}], got {context_only_frames}")
-        if kv_context is not None and len(kv_context) != len(self.blocks):
-            raise ValueError(f"kv_context needs one (k, v) per block ({len(self.blocks)}), got {len(kv_context)}")
+        hooks = _Hooks(causal, frame_offset, kv_context, return_kv, blocks, context_valid, context_only_frames)
+        t = self._check(x, t, hooks)
         with self._autocast(x.device.type):
             tokens = cond if isinstance(cond, ControlTokens) else self.tokenizer(cond)
-            if tokens.frame.shape[1] != t_len:
-                raise ValueError(f"conditions have {tokens.frame.shape[1]} frames, latents {t_len}")
-            if cfg.layout.channels:
-                x = torch.cat([x[:, :, :, :c_lat], tokens.layout.to(x.dtype), x[:, :, :, c_lat:]], dim=3)
-            cin = x.shape[3]
-            h = x.permute(0, 2, 1, 3, 4, 5).reshape(b, v, t_len, cin, th, p, tw, p)
-            h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)
-            view_type = torch.zeros(v, dtype=torch.long, device=x.device)
-            view_type[cfg.sensors.lidar_view] = 1
-            h = self.patch_in(h.to(self.patch_in.weight.dtype)).view(b, v, t_len, n, -1)
-            h = h + self.spatial_embed.to(h.dtype)
-            h = (h + self.view_type[view_type][None, :, None, None]).reshape(b * v, t_len * n, -1)
-
+            if tokens.frame.shape[1] != x.shape[1]:
+                raise ValueError(f"conditions have {tokens.frame.shape[1]} frames, latents {x.shape[1]}")
+            h = self._embed_patches(x, tokens)
             temb = self.time_embed(t)  # (B, T, D)
-            mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
-            cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, frame_offset, cfg.dit.rope_theta, x.device)
-            cos, sin = rotation_tables(cos, sin, h.dtype)
-            ctx_frames = 0 if kv_context is None else kv_context[0][0].shape[2] // n
-            self_mask = None
-            if blocks is not None and blocks.shape != (t_len,):
-                raise ValueError(f"blocks must be ({t_len},) block indices, got {tuple(blocks.shape)}")
-            many = t_len > cfg.clip.chunk_frames if blocks is None else bool(blocks[-1] > blocks[0])
-            if causal and many:  # one chunk sees all of itself: no mask needed
-                self_mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, x.device, blocks)
-            if context_valid is not None:
-                self_mask = _context_mask(self_mask, context_valid, t_len, n, v)
-            cross = tokens.cross_kv or [block.cross_kv(tokens) for block in self.blocks]
-            view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
-            dt = h.dtype
-            run = _Run(
-                b,
-                v,
-                t_len,
-                n,
-                mod,
-                cos,
-                sin,
-                mask_bias(self_mask, dt),
-                tokens,
-                mask_bias(tokens.text_mask[:, None, None], dt),
-                mask_bias(_control_mask(tokens, n), dt),
-                mask_bias(view_mask.reshape(b * t_len, 1, v * n, v * n), dt),
-            )
-            kvs: list[KV] = []
-            last = len(self.blocks) - 1
-            out_run = run.frames_from(context_only_frames) if context_only_frames else None
-            for i, block in enumerate(self.blocks):
-                ctx = None if kv_context is None else kv_context[i]
-                h, kv = block(h, run, ctx, cross[i], out_run if i == last else None)
-                if return_kv:
-                    kvs.append(kv)
-            t_out = t_len - context_only_frames
-            shift, scale = self.out_mod(F.silu(temb[:, context_only_frames:]))[:, None, :, None].chunk(2, dim=-1)
-            h = self.norm_out(h).view(b, v, t_out, n, h.shape[-1]) * (1 + scale) + shift
-            out = self.head(h).float()  # (B, V, T', N, C*p*p)
-        c = cfg.vae.latent_channels
-        out = out.reshape(b, v, t_out, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)
-        out = out.reshape(b, t_out, v, c, th * p, tw * p)
+            run = self._run_state(x, h, tokens, temb, hooks)
+            h, kvs = self._run_blocks(h, run, tokens, hooks)
+            out = self._velocity(h, temb, run, hooks.context_only_frames)
         return (out, kvs) if return_kv else out
+
+    def _embed_patches(self, x: torch.Tensor, tokens: ControlTokens) -> torch.Tensor:
+        """Latents (B, T, V, C, h, w), the layout's channels put in after the latent's, -> each view's
+        tokens (B*V, T*N, D) with their spatial and view-type embeddings."""
+        cfg = self.cfg
+        b, t_len, v = x.shape[:3]
+        c_lat, p, (th, tw) = cfg.vae.latent_channels, cfg.dit.patch, cfg.token_hw
+        n = th * tw
+        if cfg.layout.channels:
+            x = torch.cat([x[:, :, :, :c_lat], tokens.layout.to(x.dtype), x[:, :, :, c_lat:]], dim=3)
+        cin = x.shape[3]
+        h = x.permute(0, 2, 1, 3, 4, 5).reshape(b, v, t_len, cin, th, p, tw, p)
+        h = h.permute(0, 1, 2, 4, 6, 3, 5, 7).reshape(b, v, t_len * n, cin * p * p)
+        view_type = torch.zeros(v, dtype=torch.long, device=x.device)
+        view_type[cfg.sensors.lidar_view] = 1
+        h = self.patch_in(h.to(self.patch_in.weight.dtype)).view(b, v, t_len, n, -1)
+        h = h + self.spatial_embed.to(h.dtype)
+        return (h + self.view_type[view_type][None, :, None, None]).reshape(b * v, t_len * n, -1)
+
+    def _run_state(
+        self, x: torch.Tensor, h: torch.Tensor, tokens: ControlTokens, temb: torch.Tensor, hooks: _Hooks
+    ) -> _Run:
+        """The state every block reads: the timestep modulation, RoPE tables from ``frame_offset`` on
+        and the attention masks, as biases in the compute dtype of the embedded tokens ``h``."""
+        cfg = self.cfg
+        b, t_len, v = x.shape[:3]
+        th, tw = cfg.token_hw
+        n, dt = th * tw, h.dtype
+        mod = self.time_proj(F.silu(temb)).unflatten(-1, (MODULATIONS, -1))
+        cos, sin = rope_tables(cfg.dit.head_dim, t_len, th, tw, hooks.frame_offset, cfg.dit.rope_theta, x.device)
+        cos, sin = rotation_tables(cos, sin, dt)
+        view_mask = cross_view_mask(tokens.view_adjacency, n)[:, None].expand(b, t_len, -1, -1)
+        return _Run(
+            b=b,
+            v=v,
+            t=t_len,
+            n=n,
+            mod=mod,
+            cos=cos,
+            sin=sin,
+            self_mask=mask_bias(self._self_mask(hooks, t_len, v, x.device), dt),
+            tokens=tokens,
+            text_mask=mask_bias(tokens.text_mask[:, None, None], dt),
+            control_mask=mask_bias(_control_mask(tokens, n), dt),
+            view_mask=mask_bias(view_mask.reshape(b * t_len, 1, v * n, v * n), dt),
+        )
+
+    def _self_mask(self, hooks: _Hooks, t_len: int, v: int, device: torch.device) -> torch.Tensor | None:
+        """The self-attention's mask (None: every token sees every token): block-causal when
+        ``causal`` spans more than one chunk, and each sample's valid context frames."""
+        cfg = self.cfg
+        n = cfg.tokens_per_frame
+        ctx_frames = 0 if hooks.kv_context is None else hooks.kv_context[0][0].shape[2] // n
+        blocks = hooks.blocks
+        mask = None
+        many = t_len > cfg.clip.chunk_frames if blocks is None else bool(blocks[-1] > blocks[0])
+        if hooks.causal and many:  # one chunk sees all of itself: no mask needed
+            mask = block_causal_mask(t_len, n, cfg.clip.chunk_frames, ctx_frames, device, blocks)
+        if hooks.context_valid is not None:
+            mask = _context_mask(mask, hooks.context_valid, t_len, n, v)
+        return mask
+
+    def _run_blocks(
+        self, h: torch.Tensor, run: _Run, tokens: ControlTokens, hooks: _Hooks
+    ) -> tuple[torch.Tensor, list[KV]]:
+        """The blocks over the tokens ``h`` (B*V, T*N, D); the last one keeps the frames after the
+        context-only ones. Also each block's self-attention (k, v) with ``return_kv``."""
+        cross = tokens.cross_kv or [block.cross_kv(tokens) for block in self.blocks]
+        kvs: list[KV] = []
+        last = len(self.blocks) - 1
+        out_run = run.frames_from(hooks.context_only_frames) if hooks.context_only_frames else None
+        for i, block in enumerate(self.blocks):
+            ctx = None if hooks.kv_context is None else hooks.kv_context[i]
+            h, kv = block(h, run, ctx, cross[i], out_run if i == last else None)
+            if hooks.return_kv:
+                kvs.append(kv)
+        return h, kvs
+
+    def _velocity(self, h: torch.Tensor, temb: torch.Tensor, run: _Run, first: int) -> torch.Tensor:
+        """The last block's tokens of frames ``first``.. -> their velocity (B, T - first, V, C, h, w) float32."""
+        cfg = self.cfg
+        b, v, n, t_out = run.b, run.v, run.n, run.t - first
+        p, (th, tw), c = cfg.dit.patch, cfg.token_hw, cfg.vae.latent_channels
+        shift, scale = self.out_mod(F.silu(temb[:, first:]))[:, None, :, None].chunk(2, dim=-1)
+        h = self.norm_out(h).view(b, v, t_out, n, h.shape[-1]) * (1 + scale) + shift
+        out = self.head(h).float()  # (B, V, T', N, C*p*p)
+        out = out.reshape(b, v, t_out, th, tw, c, p, p).permute(0, 2, 1, 5, 3, 6, 4, 7)
+        return out.reshape(b, t_out, v, c, th * p, tw * p)
