@@ -127,10 +127,7 @@ class LabelRasterizer:
                 small.rig,
                 small.arrays,
                 lighting_for(frame.prompt),
-                cfg.near_plane_m,
-                cfg.min_face_area_px,
-                cfg.impostor_max_px,
-                cfg.subpixel_bits,
+                cfg,
             )
             unlit = replace(plan, colors=np.clip(plan.albedos, 0.0, 255.0))
             ids = np.zeros((height, width), dtype=np.int32)

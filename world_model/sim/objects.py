@@ -13,12 +13,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 from world_model.scene import SceneFrame
 from world_model.sensors import CameraRig
+from world_model.sim.config import SimConfig
 from world_model.sim.lighting import Lighting
 from world_model.sim.mesh import MAX_FACE_VERTS
 from world_model.sim.poses import ObjectPoses
@@ -151,6 +153,139 @@ def rig_arrays(rig: CameraRig) -> RigArrays:
     )
 
 
+class _BoxesInViews(NamedTuple):
+    """Each object's projected 3-D box in each view, (V, N) arrays: its pixel bounds over the corners
+    in front of the near plane, and how it is drawn."""
+
+    u_min: np.ndarray
+    u_max: np.ndarray
+    v_min: np.ndarray
+    v_max: np.ndarray
+    detailed: np.ndarray  # bool: drawn face by face
+    impostor: np.ndarray  # bool: drawn as its bounding rectangle (it projects smaller than impostor_max_px)
+
+
+class _PairFaces(NamedTuple):
+    """The mesh faces of the detailed (view, object) pairs, one row per face of a pair, (K,) each."""
+
+    pair: np.ndarray  # the pair's index
+    view: np.ndarray
+    obj: np.ndarray
+    face: np.ndarray  # the face's index in the scene mesh
+
+
+def _to_cameras(points: np.ndarray, cams: RigArrays) -> np.ndarray:
+    """LiDAR-frame points (M, 3) -> (M, V, 3) in every camera: R^T (p - t), one BLAS product."""
+    return (points @ cams.rotations).reshape(len(points), len(cams.fx), 3) - cams.centres_cam
+
+
+def _boxes_in_views(poses: ObjectPoses, cams: RigArrays, rig: CameraRig, config: SimConfig) -> _BoxesInViews:
+    """Object-level culling and level of detail from the projected 3-D boxes."""
+    views = len(cams.fx)
+    h, w = rig.resolution
+    near = config.near_plane_m
+    corners = _to_cameras(poses.corners.reshape(-1, 3), cams).reshape(-1, 8, views, 3).transpose(2, 0, 1, 3)
+    front = corners[..., 2] > near
+    zs = np.where(front, corners[..., 2], 1.0)
+    u = cams.fx[:, None, None] * corners[..., 0] / zs + cams.cx[:, None, None]
+    v = cams.fy[:, None, None] * corners[..., 1] / zs + cams.cy[:, None, None]
+    u_min, u_max = np.where(front, u, np.inf).min(-1), np.where(front, u, -np.inf).max(-1)
+    v_min, v_max = np.where(front, v, np.inf).min(-1), np.where(front, v, -np.inf).max(-1)
+    all_in = front.all(-1)
+    on = (u_min < w) & (u_max > 0) & (v_min < h) & (v_max > 0)
+    candidate = front.any(-1) & (on | ~all_in)  # (V, N)
+    impostor = candidate & all_in & (np.maximum(u_max - u_min, v_max - v_min) < config.impostor_max_px)
+    return _BoxesInViews(u_min, u_max, v_min, v_max, candidate & ~impostor, impostor)
+
+
+def _cameras_in_objects(poses: ObjectPoses, cams: RigArrays) -> np.ndarray:
+    """(V, N, 3) every camera's centre in every object's frame (centred, yaw undone)."""
+    rel = cams.centres[:, None, :] - poses.centre[None]  # (V, N, 3)
+    cos, sin = poses.cos, poses.sin
+    return np.stack([cos * rel[..., 0] + sin * rel[..., 1], -sin * rel[..., 0] + cos * rel[..., 1], rel[..., 2]], -1)
+
+
+def _pair_faces(sm: SceneMesh, pair_view: np.ndarray, pair_obj: np.ndarray) -> _PairFaces:
+    """Every face of the objects of the (view, object) pairs ``pair_view``, ``pair_obj`` (P,)."""
+    counts = sm.face_start[pair_obj + 1] - sm.face_start[pair_obj]
+    pair = np.repeat(np.arange(len(pair_obj)), counts)
+    obj = pair_obj[pair]
+    face = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + sm.face_start[obj]
+    return _PairFaces(pair, pair_view[pair], obj, face)
+
+
+def _to_lidar(points: np.ndarray, obj: np.ndarray, poses: ObjectPoses, translate: bool) -> np.ndarray:
+    """Object-frame points (M, 3) of objects ``obj`` (M,) -> the LiDAR frame (rotated by the object's
+    yaw; moved to its centre when ``translate``, directions are not)."""
+    cos, sin = poses.cos[obj], poses.sin[obj]
+    out = np.stack([cos * points[:, 0] - sin * points[:, 1], sin * points[:, 0] + cos * points[:, 1], points[:, 2]], 1)
+    return out + poses.centre[obj] if translate else out
+
+
+def _facing(
+    sm: SceneMesh, faces: _PairFaces, normals: np.ndarray, centroids: np.ndarray, cams: RigArrays
+) -> np.ndarray:
+    """Indices of ``faces`` that face their camera; a decal faces it when its parent face does."""
+    facing = np.sum(normals[faces.face] * (cams.centres[faces.view] - centroids[faces.face]), axis=1) > 0
+    parent = sm.parents[faces.face]
+    is_decal = parent >= 0
+    own_parent = np.where(is_decal, np.arange(len(faces.face)) - (faces.face - parent), 0)
+    return np.nonzero(np.where(is_decal, facing[own_parent], facing))[0]
+
+
+def _project(
+    points: np.ndarray, views: np.ndarray, cams: RigArrays, rig: CameraRig, config: SimConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame polygons (K, n, 3) in ``views`` (K,) -> the pixel coordinates u, v of those on
+    screen and large enough to draw, and which they are (K,) bool."""
+    h, w = rig.resolution
+    inv_z = 1.0 / np.maximum(points[..., 2], config.near_plane_m)
+    u = cams.fx[views, None] * points[..., 0] * inv_z + cams.cx[views, None]
+    v = cams.fy[views, None] * points[..., 1] * inv_z + cams.cy[views, None]
+    # Shoelace area; the padding repeats a vertex, which adds nothing.
+    twice = np.sum(u[:, :-1] * v[:, 1:] - u[:, 1:] * v[:, :-1], axis=-1) + (u[:, -1] * v[:, 0] - u[:, 0] * v[:, -1])
+    large = np.abs(twice) >= 2 * config.min_face_area_px
+    ok = (u.min(-1) < w) & (u.max(-1) > 0) & (v.min(-1) < h) & (v.max(-1) > 0) & large
+    return u[ok], v[ok], ok
+
+
+def _face_polygons(
+    points: np.ndarray, faces: _PairFaces, shown: np.ndarray, cams: RigArrays, rig: CameraRig, config: SimConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The faces ``shown`` (K,) with their camera-frame vertices ``points`` (K, MAX_FACE_VERTS, 3)
+    -> the drawn ones (indices into ``faces``) and their pixel polygons u, v (K', CLIPPED_VERTS).
+    Only faces crossing the near plane need clipping; the others are padded to the same layout."""
+    z_in = points[..., 2] >= config.near_plane_m
+    inside, crossing = z_in.all(1), z_in.any(1) & ~z_in.all(1)
+    u, v, ok = _project(points[inside], faces.view[shown[inside]], cams, rig, config)
+    u, v = (np.concatenate([a, np.repeat(a[:, -1:], CLIPPED_VERTS - MAX_FACE_VERTS, 1)], 1) for a in (u, v))
+    drawn_inside = shown[inside][ok]
+    clipped, _ = clip_near(points[crossing], config.near_plane_m)
+    u_clipped, v_clipped, ok = _project(clipped, faces.view[shown[crossing]], cams, rig, config)
+    drawn = np.concatenate([drawn_inside, shown[crossing][ok]])
+    return drawn, np.concatenate([u, u_clipped]), np.concatenate([v, v_clipped])
+
+
+def _impostor_polygons(boxes: _BoxesInViews) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The impostors' views and objects (I,) and their projected box's bounding rectangles, padded
+    to the polygon layout: u, v (I, CLIPPED_VERTS)."""
+    views, objs = np.nonzero(boxes.impostor)
+    u_min, u_max = boxes.u_min[views, objs], boxes.u_max[views, objs]
+    v_min, v_max = boxes.v_min[views, objs], boxes.v_max[views, objs]
+    u = np.stack([u_min, u_max, u_max, u_min], -1)
+    v = np.stack([v_min, v_min, v_max, v_max], -1)
+    u = np.concatenate([u, np.repeat(u[:, -1:], CLIPPED_VERTS - 4, 1)], 1)
+    v = np.concatenate([v, np.repeat(v[:, -1:], CLIPPED_VERTS - 4, 1)], 1)
+    return views, objs, u, v
+
+
+def _sun_in_lidar_frame(frame: SceneFrame, lighting: Lighting) -> np.ndarray:
+    """(3,) the sun's direction in the ego's LiDAR frame."""
+    ce, se = math.cos(frame.ego.yaw), math.sin(frame.ego.yaw)
+    sun = lighting.sun_direction
+    return np.array([ce * sun[0] + se * sun[1], -se * sun[0] + ce * sun[1], sun[2]])
+
+
 def plan_objects(
     frame: SceneFrame,
     sm: SceneMesh,
@@ -158,114 +293,48 @@ def plan_objects(
     rig: CameraRig,
     cams: RigArrays,
     lighting: Lighting,
-    near: float,
-    min_area: float,
-    impostor_px: float,
-    shift: int,
+    config: SimConfig,
 ) -> DrawPlan:
-    """Every polygon to paint for all views of ``frame``, in painting order."""
-    nviews = rig.num_views
-    h, w = rig.resolution
-    cy, sy = poses.cos, poses.sin
-    ts, fx, fy, cx, cyy = cams.centres, cams.fx, cams.fy, cams.cx, cams.cy
-    r_all, t_cam = cams.rotations, cams.centres_cam
-
-    def to_cameras(p: np.ndarray) -> np.ndarray:
-        """LiDAR-frame points (M, 3) -> (M, V, 3) in every camera: R^T (p - t), one BLAS product."""
-        return (p @ r_all).reshape(len(p), nviews, 3) - t_cam
-
-    # Object-level culling and level of detail from the projected 3D boxes.
-    cc = to_cameras(poses.corners.reshape(-1, 3)).reshape(-1, 8, nviews, 3).transpose(2, 0, 1, 3)
-    front = cc[..., 2] > near
-    zs = np.where(front, cc[..., 2], 1.0)
-    u = fx[:, None, None] * cc[..., 0] / zs + cx[:, None, None]
-    v = fy[:, None, None] * cc[..., 1] / zs + cyy[:, None, None]
-    umin, umax = np.where(front, u, np.inf).min(-1), np.where(front, u, -np.inf).max(-1)
-    vmin, vmax = np.where(front, v, np.inf).min(-1), np.where(front, v, -np.inf).max(-1)
-    all_in = front.all(-1)
-    on = (umin < w) & (umax > 0) & (vmin < h) & (vmax > 0)
-    candidate = front.any(-1) & (on | ~all_in)  # (V, N)
-    impostor = candidate & all_in & (np.maximum(umax - umin, vmax - vmin) < impostor_px)
-    pv, pn = np.nonzero(candidate & ~impostor)
-
+    """Every polygon to paint for all views of ``frame``, in painting order (module docstring):
+    ``config``'s near plane, smallest face, impostor size and sub-pixel bits."""
+    boxes = _boxes_in_views(poses, cams, rig, config)
+    pair_view, pair_obj = np.nonzero(boxes.detailed)
     # Objects are painted far to near: distance from the camera to the closest point of the box.
-    rel = ts[:, None, :] - poses.centre[None]  # (V, N, 3)
-    c_loc = np.stack([cy * rel[..., 0] + sy * rel[..., 1], -sy * rel[..., 0] + cy * rel[..., 1], rel[..., 2]], -1)
-    obj_dist = np.linalg.norm(c_loc - np.clip(c_loc, -poses.half, poses.half), axis=-1)  # (V, N)
-    part_rank = _part_ranks(sm, pn, c_loc[pv, pn])
+    cam_local = _cameras_in_objects(poses, cams)
+    obj_dist = np.linalg.norm(cam_local - np.clip(cam_local, -poses.half, poses.half), axis=-1)  # (V, N)
+    part_rank = _part_ranks(sm, pair_obj, cam_local[pair_view, pair_obj])
 
-    # Faces of the detailed (view, object) pairs.
-    counts = sm.face_start[pn + 1] - sm.face_start[pn]
-    kpair = np.repeat(np.arange(len(pn)), counts)
-    kview, kobj = pv[kpair], pn[kpair]
-    kface = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + sm.face_start[kobj]
+    faces = _pair_faces(sm, pair_view, pair_obj)
+    verts = _to_lidar(sm.vertices, sm.vert_obj, poses, True)
+    normals = _to_lidar(sm.normals, sm.face_obj, poses, False)
+    cents = _to_lidar(sm.centroids, sm.face_obj, poses, True)
+    shown = _facing(sm, faces, normals, cents, cams)
+    points = _to_cameras(verts, cams)[sm.faces[faces.face[shown]], faces.view[shown, None]]  # (K, 8, 3)
+    k, uf, vf = _face_polygons(points, faces, shown, cams, rig, config)
+    iv, io, rect_u, rect_v = _impostor_polygons(boxes)
 
-    def to_lidar(p: np.ndarray, obj: np.ndarray, translate: bool) -> np.ndarray:
-        c, s = cy[obj], sy[obj]
-        out = np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1], p[:, 2]], axis=1)
-        return out + poses.centre[obj] if translate else out
-
-    verts = to_lidar(sm.vertices, sm.vert_obj, True)
-    normals = to_lidar(sm.normals, sm.face_obj, False)
-    cents = to_lidar(sm.centroids, sm.face_obj, True)
-    facing = np.sum(normals[kface] * (ts[kview] - cents[kface]), axis=1) > 0
-    par = sm.parents[kface]
-    is_decal = par >= 0
-    facing = np.where(is_decal, facing[np.where(is_decal, np.arange(len(kface)) - (kface - par), 0)], facing)
-    k = np.nonzero(facing)[0]
-    pts = to_cameras(verts)[sm.faces[kface[k]], kview[k, None]]  # (K, 8, 3) camera frames
-    z_in = pts[..., 2] >= near
-    inside, crossing = z_in.all(1), z_in.any(1) & ~z_in.all(1)
-
-    def project(p: np.ndarray, views: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        inv_z = 1.0 / np.maximum(p[..., 2], near)
-        u = fx[views, None] * p[..., 0] * inv_z + cx[views, None]
-        v = fy[views, None] * p[..., 1] * inv_z + cyy[views, None]
-        # Shoelace area; the padding repeats a vertex, which adds nothing.
-        twice = np.sum(u[:, :-1] * v[:, 1:] - u[:, 1:] * v[:, :-1], axis=-1) + (u[:, -1] * v[:, 0] - u[:, 0] * v[:, -1])
-        ok = (u.min(-1) < w) & (u.max(-1) > 0) & (v.min(-1) < h) & (v.max(-1) > 0) & (np.abs(twice) >= 2 * min_area)
-        return u[ok], v[ok], ok
-
-    # Only faces crossing the near plane need clipping; the others are padded to the same layout.
-    uf, vf, ok = project(pts[inside], kview[k[inside]])
-    uf, vf = (np.concatenate([a, np.repeat(a[:, -1:], CLIPPED_VERTS - MAX_FACE_VERTS, 1)], 1) for a in (uf, vf))
-    k_in = k[inside][ok]
-    clipped, _ = clip_near(pts[crossing], near)
-    uc, vc, ok = project(clipped, kview[k[crossing]])
-    k = np.concatenate([k_in, k[crossing][ok]])
-    uf, vf = np.concatenate([uf, uc]), np.concatenate([vf, vc])
-
-    # Impostors: the projected box's bounding rectangle, padded to the polygon layout.
-    iv, io = np.nonzero(impostor)
-    rect_u = np.stack([umin[iv, io], umax[iv, io], umax[iv, io], umin[iv, io]], -1)
-    rect_v = np.stack([vmin[iv, io], vmin[iv, io], vmax[iv, io], vmax[iv, io]], -1)
-    rect_u = np.concatenate([rect_u, np.repeat(rect_u[:, -1:], CLIPPED_VERTS - 4, 1)], 1)
-    rect_v = np.concatenate([rect_v, np.repeat(rect_v[:, -1:], CLIPPED_VERTS - 4, 1)], 1)
-
-    ce, se = math.cos(frame.ego.yaw), math.sin(frame.ego.yaw)
-    sun = lighting.sun_direction
-    sun_l = np.array([ce * sun[0] + se * sun[1], -se * sun[0] + ce * sun[1], sun[2]])
-    views = np.concatenate([kview[k], iv])
-    objs = np.concatenate([kobj[k], io])
-    faces = np.concatenate([kface[k], np.full(len(iv), -1)])
-    ranks = np.concatenate([part_rank[kpair[k], sm.face_part[kface[k]]], np.zeros(len(iv), np.int64)])
-    decal = np.concatenate([is_decal[k], np.zeros(len(iv), bool)])
-    order = np.lexsort((faces, decal, ranks, -obj_dist[views, objs], views))
+    sun_l = _sun_in_lidar_frame(frame, lighting)
+    views = np.concatenate([faces.view[k], iv])
+    objs = np.concatenate([faces.obj[k], io])
+    face_ids = np.concatenate([faces.face[k], np.full(len(iv), -1)])
+    ranks = np.concatenate([part_rank[faces.pair[k], sm.face_part[faces.face[k]]], np.zeros(len(iv), np.int64)])
+    decal = np.concatenate([sm.parents[faces.face[k]] >= 0, np.zeros(len(iv), bool)])
+    order = np.lexsort((face_ids, decal, ranks, -obj_dist[views, objs], views))
     colors = np.concatenate(
         [
-            face_colors(sm, kface[k], normals, cents, sun_l, lighting),
+            face_colors(sm, faces.face[k], normals, cents, sun_l, lighting),
             _impostor_colors(sm, poses, sun_l, lighting)[io],
         ]
     )
-    albedos = np.concatenate([sm.albedo[kface[k]], sm.object_albedo[io]])
+    albedos = np.concatenate([sm.albedo[faces.face[k]], sm.object_albedo[io]])
     # cv2 puts pixel centres at integer coordinates; ours are at +0.5.
     lim = float(FIXED_POINT_LIMIT_PX)
     uv = np.stack([np.concatenate([uf, rect_u]), np.concatenate([vf, rect_v])], -1) - 0.5
-    polys = np.round(np.clip(uv, -lim, lim) * float(1 << shift)).astype(np.int32)
+    polys = np.round(np.clip(uv, -lim, lim) * float(1 << config.subpixel_bits)).astype(np.int32)
     return DrawPlan(
         polygons=polys[order],
         colors=colors[order],
         albedos=albedos[order],
         objects=objs[order],
-        view_start=np.searchsorted(views[order], np.arange(nviews + 1)),
+        view_start=np.searchsorted(views[order], np.arange(rig.num_views + 1)),
     )

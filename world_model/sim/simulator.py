@@ -96,10 +96,7 @@ class ProceduralSimulator:
             rig,
             self._rig_arrays.get(id(rig), (rig,), lambda: objects.rig_arrays(rig)),
             lighting_for(frame.prompt),
-            cfg.near_plane_m,
-            cfg.min_face_area_px,
-            cfg.impostor_max_px,
-            cfg.subpixel_bits,
+            cfg,
         )
 
     # -- sensors --------------------------------------------------------------------------------
