@@ -22,8 +22,14 @@ from world_model.scene import (
 )
 from world_model.sensors import CameraRig, default_rig
 
+# The demo highway's lanes: demo_frame places its vehicles in them and its shoulder objects beside them.
+DEMO_LANES = 4
+DEMO_LANE_WIDTH_M = 4.0
 
-def straight_road(num_lanes: int = 4, lane_width: float = 4.0, x0: float = -300.0, x1: float = 1500.0) -> MapGeometry:
+
+def straight_road(
+    num_lanes: int = DEMO_LANES, lane_width: float = DEMO_LANE_WIDTH_M, x0: float = -300.0, x1: float = 1500.0
+) -> MapGeometry:
     """Lanes along +x; lane k is centred at y = -k * lane_width (lane 0 leftmost, as highway-env's)."""
     if num_lanes < 1:
         raise ValueError(f"num_lanes must be >= 1, got {num_lanes}")
@@ -69,16 +75,16 @@ def demo_frame(
     road: MapGeometry | None = None,
     frame_index: int = 0,
     ego_x: float = 0.0,
-    num_lanes: int = 4,
-    lane_width: float = 4.0,
 ) -> SceneFrame:
-    """A highway frame with ``num_objects`` objects of every category around the ego (deterministic).
+    """A frame of the demo highway (:func:`straight_road`'s defaults) with ``num_objects`` objects of
+    every category around the ego (deterministic).
 
     Vehicles sit in lanes ahead and behind; pedestrians, cones and barriers on the shoulders.
     Pass the same ``road`` (and ``rig``) object for every frame of a sequence so caches are shared.
     """
     rng = np.random.default_rng(seed)
-    road = road if road is not None else straight_road(num_lanes, lane_width)
+    road = road if road is not None else straight_road()
+    num_lanes, lane_width = DEMO_LANES, DEMO_LANE_WIDTH_M
     colors = list(NAMED_COLORS)
     shoulder = {"pedestrian", "cone", "barrier"}
     objects = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from functools import lru_cache
+from typing import NamedTuple
 
 import numpy as np
 
@@ -128,23 +129,24 @@ def bus(l: float, w: float, h: float) -> Mesh:
     return mb.build()
 
 
-def _cab_and_chassis(
-    mb: MeshBuilder,
-    l: float,
-    w: float,
-    h: float,
-    r: float,
-    tread: float,
-    cab_len: float,
-    cab_top: float,
-    axles: tuple[float, ...],
-) -> float:
+class _TruckFront(NamedTuple):
+    """What a truck's wheels, chassis and cab look like (metres, in the truck's box frame)."""
+
+    wheel_radius: float
+    tread: float  # wheel width, inside the box sides
+    cab_len: float
+    cab_top: float  # z of the cab's roof
+    axles: tuple[float, ...]  # x of each pair of wheels
+
+
+def _cab_and_chassis(mb: MeshBuilder, l: float, w: float, h: float, front: _TruckFront) -> float:
     """Truck front: wheels, a chassis between them, a cab with windows; returns the chassis top z."""
     z0 = -h / 2
-    _wheels(mb, axles, w, h, r, tread)
+    r, tread, cab_len = front.wheel_radius, front.tread, front.cab_len
+    _wheels(mb, front.axles, w, h, r, tread)
     chassis_top = z0 + 2 * r
     mb.box((-l / 2, -w / 2 + tread, z0 + 0.5 * r), (l / 2, w / 2 - tread, chassis_top), "trim")
-    cab = mb.box((l / 2 - cab_len, -w / 2, chassis_top), (l / 2, w / 2, cab_top), "body")
+    cab = mb.box((l / 2 - cab_len, -w / 2, chassis_top), (l / 2, w / 2, front.cab_top), "body")
     mb.decal(cab["front"], 0.07, 0.93, 0.08, 0.5, "glass")
     mb.side_decals(cab, 0.5, 0.94, 0.1, 0.45, "glass")
     _lamps(mb, cab["front"], None, 0.78, 0.92)
@@ -153,9 +155,9 @@ def _cab_and_chassis(
 
 def truck(l: float, w: float, h: float) -> Mesh:
     mb = MeshBuilder()
-    r, tread = 0.14 * h, 0.14 * w
     cab_len = 0.22 * l
-    top = _cab_and_chassis(mb, l, w, h, r, tread, cab_len, -h / 2 + 0.8 * h, (0.37 * l, -0.28 * l, -0.4 * l))
+    front = _TruckFront(0.14 * h, 0.14 * w, cab_len, -h / 2 + 0.8 * h, (0.37 * l, -0.28 * l, -0.4 * l))
+    top = _cab_and_chassis(mb, l, w, h, front)
     cargo = mb.box((-l / 2, -w / 2, top), (l / 2 - cab_len - 0.02 * l, w / 2, h / 2), "body")
     mb.side_decals(cargo, 0.0, 1.0, 0.86, 0.92, "body_dark")
     _lamps(mb, None, cargo["back"], 0.88, 0.97)
@@ -164,9 +166,9 @@ def truck(l: float, w: float, h: float) -> Mesh:
 
 def tree_truck(l: float, w: float, h: float) -> Mesh:
     mb = MeshBuilder()
-    r, tread = 0.12 * h, 0.14 * w
     cab_len = 0.2 * l
-    top = _cab_and_chassis(mb, l, w, h, r, tread, cab_len, -h / 2 + 0.72 * h, (0.38 * l, -0.25 * l, -0.38 * l))
+    front = _TruckFront(0.12 * h, 0.14 * w, cab_len, -h / 2 + 0.72 * h, (0.38 * l, -0.25 * l, -0.38 * l))
+    top = _cab_and_chassis(mb, l, w, h, front)
     bed_x1 = l / 2 - cab_len - 0.02 * l
     bed = mb.box((-l / 2, -w / 2, top), (bed_x1, w / 2, top + 0.06 * h), "trim")
     _lamps(mb, None, bed["back"], 0.2, 0.8)
@@ -186,9 +188,9 @@ def tree_truck(l: float, w: float, h: float) -> Mesh:
 
 def cement_mixer(l: float, w: float, h: float) -> Mesh:
     mb = MeshBuilder()
-    r, tread = 0.13 * h, 0.14 * w
     cab_len = 0.22 * l
-    top = _cab_and_chassis(mb, l, w, h, r, tread, cab_len, -h / 2 + 0.78 * h, (0.36 * l, -0.22 * l, -0.36 * l))
+    front = _TruckFront(0.13 * h, 0.14 * w, cab_len, -h / 2 + 0.78 * h, (0.36 * l, -0.22 * l, -0.36 * l))
+    top = _cab_and_chassis(mb, l, w, h, front)
     # The drum: an octagonal prism, rear end raised, kept inside the space behind the cab.
     tilt = math.radians(6.0)
     length = 0.68 * l
