@@ -154,7 +154,7 @@ def test_sb3_ray_example_trains_over_ray_vector_env(tmp_path, monkeypatch):
 def test_more_workers_than_the_instance_holds_are_refused_before_any_starts():
     """The instance has 2 CPUs: workers that could never start are refused at once, not waited for."""
     with pytest.raises(ClusterError, match=r"workers=1000000 of 1 CPU each .* the Ray instance has 2: .* at most 2"):
-        evaluate_on_ray("idm", ["empty_highway"], workers=1_000_000, **EVAL)
+        evaluate_on_ray(EvalRequest("idm", ["empty_highway"], **EVAL), workers=1_000_000)
     with pytest.raises(ClusterError, match=r"workers=3 of 1 CPU each need 3 CPUs"):
         RayVectorEnv(3, workers=3, scenario=SHORT, config=CONFIG)
 
@@ -162,7 +162,7 @@ def test_more_workers_than_the_instance_holds_are_refused_before_any_starts():
 def test_workers_that_do_not_start_in_time_end_with_an_error():
     """A worker imports torch before it answers: far longer than these timeouts."""
     with pytest.raises(ClusterError, match="no Ray worker started within 0.01 s"):
-        evaluate_on_ray("idm", ["empty_highway"], workers=1, start_timeout_s=0.01, **EVAL)
+        evaluate_on_ray(EvalRequest("idm", ["empty_highway"], **EVAL), workers=1, start_timeout_s=0.01)
     with pytest.raises(ClusterError, match="1 of 1 Ray workers did not start within 0.01 s"):
         RayVectorEnv(2, workers=1, scenario=SHORT, config=CONFIG, start_timeout_s=0.01)
 

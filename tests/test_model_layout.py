@@ -260,7 +260,7 @@ def test_layout_training_flag_switches_the_stage_config():
 def test_one_decoder_switch_turns_every_label_map_channel_on_and_the_config_refuses_the_old_flags():
     from world_model.bundle import load_bundle_files
     from world_model.model.config import DECODER_LABEL_CHANNELS, without_label_decoder
-    from world_model.sim.labels import LABEL_CLASSES
+    from world_model.raster.classes import LABEL_CLASSES
 
     on = with_layout(get_preset("tiny"), True)
     assert on.layout.decoder and on.layout.label_channels == len(LABEL_CLASSES) + 5

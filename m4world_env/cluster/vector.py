@@ -77,6 +77,7 @@ class RayVectorEnv(VectorEnv):
     more than the instance's CPUs hold) are a :class:`~m4world_env.cluster.ClusterError`.
     """
 
+    # function-size: gym.make_vec's keyword arguments (the local vector env's), then the cluster's
     def __init__(
         self,
         num_envs: int = 1,
@@ -88,7 +89,7 @@ class RayVectorEnv(VectorEnv):
         address: str | None = None,
         cpus_per_worker: float = 1.0,
         start_timeout_s: float = WORKER_START_TIMEOUT_S,
-    ) -> None:  # the local vector env's parameters, then the cluster's
+    ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, numbers.Integral) or not 1 <= num_envs <= MAX_ENVS:
             raise InvalidOptionError(f"num_envs must be an integer in [1, {MAX_ENVS}], got {num_envs!r}")
         if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or not 1 <= workers <= num_envs:
