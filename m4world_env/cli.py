@@ -126,18 +126,15 @@ def _cmd_record(args: argparse.Namespace) -> int:
 
 def _cmd_import_nuscenes(args: argparse.Namespace) -> int:
     from world_model.data.nuscenes_import import NuScenesImportConfig, import_nuscenes
-    from world_model.model.config import get_preset
 
-    sensors = get_preset(args.preset).sensors  # the clips must match the model that trains on them
+    _check_out(args.out, "folder")
+    _check_out(args.scenarios, "folder", "--scenarios")
     cfg = NuScenesImportConfig(
         dataroot=Path(args.dataroot),
         version=args.version,
         out=Path(args.out),
         scenes=tuple(args.scenes or ()),
-        height=sensors.height,
-        width=sensors.width,
-        lidar=sensors.lidar,
-        bev=sensors.bev,
+        preset=args.preset,  # the clips match this preset's sensors, and so must the dataset's other clips
     )
     names = import_nuscenes(cfg)
     print(f"{len(names)} clips in {args.out}: {', '.join(names)}")

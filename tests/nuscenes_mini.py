@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -255,7 +256,7 @@ def write_mini_nuscenes(root: Path) -> Path:
                         "next": sds[i + 1] if i + 1 < len(sds) else "",
                     }
                 )
-    _write_map_expansion(root / "maps" / "expansion" / f"{LOCATIONS[1]}.json")
+    _write_map_expansion(map_file(root))
     (root / VERSION).mkdir(parents=True, exist_ok=True)
     for name, rows in tables.items():
         (root / VERSION / f"{name}.json").write_text(json.dumps(rows))
@@ -365,3 +366,35 @@ def _write_map_expansion(path: Path) -> None:
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(layers))
+
+
+def map_file(root: Path) -> Path:
+    """scene-0002's map expansion file under ``root``."""
+    return root / "maps" / "expansion" / f"{LOCATIONS[1]}.json"
+
+
+def load_tables(root: Path) -> dict[str, object]:
+    """Every table of the dataset under ``root``, by name (``sample_data``, ...)."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted((root / VERSION).glob("*.json"))}
+
+
+def edit_table(root: Path, table: str, edit: Callable[[list], object]) -> None:
+    """Rewrite ``table`` with ``edit(rows)``: its return value, or the rows it changed in place (None)."""
+    path = root / VERSION / f"{table}.json"
+    rows = json.loads(path.read_text())
+    changed = edit(rows)
+    path.write_text(json.dumps(rows if changed is None else changed))
+
+
+def copy_with_tables(base: Path, dest: Path, tables: dict[str, object], layers: object = None) -> Path:
+    """A dataroot at ``dest`` with ``tables`` (and ``layers`` as scene-0002's map expansion, when
+    given), sharing ``base``'s sensor files through links; returns ``dest``."""
+    (dest / VERSION).mkdir(parents=True)
+    for folder in ("samples", "sweeps", "maps") if layers is None else ("samples", "sweeps"):
+        (dest / folder).symlink_to(base / folder, target_is_directory=True)
+    for name, rows in tables.items():
+        (dest / VERSION / f"{name}.json").write_text(json.dumps(rows))
+    if layers is not None:
+        map_file(dest).parent.mkdir(parents=True)
+        map_file(dest).write_text(json.dumps(layers))
+    return dest

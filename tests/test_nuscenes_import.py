@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 
@@ -9,7 +11,7 @@ pytest.importorskip("nuscenes")
 
 from m4world_env.cli import main  # noqa: E402
 from tests import nuscenes_mini as mini  # noqa: E402
-from world_model.data import read_clip  # noqa: E402
+from world_model.data import list_clips, read_clip  # noqa: E402
 from world_model.data.nuscenes_import import map_category  # noqa: E402
 from world_model.sensors import LidarSpec  # noqa: E402
 
@@ -165,6 +167,209 @@ def test_bad_input_is_refused_by_name(tmp_path, capsys, change, args, message):
     assert message in err
     if change:
         assert change in err
+
+
+def test_an_unreadable_sensor_file_stops_at_its_scene_and_leaves_no_half_clip(tmp_path, capsys):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    (root / "samples/CAM_FRONT/scene-0002__CAM_FRONT__1.jpg").write_bytes(b"\x00\x01garbage")
+    out = tmp_path / "out"
+    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--preset", "tiny"]) == 2
+    assert "scene scene-0002: cannot read camera file" in capsys.readouterr().err
+    # The scene before it is a whole clip; the refused scene has none, not even a partial one.
+    assert list_clips(out) == ["nuscenes_scene-0001"] and read_clip(out, "nuscenes_scene-0001").num_frames == 11
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["nuscenes_scene-0001"]
+
+
+def _first_lidar_cs(rows):
+    return next(r for r in rows if r["token"] == mini.token("cs", "LIDAR_TOP"))
+
+
+def _row(rows, token):
+    return next(r for r in rows if r["token"] == token)
+
+
+def _set(token, field, value):
+    return lambda rows: _row(rows, token).__setitem__(field, value)
+
+
+NAN = float("nan")
+SAMPLE_1 = mini.token("sample", 0, 1)
+LIDAR_SD_1 = mini.token("sd", 0, "LIDAR_TOP", 1)
+EGO_0 = mini.token("ego", 0, "LIDAR_TOP", 0)
+CAR_ANN_0 = mini.token("ann", 0, "car", 0)
+CS_FRONT = mini.token("cs", "CAM_FRONT")
+K_ZERO = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+K_NAN = [[NAN, 0.0, 80.0], [0.0, 126.0, 45.0], [0.0, 0.0, 1.0]]
+
+
+def _reverse_sample_1(rows):
+    _row(rows, SAMPLE_1)["timestamp"] = _row(rows, mini.token("sample", 0, 0))["timestamp"] - 1
+
+
+def _no_front_key_frame(rows):
+    _row(rows, mini.token("sd", 0, "CAM_BACK", 0))["is_key_frame"] = False
+
+
+def _lidar_loop(rows):  # the second sweep leads back to the first
+    _row(rows, LIDAR_SD_1)["next"] = mini.token("sd", 0, "LIDAR_TOP", 0)
+
+
+def _duplicate_scene_name(rows):
+    rows[1]["name"] = rows[0]["name"]
+
+
+# (table, edit, what the one error line names: the table file, the row, the field, the value)
+MALFORMED_TABLES = {
+    "table is an object": ("scene", lambda rows: {"rows": rows}, ["a table is a JSON list", "got an object"]),
+    "row is null": ("sample", lambda rows: [None, *rows[1:]], ["row #0 is None"]),
+    "scene without name": (
+        "scene",
+        lambda rows: [{k: v for k, v in rows[0].items() if k != "name"}, *rows[1:]],
+        [f"row {mini.token('scene', 0)!r}", "field 'name' is missing"],
+    ),
+    "dangling first_sample_token": (
+        "scene",
+        _set(mini.token("scene", 0), "first_sample_token", "nope"),
+        ["field 'first_sample_token' is 'nope'", "sample.json"],
+    ),
+    "dangling ego_pose_token": (
+        "sample_data",
+        _set(LIDAR_SD_1, "ego_pose_token", "nope"),
+        [repr(LIDAR_SD_1), "field 'ego_pose_token' is 'nope'", "ego_pose.json"],
+    ),
+    "string translation": ("ego_pose", _set(EGO_0, "translation", "1,2,3"), [repr(EGO_0), "'translation' is '1,2,3'"]),
+    "reversed timestamps": ("sample", _reverse_sample_1, [repr(SAMPLE_1), "field 'timestamp'", "strictly increase"]),
+    "NaN timestamp": ("sample", _set(SAMPLE_1, "timestamp", NAN), [repr(SAMPLE_1), "field 'timestamp' is nan"]),
+    "zero ego quaternion": ("ego_pose", _set(EGO_0, "rotation", [0, 0, 0, 0]), ["'rotation' is [0, 0, 0, 0]", "unit"]),
+    "zero LiDAR calibration rotation": (
+        "calibrated_sensor",
+        lambda rows: _first_lidar_cs(rows).__setitem__("rotation", [0, 0, 0, 0]),
+        [repr(mini.token("cs", "LIDAR_TOP")), "field 'rotation' is [0, 0, 0, 0]"],
+    ),
+    "zero intrinsics": ("calibrated_sensor", _set(CS_FRONT, "camera_intrinsic", K_ZERO), [repr(CS_FRONT), "> 0"]),
+    "NaN intrinsics": ("calibrated_sensor", _set(CS_FRONT, "camera_intrinsic", K_NAN), ["'camera_intrinsic' is [[nan"]),
+    "negative size": ("sample_annotation", _set(CAR_ANN_0, "size", [-1.9, 4.5, 1.6]), ["'size' is [-1.9, 4.5, 1.6]"]),
+    "NaN annotation pose": (
+        "sample_annotation",
+        _set(CAR_ANN_0, "translation", [NAN, 0.0, 0.0]),
+        [repr(CAR_ANN_0), "field 'translation' is [nan, 0.0, 0.0]"],
+    ),
+    "no camera keyframe": (
+        "sample_data",
+        _no_front_key_frame,
+        ["no CAM_BACK keyframe", repr(mini.token("sample", 0, 0))],
+    ),
+    "camera without pixels": (
+        "sample_data",
+        _set(mini.token("sd", 0, "CAM_FRONT", 0), "width", 0),
+        ["field 'width' is 0"],
+    ),
+    "missing sensor file": (
+        "sample_data",
+        _set(LIDAR_SD_1, "filename", "sweeps/LIDAR_TOP/gone.pcd.bin"),
+        [repr(LIDAR_SD_1), "field 'filename' is 'sweeps/LIDAR_TOP/gone.pcd.bin'", "no such file"],
+    ),
+    "looping chain": ("sample_data", _lidar_loop, ["field 'timestamp'", "strictly increase"]),
+    "two scenes of one name": ("scene", _duplicate_scene_name, ["field 'name' is 'scene-0001'"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MALFORMED_TABLES))
+def test_malformed_tables_are_refused_by_table_row_and_field_before_any_clip(tmp_path, capsys, case):
+    table, edit, names = MALFORMED_TABLES[case]
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    mini.edit_table(root, table, edit)
+    out = tmp_path / "out"
+    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--preset", "tiny"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("m4world import: error: ")  # one line, no traceback
+    assert f"{root / mini.VERSION / table}.json: " in err
+    for name in names:
+        assert name in err
+    assert not out.exists()  # nothing written, the other scene's clip included
+
+
+def test_a_scene_is_checked_whole_before_any_clip_is_written(tmp_path, capsys):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    later = mini.token("sd", 1, "LIDAR_TOP", 3)  # scene-0002's last sweep, timed before the one before it
+    mini.edit_table(root, "sample_data", _set(later, "timestamp", 0))
+    out = tmp_path / "out"
+    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--preset", "tiny"]) == 2
+    assert f"row {later!r}: field 'timestamp' is 0" in capsys.readouterr().err
+    assert not out.exists()  # scene-0001 comes first and is fine, yet no clip of it either
+    # A scene's chains are checked when it is chosen: the other scene alone imports.
+    args = ["--scenes", "scene-0001", "--preset", "tiny"]
+    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), *args]) == 0
+    assert list_clips(out) == ["nuscenes_scene-0001"]
+
+
+def _node_nan(layers):
+    layers["node"][0]["x"] = NAN
+
+
+def _zero_radius(layers):
+    layers["arcline_path_3"]["turn_left"][0]["radius"] = 0.0
+
+
+def _dangling_polygon(layers):
+    layers["drivable_area"][0]["polygon_tokens"] = ["p0", "nope"]
+
+
+def _arclines_as_list(layers):
+    layers["arcline_path_3"] = list(layers["arcline_path_3"].values())
+
+
+@pytest.mark.parametrize(
+    "edit, names",
+    [
+        (_node_nan, ["layer 'node': row 'n0'", "field 'x' is nan"]),
+        (_zero_radius, ["layer 'arcline_path_3' lane 'turn_left'", "field 'radius' is 0.0"]),
+        (_dangling_polygon, ["layer 'drivable_area': row 'da0'", "field 'polygon_tokens'", "'nope' is no token"]),
+        (_arclines_as_list, ["layer 'arcline_path_3' is a JSON object"]),
+    ],
+)
+def test_a_malformed_map_expansion_is_refused_by_layer_row_and_field_before_any_clip(tmp_path, capsys, edit, names):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    layers = json.loads(mini.map_file(root).read_text())
+    edit(layers)
+    mini.map_file(root).write_text(json.dumps(layers))
+    out = tmp_path / "out"
+    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--preset", "tiny"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{mini.map_file(root)}: " in err
+    for name in names:
+        assert name in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("first, then", [("tiny", "default"), ("default", "tiny")])
+def test_a_dataset_keeps_the_preset_of_its_first_clip(tmp_path, capsys, first, then):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    out = tmp_path / "out"
+    base = ["import", "nuscenes", "--dataroot", str(root), "--out", str(out)]
+    assert main([*base, "--scenes", "scene-0001", "--preset", first]) == 0
+    capsys.readouterr()
+    assert main([*base, "--scenes", "scene-0002", "--preset", then]) == 2
+    err = capsys.readouterr().err
+    assert f"--preset {then}: {out} holds clips at preset {first!r}" in err and f"preset {then!r}: " in err
+    assert list_clips(out) == ["nuscenes_scene-0001"] and not (out / "nuscenes_scene-0002").exists()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--out", "FILE"], "--out FILE is a file"),
+        (["--out", "OUT", "--scenarios", "FILE"], "--scenarios FILE is a file"),
+        (["--out", "OUT", "--preset", "huge"], "--preset: unknown preset 'huge'"),
+    ],
+)
+def test_import_flags_are_refused_by_name_before_any_work(tmp_path, capsys, args, message):
+    root = mini.write_mini_nuscenes(tmp_path / "ns")
+    (tmp_path / "FILE").write_text("not a folder")
+    args = [str(tmp_path / a) if a in ("FILE", "OUT") else a for a in args]
+    assert main(["import", "nuscenes", "--dataroot", str(root), *args]) == 2
+    assert message.replace("FILE", str(tmp_path / "FILE")) in capsys.readouterr().err
+    assert not (tmp_path / "OUT").exists()
 
 
 def test_documented_install_is_what_make_install_runs():

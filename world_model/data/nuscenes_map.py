@@ -3,7 +3,8 @@ logged path, and the lanes the logged ego drove along, as one centerline.
 
 The file is read with ``json`` (no shapely); lane centerlines come from its ``arcline_path_3`` layer
 through the devkit's ``arcline_path_utils.discretize_lane`` (pure Python). Coordinates are the
-nuScenes global frame (x east, y north).
+nuScenes global frame (x east, y north). Every layer read here is checked when the file is read
+(:func:`check_layers`), before the devkit sees any of it.
 """
 
 from __future__ import annotations
@@ -16,6 +17,17 @@ from pathlib import Path
 
 import numpy as np
 
+from world_model.data.nuscenes_tables import (
+    MAX_COORDINATE_M,
+    Check,
+    NuScenesFormatError,
+    check_rows,
+    field_error,
+    finite_number,
+    finite_numbers,
+    text_field,
+    token_field,
+)
 from world_model.scene import LaneLine, MapGeometry
 
 # Half-width of the drivable corridor drawn along the logged ego path, metres.
@@ -28,19 +40,121 @@ HEADING_COST_M_PER_RAD = 2.0  # between two candidate lanes, 1 rad of heading co
 ROUTE_EXTENSION_M = 60.0  # connected lanes added before the first and after the last driven lane
 DEFAULT_LANE_WIDTH_M = 3.5  # when no route lane has a polygon to measure
 LANE_WIDTH_RANGE_M = (2.5, 6.0)
+MIN_ARC_RADIUS_M = 0.1  # an arcline path's turning radius (the devkit divides by it)
+MAX_LANE_LENGTH_M = 10_000.0  # an arcline path's length (the devkit makes a pose every CENTERLINE_STEP_M)
 
 
-class MapExpansionError(ValueError):
-    """A map expansion file that cannot be read (its path is in the message)."""
+class MapExpansionError(NuScenesFormatError):
+    """A map expansion file that cannot be read (its path, and the layer, row and field, are in the message)."""
+
+
+def _coordinate(value: object) -> str | None:
+    x = finite_number(value)
+    return None if x is not None and abs(x) <= MAX_COORDINATE_M else f"a finite number within ±{MAX_COORDINATE_M:g} m"
+
+
+def _tokens(value: object) -> str | None:
+    ok = isinstance(value, list) and all(isinstance(t, str) for t in value)
+    return None if ok else "a list of token strings"
+
+
+def _pose(value: object) -> str | None:
+    pose = finite_numbers(value, 3)
+    ok = pose and abs(pose[0]) <= MAX_COORDINATE_M and abs(pose[1]) <= MAX_COORDINATE_M
+    return None if ok else f"3 finite numbers (x, y, yaw), x and y within ±{MAX_COORDINATE_M:g} m"
+
+
+def _radius(value: object) -> str | None:
+    r = finite_number(value)
+    return None if r is not None and r >= MIN_ARC_RADIUS_M else f"a finite number of metres >= {MIN_ARC_RADIUS_M:g}"
+
+
+def _segment_lengths(value: object) -> str | None:
+    lengths = finite_numbers(value, 3)
+    ok = lengths and min(lengths) >= 0 and sum(lengths) <= MAX_LANE_LENGTH_M
+    return None if ok else f"3 finite numbers >= 0 of metres, at most {MAX_LANE_LENGTH_M:g} m together"
+
+
+# The layers read here (lists of rows), the fields read of their rows, and the layers those fields' tokens name.
+LAYER_FIELDS: dict[str, dict[str, Check]] = {
+    "node": {"token": token_field, "x": _coordinate, "y": _coordinate},
+    "polygon": {"token": token_field, "exterior_node_tokens": _tokens},
+    "line": {"token": token_field, "node_tokens": _tokens},
+    "drivable_area": {"polygon_tokens": _tokens},
+    "lane_divider": {"line_token": token_field},
+    "road_divider": {"line_token": token_field},
+    "lane": {"token": token_field},
+    "lane_connector": {"token": token_field},
+}
+OPTIONAL_LAYERS = ("lane_connector",)
+LAYER_REFERENCES = {
+    ("polygon", "exterior_node_tokens"): "node",
+    ("line", "node_tokens"): "node",
+    ("drivable_area", "polygon_tokens"): "polygon",
+    ("lane_divider", "line_token"): "line",
+    ("road_divider", "line_token"): "line",
+}
+ARCLINE_FIELDS: dict[str, Check] = {
+    "start_pose": _pose,
+    "shape": text_field,
+    "radius": _radius,
+    "segment_length": _segment_lengths,
+}
+
+
+def check_layers(path: Path, layers: object) -> dict:
+    """``layers`` when every layer read here holds what it should (:data:`LAYER_FIELDS`, each token
+    naming a row of its layer, the ``arcline_path_3`` paths and the ``connectivity``), else
+    :class:`MapExpansionError` naming the file, the layer, the row and the field."""
+    try:
+        if not isinstance(layers, dict):
+            raise MapExpansionError(f"{path}: a map expansion is a JSON object of layers, got {type(layers).__name__}")
+        for layer, fields in LAYER_FIELDS.items():
+            if layer not in layers and layer not in OPTIONAL_LAYERS:
+                raise MapExpansionError(f"{path}: layer {layer!r} is missing")
+            check_rows(f"{path}: layer {layer!r}", layers.get(layer, []), fields, {"polygon_token": text_field})
+        tokens = {layer: {r["token"] for r in layers[layer]} for layer in ("node", "polygon", "line")}
+        for (layer, field), target in LAYER_REFERENCES.items():
+            for i, row in enumerate(layers[layer]):
+                named = row[field] if isinstance(row[field], list) else [row[field]]
+                if missing := [t for t in named if t not in tokens[target]]:
+                    allowed = f"{missing[0]!r} is no token of layer {target!r}"
+                    raise field_error(f"{path}: layer {layer!r}", row, field, allowed, i)
+        _check_arclines(path, layers.get("arcline_path_3", {}))
+        _check_connectivity(path, layers.get("connectivity", {}))
+    except MapExpansionError:
+        raise
+    except NuScenesFormatError as e:  # check_rows' message, which names the file and the layer
+        raise MapExpansionError(str(e)) from None
+    return layers
+
+
+def _check_arclines(path: Path, arclines: object) -> None:
+    if not isinstance(arclines, dict):
+        raise MapExpansionError(f"{path}: layer 'arcline_path_3' is a JSON object (lane token -> arcline paths)")
+    for token, paths in arclines.items():
+        check_rows(f"{path}: layer 'arcline_path_3' lane {token!r}", paths, ARCLINE_FIELDS)
+
+
+def _check_connectivity(path: Path, links: object) -> None:
+    ok = isinstance(links, dict) and all(
+        isinstance(v, dict) and all(_tokens(v.get(d, [])) is None for d in ("incoming", "outgoing"))
+        for v in links.values()
+    )
+    if not ok:
+        raise MapExpansionError(
+            f"{path}: layer 'connectivity' is a JSON object: lane token -> {{'incoming': [...], 'outgoing': [...]}}"
+        )
 
 
 @lru_cache(maxsize=2)
 def _layers(path: Path) -> dict:
-    """The file's layers, read once per process (a real map expansion is tens of megabytes)."""
+    """The file's checked layers, read once per process (a real map expansion is tens of megabytes)."""
     try:
-        return json.loads(path.read_text())
-    except ValueError as e:
+        layers = json.loads(path.read_bytes())
+    except (OSError, ValueError, RecursionError) as e:
         raise MapExpansionError(f"map expansion {path} is not readable: {e!r}") from e
+    return check_layers(path, layers)
 
 
 def map_layers(dataroot: str | Path, location: str) -> tuple[Path, dict] | None:
@@ -72,15 +186,12 @@ def map_expansion(dataroot: str | Path, location: str, path_xy: np.ndarray, marg
     if found is None:
         return None
     path, layers = found
-    try:
-        nodes = {n["token"]: (n["x"], n["y"]) for n in layers["node"]}
-        polygons = {p["token"]: p["exterior_node_tokens"] for p in layers["polygon"]}
-        lines = {ln["token"]: ln["node_tokens"] for ln in layers["line"]}
-        areas = [polygons[t] for a in layers["drivable_area"] for t in a["polygon_tokens"]]
-        dividers = [(lines[d["line_token"]], "dashed") for d in layers["lane_divider"]]
-        dividers += [(lines[d["line_token"]], "solid") for d in layers["road_divider"]]
-    except (KeyError, TypeError) as e:
-        raise MapExpansionError(f"map expansion {path} is not readable: {e!r}") from e
+    nodes = {n["token"]: (n["x"], n["y"]) for n in layers["node"]}
+    polygons = {p["token"]: p["exterior_node_tokens"] for p in layers["polygon"]}
+    lines = {ln["token"]: ln["node_tokens"] for ln in layers["line"]}
+    areas = [polygons[t] for a in layers["drivable_area"] for t in a["polygon_tokens"]]
+    dividers = [(lines[d["line_token"]], "dashed") for d in layers["lane_divider"]]
+    dividers += [(lines[d["line_token"]], "solid") for d in layers["road_divider"]]
     lo, hi = path_xy.min(axis=0) - margin, path_xy.max(axis=0) + margin
 
     def near(tokens: list[str]) -> np.ndarray | None:
@@ -108,19 +219,19 @@ def _centerlines(layers: dict, path: Path, lo: np.ndarray, hi: np.ndarray) -> di
     """(N, 3) x, y, yaw poses of every lane's centerline whose bounding box meets [lo, hi]."""
     from nuscenes.map_expansion.arcline_path_utils import discretize_lane
 
-    try:
-        arclines = layers["arcline_path_3"]
-        tokens = [r["token"] for r in (*layers["lane"], *layers.get("lane_connector", []))]
-    except (KeyError, TypeError) as e:
-        raise MapExpansionError(f"map expansion {path}: no lane centerlines (arcline_path_3, lane): {e!r}") from e
+    if "arcline_path_3" not in layers:
+        raise MapExpansionError(f"{path}: layer 'arcline_path_3' is missing (the lanes' centerlines)")
+    arclines = layers["arcline_path_3"]
     out = {}
-    for token in tokens:
+    for token in (r["token"] for r in (*layers["lane"], *layers.get("lane_connector", []))):
         if not arclines.get(token):
             continue
-        try:
+        try:  # the paths are checked (check_layers): this is a guard, not a filter
             poses = np.array(discretize_lane(arclines[token], CENTERLINE_STEP_M), dtype=np.float64)
-        except (KeyError, TypeError, ValueError, AssertionError) as e:
-            raise MapExpansionError(f"map expansion {path}: arcline_path_3[{token!r}] is not readable: {e!r}") from e
+        except (KeyError, TypeError, ValueError, AssertionError, ArithmeticError) as e:
+            raise MapExpansionError(f"{path}: layer 'arcline_path_3' lane {token!r} is not readable: {e!r}") from e
+        if not np.all(np.isfinite(poses)):
+            raise MapExpansionError(f"{path}: layer 'arcline_path_3' lane {token!r} gives non-finite centerline poses")
         if np.all(poses[:, :2].max(axis=0) >= lo) and np.all(poses[:, :2].min(axis=0) <= hi):
             out[token] = poses
     return out
