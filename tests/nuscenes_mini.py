@@ -397,4 +397,5 @@ def copy_with_tables(base: Path, dest: Path, tables: dict[str, object], layers: 
     if layers is not None:
         map_file(dest).parent.mkdir(parents=True)
         map_file(dest).write_text(json.dumps(layers))
+        (dest / "maps" / "mini.png").symlink_to(base / "maps" / "mini.png")  # the map table's raster
     return dest

@@ -161,23 +161,18 @@ def test_bad_input_is_refused_by_name(tmp_path, capsys, change, args, message):
     root = mini.write_mini_nuscenes(tmp_path / "ns")
     if change:
         (root / change).write_bytes(b"\x00\x01garbage")
-    cmd = ["import", "nuscenes", "--dataroot", str(root), "--out", str(tmp_path / "out"), *args]
+    out = tmp_path / "out"
+    cmd = ["import", "nuscenes", "--dataroot", str(root), "--out", str(out), *args]
     assert main(cmd) == 2
     err = capsys.readouterr().err
     assert message in err
     if change:
         assert change in err
-
-
-def test_an_unreadable_sensor_file_stops_at_its_scene_and_leaves_no_half_clip(tmp_path, capsys):
-    root = mini.write_mini_nuscenes(tmp_path / "ns")
-    (root / "samples/CAM_FRONT/scene-0002__CAM_FRONT__1.jpg").write_bytes(b"\x00\x01garbage")
-    out = tmp_path / "out"
-    assert main(["import", "nuscenes", "--dataroot", str(root), "--out", str(out), "--preset", "tiny"]) == 2
-    assert "scene scene-0002: cannot read camera file" in capsys.readouterr().err
-    # The scene before it is a whole clip; the refused scene has none, not even a partial one.
-    assert list_clips(out) == ["nuscenes_scene-0001"] and read_clip(out, "nuscenes_scene-0001").num_frames == 11
-    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["nuscenes_scene-0001"]
+        # A sensor file is read while its scene is converted: the scenes before it are whole clips,
+        # the refused scene has none, not even a partial one.
+        before = ["nuscenes_scene-0001"] if "scene-0002" in change else []
+        assert (list_clips(out) if out.exists() else []) == before
+        assert sorted(p.name for p in out.glob("*") if p.is_dir()) == before
 
 
 def _first_lidar_cs(rows):
