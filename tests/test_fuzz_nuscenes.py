@@ -139,7 +139,7 @@ def _mutate(data, tree, values):
 VALUES = st.one_of(NASTY, NON_FINITE, st.just([0, 0, 0, 0]), st.just([-1.0, 1.0, 1.0]))
 
 
-@settings(CASES, max_examples=max(EXAMPLES // 8, 10))
+@CASES
 @given(data=st.data())
 def test_mutated_tables_are_refused_by_table_and_field_or_import_finite(base, tmp_path_factory, data):
     root, tables, _ = base
@@ -223,7 +223,7 @@ def test_each_broken_rule_is_refused_naming_table_row_and_field(base, tmp_path_f
     assert shown in refusal, refusal
 
 
-@settings(CASES, max_examples=max(EXAMPLES // 10, 10))
+@CASES
 @given(data=st.data())
 def test_mutated_map_expansions_are_refused_by_layer_or_import_finite(base, tmp_path_factory, data):
     root, tables, layers = base
