@@ -27,7 +27,7 @@ test: install
 	$(PY) -m pytest -q -n 2 --dist loadfile tests
 
 lint: install
-	$(VENV)/bin/ruff check world_model m4world_env tests benchmarks examples
+	$(VENV)/bin/ruff check world_model m4world_env tests examples
 
 bench: install
 	$(VENV)/bin/m4world bench --out out/bench
@@ -53,11 +53,11 @@ gpu-check:
 	dry-run the steps on the CPU with GPU_DEVICE=cpu (docs/gpu.md)')"
 	$(GPU_ENV) $(GPU_PYTHON) -m pytest -m cuda -q -rs tests --junitxml=$(GPU_OUT)/pytest.xml
 	for n in $(GPU_ENVS); do \
-	  $(GPU_ENV) $(GPU_PYTHON) benchmarks/bench_env.py --backend world_model --device $(GPU_DEVICE) --num-envs $$n \
+	  $(GPU_ENV) $(GPU_PYTHON) -m m4world_env.cli bench env --backend world_model --device $(GPU_DEVICE) --num-envs $$n \
 	    --rounds 1 --steps 40 $(if $(GPU_CHECKPOINT),--checkpoint $(GPU_CHECKPOINT)) --out $(GPU_OUT)/bench_env_$$n.json \
 	    || exit 1; \
 	done
-	$(GPU_PYTHON) benchmarks/bench_model.py --presets $(GPU_MODEL_PRESETS) --dtypes auto fp32 --repeats 10 \
+	$(GPU_PYTHON) -m m4world_env.cli bench model --presets $(GPU_MODEL_PRESETS) --dtypes auto fp32 --repeats 10 \
 	  --device $(GPU_DEVICE) --out $(GPU_OUT)/bench_model.json
 	@echo "gpu-check: results in $(GPU_OUT)"
 

@@ -17,6 +17,7 @@ from m4world_env.agreement import (
     FULL_SCENARIOS,
     FULL_SEEDS,
 )
+from m4world_env.bench import BENCHMARKS, DEVICE_BENCHMARKS, SUITE
 from m4world_env.config import ACTION_TYPES
 from world_model.cli_args import check_in_folder as _check_in_folder
 from world_model.cli_args import check_out as _check_out
@@ -334,35 +335,28 @@ def _cmd_streaming(args: argparse.Namespace) -> int:
     return 0
 
 
-DEVICE_BENCHMARKS = ("env", "model", "student")  # the benchmarks that take --device; the others time CPU work
+SUITE_DEFAULTS = {"out": "out/bench", "evalset": "data/evalset", "device": "cpu"}
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    import shutil
     import subprocess
 
-    _check_out(args.out, "folder")
-    root = Path(__file__).resolve().parents[1] / "benchmarks"
-    if not root.is_dir():
-        raise FileNotFoundError(f"benchmarks/ not found next to the package ({root}); run from a source checkout")
-    out = Path(args.out)
+    from m4world_env.bench import benchmark_command, suite_command
+
+    if args.name is not None:
+        given = [f"--{key}" for key in ("only", *SUITE_DEFAULTS) if getattr(args, key) is not None]
+        if given:
+            raise ValueError(
+                f"{', '.join(given)} choose the suite's runs; a single benchmark takes its own options after its "
+                f"name: m4world bench {args.name} --help"
+            )
+        return subprocess.run(benchmark_command(args.name, args.options)).returncode
+    settings = {key: getattr(args, key) or default for key, default in SUITE_DEFAULTS.items()}
+    _check_out(settings["out"], "folder")
+    out = Path(settings["out"])
     out.mkdir(parents=True, exist_ok=True)
-    scripts = {
-        "render": ["bench_render.py"],
-        "traffic": ["bench_traffic.py"],
-        "env": ["bench_env.py", "--backend", "procedural", "world_model"],
-        # compiled rows only where inductor can build its kernels (a C++ compiler)
-        "model": ["bench_model.py", "--dtypes", "bf16", "fp32", *(["--compile"] if shutil.which("c++") else [])],
-        "student": ["bench_student.py"],
-        "precision": ["precision_parity.py"],  # what dtype auto's fp32/bf16 choice changes in an episode
-        "judge": ["bench_judge.py", "--evalset", args.evalset],
-        "first_frame": ["bench_first_frame.py", "--evalset", args.evalset, "--cfg", "1", "3", "7"],
-    }
-    for name in args.only or list(scripts):
-        script, *extra = scripts[name]
-        if name in DEVICE_BENCHMARKS:
-            extra += ["--device", args.device]
-        cmd = [sys.executable, str(root / script), *extra, "--out", str(out / f"bench_{name}.json")]
+    for name in args.only or SUITE:
+        cmd = suite_command(name, out, settings["evalset"], settings["device"])
         print("$", " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
     return 0
@@ -598,15 +592,25 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)
 
-    b = sub.add_parser("bench", help="run the benchmarks (JSON per benchmark in --out)")
-    b.add_argument("--out", default="out/bench")
-    benchmarks = ("render", "traffic", "env", "model", "student", "precision", "judge", "first_frame")
-    b.add_argument("--only", nargs="+", choices=benchmarks)
-    b.add_argument("--evalset", default="data/evalset", help="evaluation set (judge, first_frame)")
+    b = sub.add_parser(
+        "bench",
+        help="run a benchmark (m4world bench NAME [its options]) or the suite (JSON per benchmark in --out)",
+        description="m4world bench NAME [OPTIONS]: one benchmark, its options after its name "
+        "(m4world bench NAME --help). m4world bench [--only NAME ...]: the suite, default options.",
+    )
+    b.add_argument("name", nargs="?", choices=BENCHMARKS, metavar="NAME", help=f"one of {', '.join(BENCHMARKS)}")
+    b.add_argument("options", nargs=argparse.REMAINDER, help="the benchmark's own options")
+    b.add_argument("--only", nargs="+", choices=SUITE, help="suite: run these only")
+    b.add_argument("--out", default=None, help=f"suite: folder of the JSON files (default {SUITE_DEFAULTS['out']})")
+    b.add_argument(
+        "--evalset",
+        default=None,
+        help=f"suite: evaluation set of judge and first_frame (default {SUITE_DEFAULTS['evalset']})",
+    )
     b.add_argument(
         "--device",
-        default="cpu",
-        help=f"where the model benchmarks ({', '.join(DEVICE_BENCHMARKS)}) run: cpu, cuda[:N] or auto",
+        default=None,
+        help=f"suite: where {', '.join(DEVICE_BENCHMARKS)} run: cpu, cuda[:N] or auto (default cpu)",
     )
     b.set_defaults(func=_cmd_bench)
 

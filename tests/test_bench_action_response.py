@@ -1,16 +1,14 @@
-"""benchmarks/action_response.py end to end, small: the procedural backend's response to braking
+"""m4world bench action_response end to end, small: the procedural backend's response to braking
 is the ground truth (response 1), a world-model backend (the untrained tiny bundle) is scored
 against it, and bad arguments are refused."""
 
 import json
-import sys
-from pathlib import Path
+import statistics
 
+import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import numpy as np  # noqa: E402
-from action_response import MOVED_M, apart, main, split_mean  # noqa: E402
+from m4world_env.bench.action_response import MOVED_M, add_responses, apart, main, split_mean, summarize
 
 
 def test_braking_moves_the_ground_truth_and_each_backend_is_scored_against_it(tiny_bundle, tmp_path):
@@ -26,11 +24,27 @@ def test_braking_moves_the_ground_truth_and_each_backend_is_scored_against_it(ti
     assert truth["response_cameras"] == 1.0 and truth["response_lidar"] == 1.0
     # The world model's two runs draw the same noise: identical at reset, only the action differs.
     assert model["per_step"]["cameras"][0] == 0.0 and model["per_step"]["lidar"][0] == 0.0
-    assert model["response_cameras"] >= 0 and model["response_lidar"] >= 0
+    for k in ("cameras", "lidar", "lidar_moved"):  # its medians over the steps, over the truth's
+        steps = statistics.median(model["per_step"][k][1:])
+        assert model[f"median_{k}"] == steps and model[f"response_{k}"] == steps / truth[f"median_{k}"]
     # The LiDAR split by where the truth moved: the truth changes more there than anywhere else.
     assert truth["response_lidar_moved"] == 1.0 and truth["median_lidar_moved"] > MOVED_M
     assert max(truth["per_step"]["lidar_still"]) <= MOVED_M
-    assert model["per_step"]["lidar_moved"][0] == 0.0 and model["response_lidar_moved"] >= 0
+    assert model["per_step"]["lidar_moved"][0] == 0.0
+
+
+def test_a_response_is_the_median_over_the_steps_against_the_ground_truths():
+    """Step 0 (the reset, alike in both runs) is left out of the medians; a ground truth that did
+    not move gives no response rather than a division by zero."""
+    truth = summarize({"cameras": [9.0, 2.0, 4.0, 6.0], "lidar": [0.0, 1.0, 1.0, 1.0], "lidar_moved": [0.0] * 4})
+    model = summarize({"cameras": [0.0, 1.0, 1.0, 3.0], "lidar": [5.0, 3.0, 0.5, 2.0], "lidar_moved": [1.0] * 4})
+    backends = {"truth": truth, "model": model}
+    add_responses(backends, truth="truth")
+    assert truth["steps"] == model["steps"] == 3
+    assert (truth["median_cameras"], model["median_cameras"]) == (4.0, 1.0)
+    assert model["response_cameras"] == 0.25 and model["response_lidar"] == 2.0
+    assert truth["response_cameras"] == truth["response_lidar"] == 1.0
+    assert model["response_lidar_moved"] is None and truth["response_lidar_moved"] is None
 
 
 def test_the_lidar_difference_splits_by_where_the_truth_moved():

@@ -1,12 +1,7 @@
-"""benchmarks/bench_first_frame.py on an untrained tiny bundle: one row per sampler setting, seeds."""
+"""m4world bench first_frame on an untrained tiny bundle: one row per sampler setting, seeds."""
 
-import sys
-from pathlib import Path
-
+from m4world_env.bench.first_frame import main
 from m4world_env.cli import main as cli
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_first_frame import main  # noqa: E402
 
 
 def test_first_frame_grid_is_judged_against_the_true_first_frames(tiny_bundle, tmp_path):

@@ -1,19 +1,15 @@
-"""benchmarks/bench_reset.py on an untrained tiny bundle: reset() with and without a scenario's
+"""m4world bench reset on an untrained tiny bundle: reset() with and without a scenario's
 completion adapter, and the refusal of a scenario that names none."""
 
 import json
-import sys
-from pathlib import Path
 
 import pytest
 import yaml
 
+from m4world_env.bench.reset import main
 from m4world_env.scenario import SCENARIOS_DIR
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
 from world_model.rollout.runtime import load_world_model
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_reset import main  # noqa: E402
 
 
 def test_reset_is_timed_with_and_without_the_completion_adapter(tiny_bundle, tmp_path, capsys, monkeypatch):

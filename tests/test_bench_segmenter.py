@@ -1,16 +1,12 @@
-"""benchmarks/bench_segmenter.py with a small untrained segmenter on a short recording."""
+"""m4world bench segmenter with a small untrained segmenter on a short recording."""
 
 import json
-import sys
-from pathlib import Path
 
 import torch
 
+from m4world_env.bench.segmenter import main
 from m4world_env.cli import main as cli
 from world_model.eval.segmenter import SCENE_CLASSES, Segmenter, SegmenterConfig, SegNet
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_segmenter import main  # noqa: E402
 
 
 def test_bench_reports_iou_per_class_and_ms_per_frame(tmp_path, capsys):

@@ -1,14 +1,10 @@
-"""benchmarks/side_by_side.py, small: the ground truth's views above the world model's, per step asked."""
-
-import sys
-from pathlib import Path
+"""m4world bench side_by_side, small: the ground truth's views above the world model's, per step asked."""
 
 import numpy as np
 import pytest
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from side_by_side import GAP_PX, main, views_at  # noqa: E402
+from m4world_env.bench.side_by_side import GAP_PX, main, views_at
 
 
 def test_each_step_pairs_the_ground_truth_with_the_world_model(tiny_bundle, tmp_path):

@@ -1,17 +1,14 @@
-"""benchmarks/soak_env.py end to end, small: both backends (the world model on the untrained tiny
+"""m4world bench soak end to end, small: both backends (the world model on the untrained tiny
 bundle), on a 1 s scenario so that episodes restart, with the RSS samples and the exit code."""
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import yaml
 
+from m4world_env.bench.soak import main
 from m4world_env.scenario import SCENARIOS_DIR
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from soak_env import main  # noqa: E402
 
 EPISODE_STEPS = 5  # duration 1 s at policy_frequency 5
 

@@ -1,16 +1,16 @@
-"""benchmarks/bench_student.py end to end on the tiny preset (random weights): sections and ratios."""
+"""m4world bench student end to end on the tiny preset (random weights): sections and ratios."""
 
 import json
 import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]  # the subprocess's cwd: it imports this checkout's packages
 
 
 def test_bench_student_times_every_engine_and_the_rollout(tmp_path):
     out = tmp_path / "student.json"
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_student.py"), "--preset", "tiny", "--envs", "2"]
+    cmd = [sys.executable, "-m", "m4world_env.bench.student", "--preset", "tiny", "--envs", "2"]
     cmd += ["--frames", "24", "--repeats", "2", "--sections", "cache_vs_recompute", "rollout", "--out", str(out)]
     subprocess.run(cmd, check=True, cwd=ROOT, capture_output=True)
     result = json.loads(out.read_text())
@@ -28,18 +28,15 @@ def test_the_recompute_baseline_is_the_computation_the_cache_replaces():
     give the same chunks from the same noise while the window holds the whole rollout (once frames
     leave it, the cache keeps keys computed with the older context: the approximation it makes)."""
     import dataclasses
-    import importlib.util
 
     import torch
 
+    from m4world_env.bench.student import RecomputeWindow
     from tests.model_fixtures import perturbed, tiny_conditions
     from world_model.model import MultiViewDiT, get_preset
     from world_model.student import StreamingEngine, StudentConfig
     from world_model.student.config import TRAINING_STREAMING
 
-    spec = importlib.util.spec_from_file_location("bench_student", ROOT / "benchmarks" / "bench_student.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     chunks, c = 3, 1
     cfg = get_preset("tiny").for_student()
     cfg = dataclasses.replace(cfg, clip=dataclasses.replace(cfg.clip, chunk_frames=c, context_frames=1 + chunks * c))
@@ -49,7 +46,7 @@ def test_the_recompute_baseline_is_the_computation_the_cache_replaces():
     first = torch.randn(2, *cfg.latent_shape(1), generator=torch.Generator().manual_seed(3))
     scfg = StudentConfig(streaming=dataclasses.replace(TRAINING_STREAMING, context_refresh=False))
     outs = []
-    for engine in (StreamingEngine, bench.RecomputeWindow):
+    for engine in (StreamingEngine, RecomputeWindow):
         eng = engine(model, scfg, torch.Generator().manual_seed(1))
         with torch.no_grad():
             eng.start(first, cond.frames(0, 1))

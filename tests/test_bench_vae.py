@@ -1,13 +1,10 @@
-"""benchmarks/bench_vae.py on an untrained tiny bundle: PSNR, judged object and long-tail crops."""
+"""m4world bench vae on an untrained tiny bundle: PSNR, judged object and long-tail crops."""
 
 import json
-import sys
 from pathlib import Path
 
+from m4world_env.bench.vae import main
 from m4world_env.cli import main as cli
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_vae import main  # noqa: E402
 
 
 def _record(out: Path, scenario: str, seed: int) -> Path:

@@ -1,32 +1,19 @@
-"""benchmarks/bench_longtail.py: base-set filtering, rare views, before/after scoring with a pluggable scorer."""
+"""m4world bench longtail: base-set filtering, rare views, before/after scoring with a pluggable scorer."""
 
-import importlib.util
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
+from m4world_env.bench import longtail as bench
 from tests.model_fixtures import make_frames, make_sensors, perturbed
 from world_model.data import iter_clips, write_clip
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
 from world_model.model import MultiViewDiT, SensorVAE, get_preset
 
 CFG = get_preset("tiny")
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_longtail.py"
-
-
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_longtail", BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop(spec.name, None)
 
 
 def _clip(root, name, seed, rare):
@@ -45,14 +32,14 @@ def views_shape(views, clips) -> tuple[int, ...]:
     return tuple(clips[views[0].clip].cameras.shape[2:])
 
 
-def test_filter_keeps_only_clips_without_the_case(bench, tmp_path):
+def test_filter_keeps_only_clips_without_the_case(tmp_path):
     _clip(tmp_path / "all", "plain", 0, False)
     _clip(tmp_path / "all", "rare", 1, True)
     kept = bench.filter_dataset(tmp_path / "all", tmp_path / "base", "tree_truck")
     assert kept == ["plain"] and [c.name for c in iter_clips(tmp_path / "base")] == ["plain"]
 
 
-def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench, tmp_path):
+def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(tmp_path):
     _clip(tmp_path / "rare", "rare", 1, True)
     clips = list(iter_clips(tmp_path / "rare"))
     views = bench.rare_views(clips, "tree_truck", 2, 0.1)
@@ -113,7 +100,7 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(bench,
     assert not any(".lora_" in k for k in model.state_dict())  # the adapter was removed again
 
 
-def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monkeypatch):
+def test_completion_task_regenerates_only_the_rare_object(tmp_path, monkeypatch):
     """--task completion: a reference model regenerates the view's object (its track) with the
     rest of the frame observed, so the scene away from the box stays the autoencoded truth,
     unlike a first frame from controls; a plain teacher is refused."""
@@ -168,7 +155,7 @@ def test_completion_task_regenerates_only_the_rare_object(bench, tmp_path, monke
     assert reset["adapted_median"] != reset["base_median"]  # (latent cells outside the boxes: test_env_world_model)
 
 
-def test_blank_object_fills_the_grown_box_with_the_views_mean_colour(bench, tmp_path):
+def test_blank_object_fills_the_grown_box_with_the_views_mean_colour(tmp_path):
     _clip(tmp_path / "rare", "rare", 1, True)
     clip = next(iter(iter_clips(tmp_path / "rare")))
     view = bench.rare_views([clip], "tree_truck", 1, 0.1)[0]

@@ -3,9 +3,9 @@
 Run before and after a change on the same machine and compare; any differing line names the
 scenario, seed, step and observation key whose bytes changed::
 
-    python benchmarks/observation_digests.py --out before.json
+    m4world bench digests --out before.json
     # ... change the code ...
-    python benchmarks/observation_digests.py --out after.json --compare before.json
+    m4world bench digests --out after.json --compare before.json
 
 Float rounding differs between CPUs (matrix kernels, vector widths), so digests are compared on one
 machine only, never against stored values.
@@ -60,7 +60,7 @@ def observation_digests(*, backend: str, scenarios: list[str], seeds: tuple[int,
 def main(argv: list[str] | None = None) -> int:
     from m4world_env.scenario import list_scenarios
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="m4world bench digests", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--compare", type=Path, help="an earlier run's file to compare with")
     parser.add_argument("--backend", default="world_model", choices=("world_model", "procedural"))

@@ -1,6 +1,6 @@
 """Time to rasterize one frame's layout (every view) at a preset's latent resolution.
 
-    PYTHONPATH=. python benchmarks/bench_layout.py --preset default --supersample 2 4 --out bench_layout.json
+    m4world bench layout --preset default --supersample 2 4 --out bench_layout.json
 
 The frame is the demo highway (``world_model.sim.demo.demo_frame``, 18 objects of every
 category); its BEV comes from the procedural simulator. Median over ``--repeats`` calls.
@@ -21,7 +21,9 @@ from world_model.sim.demo import demo_frame
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="m4world bench layout", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--preset", default="default")
     p.add_argument("--supersample", type=int, nargs="+", default=[2, 4])
     p.add_argument("--objects", type=int, default=18)

@@ -4,7 +4,7 @@ Each setting runs in a fresh process (thread pools are fixed at the first torch 
 competitor process keeps the cores busy with torch matmuls (its own default threads), as when
 several env processes share a machine::
 
-    python benchmarks/bench_threads.py --steps 20 --repeats 2 --out out/bench_threads.json
+    m4world bench threads --steps 20 --repeats 2 --out out/bench_threads.json
 
 Settings: ``default`` (``config.model.threads=None``: torch's own choice, one thread per core),
 ``torch1`` (``config.model.threads=1``, the env's default: ``torch.set_num_threads(1)``), ``omp1``
@@ -55,13 +55,15 @@ def run_episode(setting: str, steps: int) -> tuple[float, int]:
     return float(seconds), int(threads)
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(
+        prog="m4world bench threads", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--steps", type=int, default=20)
     p.add_argument("--repeats", type=int, default=1)
     p.add_argument("--no-competitor", action="store_true", help="measure without the busy process")
     p.add_argument("--out", default=None)
-    args = p.parse_args()
+    args = p.parse_args(argv)
     competitor = None if args.no_competitor else subprocess.Popen([sys.executable, "-c", COMPETITOR])
     rows = []
     try:

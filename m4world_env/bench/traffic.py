@@ -1,6 +1,6 @@
 """Median TrafficBridge step time next to highway-env's own env.step, measured in one run.
 
-    PYTHONPATH=src python benchmarks/bench_traffic.py --out bench_traffic.json
+    m4world bench traffic --out bench_traffic.json
 
 A bridge step is one policy step (``frames_per_step`` sensor frames, each with its SceneFrame).
 highway-env's steps include its Kinematics observation and reward, no rendering.
@@ -70,12 +70,14 @@ def bench_highway_env(env_id: str, steps: int, seed: int) -> dict:
     }
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(
+        prog="m4world bench traffic", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     np.random.seed(args.seed)  # highway-env's own envs still draw from the global RNG in places
     result = {
         "machine": {

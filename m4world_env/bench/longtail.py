@@ -20,11 +20,11 @@ without the adapter, to show ordinary controllability is preserved.
 
 The whole long-tail recipe, e.g. at the tiny preset::
 
-    python benchmarks/bench_longtail.py record --preset tiny --out D      # D/rare (5 clips), D/base
+    m4world bench longtail record --preset tiny --out D      # D/rare (5 clips), D/base
     python -m world_model.train --stage vae     --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage teacher --data D/base --run R --preset tiny --steps 400
     python -m world_model.train --stage lora --case tree_truck --data D/base --case-data D/rare --run R --preset tiny
-    python benchmarks/bench_longtail.py eval --run R --data D/rare --case tree_truck --ordinary-data D/base \
+    m4world bench longtail eval --run R --data D/rare --case tree_truck --ordinary-data D/base \
         --out out/longtail
 
 ``record`` runs ``m4world record``'s recorder at the preset's sensors (views and BEV): the rare
@@ -150,7 +150,8 @@ def blank_object(frame, cameras: np.ndarray, track: str, margin: int, near: floa
     return out
 
 
-def _crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+def box_crop(img: np.ndarray, box: tuple[int, int, int, int]) -> np.ndarray:
+    """The pixels of ``img`` inside ``box`` (x0, y0, x1, y1)."""
     x0, y0, x1, y1 = box
     return img[y0:y1, x0:x1]
 
@@ -176,9 +177,20 @@ def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str, blank
     return out
 
 
-def _render_both(
-    model, vae, clips, views, adapters, steps, seed, search_dirs, task="first_frame", blank_px=-1, category=""
-):  # noqa: ANN001, ANN202
+# Eleven parameters: evaluate's options, passed through as they are.
+def _render_both(  # noqa: ANN202 (two lists of observations)
+    model,  # noqa: ANN001 - MultiViewDiT
+    vae: SensorVAE,
+    clips: Sequence[Clip],
+    views: Sequence[RareView],
+    adapters: Sequence[str | Path],
+    steps: int | None,
+    seed: int,
+    search_dirs: Sequence[str | Path],
+    task: str = "first_frame",
+    blank_px: int = -1,
+    category: str = "",
+):
     """``views``' frames (:func:`_render`) without, then with, the adapters (same noise).
 
     ``reset``: what the env's ``reset()`` draws with a completion adapter of ``category``
@@ -211,6 +223,7 @@ def _render_both(
     return base_obs, adapted_obs
 
 
+# Twelve parameters: the benchmark's options, each with its default, for the tests' small runs.
 def evaluate(
     model,  # noqa: ANN001 - MultiViewDiT
     vae: SensorVAE,
@@ -244,16 +257,16 @@ def evaluate(
     adapted = [o.cameras[rv.view] for o, rv in zip(adapted_obs, views, strict=True)]
     rows = []
     for rv, t, e, b, a in zip(views, truth, autoencoded, base, adapted, strict=True):
-        tc = _crop(t, rv.box)
+        tc = box_crop(t, rv.box)
         rows.append(
             {
                 "clip": clips[rv.clip].name,
                 "frame": rv.frame,
                 "view": rv.view,
                 "box": list(rv.box),
-                "autoencoder": scorer(_crop(e, rv.box), tc),
-                "base": scorer(_crop(b, rv.box), tc),
-                "adapted": scorer(_crop(a, rv.box), tc),
+                "autoencoder": scorer(box_crop(e, rv.box), tc),
+                "base": scorer(box_crop(b, rv.box), tc),
+                "adapted": scorer(box_crop(a, rv.box), tc),
             }
         )
     return {
@@ -285,7 +298,7 @@ def judge_rare(judge, result: dict, views: Sequence[RareView], case: str) -> dic
     """Yes-frequency of "is it a <case>?" over the rare objects' box crops, per row of the figure."""
     out = {}
     for name in result["images"]:
-        crops = [_crop(img, rv.box) for rv, img in zip(views, result["images"][name], strict=True)]
+        crops = [box_crop(img, rv.box) for rv, img in zip(views, result["images"][name], strict=True)]
         out[name] = float(np.mean(judge.is_category(crops, [case] * len(crops))))
     return out
 
@@ -309,6 +322,7 @@ def ordinary_frames(clips: Sequence[Clip], count: int, near: float) -> list[Rare
     return out
 
 
+# Eleven parameters: evaluate's options and the judge, as main passes them.
 def judge_ordinary(
     judge,  # noqa: ANN001 - a JudgeBackend
     model,  # noqa: ANN001 - MultiViewDiT
@@ -340,7 +354,7 @@ def judge_ordinary(
     out = {}
     for name, cams in rows.items():
         scene = np.stack(cams)
-        crops = [_crop(c[rv.view], rv.box) for c, rv in zip(cams, frames, strict=True)]
+        crops = [box_crop(c[rv.view], rv.box) for c, rv in zip(cams, frames, strict=True)]
         out[name] = {
             "weather": float(np.mean(judge.is_weather(scene, weathers))),
             "time_of_day": float(np.mean(judge.is_time_of_day(scene, times))),
@@ -359,7 +373,7 @@ def figure(result: dict, views: Sequence[RareView], path: Path, margin: float = 
             mx, my = round(margin * (x1 - x0)), round(margin * (y1 - y0))
             h, w = img.shape[:2]
             ctx = (max(0, x0 - mx), max(0, y0 - my), min(w, x1 + mx), min(h, y1 + my))
-            crop = cv2.resize(_crop(img, ctx), (CROP_PX, CROP_PX), interpolation=cv2.INTER_NEAREST)
+            crop = cv2.resize(box_crop(img, ctx), (CROP_PX, CROP_PX), interpolation=cv2.INTER_NEAREST)
             sx, sy = CROP_PX / (ctx[2] - ctx[0]), CROP_PX / (ctx[3] - ctx[1])
             p0 = (round((x0 - ctx[0]) * sx), round((y0 - ctx[1]) * sy))
             p1 = (round((x1 - ctx[0]) * sx) - 1, round((y1 - ctx[1]) * sy) - 1)
@@ -414,8 +428,8 @@ def record_case(
     return {"rare": len(rare), "recorded_base": len(everything), "base": len(base)}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="m4world bench longtail", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="record the rare clips and a base dataset without the case")
     r.add_argument("--preset", default="tiny")
@@ -458,6 +472,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ordinary-frames", type=int, default=16)
     p.add_argument("--no-judge", action="store_true", help="skip the judge scores")
     p.add_argument("--out", default="out/longtail")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     a = parser.parse_args(argv)
     if a.cmd == "record":
         counts = record_case(a.out, a.preset, a.case, a.scenario, a.rare_episodes, a.base_episodes, a.duration)

@@ -1,6 +1,6 @@
 """Soak test: many env steps in a row, with resident memory sampled along the way.
 
-    PYTHONPATH=src python benchmarks/soak_env.py --out out/soak.json
+    m4world bench soak --out out/soak.json
         [--procedural-steps 10000] [--world-model-steps 600] [--checkpoint BUNDLE]
 
 Runs the procedural backend for ``--procedural-steps`` steps and the world-model backend for
@@ -69,7 +69,9 @@ def soak(backend: str, steps: int, sample_every: int, checkpoint: str | None, sc
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="m4world bench soak", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--procedural-steps", type=int, default=10_000)
     ap.add_argument("--world-model-steps", type=int, default=600)

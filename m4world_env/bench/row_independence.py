@@ -1,6 +1,6 @@
 """Which ops of a batched world-model step are not row-independent on CPU?
 
-    PYTHONPATH=. python benchmarks/row_independence.py [--checkpoint BUNDLE] [--rows 3] [--threads 1]
+    m4world bench row_independence [--checkpoint BUNDLE] [--rows 3] [--threads 1]
         [--dtype auto|float32|bfloat16] [--no-split] [--time ROUNDS] [--out F.json]
 
 Runs a vector env of ``--rows`` world-model envs for two steps with a hook on every leaf module of
@@ -19,6 +19,7 @@ import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from contextlib import ExitStack, nullcontext
 from unittest import mock
 
@@ -39,7 +40,7 @@ def measure(checkpoint: str | None, rows: int, dtype: str, split: bool) -> dict[
         diff = max(float((a.float() - b.float()).abs().max()) for a, b in zip(alone, batched.chunk(rows), strict=True))
         stats[key] = max(stats.get(key, 0.0), diff)
 
-    def hook(name: str):
+    def hook(name: str) -> Callable[[torch.nn.Module, tuple, object], None]:
         def after(module: torch.nn.Module, inputs: tuple, output: object) -> None:
             x = inputs[0] if len(inputs) == 1 else None
             if not isinstance(x, torch.Tensor) or not isinstance(output, torch.Tensor) or output.numel() == 0:
@@ -118,7 +119,7 @@ def time_split(checkpoint: str | None, rows: int, dtype: str, rounds: int) -> di
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="m4world bench row_independence", description=__doc__.split("\n\n")[0])
     p.add_argument("--checkpoint", default=None, help="bundle folder (default: the shipped one)")
     p.add_argument("--rows", type=int, default=3)
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads")

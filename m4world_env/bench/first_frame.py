@@ -8,7 +8,7 @@ generated frame is scored by the report's judge and metrics (weather, time of da
 PSNR, LiDAR MAE) next to the Oracle (the true frame). This separates what the first frame gets
 wrong from what the causal student loses over a rollout (the report's student row).
 
-    python benchmarks/bench_first_frame.py --evalset data/evalset [--checkpoint BUNDLE]
+    m4world bench first_frame --evalset data/evalset [--checkpoint BUNDLE]
         [--teacher RUN/teacher/model] [--cfg 1 3 5] [--steps 20 40] [--seeds 2] [--out F.json]
 """
 
@@ -55,7 +55,9 @@ def first_frame_row(wm: WorldModel, generator: ReferenceGenerator, sampler: Samp
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        prog="m4world bench first_frame", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--evalset", required=True)
     ap.add_argument("--checkpoint", default=None, help="bundle (default: the shipped checkpoint)")
     ap.add_argument("--teacher", default=None, help="also sample with this teacher export (RUN/teacher/model)")

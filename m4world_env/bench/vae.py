@@ -10,9 +10,9 @@ reports, on frames it never trained on:
   crops of the ground truth (the Oracle). Unlike the report's crops (``eval.crops``: shorter side
   and visibility thresholds) occluded boxes count too, which lowers both scores alike;
 - ``case_yes``: the same question for the long-tail category ``--case`` on the rare-object views
-  of ``--case-data`` (``bench_longtail.rare_views``), with ``case_yes_truth``.
+  of ``--case-data`` (``m4world_env.bench.longtail.rare_views``), with ``case_yes_truth``.
 
-    python benchmarks/bench_vae.py --vae world_model/checkpoints/default --vae runs/v2/vae/model \
+    m4world bench vae --vae world_model/checkpoints/default --vae runs/v2/vae/model \
         --ordinary-data data/ordinary --case-data data/rare_eval --out out/bench_vae
 """
 
@@ -27,12 +27,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_longtail import _crop, rare_views  # noqa: E402
-
-from world_model.data import Clip, iter_clips  # noqa: E402
-from world_model.model.reference import ReferenceConfig  # noqa: E402
-from world_model.model.vae import SensorVAE, cameras_to_images, images_to_cameras  # noqa: E402
+from m4world_env.bench.longtail import box_crop, rare_views
+from world_model.data import Clip, iter_clips
+from world_model.model.reference import ReferenceConfig
+from world_model.model.vae import SensorVAE, cameras_to_images, images_to_cameras
 
 NEAR = ReferenceConfig().near_plane_m
 
@@ -90,12 +88,12 @@ def evaluate_vae(
             cache[ci, f] = autoencode_cameras(vae, truth)
             se += float(((cache[ci, f].astype(np.float64) - truth) ** 2).sum())
             n += truth.size
-    recon = [_crop(cache[ci, f][v], box) for ci, f, v, box, _ in crops]
-    truth = [_crop(np.asarray(ordinary[ci].cameras[f, v]), box) for ci, f, v, box, _ in crops]
+    recon = [box_crop(cache[ci, f][v], box) for ci, f, v, box, _ in crops]
+    truth = [box_crop(np.asarray(ordinary[ci].cameras[f, v]), box) for ci, f, v, box, _ in crops]
     cats = [c[-1] for c in crops]
     views = rare_views(rare, case, 16, NEAR)
-    rare_recon = [_crop(autoencode_cameras(vae, rare[rv.clip].cameras[rv.frame])[rv.view], rv.box) for rv in views]
-    rare_truth = [_crop(np.asarray(rare[rv.clip].cameras[rv.frame, rv.view]), rv.box) for rv in views]
+    rare_recon = [box_crop(autoencode_cameras(vae, rare[rv.clip].cameras[rv.frame])[rv.view], rv.box) for rv in views]
+    rare_truth = [box_crop(np.asarray(rare[rv.clip].cameras[rv.frame, rv.view]), rv.box) for rv in views]
     return {
         "ordinary_psnr_db": 10 * float(np.log10(255.0**2 / max(se / max(n, 1), 1e-10))),
         "existence": float(np.mean(judge.is_category(recon, cats))),
@@ -108,7 +106,7 @@ def evaluate_vae(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench vae", description=__doc__.splitlines()[0])
     p.add_argument("--vae", action="append", required=True, help="VAE export or bundle (repeatable)")
     p.add_argument("--ordinary-data", required=True, help="clips without the case (not trained on)")
     p.add_argument("--case-data", required=True, help="clips with the long-tail case (not trained on)")

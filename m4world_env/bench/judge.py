@@ -7,7 +7,7 @@ object, negatives about a wrong one (see ``world_model.eval.questions``). Accura
 accuracy; weather and time of day are also asked of the views under mild degradations that
 change neither (``scene_accuracy_degraded``). Throughput: medians over repeats measured in one run.
 
-    python benchmarks/bench_judge.py --evalset data/evalset --out bench_judge.json
+    m4world bench judge --evalset data/evalset --out bench_judge.json
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import os
 import platform
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -28,7 +29,7 @@ from world_model.eval.judge_data import MILD_DEGRADATIONS, CollectConfig, collec
 from world_model.eval.questions import QUESTION_TYPES, build_questions, judge_accuracy
 
 
-def _median_rate(fn, items: int, repeats: int) -> float:
+def _median_rate(fn: Callable[[], object], items: int, repeats: int) -> float:
     fn()  # warm-up
     times = []
     for _ in range(repeats):
@@ -39,7 +40,7 @@ def _median_rate(fn, items: int, repeats: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench judge", description=__doc__.splitlines()[0])
     p.add_argument("--evalset", required=True, help="directory of the recorded evaluation set")
     p.add_argument("--judge", default=str(DEFAULT_JUDGE_DIR), help="judge directory (default: shipped)")
     p.add_argument("--out", default=None, help="write the JSON figures here")

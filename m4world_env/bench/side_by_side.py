@@ -1,6 +1,6 @@
 """The env's camera views beside the ground truth's: one episode driven on both backends, one image.
 
-    python benchmarks/side_by_side.py --scenario highway_sunny_day --seed 3 --steps 0 5 15 30 36 \
+    m4world bench side_by_side --scenario highway_sunny_day --seed 3 --steps 0 5 15 30 36 \
         --out docs/images/world_model_vs_truth.jpg [--checkpoint BUNDLE] [--policy lane_keeping]
 
 The same scenario, seed and policy on ``backend="procedural"`` (the ground truth) and
@@ -42,7 +42,7 @@ def views_at(backend: str, scenario: str, seed: int, policy: str, steps: list[in
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench side_by_side", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="highway_sunny_day")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--policy", default="lane_keeping")

@@ -1,6 +1,6 @@
 """Do the ego's actions show in the observations? The same episode driven two ways.
 
-    PYTHONPATH=src python benchmarks/action_response.py --out F.json \
+    m4world bench action_response --out F.json \
         [--backend procedural world_model world_model:sink=0] [--actions 0,0 -1,0] [--steps 40]
 
 For each backend, one episode (scenario, seed; on the world model the same noise) is run twice:
@@ -19,7 +19,7 @@ difference on the cells where the ground truth's two runs differ by more than ``
 (``response_lidar_moved``: its median against the ground truth's there), and ``lidar_still``, the
 mean on every other cell (metres the backend changed where the scene did not).
 
-Backend specs are ``bench_env.py``'s (qualifiers such as ``world_model:sink=0`` or
+Backend specs are ``m4world bench env``'s (qualifiers such as ``world_model:sink=0`` or
 ``world_model:no-refresh``), so model options are compared in one run.
 """
 
@@ -34,12 +34,11 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_env import _make_kwargs  # noqa: E402
-
-import m4world_env  # noqa: E402,F401  (registers M4World-v0)
+import m4world_env  # noqa: F401  (registers M4World-v0)
+from m4world_env.bench.env import make_kwargs
 
 MOVED_M = 0.5  # a LiDAR cell whose range differs by more than this between the truth's runs moved
+RESPONSES = ("cameras", "lidar", "lidar_moved")  # the curves scored against the ground truth's
 
 
 def episode(kwargs: dict, scenario: str, seed: int, action: np.ndarray, steps: int) -> list[dict]:
@@ -78,6 +77,25 @@ def split_mean(values: np.ndarray, mask: np.ndarray) -> tuple[float, float]:
     return (float(inside.mean()) if inside.size else 0.0, float(outside.mean()) if outside.size else 0.0)
 
 
+def summarize(curves: dict[str, list[float]]) -> dict:
+    """One backend's curves (:func:`apart`) with their medians over the steps (the reset, step 0,
+    left out: both runs start alike)."""
+    return {
+        "steps": len(curves["cameras"]) - 1,
+        **{f"median_{k}": statistics.median(v[1:]) for k, v in curves.items()},
+        "per_step": curves,
+    }
+
+
+def add_responses(backends: dict[str, dict], truth: str) -> None:
+    """Each backend's ``response_*``: its median over the ``truth`` backend's (None where the truth
+    did not move at all)."""
+    reference = backends[truth]
+    for r in backends.values():
+        for k in RESPONSES:
+            r[f"response_{k}"] = r[f"median_{k}"] / reference[f"median_{k}"] if reference[f"median_{k}"] else None
+
+
 def parse_action(text: str) -> np.ndarray:
     try:
         return np.array([float(v) for v in text.split(",")], np.float32)
@@ -86,7 +104,7 @@ def parse_action(text: str) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench action_response", description=__doc__.splitlines()[0])
     p.add_argument("--backend", nargs="+", default=["procedural", "world_model", "world_model:sink=0"])
     p.add_argument("--actions", nargs=2, default=["0,0", "-1,0"], metavar="A", help="the two continuous actions held")
     p.add_argument("--scenario", default="highway_sunny_day")
@@ -101,22 +119,14 @@ def main(argv: list[str] | None = None) -> int:
     result: dict = {"scenario": a.scenario, "seed": a.seed, "actions": a.actions, "moved_m": MOVED_M, "backends": {}}
     moved = None
     for backend in ["procedural", *(b for b in a.backend if b != "procedural")]:
-        kw = _make_kwargs(backend, a.checkpoint if backend.startswith("world_model") else None)
+        kw = make_kwargs(backend, a.checkpoint if backend.startswith("world_model") else None)
         kw["config"] = {**kw["config"], "action_type": "continuous"}
         runs = [episode(kw, a.scenario, a.seed, h, a.steps) for h in held]
         if moved is None:  # the ground truth runs first: where its ranges changed
             moved = [np.abs(x["lidar"] - y["lidar"]) > MOVED_M for x, y in zip(*runs, strict=False)]
-        curves = apart(*runs, moved=moved)
-        result["backends"][backend] = {
-            "steps": len(curves["cameras"]) - 1,
-            **{f"median_{k}": statistics.median(v[1:]) for k, v in curves.items()},
-            "per_step": curves,
-        }
+        result["backends"][backend] = summarize(apart(*runs, moved=moved))
         print(backend, {k: round(v, 3) for k, v in result["backends"][backend].items() if k.startswith("median")})
-    truth = result["backends"]["procedural"]
-    for r in result["backends"].values():
-        for k in ("cameras", "lidar", "lidar_moved"):
-            r[f"response_{k}"] = r[f"median_{k}"] / truth[f"median_{k}"] if truth[f"median_{k}"] else None
+    add_responses(result["backends"], truth="procedural")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(result, indent=1))
     print(

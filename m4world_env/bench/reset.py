@@ -7,7 +7,7 @@ left out, in interleaved rounds (the shared machine's speed drifts; the order al
 reports the medians and their ratio; the first round (loading, allocator warm-up) is left out of
 the medians.
 
-    python benchmarks/bench_reset.py [--scenario tree_truck_highway] [--rounds 5] --out FILE.json
+    m4world bench reset [--scenario tree_truck_highway] [--rounds 5] --out FILE.json
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from world_model.lora import read_adapter, resolve_adapter
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="m4world bench reset", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="tree_truck_highway")
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--rounds", type=int, default=5)

@@ -1,6 +1,6 @@
 """How much the world model's observations change between float32 and bfloat16 DiTs.
 
-    PYTHONPATH=src python benchmarks/precision_parity.py --steps 40 --out F.json [--checkpoint BUNDLE]
+    m4world bench precision --steps 40 --out F.json [--checkpoint BUNDLE]
 
 Runs the same episode (scenario, seed, IDM policy) twice on the world-model backend, once with
 ``config.model.dtype`` float32 and once bfloat16, and reports per step the mean absolute camera
@@ -41,14 +41,14 @@ def episode(dtype: str, scenario: str, seed: int, steps: int, checkpoint: str | 
     return out
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="m4world bench precision", description=__doc__.splitlines()[0])
     p.add_argument("--scenario", default="highway_sunny_day")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     p.add_argument("--out", type=Path, required=True)
-    a = p.parse_args()
+    a = p.parse_args(argv)
     runs = {d: episode(d, a.scenario, a.seed, a.steps, a.checkpoint) for d in COMPARED}
     rows = []
     for step, (x, y) in enumerate(zip(*runs.values(), strict=False)):

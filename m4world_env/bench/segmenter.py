@@ -8,7 +8,7 @@ figure of ``segmenter.json``; on the evaluation set it is the ceiling of the rep
 ``ms_per_frame``: one (V, H, W, 3) frame of the first clip at a time, on ``--threads`` CPU threads,
 median of ``--repeats`` passes over ``--frames`` frames.
 
-    python benchmarks/bench_segmenter.py --data data/segmenter/heldout data/evalset --out out/bench_segmenter
+    m4world bench segmenter --data data/segmenter/heldout data/evalset --out out/bench_segmenter
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ def ms_per_frame(segmenter: Segmenter, frames: np.ndarray, repeats: int) -> floa
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench segmenter", description=__doc__.splitlines()[0])
     p.add_argument("--data", nargs="+", required=True, help="recorded datasets (held-out clips, the evaluation set)")
     p.add_argument("--segmenter", default=str(DEFAULT_SEGMENTER_DIR), help="a saved segmenter directory")
     p.add_argument("--stride", type=int, default=4, help="every n-th frame of each clip")

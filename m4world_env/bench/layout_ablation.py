@@ -1,7 +1,7 @@
 """Do teachers with and without pixel-aligned layout conditioning put road and objects where the
 scene says? Scores sampled windows of held-out clips against the simulator's frames.
 
-    PYTHONPATH=. python benchmarks/layout_ablation.py --data data/test \\
+    m4world bench layout_ablation --data data/test \\
         --run tokens=runs/base --run layout=runs/layout --seeds 0 1 2 --out ablation.json --png ablation.png
 
 Each ``--run NAME=DIR`` is a run directory with a ``teacher`` stage (and a ``vae`` stage; the
@@ -68,7 +68,9 @@ def strip(cameras: np.ndarray, scale: int) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="m4world bench layout_ablation", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--data", required=True, help="held-out clips (m4world-clips)")
     p.add_argument("--run", action="append", required=True, help="NAME=RUN_DIR (a teacher and a vae stage)")
     p.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

@@ -15,7 +15,7 @@ run (a 4096^2 matmul, fp32 and bf16) and reports medians; each row's fraction of
 the peak of its own dtype. ``--models``: the causal student the env runs (``dit.student_depth``
 blocks, default) and/or the preset's full-depth teacher (``dit.depth``).
 
-    python benchmarks/bench_model.py [--presets tiny default] [--models student teacher]
+    m4world bench model [--presets tiny default] [--models student teacher]
         [--dtypes auto fp32 bf16] [--compile] [--heaps retain default] [--rounds 3] [--repeats 7]
         [--device cpu] [--out results.json]
 """
@@ -32,12 +32,14 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 
+import numpy as np
 import torch
 
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
 from world_model.precision import resolve_bf16, resolve_device
+from world_model.sim.demo import demo_frame, straight_road
 from world_model.train.heap import retain_freed_memory
 
 ENVS = 8  # batched envs of one vector-env step
@@ -46,6 +48,7 @@ CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
 CPU = torch.device("cpu")
 DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
+DEMO_EGO_STEP_M = 2.0  # the ego's advance per frame: 20 m/s at 10 Hz
 HEAPS = ("retain", "default")  # world_model.train.heap.retain_freed_memory, or glibc's allocator as is
 # Per-row numbers --heaps takes the median of over its rounds.
 NUMBERS = (
@@ -83,7 +86,7 @@ def matmul_peak(dtype: torch.dtype, repeats: int, device: torch.device = CPU) ->
     return 2 * PEAK_SIZE**3 / median_time(lambda: a @ b, repeats, device=device) / 1e9
 
 
-def row_dtype(cfg, dtype_name: str, device: torch.device) -> str:
+def row_dtype(cfg: ModelConfig, dtype_name: str, device: torch.device) -> str:
     """The precision a row of ``dtype_name`` runs in: "auto" as the env's dtype "auto" (bf16 only where
     the checkpoint was trained for it and the device multiplies it natively)."""
     if dtype_name == "auto":
@@ -91,17 +94,19 @@ def row_dtype(cfg, dtype_name: str, device: torch.device) -> str:
     return dtype_name
 
 
-def synthetic_conditions(cfg, frames: int, batch: int) -> Conditions:
-    """Conditions with a full object list; timing does not depend on their values."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from model_fixtures import make_frames, make_sensors
-
-    fr = make_frames(cfg, frames, num_objects=cfg.control.max_objects)
-    _, _, bev = make_sensors(cfg, frames)
-    arr = build_condition_arrays(fr, bev, cfg, HashTextEncoder(cfg.text.dim))  # same widths as MiniLM
+def synthetic_conditions(cfg: ModelConfig, frames: int, batch: int) -> Conditions:
+    """Conditions of a demo highway drive with a full object list; timing does not depend on their values."""
+    rig, road, sensors = cfg.sensors.rig(), straight_road(), cfg.sensors
+    scene = [
+        replace(
+            demo_frame(cfg.control.max_objects, rig=rig, road=road, frame_index=f, ego_x=DEMO_EGO_STEP_M * f),
+            lidar=sensors.lidar,
+            bev=sensors.bev,
+        )
+        for f in range(frames)
+    ]
+    bev = np.zeros((frames, *sensors.bev.shape), np.uint8)
+    arr = build_condition_arrays(scene, bev, cfg, HashTextEncoder(cfg.text.dim))  # same widths as MiniLM
     return Conditions.collate([arr] * batch)
 
 
@@ -172,8 +177,8 @@ def bench_config(
     }
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="m4world bench model", description=__doc__.splitlines()[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
     p.add_argument("--models", nargs="+", default=["student"], choices=["student", "teacher"])
     p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto: as the env runs it")
@@ -191,7 +196,7 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=7)
     p.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (CUDA when available)")
     p.add_argument("--out", default=None, help="write the results as JSON here")
-    a = p.parse_args()
+    a = p.parse_args(argv)
     try:
         resolve_device(a.device)
     except ValueError as e:
@@ -230,20 +235,26 @@ def run_rows(a: argparse.Namespace, heap: str) -> dict:
 
 def compare_heaps(a: argparse.Namespace) -> dict:
     """Each heap setting in fresh processes (the allocator setting is process-wide and lasting),
-    alternating over ``a.rounds`` rounds; rows hold the per-round medians, ``speedup_vs_default``
-    the median over rounds of the ratio of forward times within a round."""
+    alternating over ``a.rounds`` rounds, merged by :func:`merge_heap_rounds`."""
     rounds = []
     for _ in range(a.rounds):
         one = {}
         for heap in a.heaps:
-            cmd = [sys.executable, __file__, "--presets", *a.presets, "--models", *a.models, "--dtypes", *a.dtypes]
-            cmd += ["--heaps", heap, "--repeats", str(a.repeats), "--device", a.device, "--out", "/dev/stdout"]
-            cmd += ["--compile"] if a.compile else []
+            cmd = [sys.executable, "-m", "m4world_env.bench.model", "--presets", *a.presets, "--models", *a.models]
+            cmd += ["--dtypes", *a.dtypes, "--heaps", heap, "--repeats", str(a.repeats), "--device", a.device]
+            cmd += ["--out", "/dev/stdout"] + (["--compile"] if a.compile else [])
             out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
             one[heap] = json.loads(out[out.index("{") :])
         rounds.append(one)
+    return merge_heap_rounds(rounds, a.heaps)
+
+
+def merge_heap_rounds(rounds: list[dict[str, dict]], heaps: list[str]) -> dict:
+    """Rounds of ``{heap: run_rows result}`` as one result: each row's :data:`NUMBERS` are their
+    medians over the rounds, ``speedup_vs_default`` the median over rounds of the default heap's
+    forward time over the row's within a round, the peaks the median over every run."""
     rows = []
-    for heap in a.heaps:
+    for heap in heaps:
         for i, row in enumerate(rounds[0][heap]["presets"]):
             merged = dict(row)
             for key in NUMBERS:
@@ -252,11 +263,11 @@ def compare_heaps(a: argparse.Namespace) -> dict:
                 r["default"]["presets"][i]["forward_s"] / r[heap]["presets"][i]["forward_s"] for r in rounds
             )
             rows.append(merged)
-    measured = rounds[0][a.heaps[0]]["peak_gflops"]
-    peaks = {k: statistics.median(r[h]["peak_gflops"][k] for r in rounds for h in a.heaps) for k in measured}
+    measured = rounds[0][heaps[0]]["peak_gflops"]
+    peaks = {k: statistics.median(r[h]["peak_gflops"][k] for r in rounds for h in heaps) for k in measured}
     return {
         "envs": ENVS,
-        "threads": rounds[0][a.heaps[0]]["threads"],
+        "threads": rounds[0][heaps[0]]["threads"],
         "peak_gflops": peaks,
         "presets": rows,
         "per_round": rounds,

@@ -1,6 +1,6 @@
 """How varied the recorded ego's driving is, per driving style: braking, accelerating, lane changes.
 
-    PYTHONPATH=. python benchmarks/ego_behaviour.py --episodes 4 --duration 30 --out ego_behaviour.json
+    m4world bench ego_behaviour --episodes 4 --duration 30 --out ego_behaviour.json
 
 Drives the recorder's episodes (``m4world_env.recorder.drive_episode``: the same randomized
 scenarios, seeds and autopilot styles as ``m4world record``, no sensors rendered) and reports,
@@ -41,7 +41,9 @@ def episode_stats(frames: list[SceneFrame], brake: float, accelerate: float) -> 
 
 
 def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="m4world bench ego_behaviour", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--scenario", nargs="+", default=["highway_sunny_day", "highway_dense_rain_dusk"])
     p.add_argument("--styles", nargs="+", default=list(DRIVING_STYLES))
     p.add_argument("--action-type", nargs="+", default=list(ACTION_TYPES), choices=ACTION_TYPES)

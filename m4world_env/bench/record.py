@@ -6,7 +6,7 @@ the default preset's sensors) into fresh folders, once per worker count, in a fr
 rounds of the per-round speed-up against one worker. A machine shared with other jobs slows all
 rows of a round alike, so a within-round ratio is the honest figure.
 
-    python benchmarks/bench_record.py --workers 1 2 --clips 8 --duration 5 --rounds 3 --out F.json
+    m4world bench record --workers 1 2 --clips 8 --duration 5 --rounds 3 --out F.json
 """
 
 from __future__ import annotations
@@ -32,15 +32,15 @@ def record_once(workers: int, args: argparse.Namespace, out: Path) -> float:
     return time.perf_counter() - t0
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="m4world bench record", description=__doc__.splitlines()[0])
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts; the first is the baseline")
     p.add_argument("--clips", type=int, default=8)
     p.add_argument("--duration", type=float, default=5.0, help="seconds per clip")
     p.add_argument("--scenario", default="highway_sunny_day")
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--out", type=Path, required=True)
-    a = p.parse_args()
+    a = p.parse_args(argv)
     rounds: list[dict[int, float]] = []
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(a.rounds):

@@ -5,7 +5,7 @@ the ego while static objects (cones, barriers, pedestrians) stream past; the ego
 frame (20 m/s at 10 Hz), so road tiles are rasterized lazily during the run as they would be in an
 episode. Reports medians over frames measured in one run.
 
-    PYTHONPATH=src python benchmarks/bench_render.py --out bench_render.json
+    m4world bench render --out bench_render.json
 """
 
 from __future__ import annotations
@@ -67,15 +67,17 @@ def median_ms(fn: Callable[[SceneFrame], object], frames: list[SceneFrame], warm
     return 1e3 * statistics.median(times)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(
+        prog="m4world bench render", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", required=True, help="where to write the JSON results")
     ap.add_argument("--frames", type=int, default=200)
     ap.add_argument("--warmup", type=int, default=10)
     ap.add_argument("--objects", type=int, default=18)
     ap.add_argument("--weather", default="sunny")
     ap.add_argument("--time-of-day", default="day")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     rows = []
     for width, height in ((112, 64), (400, 224)):

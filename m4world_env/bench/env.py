@@ -1,6 +1,6 @@
 """Env steps/s for 1 and N envs per backend, next to highway-env's own envs, in one run.
 
-    PYTHONPATH=src python benchmarks/bench_env.py --out out/bench_env.json [--backend procedural]
+    m4world bench env --out out/bench_env.json [--backend procedural]
 
 Reports, per backend: one env's median step time and steps/s; a vector env of ``--num-envs``
 (one batched backend call per step) vs the same number of single envs stepped one after another;
@@ -19,13 +19,13 @@ each figure and each ratio (the rounds themselves under ``per_round``). Each bac
 in a fresh process (``--no-isolate``: in this one), so the single-threaded procedural backend never
 shares its process with the world model's torch threads or an earlier round's envs.
 
-    python benchmarks/bench_env.py --backend procedural world_model --out F.json [--checkpoint BUNDLE]
+    m4world bench env --backend procedural world_model --out F.json [--checkpoint BUNDLE]
 
 ``--device`` runs the world-model backends there (``config.model.device``: cpu, cuda[:N], auto).
 
 Simulation workers (``config.workers``, docs/scaling.md) instead of the backends:
 
-    OMP_NUM_THREADS=1 python benchmarks/bench_env.py --workers 0 2 --num-envs 64 --rounds 2 \
+    OMP_NUM_THREADS=1 m4world bench env --workers 0 2 --num-envs 64 --rounds 2 \
         --vector-steps 4 --out F.json [--compare-tree OTHER_CHECKOUT]
 
 times one world-model vector env per worker count, each in a fresh process, in interleaved rounds
@@ -51,17 +51,23 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-from bench_traffic import bench_highway_env  # noqa: E402
-
-import m4world_env  # noqa: E402, F401
-from m4world_env.policies import ConstantSpeedLaneKeeping  # noqa: E402
-from world_model.precision import DTYPES  # noqa: E402
+import m4world_env  # noqa: F401  (registers M4World-v0)
+from m4world_env.policies import ConstantSpeedLaneKeeping
+from world_model.precision import DTYPES
 
 CONFIG = {"observation_keys": ["cameras", "lidar"]}
+PROC_STATUS = Path("/proc/self/status")
+KB_PER_MB = 1024
+# This module as a program again: the probes that time or measure one backend in a fresh process.
+PROBE = [sys.executable, "-m", "m4world_env.bench.env"]
+# This file run by path over another checkout's packages (--compare-tree): that checkout may have no
+# m4world_env.bench, and nothing may come before its PYTHONPATH on sys.path (-c puts the cwd first).
+RUN_FILE = (
+    "import runpy, sys; del sys.path[0]; sys.argv = sys.argv[1:]; runpy.run_path(sys.argv[0], run_name='__main__')"
+)
 
 
-def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[float], list[float]]:
+def _time_single(env: gym.Env, steps: int, seed: int, warmup: int = 0) -> tuple[list[float], list[float]]:
     """Per-step wall times and the bridge's share of each, for one env (after ``warmup`` untimed steps)."""
     base = env.unwrapped
     env.reset(seed=seed)
@@ -84,7 +90,7 @@ def _time_single(env, steps: int, seed: int, warmup: int = 0) -> tuple[list[floa
     return totals, traffic
 
 
-def _make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False, device: str = "cpu") -> dict:
+def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False, device: str = "cpu") -> dict:
     """gym.make keywords for a backend spec: ``procedural``, or ``world_model`` with optional
     ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
     ``world_model``'s auto), ``compile`` (``config.model.compile``, as ``--compile`` does for every
@@ -151,7 +157,7 @@ def peak_rss_one_env(
     backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None, device: str = "cpu"
 ) -> float:
     """Peak RSS (MB) of a fresh process that makes one env and steps it ``steps`` times."""
-    cmd = [sys.executable, __file__, "--memory-probe", backend, "--scenario", scenario, "--steps", str(steps)]
+    cmd = [*PROBE, "--memory-probe", backend, "--scenario", scenario, "--steps", str(steps)]
     cmd += ["--seed", str(seed), "--device", device, "--out", "-"]
     cmd += ["--checkpoint", checkpoint] if checkpoint else []
     out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
@@ -159,19 +165,25 @@ def peak_rss_one_env(
 
 
 def _memory_probe(backend: str, scenario: str, steps: int, seed: int, checkpoint: str | None, device: str) -> None:
-    env = gym.make("M4World-v0", scenario=scenario, **_make_kwargs(backend, checkpoint, device=device))
+    env = gym.make("M4World-v0", scenario=scenario, **make_kwargs(backend, checkpoint, device=device))
     _time_single(env, steps, seed)
     print(own_peak_rss_mb())
+
+
+def status_peak_rss_mb(status: str) -> float | None:
+    """The peak resident set (``VmHWM``, kB) of a ``/proc/PID/status`` text, in MB; None without one."""
+    for line in status.splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / KB_PER_MB
+    return None
 
 
 def own_peak_rss_mb() -> float:
     """This process's peak RSS in MB. Not ``getrusage``: Linux keeps ``ru_maxrss`` across execve,
     so a probe started by a big parent would report the parent's peak; ``VmHWM`` belongs to the
     process's own address space, which execve replaces."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM:"):
-            return int(line.split()[1]) / 1024
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # no procfs: the upper bound
+    peak = status_peak_rss_mb(PROC_STATUS.read_text()) if PROC_STATUS.exists() else None
+    return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / KB_PER_MB  # upper bound
 
 
 def _timed(fn, total: list[float]):  # noqa: ANN001, ANN202 (wraps any callable)
@@ -187,6 +199,7 @@ def _timed(fn, total: list[float]):  # noqa: ANN001, ANN202 (wraps any callable)
     return timed
 
 
+# Over 80 lines, 10 parameters: one backend's single and vector passes, top to bottom, with the CLI's options.
 def bench_backend(
     backend: str,
     scenario: str,
@@ -205,7 +218,7 @@ def bench_backend(
     after one untimed. A vector step is split into traffic (the sub-envs' bridges), conditions
     (BEV raster, text, crops), student, decode and other (rewards, observations, Python), per env
     step."""
-    kw = _make_kwargs(backend, checkpoint, compile_model, device)
+    kw = make_kwargs(backend, checkpoint, compile_model, device)
     single = gym.make("M4World-v0", scenario=scenario, **kw)
     totals, traffic = _time_single(single, steps, seed, warmup)
     step_s = statistics.median(totals)
@@ -296,13 +309,15 @@ def bench_backend(
 def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, warmup: int) -> dict:
     """:func:`bench_backend` in a fresh process: no backend shares the process with another (the
     world model's torch threads and imports, earlier rounds' envs) while it is timed."""
-    cmd = [sys.executable, __file__, "--backend-probe", backend, "--scenario", args.scenario, "--steps", str(steps)]
+    cmd = [*PROBE, "--backend-probe", backend, "--scenario", args.scenario, "--steps", str(steps)]
     cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--warmup", str(warmup), "--out", "-"]
     cmd += ["--device", args.device]
     cmd += (["--checkpoint", args.checkpoint] if args.checkpoint else []) + (["--compile"] if args.compile else [])
     probe = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its errors reach the terminal
     if probe.returncode:
-        raise SystemExit(f"bench_env: the {backend} backend's run failed (exit {probe.returncode}); its error is above")
+        raise SystemExit(
+            f"m4world bench env: the {backend} backend's run failed (exit {probe.returncode}); its error is above"
+        )
     return json.loads(probe.stdout.strip().splitlines()[-1])
 
 
@@ -345,6 +360,7 @@ def _digest(h, arrays) -> None:  # noqa: ANN001 (hashlib object, arrays)
         h.update(np.ascontiguousarray(a).tobytes())
 
 
+# Over 80 lines: one timed vector env, its step's parts and digest, top to bottom.
 def bench_workers(
     workers: int,
     scenario: str,
@@ -437,7 +453,18 @@ def bench_workers(
 
 def bench_workers_isolated(workers: int, args: argparse.Namespace, root: Path) -> dict:
     """:func:`bench_workers` in a fresh process whose ``m4world_env``/``world_model`` come from ``root``."""
-    cmd = [sys.executable, __file__, "--workers-probe", str(workers), "--scenario", args.scenario, "--out", "-"]
+    cmd = [
+        sys.executable,
+        "-c",
+        RUN_FILE,
+        __file__,
+        "--workers-probe",
+        str(workers),
+        "--scenario",
+        args.scenario,
+        "--out",
+        "-",
+    ]
     cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--vector-steps", str(args.vector_steps)]
     cmd += ["--warmup", str(args.warmup if args.warmup is not None else 1)]
     cmd += ["--checkpoint", args.checkpoint] if args.checkpoint else []
@@ -453,7 +480,7 @@ def compare_workers(args: argparse.Namespace) -> dict:
     a fresh process; the medians over rounds, the non-model throughput of each worker count over
     0 workers' (per round, then the median), and whether every run of this checkout observed the
     same."""
-    here = Path(__file__).resolve().parents[1]
+    here = Path(__file__).resolve().parents[2]  # the folder holding this file's m4world_env
     configs = [(f"workers={k}", k, here) for k in args.workers]
     if args.compare_tree:
         configs.append(("compare_tree workers=0", 0, Path(args.compare_tree).resolve()))
@@ -490,8 +517,10 @@ def compare_workers(args: argparse.Namespace) -> dict:
     return result
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="m4world bench env", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument(
         "--backend",
@@ -538,54 +567,21 @@ def main() -> None:
     ap.add_argument("--workers-probe", type=int, default=None, help=argparse.SUPPRESS)  # internal: one run
     ap.add_argument("--memory-probe", default=None, help=argparse.SUPPRESS)  # internal: one env's peak RSS
     ap.add_argument("--backend-probe", default=None, help=argparse.SUPPRESS)  # internal: one isolated round
-    args = ap.parse_args()
-    if args.memory_probe:
-        _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint, args.device)
-        return
-    if args.workers_probe is not None:
-        warmup = args.warmup if args.warmup is not None else 1
-        r = bench_workers(
-            args.workers_probe,
-            args.scenario,
-            args.num_envs,
-            args.vector_steps,
-            warmup,
-            args.seed,
-            args.checkpoint,
-            args.device,
-        )
-        print(json.dumps(r))
-        return
-    if args.workers is not None:
-        if args.rounds < 1:
-            raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
-        result = compare_workers(args)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=2))
-        print(json.dumps({k: v for k, v in result.items() if k != "per_round"}, indent=2))
-        return
-    if args.backend_probe:
-        r = bench_backend(
-            args.backend_probe,
-            args.scenario,
-            args.steps,
-            args.num_envs,
-            args.seed,
-            args.checkpoint,
-            args.compile,
-            args.warmup,
-            args.device,
-        )
-        print(json.dumps(r))
-        return
-    if args.rounds < 1:
-        raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
+    return ap
+
+
+def compare_backends(args: argparse.Namespace) -> dict:
+    """``--backend``: highway-env's envs and every backend in ``args.rounds`` interleaved rounds;
+    the medians over rounds, each ratio to highway-env taken within its round, and each backend's
+    one-env peak RSS."""
     steps = max(args.steps // args.rounds, 10)
+    # Not at the top: a --compare-tree probe runs this file over a checkout that may have no bench.
+    from m4world_env.bench.traffic import bench_highway_env
 
     def warmup_of(backend: str) -> int:
         if args.warmup is not None:
             return args.warmup
-        compiled = _make_kwargs(backend, None)["config"].get("model", {}).get("compile", False)
+        compiled = make_kwargs(backend, None)["config"].get("model", {}).get("compile", False)
         return 12 if args.compile or compiled else 2
 
     rounds: list[dict] = []
@@ -623,6 +619,45 @@ def main() -> None:
     }
     result["per_round"] = rounds
     result["peak_rss_mb"] = own_peak_rss_mb()  # not ru_maxrss: it carries the launching process's peak
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = build_parser().parse_args(argv)
+    if args.memory_probe:
+        _memory_probe(args.memory_probe, args.scenario, args.steps, args.seed, args.checkpoint, args.device)
+        return
+    if args.workers_probe is not None:
+        warmup = args.warmup if args.warmup is not None else 1
+        r = bench_workers(
+            args.workers_probe,
+            args.scenario,
+            args.num_envs,
+            args.vector_steps,
+            warmup,
+            args.seed,
+            args.checkpoint,
+            args.device,
+        )
+        print(json.dumps(r))
+        return
+    if args.backend_probe:
+        r = bench_backend(
+            args.backend_probe,
+            args.scenario,
+            args.steps,
+            args.num_envs,
+            args.seed,
+            args.checkpoint,
+            args.compile,
+            args.warmup,
+            args.device,
+        )
+        print(json.dumps(r))
+        return
+    if args.rounds < 1:
+        raise SystemExit(f"--rounds must be >= 1, got {args.rounds}")
+    result = compare_workers(args) if args.workers is not None else compare_backends(args)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2))
     print(json.dumps({k: v for k, v in result.items() if k != "per_round"}, indent=2))

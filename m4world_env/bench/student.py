@@ -18,8 +18,8 @@ The student has ``dit.student_depth`` blocks, the teacher ``dit.depth`` (the pre
 4. ``compiled_vs_eager`` (only when named in ``--sections``; inductor needs a C++ compiler): one
    cached chunk eager vs compiled, interleaved rounds.
 
-    python benchmarks/bench_student.py [--preset default] [--envs 8] [--frames 600] --out FILE.json
-    python benchmarks/bench_student.py --sections cache_vs_recompute --window 12 --out FILE.json
+    m4world bench student [--preset default] [--envs 8] [--frames 600] --out FILE.json
+    m4world bench student --sections cache_vs_recompute --window 12 --out FILE.json
 
 ``--window`` overrides ``clip.context_frames`` (how the cache's advantage scales with the window);
 ``--student-depth`` overrides ``dit.student_depth`` (a shallower student than the preset's);
@@ -34,23 +34,20 @@ import copy
 import dataclasses
 import json
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_model import synthetic_conditions  # noqa: E402
-
-from world_model.model import MultiViewDiT, get_preset, sample_latents  # noqa: E402
-from world_model.model.conditions import Conditions  # noqa: E402
-from world_model.model.config import ModelConfig, with_student_settings  # noqa: E402
-from world_model.model.flow import gaussian, predict_x0  # noqa: E402
-from world_model.precision import DTYPES, resolve_bf16, resolve_device  # noqa: E402
-from world_model.student import StreamingEngine, StudentConfig, cat_frames, few_step_sample, rollout_blocks  # noqa: E402
-from world_model.student.config import TRAINING_STREAMING  # noqa: E402
+from m4world_env.bench.model import synthetic_conditions
+from world_model.model import MultiViewDiT, get_preset, sample_latents
+from world_model.model.conditions import Conditions
+from world_model.model.config import ModelConfig, with_student_settings
+from world_model.model.flow import gaussian, predict_x0
+from world_model.precision import DTYPES, resolve_bf16, resolve_device
+from world_model.student import StreamingEngine, StudentConfig, cat_frames, few_step_sample, rollout_blocks
+from world_model.student.config import TRAINING_STREAMING
 
 RSS_FROM_FRAME = 100  # memory growth is measured from here (window full, allocator warm)
 
@@ -270,8 +267,8 @@ SECTIONS = {"student_vs_teacher": student_vs_teacher, "cache_vs_recompute": cach
 OPTIONAL_SECTIONS = {"compiled_vs_eager": compiled_vs_eager}  # needs a C++ compiler (inductor): only when asked
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="m4world bench student", description=__doc__.splitlines()[0])
     p.add_argument("--preset", default="default")
     p.add_argument("--envs", type=int, default=8, help="batched rollouts for the speed comparisons")
     p.add_argument("--rollout-envs", type=int, default=1, help="rows of the long rollout")
@@ -296,7 +293,7 @@ def main() -> None:
     p.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (CUDA when available)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])
     p.add_argument("--out", required=True)
-    a = p.parse_args()
+    a = p.parse_args(argv)
     try:
         device = resolve_device(a.device)
     except ValueError as e:
