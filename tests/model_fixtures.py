@@ -120,28 +120,43 @@ def perturbed(module, seed: int = 0, scale: float = 0.2):
     return module.eval()
 
 
-def kill_after_checkpoint(train_args: list[str], checkpoints: Path, step: int = 4, timeout_s: float = 120.0) -> None:
-    """Run ``python -m world_model.train *train_args`` in its own process and SIGKILL it once
-    ``checkpoints/latest.json`` has reached ``step`` (or after ``timeout_s``): a run killed mid-way."""
+# A training process that SIGKILLs itself right after writing checkpoint STEP: no exit handler or
+# finally block runs, as when a machine's job is killed, and where it stops does not depend on timing.
+KILLED_AFTER_CHECKPOINT = """
+import os, signal, sys
+import world_model.train.trainer as trainer
+from world_model.train.cli import main
+
+save, step = trainer.save_checkpoint, int(sys.argv[1])
+
+def save_then_die(root, at, *args, **kwargs):
+    path = save(root, at, *args, **kwargs)
+    if at >= step:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return path
+
+trainer.save_checkpoint = save_then_die
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def kill_after_checkpoint(train_args: list[str], checkpoints: Path, step: int = 4, timeout_s: float = 600.0) -> None:
+    """Run ``python -m world_model.train *train_args`` in its own process, SIGKILLed right after it
+    has written checkpoint ``step`` (``checkpoints/latest.json`` then names it): a run killed
+    mid-way. ``timeout_s`` only bounds a run that hangs."""
     import json
     import os
     import signal
     import subprocess
     import sys
-    import time
 
     src = Path(__file__).resolve().parents[1]
-    cmd = [sys.executable, "-m", "world_model.train", *train_args]
+    cmd = [sys.executable, "-c", KILLED_AFTER_CHECKPOINT, str(step), *train_args]
     env = {**os.environ, "PYTHONPATH": str(src)}
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    latest = checkpoints / "latest.json"
-    deadline = time.time() + timeout_s
-    while time.time() < deadline and not (latest.exists() and json.loads(latest.read_text())["step"] >= step):
-        if proc.poll() is not None:
-            raise AssertionError(f"the training run exited on its own (status {proc.returncode}): {cmd}")
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    status = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, timeout=timeout_s)
+    if status.returncode != -signal.SIGKILL:
+        raise AssertionError(f"the training run was not killed (status {status.returncode}): {status.stderr[-2000:]}")
+    assert json.loads((checkpoints / "latest.json").read_text())["step"] == step
 
 
 def train_cli(*args: str) -> dict:

@@ -205,7 +205,7 @@ def test_killed_run_resumes_from_last_checkpoint(dataset, tmp_path):
     run = tmp_path / "run"
     args = ["--stage", "vae", "--data", str(dataset), "--run", str(run), "--preset", "tiny"]
     kill_after_checkpoint(
-        [*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], run / "vae" / "checkpoints", timeout_s=60
+        [*args, "--steps", "100000", "--ckpt-every", "2", "--no-progress"], run / "vae" / "checkpoints"
     )
     ck = load_latest(run / "vae" / "checkpoints")
     assert ck is not None and ck.step >= 4
