@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 # CPU build of torch first: a plain `torch` requirement would pull several GB of CUDA wheels.
 TORCH_PIN := torch==2.13.0
 
-.PHONY: install demo test lint bench gallery clean gpu-check gpu-check-prepare segmenter zoo
+.PHONY: install demo test lint bench clean gpu-check gpu-check-prepare segmenter zoo
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
