@@ -81,7 +81,7 @@ class ModelBackendConfig:
     compile: bool = False
     # torch intra-op threads of the process (torch.set_num_threads, process-wide): one thread keeps
     # a step from collapsing when other processes (other envs, a learner) share the cores
-    # (docs/performance.md, benchmarks/bench_threads.py). None leaves torch's setting as it is.
+    # (docs/performance.md, m4world bench threads). None leaves torch's setting as it is.
     threads: int | None = DEFAULT_TORCH_THREADS
 
     def streaming_changes(self) -> dict[str, Any]:

@@ -4,7 +4,7 @@ A checkpoint trained with ``dit.autocast_bf16`` may run its DiTs in bfloat16, bu
 faster where the hardware multiplies it natively: CUDA GPUs that support it, and CPUs with
 AVX512-BF16 or AMX tiles. Elsewhere (AVX2 laptops, AVX512 CPUs without the BF16 extension)
 PyTorch emulates bf16 matrix products and they run several times *slower* than float32
-(``benchmarks/bench_model.py`` measures both peaks). ``dtype="auto"`` therefore picks bf16 only
+(``m4world bench model`` measures both peaks). ``dtype="auto"`` therefore picks bf16 only
 where it is fast. Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
 :func:`dit_precision`.
 """

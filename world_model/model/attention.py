@@ -50,7 +50,7 @@ def mask_bias(mask: torch.Tensor | None, dtype: torch.dtype) -> torch.Tensor | N
     """Bool mask (True = attend) -> additive bias of ``dtype``: 0 where allowed, the dtype's lowest
     value where not (not -inf: a fully masked row then averages its values instead of turning into
     NaN). Build it once per forward: on CPU inductor fuses an addition into the softmax better than
-    a boolean ``masked_fill`` (benchmarks/bench_model.py measures the whole forward)."""
+    a boolean ``masked_fill`` (m4world bench model measures the whole forward)."""
     if mask is None:
         return None
     return torch.zeros(mask.shape, dtype=dtype, device=mask.device).masked_fill_(~mask, torch.finfo(dtype).min)
@@ -65,7 +65,7 @@ def attention(
 
     On CPU two batched matmuls and a softmax: at the DiT's short sequences (tens to a few hundred
     tokens) that is about twice as fast as ``scaled_dot_product_attention``'s CPU flash kernel
-    (benchmarks/bench_model.py). Masked scores get the dtype's lowest value rather than -inf, so
+    (m4world bench model). Masked scores get the dtype's lowest value rather than -inf, so
     a fully masked row averages its values instead of turning into NaN. Elsewhere SDPA's fused
     kernels win.
     """
@@ -89,7 +89,7 @@ class RMSNorm(nn.Module):
     It has no ``forward``: the attention layers multiply by :meth:`inverse_rms` and fold ``weight``
     into the next factor of the dot product (the rotary tables, or the keys of a cross-attention),
     which saves several passes over the queries and keys per layer; in bf16 on CPU the whole norm
-    cost more than the attention matmuls (benchmarks/bench_student.py)."""
+    cost more than the attention matmuls (m4world bench student)."""
 
     def __init__(self, dim: int, eps: float) -> None:
         super().__init__()

@@ -146,17 +146,17 @@ class DitConfig:
     """Multi-view + LiDAR diffusion transformer (§3.2)."""
 
     # Sized for the env's CPU speed target (8 batched envs, 4 denoising steps per chunk): see
-    # benchmarks/bench_model.py and bench_student.py. 4.1 M parameters at these values.
+    # m4world bench model and m4world bench student. 4.1 M parameters at these values.
     dim: int = 128
     depth: int = 10
     # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
-    # 4 denoising forwards per env step, so its depth sets the env's speed (benchmarks/bench_env.py);
+    # 4 denoising forwards per env step, so its depth sets the env's speed (m4world bench env);
     # a shallower one starts from evenly spaced teacher blocks (world_model.student.init) while the
     # teacher and the reference model keep all ``depth`` blocks. Fewer blocks trade image quality
     # for speed: long-video tuning can collapse a shallow student's cameras to a grey mean scene.
     student_depth: int | None = None
     # head_dim 64: at these short sequences the softmax's exponentials, not the matmuls, bound CPU
-    # attention time, so fewer, wider heads are faster (measured: benchmarks/bench_student.py).
+    # attention time, so fewer, wider heads are faster (measured: m4world bench student).
     heads: int = 2
     mlp_ratio: float = 4.0
     patch: int = 2

@@ -4,7 +4,7 @@ exactly what B batch-of-one calls compute.
 On CPU, oneDNN and MKL choose kernels, blockings and reduction splits by problem size: a linear
 layer over B * M rows, a batched matmul over B * H matrices or a per-sample sum over a batch is
 not bitwise the same, per row, as the same op over M rows (measured with
-``benchmarks/row_independence.py``: small-M linears of the timestep and ego MLPs, the cross-
+``m4world bench row_independence``: small-M linears of the timestep and ego MLPs, the cross-
 attention's matmuls, the decoder's convolutions and group norms, up to ~1e-6 apart per call, which
 a rollout amplifies to 1e-5 m of LiDAR and flipped returns within a few steps). Inside
 :func:`split_rows` those ops run once per row block, with the very shapes a single rollout's call
@@ -14,7 +14,7 @@ Large products are row-independent as they are, and run whole (splitting them co
 vector step): a linear whose row blocks have at least :data:`MIN_CONSISTENT_GEMM_ROWS` rows, and a
 batched product of matrices with at least that many rows and columns (each matrix is multiplied
 alone, by a kernel chosen alike for one block and for all); so do reductions over the last dim
-alone (the QK-norm's: each vector is reduced by itself). ``benchmarks/row_independence.py
+alone (the QK-norm's: each vector is reduced by itself). ``m4world bench row_independence
 --no-split`` shows which ops differ; ``tests/test_vector_equality.py`` holds a vector env's rows
 to its single envs' bit for bit.
 

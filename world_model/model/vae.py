@@ -310,7 +310,7 @@ class SensorVAE(nn.Module):
         scene implies, read when the decoder draws the labels; None there means none (a camera)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
-        # fast in NHWC (benchmarks/bench_model.py's vae_decode_ms_per_frame); same values to ~1e-6.
+        # fast in NHWC (m4world bench model's vae_decode_ms_per_frame); same values to ~1e-6.
         z = z.contiguous(memory_format=torch.channels_last)
         return self.decoder(z, self._label_inputs(labels, z, nearness), self._style(style, labels, z))
 

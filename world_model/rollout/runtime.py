@@ -194,7 +194,7 @@ class WorldModel:
 
         On CPU each frame is decoded alone: the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
-        ``benchmarks/row_independence.py``), so a batched decode would make a vector env's row
+        ``m4world bench row_independence``), so a batched decode would make a vector env's row
         differ from the same rollout run alone; it costs ~10% of the decode at 64 frames. On a GPU,
         where the student is batched too (no bit-for-bit promise there), frames go
         :data:`DECODE_FRAMES_PER_CALL` at a time: one call per frame would launch the decoder's

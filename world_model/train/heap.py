@@ -5,7 +5,7 @@ of 0.1-10 MB. glibc's ``malloc`` serves every block above its mmap threshold (12
 it only rises to the largest block freed so far) with a fresh ``mmap`` and hands a freed heap top
 larger than its trim threshold back to the OS. Every forward therefore touched ~55,000 new pages,
 and the kernel zeroing them cost about a quarter of the forward on the 2-core CPU this project
-targets (``python benchmarks/bench_model.py --heaps retain default`` measures both, with the
+targets (``m4world bench model --heaps retain default`` measures both, with the
 page faults per forward).
 
 :func:`retain_freed_memory` raises both thresholds with ``mallopt`` (glibc only; elsewhere it
@@ -13,7 +13,7 @@ does nothing and says so): blocks up to ``mmap_threshold_bytes`` come from the h
 memory stays mapped for the next call. The process's peak memory does not grow (the freed
 blocks are reused); its resident size just no longer shrinks after a peak. The setting is
 process-wide, so it is applied by the programs that choose it (the train CLIs unless
-``--default-heap``; ``benchmarks/bench_model.py --heaps retain``), never on import. The env does
+``--default-heap``; ``m4world bench model --heaps retain``), never on import. The env does
 not apply it: a process running the env already raises glibc's dynamic mmap threshold by freeing
 large blocks, and an 8-env vector step measured no faster with it.
 

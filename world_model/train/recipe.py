@@ -181,7 +181,7 @@ SCALES = {
 
 
 # The recipe puts the scene where the pixels are: pixel-aligned layout channels (docs/layout.md), at
-# 2 rays per latent cell side, which keeps the env's per-frame raster cheap (benchmarks/bench_layout.py).
+# 2 rays per latent cell side, which keeps the env's per-frame raster cheap (m4world bench layout).
 LAYOUT_SUPERSAMPLE = 2
 # An ego that brakes, accelerates and changes lanes, so that actions have consequences to learn.
 RECORD_STYLES = ("steady", "speed_changes", "lane_changes", "weaving")
