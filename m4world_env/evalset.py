@@ -261,18 +261,3 @@ def load_manifest(root: str | Path, kinds: Sequence[str] | None = None) -> list[
         raise FileNotFoundError(f"{path} not found: record the evaluation set with record_evalset({str(root)!r})")
     entries = json.loads(path.read_text())["clips"]
     return [e for e in entries if kinds is None or e["kind"] in kinds]
-
-
-# Judge training parades: seeds disjoint from training (base 0) and from the default evaluation
-# set (bases 1000-1002), so the judge never sees an evaluation clip.
-JUDGE_PARADE_BASE_SEEDS = (5000, 5001, 5002)
-
-
-def record_judge_parades(out_dir: str | Path, progress: bool = True) -> list[dict]:
-    """Extra judge training clips: the weather x time parade grid at seeds of its own, so that every
-    category (cones and pedestrians are rare in ordinary traffic) is seen up close in training."""
-    entries = []
-    for base in JUDGE_PARADE_BASE_SEEDS:
-        cfg = EvalsetConfig(base_seed=base, episodes_per_scenario=0, long_scenarios=())
-        entries += record_evalset(out_dir, cfg, progress=progress)
-    return entries

@@ -1,6 +1,7 @@
 """``m4world bench``: one benchmark with its own options, or the suite; each in a fresh process of
 the installed package (no source checkout needed)."""
 
+import importlib
 import json
 import pkgutil
 import subprocess
@@ -33,6 +34,14 @@ def test_every_benchmark_module_is_named_and_the_suite_runs_only_named_ones():
     modules = {m.name for m in pkgutil.iter_modules(m4world_env.bench.__path__)}
     assert modules == set(BENCHMARKS)
     assert set(SUITE) <= set(BENCHMARKS) and set(DEVICE_BENCHMARKS) <= set(SUITE)
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_every_benchmark_imports_and_names_itself(name, capsys):
+    module = importlib.import_module(f"m4world_env.bench.{name}")
+    with pytest.raises(SystemExit) as done:
+        module.main(["--help"])
+    assert done.value.code == 0 and capsys.readouterr().out.startswith(f"usage: m4world bench {name} ")
 
 
 def test_one_benchmark_runs_with_its_own_options_and_its_exit_status(commands):

@@ -97,18 +97,7 @@ def world_to_ego_xy(points_xy: np.ndarray, ego_xy: np.ndarray, ego_yaw: float) -
     return np.stack([c * d[..., 0] + s * d[..., 1], -s * d[..., 0] + c * d[..., 1]], axis=-1)
 
 
-def ego_to_world_xy(points_xy: np.ndarray, ego_xy: np.ndarray, ego_yaw: float) -> np.ndarray:
-    """Inverse of :func:`world_to_ego_xy`. points_xy: (..., 2) -> (..., 2)."""
-    c, s = np.cos(ego_yaw), np.sin(ego_yaw)
-    p = np.asarray(points_xy, dtype=np.float64)
-    return np.stack([c * p[..., 0] - s * p[..., 1] + ego_xy[0], s * p[..., 0] + c * p[..., 1] + ego_xy[1]], axis=-1)
-
-
-def highway_to_world(x: float, y: float, heading: float) -> tuple[float, float, float]:
-    """highway-env (x forward, y to the driver's right, heading clockwise) -> our frame."""
-    return float(x), float(-y), float(-heading)
-
-
 def world_to_highway(x: float, y: float, yaw: float) -> tuple[float, float, float]:
-    """Our frame -> highway-env's frame (the map is its own inverse)."""
+    """Our frame -> highway-env's frame (x forward, y to the driver's right, heading clockwise; the
+    map is its own inverse)."""
     return float(x), float(-y), float(-yaw)

@@ -168,13 +168,6 @@ class EgoState:
         d["size"] = tuple(d.get("size", CATEGORY_SIZES["car"]))
         return cls(**d)
 
-    def pose_matrix(self) -> np.ndarray:
-        """(4, 4) ego-to-world transform (z = 0 at the road surface)."""
-        m = np.eye(4)
-        m[:3, :3] = yaw_matrix(self.yaw)
-        m[:2, 3] = (self.x, self.y)
-        return m
-
 
 LANE_LINE_KINDS = ("solid", "dashed", "none")
 

@@ -267,13 +267,6 @@ class BevSpec:
         w = round(2 * self.half_width_m / self.m_per_px)
         return h, w, len(self.classes)
 
-    def cell_centers(self) -> np.ndarray:
-        """(h, w, 2) ego-frame (x, y) of each cell centre."""
-        h, w, _ = self.shape
-        xs = self.forward_m - (np.arange(h) + 0.5) * self.m_per_px
-        ys = self.half_width_m - (np.arange(w) + 0.5) * self.m_per_px
-        return np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1)
-
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
         d["classes"] = list(self.classes)

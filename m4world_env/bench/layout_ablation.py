@@ -34,7 +34,7 @@ from world_model.model.layout import LAYOUT_CHANNELS, layout_raster
 from world_model.model.sampler import latents_to_observations, sample_latents
 from world_model.model.vae import SensorVAE
 from world_model.sim import ProceduralSimulator
-from world_model.train.stages import EXPORT, load_teacher, load_vae
+from world_model.train.exports import EXPORT, load_teacher, load_vae
 
 ROAD = LAYOUT_CHANNELS.index("road")
 

@@ -118,10 +118,6 @@ class ControlTokenizer(nn.Module):
         self.null_text = nn.Parameter(torch.randn(d) * 0.02)
         self.null_control = nn.Parameter(torch.randn(d) * 0.02)
 
-    @property
-    def frame_tokens(self) -> int:
-        return 1 + self.cfg.map_tokens + self.cfg.control.max_objects + 1
-
     def object_tokens(self, cond: Conditions) -> torch.Tensor:
         """(B, T, O, D); padding slots hold the pad token."""
         scale = self.cfg.control.position_scale_m

@@ -21,12 +21,6 @@ def reflected_index(i: int | np.ndarray, length: int | np.ndarray) -> int | np.n
     return int(out) if out.ndim == 0 else out
 
 
-def rollout_frame_indices(num_frames: int, start: int, frames: int) -> list[int]:
-    """The clip frames behind rollout frames [start, start + frames) of a clip of ``num_frames``
-    frames played back and forth (:func:`reflected_index`)."""
-    return reflected_index(np.arange(start, start + frames), num_frames).tolist()
-
-
 def rollout_batch(
     windows: LatentWindows, clips: list[int], start: int, frames: int, anchor: int
 ) -> tuple[torch.Tensor, Conditions]:
