@@ -4,7 +4,7 @@ The pipeline's parts (:class:`~world_model.rollout.conditions.RolloutConditions`
 :class:`~world_model.rollout.batch.RolloutBatch`) time their stages only when a
 :class:`StageTimer` is attached to them (their ``timer``, None by default): the env runs without
 one, so it reads no clock and waits for no device; the benchmarks attach one
-(``benchmarks/bench_env.py``'s split of a step, the simulation workers' ``seconds``).
+(``m4world bench env``'s split of a step, the simulation workers' ``seconds``).
 """
 
 from __future__ import annotations
