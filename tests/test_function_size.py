@@ -19,6 +19,11 @@ KNOWN_OFFENDERS = {
     "world_model/eval/train_segmenter.py::_train",
     "world_model/train/recipe.py::run_recipe",  # its parameters follow the recipe's command line
     "m4world_env/agreement/plot.py::scatter_plot",
+    "m4world_env/bench/env.py::bench_backend",
+    "m4world_env/bench/env.py::bench_workers",
+    "m4world_env/bench/longtail.py::_render_both",
+    "m4world_env/bench/longtail.py::evaluate",
+    "m4world_env/bench/longtail.py::judge_ordinary",
     "m4world_env/agreement/render.py::build_summary",
     "m4world_env/cli.py::build_parser",
     "m4world_env/traffic/roads.py::build_roundabout",
