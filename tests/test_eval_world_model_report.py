@@ -3,6 +3,7 @@
 import json
 
 from m4world_env.cli import main
+from tests.cli_status import exit_status
 
 
 def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
@@ -76,8 +77,8 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     key = json.loads((out / "rows" / "student.seed0.json").read_text())["key"]
     assert key != bf16_key
     assert (out / "rows" / "oracle.json").stat().st_mtime_ns == oracle_stamp
-    assert main([*args, "--context-frames", "0"]) == 2
-    assert "context_frames must be >= 1" in capsys.readouterr().err
+    assert exit_status(main, [*args, "--context-frames", "0"]) == 2
+    assert "argument --context-frames: must be a positive integer, got '0'" in capsys.readouterr().err
     capsys.readouterr()
     none = ["--clips-prefix", "long_"]
     assert (
@@ -93,7 +94,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert len(keys) == 4  # student, no-refresh, refresh at 0, at 1 and 3: each its own cached row
     beyond = "--refresh-steps [9] names no step of the 4 denoising steps"
     for bad, says in (("9", beyond), ("first", "--refresh-steps")):
-        assert main([*args, "--refresh-steps", bad]) == 2
+        assert exit_status(main, [*args, "--refresh-steps", bad]) == 2
         assert says in capsys.readouterr().err
     # Rows with an attention sink: with the bundle's own refresh and with each --refresh-steps row.
     assert main([*args, "--refresh-steps", "0", "--sink-frames", "1"]) == 0
@@ -101,7 +102,7 @@ def test_eval_report_rows_for_a_bundle(tiny_bundle, tmp_path, capsys):
     assert {"student_sink_1", "student_refresh_0_sink_1"} <= set(rows)
     sink_keys = {json.loads((out / "rows" / f"{r}.seed0.json").read_text())["key"] for r in rows if "sink" in r}
     assert len(sink_keys) == 2 and not sink_keys & keys
-    assert main([*args, "--sink-frames", "65"]) == 2
+    assert exit_status(main, [*args, "--sink-frames", "65"]) == 2
     assert "--sink-frames must be an integer in [0, 64], got 65" in capsys.readouterr().err
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.cli_status import exit_status
 from tests.model_fixtures import QUIET, kill_after_checkpoint, make_frames, make_sensors, perturbed, tiny_conditions
 from world_model.data import write_clip
 from world_model.lora import apply_adapters, base_fingerprint, loaded_adapters, read_adapter, remove_adapters
@@ -173,13 +174,13 @@ def test_lora_box_weight_is_validated_recorded_and_fixed_for_a_run(data, tmp_pat
 
     run = make_run(tmp_path / "run")
     argv = lora_argv(data, run)
-    assert main([*argv, "--lora-box-weight", "-1"]) == 2
-    assert m4world(["train", *argv, "--lora-box-weight", "nan"]) == 2
-    assert main([*argv, "--lora-box-weight", "inf"]) == 2
-    assert capsys.readouterr().err.count("box weight must be a finite number >= 0") == 3
+    assert exit_status(main, [*argv, "--lora-box-weight", "-1"]) == 2
+    assert exit_status(m4world, ["train", *argv, "--lora-box-weight", "nan"]) == 2
+    assert exit_status(main, [*argv, "--lora-box-weight", "inf"]) == 2
+    assert capsys.readouterr().err.count("argument --lora-box-weight: must be a finite number of at least 0") == 3
     assert not (run / "lora").exists()
     teacher_argv = ["--stage", "teacher", *argv[2:]]
-    assert m4world(["train", *teacher_argv, "--lora-box-weight", "9"]) == 2
+    assert exit_status(m4world, ["train", *teacher_argv, "--lora-box-weight", "9"]) == 2
     assert "setting of --stage lora" in capsys.readouterr().err
     assert main([*argv, "--lora-box-weight", "4"]) == 0
     info, _ = read_adapter(run / "lora" / CASE)
@@ -345,11 +346,11 @@ def test_lora_rank_is_validated_recorded_and_fixed_for_a_run(data, tmp_path, cap
 
     run = make_run(tmp_path / "run")
     argv = lora_argv(data, run)
-    assert main([*argv, "--lora-rank", "0"]) == 2
-    assert m4world(["train", *argv, "--lora-rank", "-3"]) == 2
-    assert capsys.readouterr().err.count("LoRA rank must be an integer >= 1") == 2
+    assert exit_status(main, [*argv, "--lora-rank", "0"]) == 2
+    assert exit_status(m4world, ["train", *argv, "--lora-rank", "-3"]) == 2
+    assert capsys.readouterr().err.count("argument --lora-rank: must be a positive integer") == 2
     assert not (run / "lora").exists()
-    assert m4world(["train", "--stage", "teacher", *argv[2:], "--lora-rank", "4"]) == 2
+    assert exit_status(m4world, ["train", "--stage", "teacher", *argv[2:], "--lora-rank", "4"]) == 2
     assert "--lora-rank is a setting of --stage lora" in capsys.readouterr().err
     assert main([*argv, "--lora-rank", "4"]) == 0
     info, tensors = read_adapter(run / "lora" / CASE)

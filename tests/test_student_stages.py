@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.cli_status import exit_status
 from tests.model_fixtures import QUIET
 from world_model.model import get_preset
 from world_model.student import StreamingEngine
@@ -145,12 +146,12 @@ def test_both_train_clis_refuse_bad_student_flags_by_name(tmp_path, capsys):
     from world_model.train.__main__ import main as train
 
     args = ["--stage", "long", "--data", str(tmp_path / "data"), "--run", str(tmp_path / "run"), "--preset", "tiny"]
-    assert m4world(["train", *args, "--long-skip-chunks", "-1"]) == 2
-    assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
-    assert train([*args, "--long-skip-chunks", "-1"]) == 2
-    assert "long_skip_chunks must be >= 0" in capsys.readouterr().err
-    assert m4world(["train", *args, "--denoise-loss-prob", "1.5"]) == 2
-    assert "denoise_loss_prob must be in [0, 1]" in capsys.readouterr().err
+    assert exit_status(m4world, ["train", *args, "--long-skip-chunks", "-1"]) == 2
+    assert "argument --long-skip-chunks: must be 0 or a positive integer, got '-1'" in capsys.readouterr().err
+    assert exit_status(train, [*args, "--long-skip-chunks", "-1"]) == 2
+    assert "argument --long-skip-chunks: must be 0 or a positive integer, got '-1'" in capsys.readouterr().err
+    assert exit_status(m4world, ["train", *args, "--denoise-loss-prob", "1.5"]) == 2
+    assert "argument --denoise-loss-prob: must be a number in [0, 1], got '1.5'" in capsys.readouterr().err
     assert not (tmp_path / "run").exists()  # refused before any stage starts
 
 

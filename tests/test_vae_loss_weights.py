@@ -4,6 +4,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from tests.cli_status import exit_status
 from tests.model_fixtures import QUIET, make_dataset, make_frames
 from world_model.data import iter_clips
 from world_model.model import get_preset
@@ -56,5 +57,5 @@ def test_vae_object_weight_flag_reaches_the_vae_stage_and_later_stages_accept_th
     # The teacher (preset weight) takes that VAE: the weight is a training-only setting.
     train_stage("teacher", data, run, stage_options("teacher", preset="tiny", steps=1, batch_size=1), QUIET)
     for cli in (lambda a: m4world(["train", *a]), train):
-        assert cli(["--stage", "vae", *common, "--vae-object-weight", "-1"]) == 2
-        assert "object loss weight must be >= 0" in capsys.readouterr().err
+        assert exit_status(cli, ["--stage", "vae", *common, "--vae-object-weight", "-1"]) == 2
+        assert "argument --vae-object-weight: must be a finite number of at least 0" in capsys.readouterr().err
