@@ -17,7 +17,7 @@ import numpy as np
 
 from m4world_env.config import BACKENDS, STREAMING_NAMES, EnvConfig, InvalidOptionError
 from world_model.model.conditions import ConditionArrays
-from world_model.observation import Observation
+from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.precision import resolve_device
 from world_model.rollout.conditions import RolloutConditions
 from world_model.scene import SceneFrame
@@ -95,15 +95,17 @@ def make_backend(
     with_bev: bool,
     config: EnvConfig,
     every_frame: bool = False,
+    sensors: SensorSelection = ALL_SENSORS,
 ) -> SensorBackend:
     """The backend for ``num_rollouts`` rollouts (1 for a single env, N for the vector env);
-    ``every_frame``: observe every frame of a chunk, not only the newest (``rgb_array_list``)."""
+    ``every_frame``: observe every frame of a chunk, not only the newest (``rgb_array_list``);
+    ``sensors``: the sensors the world model decodes (the procedural backend renders both)."""
     if backend == "procedural":
         if checkpoint is not None:
             raise InvalidOptionError("checkpoint is only used by backend='world_model'")
         return ProceduralBackend(with_bev=with_bev, every_frame=every_frame, num_rollouts=num_rollouts)
     if backend == "world_model":
-        return WorldModelBackend(checkpoint, num_rollouts, with_bev, config, every_frame)
+        return WorldModelBackend(checkpoint, num_rollouts, with_bev, config, every_frame, sensors)
     raise InvalidOptionError(f"backend must be one of {BACKENDS}, got {backend!r}")
 
 
@@ -113,14 +115,22 @@ class WorldModelBackend:
     ``reset`` samples the first frame through the reference-conditioned model (anchored on the
     user's images when ``options["reference"]`` is given) and seeds the student's KV cache; each
     ``step`` runs one batched causal chunk for every rollout and decodes the newest frame.
-    The BEV observation, when asked for, is the map raster the model is conditioned on.
+    The BEV observation, when asked for, is the map raster the model is conditioned on. Only the
+    ``sensors`` asked for are decoded (the others are None in the observations), and the camera
+    label maps are drawn only for decoded cameras.
     The conditions come from a :class:`~world_model.rollout.conditions.RolloutConditions` (in
     process); :meth:`start_many` and :meth:`step_arrays` take them built elsewhere (simulation
     workers, :mod:`m4world_env.workers`).
     """
 
     def __init__(
-        self, checkpoint: str | None, num_rollouts: int, with_bev: bool, config: EnvConfig, every_frame: bool = False
+        self,
+        checkpoint: str | None,
+        num_rollouts: int,
+        with_bev: bool,
+        config: EnvConfig,
+        every_frame: bool = False,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> None:
         from world_model.rollout.batch import RolloutBatch
         from world_model.rollout.runtime import load_world_model
@@ -142,11 +152,12 @@ class WorldModelBackend:
         self.wm.student_cfg = replace(self.wm.student_cfg, streaming=self.streaming)
         if mc.compile:
             self.wm.student.compile_blocks()
-        self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame)
+        self.sensors = sensors
+        self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame, sensors=sensors)
         self.rig = self.wm.rig
         self.model_cfg = self.wm.cfg
         self.with_bev = with_bev
-        self.conditions = RolloutConditions(self.wm.conditions, num_rollouts, every_frame)
+        self.conditions = RolloutConditions(self.wm.conditions, num_rollouts, every_frame, sensors=sensors)
 
     def apply_adapters(self, names: Sequence[str]) -> list[str]:
         """Load a scenario's LoRA adapters (§5): :meth:`world_model.rollout.runtime.WorldModel.apply_adapters`."""

@@ -26,7 +26,7 @@ from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError, TrafficBridge  # noqa: F401 (ActionError: part of the env API)
 from m4world_env.traffic.polyline import Polyline
 from world_model.geometry import world_to_ego_xy, wrap_angle
-from world_model.observation import Observation
+from world_model.observation import SENSOR_NAMES, Observation, SensorSelection
 from world_model.scene import SceneFrame
 from world_model.sensors import BevSpec, LidarSpec, default_rig
 
@@ -109,9 +109,18 @@ def state_from_frame(frame: SceneFrame, n_objects: int) -> np.ndarray:
 
 def observation_dict(keys: tuple[str, ...], obs: Observation, state: np.ndarray | None) -> dict[str, np.ndarray]:
     """The env's observation of ``keys`` from the sensors ``obs`` and the ``state`` array (None
-    when ``keys`` lacks "state")."""
-    sensors = {"cameras": obs.cameras, "lidar": obs.lidar, "bev": obs.bev, "state": state}
+    when ``keys`` lacks "state"); a sensor of ``keys`` that ``obs`` lacks (not decoded) raises
+    :class:`~world_model.observation.SensorNotDecoded`."""
+    sensors = {"bev": obs.bev, "state": state}
+    sensors |= {name: obs.sensor(name) for name in SENSOR_NAMES if name in keys}
     return {k: v for k, v in sensors.items() if k in keys}
+
+
+def decoded_sensors(observation_keys: tuple[str, ...], render_mode: str | None) -> SensorSelection:
+    """The sensors a world-model env decodes: those its ``observation_keys`` name, and both when it
+    renders (the mosaic shows the cameras and the LiDAR)."""
+    rendering = render_mode is not None
+    return SensorSelection(**{name: name in observation_keys or rendering for name in SENSOR_NAMES})
 
 
 def _check_shared_backend(shared_backend: object, backend_index: object) -> None:
@@ -168,6 +177,7 @@ class M4WorldEnv(gym.Env):
             with_bev=self.needs_bev,
             config=self.cfg,
             every_frame=every_frame,
+            sensors=self.decoded_sensors,
         )
         self.backend_index = backend_index
         if self.scenario.adapters and hasattr(self.backend, "apply_adapters"):
@@ -207,6 +217,11 @@ class M4WorldEnv(gym.Env):
     def needs_bev(self) -> bool:
         """Whether observations must carry the BEV raster (an observation key, or the render mosaic)."""
         return "bev" in self.cfg.observation_keys or self.render_mode is not None
+
+    @property
+    def decoded_sensors(self) -> SensorSelection:
+        """The sensors the world model decodes (:func:`decoded_sensors`)."""
+        return decoded_sensors(self.cfg.observation_keys, self.render_mode)
 
     @property
     def camera_names(self) -> tuple[str, ...]:

@@ -32,7 +32,7 @@ from gymnasium.vector.utils import batch_space
 
 from m4world_env.backends import SensorBackend, make_backend
 from m4world_env.config import EnvConfig, InvalidOptionError
-from m4world_env.env import M4WorldEnv, check_render_mode, check_seed
+from m4world_env.env import M4WorldEnv, check_render_mode, check_seed, decoded_sensors
 from m4world_env.scenario import Scenario, load_scenario
 from m4world_env.traffic import ActionError
 from m4world_env.traffic.actions import detached
@@ -163,6 +163,7 @@ class M4WorldVectorEnv(VectorEnv):
             with_bev=needs_bev,
             config=cfg,
             every_frame=render_mode == "rgb_array_list",
+            sensors=decoded_sensors(cfg.observation_keys, render_mode),
         )
         # One scenario object for all sub-envs (loaded once); each sub-env has its own traffic.
         scenario = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)

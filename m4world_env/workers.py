@@ -41,7 +41,7 @@ from gymnasium.error import ResetNeeded
 
 from m4world_env.backends import WorldModelBackend
 from m4world_env.config import EnvConfig
-from m4world_env.env import STATE_FEATURES, M4WorldEnv, observation_dict
+from m4world_env.env import STATE_FEATURES, M4WorldEnv, decoded_sensors, observation_dict
 from m4world_env.scenario import Scenario
 from m4world_env.shared_arrays import SharedArrays, SharedLayout
 from world_model.model.conditions import ConditionArrays, condition_field_specs
@@ -179,8 +179,9 @@ class SimulationWorker:
         self.keys = spec.config.observation_keys
         builder = ConditionBuilder.from_vae_weights(spec.model_config, spec.vae_weights)
         # A worker's sub-envs never render (render_mode needs workers=0): only each step's last frame
-        # is decoded.
-        self.conditions = RolloutConditions(builder, hi - lo, every_frame=False, timer=StageTimer())
+        # is decoded, of the sensors observed.
+        sensors = decoded_sensors(self.keys, None)
+        self.conditions = RolloutConditions(builder, hi - lo, every_frame=False, timer=StageTimer(), sensors=sensors)
         backend = WorkerBackend(spec.model_config)
         self.envs = [
             M4WorldEnv(spec.scenario, "world_model", None, None, spec.config, shared_backend=backend, backend_index=i)

@@ -55,6 +55,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, image_feature_dim
 from world_model.model.layout import layout_sequence
 from world_model.model.text import TextEncoder
+from world_model.observation import ALL_SENSORS, SensorSelection
 from world_model.raster.classes import MAP_PLANES
 from world_model.scene import EgoState, SceneFrame, SceneObject, ScenePrompt
 from world_model.sensors import CameraRig
@@ -195,7 +196,8 @@ class ConditionOptions:
     (:func:`world_model.model.layout.layout_sequence`, the training data's cache), else computed
     when the config enables it. ``raster`` draws the decoder's maps (default: a new
     :class:`~world_model.raster.maps.SceneRaster`; one kept across calls reuses its geometry), of the
-    frames flagged in ``labeled`` (default: all)."""
+    frames flagged in ``labeled`` (default: all) and the sensors in ``sensors`` (the cameras' label
+    maps, the LiDAR view's nearness; a sensor that will not be decoded needs none)."""
 
     image_encoder: ImageDescriptionEncoder | None = None
     crops: Mapping[str, np.ndarray] | None = None
@@ -204,6 +206,7 @@ class ConditionOptions:
     layout: np.ndarray | None = None
     raster: SceneRaster | None = None
     labeled: Sequence[bool] | None = None
+    sensors: SensorSelection = ALL_SENSORS
 
 
 def build_condition_arrays(
@@ -232,8 +235,9 @@ def build_condition_arrays(
     first = opts.first_ego or frames[0].ego
     objects = _object_arrays(frames, cfg, text_encoder, opts)
     layout = _layout_arrays(frames, bev, cfg, opts.layout)
-    labels = raster.labels(frames, opts.labeled)
-    nearness = raster.nearness(frames, opts.labeled)
+    unlabeled = [False] * t
+    labels = raster.labels(frames, opts.labeled if opts.sensors.cameras else unlabeled)
+    nearness = raster.nearness(frames, opts.labeled if opts.sensors.lidar else unlabeled)
     tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
     text = np.zeros((cfg.text.max_tokens, cfg.text.dim), np.float32)
     text[: len(tokens)] = tokens

@@ -41,7 +41,7 @@ from world_model.model.flow import euler_sample, gaussian
 from world_model.model.sampler import GuidedVelocity, latents_to_observations
 from world_model.model.tokens import ControlTokens
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
-from world_model.observation import Observation
+from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.scene import SceneFrame
 
 TASKS = ("unconditional", "first_frame_all", "first_frame_single", "object_completion")
@@ -382,17 +382,18 @@ class ReferenceGenerator:
         reference: Mapping[str, np.ndarray] | None = None,
         steps: int | None = None,
         seed: int = 0,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> tuple[torch.Tensor, list[Observation]]:
         """The first multi-view frame (+ LiDAR) from controls (``reference=None``), one view
         (``{"FRONT": (H, W, 3)}``) or all views (``{"cameras": (V, H, W, 3)}``).
 
         Returns normalized latents (B, 1, V, C, h, w), ready to seed the causal student's cache,
-        and B decoded observations. Only the first frame of ``cond`` is used.
+        and B observations, of the ``sensors`` decoded. Only the first frame of ``cond`` is used.
         """
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
         lat = self.sample(cond, extra, steps, seed)
-        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs())
+        obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs(), sensors=sensors)
         return lat, [o[0] for o in obs]
 
     def from_first_frame(

@@ -19,7 +19,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import euler_sample, gaussian, predict_x0
 from world_model.model.guidance import AdaptiveProjectedGuidance, cfg_combine
 from world_model.model.vae import SensorVAE
-from world_model.observation import Observation
+from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.sensors import LidarSpec
 
 # Frames per VAE decoder call: a vector env's newest frames go in one call; long clips in bounded pieces.
@@ -100,8 +100,10 @@ def latents_to_observations(
     labels: torch.Tensor | np.ndarray | None = None,
     style: torch.Tensor | np.ndarray | None = None,
     nearness: torch.Tensor | np.ndarray | None = None,
+    sensors: SensorSelection = ALL_SENSORS,
 ) -> list[list[Observation]]:
-    """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres).
+    """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres;
+    a sensor left out of ``sensors`` is not decoded and is None in every observation).
 
     Frames of all samples are decoded together, ``frames_per_call`` at a time: one batched call
     for a vector env's rows, bounded memory for long clips. ``bev`` (B, T, h, w, c), when given, is
@@ -115,12 +117,14 @@ def latents_to_observations(
     if b * t == 0:
         return [[] for _ in range(b)]
     device = latents.device  # the label maps travel as uint8, once
-    draws = vae.draws_labels
-    flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draws and labels is not None else None
+    draw_cameras, draw_lidar = vae.draws_labels and sensors.cameras, vae.draws_labels and sensors.lidar
+    flat_labels = torch.as_tensor(labels, device=device).flatten(0, 1) if draw_cameras and labels is not None else None
     flat_style = (
-        torch.as_tensor(style, device=device).repeat_interleave(t, dim=0) if draws and style is not None else None
+        torch.as_tensor(style, device=device).repeat_interleave(t, dim=0)
+        if draw_cameras and style is not None
+        else None
     )
-    flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draws and nearness is not None else None
+    flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draw_lidar and nearness is not None else None
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],
@@ -128,13 +132,18 @@ def latents_to_observations(
             None if flat_labels is None else flat_labels[i : i + frames_per_call],
             None if flat_style is None else flat_style[i : i + frames_per_call],
             None if flat_near is None else flat_near[i : i + frames_per_call],
+            sensors,
         )
         for i in range(0, b * t, frames_per_call)
     ]
-    cams, lidar = (np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+    cams, lidar = (None if arrays[0] is None else np.concatenate(arrays) for arrays in zip(*parts, strict=True))
     return [
         [
-            Observation(cams[i * t + j], lidar[i * t + j], None if bev is None else np.asarray(bev[i, j]))
+            Observation(
+                None if cams is None else cams[i * t + j],
+                None if lidar is None else lidar[i * t + j],
+                None if bev is None else np.asarray(bev[i, j]),
+            )
             for j in range(t)
         ]
         for i in range(b)

@@ -28,6 +28,7 @@ from torch import nn
 
 from world_model.model.config import ModelConfig, VaeConfig
 from world_model.model.layout import NEARNESS_LEVELS
+from world_model.observation import ALL_SENSORS, SensorSelection
 from world_model.precision import bf16_autocast
 from world_model.raster.classes import (
     CLASS_PLANE,
@@ -348,43 +349,47 @@ class SensorVAE(nn.Module):
         labels: np.ndarray | torch.Tensor | None = None,
         style: np.ndarray | torch.Tensor | None = None,
         nearness: np.ndarray | torch.Tensor | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth).
+        sensors: SensorSelection = ALL_SENSORS,
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth);
+        a sensor left out of ``sensors`` is not decoded and comes back None.
 
-        ``labels``: the frames' camera label maps (T, V, 3, H, W) uint8, required when the decoder
-        draws them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``).
-        ``style``: the scene's style, (S,) for every frame or (T, S), and ``nearness``: the LiDAR
-        view's nearness maps (T, H, W) uint8, required with the labels (``ConditionArrays.style``,
-        ``ConditionArrays.lidar_nearness``)."""
+        ``labels``: the frames' camera label maps (T, V, 3, H, W) uint8 and ``style``: the scene's
+        style, (S,) for every frame or (T, S), required to decode the cameras when the decoder draws
+        them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``,
+        ``ConditionArrays.style``). ``nearness``: the LiDAR view's nearness maps (T, H, W) uint8,
+        required to decode the LiDAR then (``ConditionArrays.lidar_nearness``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
-        cam_labels = cam_style = lidar_near = None
-        if self.draws_labels:
-            cam_labels, cam_style, lidar_near = self._frame_maps(t, v1 - 1, labels, style, nearness, latents.device)
-        # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
-        # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
-        with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
-            images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels, cam_style)
-        cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
-        lid = images_to_lidar(
-            self.decode(latents[:, -1], nearness=lidar_near),
-            lidar_spec or self.cfg.sensors.lidar,
-            self.cfg.vae.lidar_no_return_fraction,
-        )
+        cams = lid = cam_labels = cam_style = lidar_near = None
+        if self.draws_labels and sensors.cameras:  # the maps checked before any decoding
+            cam_labels, cam_style = self._camera_maps(t, v1 - 1, labels, style, latents.device)
+        if self.draws_labels and sensors.lidar:
+            lidar_near = self._nearness_maps(t, nearness, latents.device)
+        if sensors.cameras:
+            # Cameras end as uint8: decoding them in bf16 (~2x faster on CPU, with the DiT's bf16
+            # switch) moves a pixel by a few levels at most. Ranges need fp32: the LiDAR view is decoded apart.
+            with bf16_autocast(latents.device.type, self.cfg.dit.autocast_bf16):
+                images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels, cam_style)
+            cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
+        if sensors.lidar:
+            lid = images_to_lidar(
+                self.decode(latents[:, -1], nearness=lidar_near),
+                lidar_spec or self.cfg.sensors.lidar,
+                self.cfg.vae.lidar_no_return_fraction,
+            )
         return cams, lid
 
-    def _frame_maps(
+    def _camera_maps(
         self,
         t: int,
         cameras: int,
         labels: np.ndarray | torch.Tensor | None,
         style: np.ndarray | torch.Tensor | None,
-        nearness: np.ndarray | torch.Tensor | None,
         device: torch.device,
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """:meth:`decode_frames`'s maps of ``t`` frames checked and flattened for :meth:`decode`: the
-        cameras' label maps (T * cameras, 3, H, W) uint8 and style (T * cameras, S), the LiDAR
-        view's nearness (T, H, W) uint8."""
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`decode_frames`'s camera maps of ``t`` frames checked and flattened for
+        :meth:`decode`: the label maps (T * cameras, 3, H, W) uint8 and the style (T * cameras, S)."""
         s = self.decoder.style_dim
         if style is None or tuple(style.shape) not in ((s,), (t, s)):
             got = None if style is None else tuple(style.shape)
@@ -396,14 +401,18 @@ class SensorVAE(nn.Module):
                 f"this VAE's decoder draws each camera's label map: "
                 f"need labels ({t}, {cameras}, {MAP_PLANES}, H, W), got {got}"
             )
+        cam_labels = torch.as_tensor(labels, device=device).flatten(0, 1)  # uint8: the small copy
+        return cam_labels, per_frame.repeat_interleave(cameras, dim=0)
+
+    def _nearness_maps(self, t: int, nearness: np.ndarray | torch.Tensor | None, device: torch.device) -> torch.Tensor:
+        """:meth:`decode_frames`'s LiDAR nearness maps of ``t`` frames, checked: (T, H, W) uint8."""
         if nearness is None or tuple(nearness.shape) != (t, *self.cfg_hw):
             got = None if nearness is None else tuple(nearness.shape)
             raise ValueError(
                 f"this VAE's decoder draws the LiDAR view's nearness: need nearness ({t}, {self.cfg_hw[0]}, "
                 f"{self.cfg_hw[1]}), got {got}"
             )
-        cam_labels = torch.as_tensor(labels, device=device).flatten(0, 1)  # uint8: the small copy
-        return cam_labels, per_frame.repeat_interleave(cameras, dim=0), torch.as_tensor(nearness, device=device)
+        return torch.as_tensor(nearness, device=device)
 
     def reconstruct_frames(
         self,

@@ -23,7 +23,7 @@ import torch
 
 from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.rows import split_rows
-from world_model.observation import Observation
+from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.raster.classes import CLASS_PLANE, NO_LABEL
 from world_model.rollout.runtime import WorldModel
 from world_model.rollout.timing import StageTimer, timed
@@ -50,14 +50,22 @@ class RolloutBatch:
     condition arrays a :class:`~world_model.rollout.conditions.RolloutConditions` builds.
     ``every_frame``: decode every frame of a step, not only its last (the arrays must carry every
     frame's label map then). ``timer``: where the time of the stages ``student`` and ``decode``
-    goes (:mod:`world_model.rollout.timing`; none by default, which waits for no device)."""
+    goes (:mod:`world_model.rollout.timing`; none by default, which waits for no device).
+    ``sensors``: the sensors decoded, first frames included (the others are None in every
+    observation; the arrays need the label maps only of the sensors decoded)."""
 
     def __init__(
-        self, wm: WorldModel, num_rollouts: int, every_frame: bool = False, timer: StageTimer | None = None
+        self,
+        wm: WorldModel,
+        num_rollouts: int,
+        every_frame: bool = False,
+        timer: StageTimer | None = None,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> None:
         self.wm = wm
         self.n = num_rollouts
         self.every_frame = every_frame
+        self.sensors = sensors
         self.timer = timer
         self.engine = StreamingEngine(wm.student, wm.student_cfg, generator=self._noise)
         self.gens: list[torch.Generator | None] = [None] * num_rollouts
@@ -100,7 +108,9 @@ class RolloutBatch:
         (§6), seeded with ``seed``, and seeds the student's cache."""
         self.gens[row] = torch.Generator().manual_seed(int(seed))
         with torch.no_grad():
-            latents, obs = self.wm.first_frame(Conditions.collate([arrays]), frame, reference, seed=int(seed))
+            latents, obs = self.wm.first_frame(
+                Conditions.collate([arrays]), frame, reference, seed=int(seed), sensors=self.sensors
+            )
         self._start([row], latents, [arrays])
         return obs
 
@@ -128,10 +138,11 @@ class RolloutBatch:
             Conditions.collate([arrays[i] for i in firsts]),
             [frames[i] for i in firsts],
             [int(seeds[i]) for i in firsts],
+            self.sensors,
         )
         source = [unique.index(k) for k in keys]
         latents = latents[source]
-        obs = [replace(obs[j], cameras=obs[j].cameras.copy(), lidar=obs[j].lidar.copy()) for j in source]
+        obs = [obs[j].copy() for j in source]
         self._start(list(rows), latents, list(arrays))
         return obs
 
@@ -203,13 +214,15 @@ class RolloutBatch:
             nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
             if not self.every_frame:
                 lat, labels, nearness = lat[:, -1:], labels[:, -1:], nearness[:, -1:]
-            if self.wm.vae.draws_labels and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
+            draws_cameras = self.wm.vae.draws_labels and self.sensors.cameras
+            if draws_cameras and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
                     "a frame to decode has no label map: build each step's conditions with the rollouts' "
-                    "every_frame (RolloutConditions)"
+                    "every_frame and sensors (RolloutConditions)"
                 )
             style = np.stack([arrays[i][0].style for i in active])
-            for i, obs in zip(active, self.wm.decode(lat, labels, style, nearness), strict=True):
+            observations = self.wm.decode(lat, labels, style, nearness, self.sensors)
+            for i, obs in zip(active, observations, strict=True):
                 results[i] = obs
         return results
 

@@ -17,6 +17,7 @@ from world_model.model.config import ModelConfig
 from world_model.model.imagedesc import ImageDescriptionEncoder, VaeCropEncoder
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
+from world_model.observation import ALL_SENSORS, SensorSelection
 from world_model.raster.maps import SceneRaster
 from world_model.scene import SceneFrame, ScenePrompt
 from world_model.sim import ProceduralSimulator
@@ -59,10 +60,12 @@ class ConditionBuilder:
         crops: Mapping[str, np.ndarray] | None = None,
         crop_since: Mapping[str, int] | None = None,
         labeled: Sequence[bool] | None = None,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> ConditionArrays:
         """Conditions of ``frames`` of a rollout that started at ``first`` (ego pose reference, §3.2);
         ``crops`` by track id, each from frame ``crop_since[track]`` on (absent: every frame);
-        ``labeled``: the frames whose label map the decoder will draw (default: all)."""
+        ``labeled``: the frames whose label map the decoder will draw (default: all), of the
+        ``sensors`` it will decode (:attr:`ConditionOptions.sensors`)."""
         bev = np.stack([self.bev(f) for f in frames])
         options = ConditionOptions(
             image_encoder=self.image,
@@ -71,6 +74,7 @@ class ConditionBuilder:
             first_ego=first.ego,
             raster=self.raster,
             labeled=labeled,
+            sensors=sensors,
         )
         return build_condition_arrays(frames, bev, self.cfg, self.text, options)
 
@@ -81,11 +85,12 @@ class ConditionBuilder:
         crops: Mapping[str, np.ndarray] | None = None,
         crop_since: Mapping[str, int] | None = None,
         every_frame: bool = True,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> list[ConditionArrays]:
         """:meth:`arrays` of a step's frames, one per causal chunk of :attr:`chunk_frames` frames (the
         student's unit); ``len(chunk)`` must be a multiple of it. Without ``every_frame`` only the
         step's last frame is decoded (:class:`~world_model.rollout.batch.RolloutBatch`), so only it
-        gets a label map."""
+        gets a label map; only the ``sensors`` decoded get theirs."""
         if not chunk or len(chunk) % self.chunk_frames:
             raise ValueError(f"a step's frames must be a positive multiple of {self.chunk_frames}, got {len(chunk)}")
         last = len(chunk) - 1
@@ -96,6 +101,7 @@ class ConditionBuilder:
                 crops,
                 crop_since,
                 None if every_frame else [k + j == last for j in range(self.chunk_frames)],
+                sensors,
             )
             for k in range(0, len(chunk), self.chunk_frames)
         ]

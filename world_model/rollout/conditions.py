@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from world_model.model.conditions import ConditionArrays
+from world_model.observation import ALL_SENSORS, SensorSelection
 from world_model.raster.crops import CropSource, ReferenceCrops
 from world_model.rollout.builder import ConditionBuilder
 from world_model.rollout.timing import StageTimer, timed
@@ -26,12 +27,19 @@ class RolloutConditions:
     in the env the conditions it was trained on; or a recording's own) and its condition arrays, one
     step at a time. ``every_frame``: the model decodes every frame of a step, not only the last
     (:meth:`ConditionBuilder.chunk_arrays`). ``timer``: where the time of the stages ``crops`` and
-    ``conditions`` goes (:mod:`world_model.rollout.timing`; none by default)."""
+    ``conditions`` goes (:mod:`world_model.rollout.timing`; none by default). ``sensors``: the
+    sensors the model decodes, whose decoder maps are drawn (the camera label maps only for the
+    cameras: :attr:`ConditionOptions.sensors <world_model.model.conditions.ConditionOptions.sensors>`)."""
 
     def __init__(
-        self, builder: ConditionBuilder, num_rollouts: int, every_frame: bool = False, timer: StageTimer | None = None
+        self,
+        builder: ConditionBuilder,
+        num_rollouts: int,
+        every_frame: bool = False,
+        timer: StageTimer | None = None,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> None:
-        self.builder, self.every_frame, self.timer = builder, every_frame, timer
+        self.builder, self.every_frame, self.timer, self.sensors = builder, every_frame, timer, sensors
         self._sim = ProceduralSimulator(
             config=replace(SimConfig(), cache_size=max(SimConfig().cache_size, 2 * num_rollouts))
         )
@@ -47,7 +55,7 @@ class RolloutConditions:
             source = self._crops[index] = ReferenceCrops(self._sim) if crops is None else crops
             source.update(frame)
         with timed(self.timer, "conditions"):
-            return self.builder.arrays([frame], frame, source.crops, source.since)
+            return self.builder.arrays([frame], frame, source.crops, source.since, sensors=self.sensors)
 
     def advance(self, index: int, frames: Sequence[SceneFrame]) -> list[ConditionArrays]:
         """Rollout ``index`` moves on by a step's ``frames``: crops of objects that came into view (or
@@ -57,4 +65,6 @@ class RolloutConditions:
             for frame in frames:
                 source.update(frame)
         with timed(self.timer, "conditions"):
-            return self.builder.chunk_arrays(frames, self._first[index], source.crops, source.since, self.every_frame)
+            return self.builder.chunk_arrays(
+                frames, self._first[index], source.crops, source.since, self.every_frame, self.sensors
+            )

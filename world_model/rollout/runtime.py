@@ -29,7 +29,7 @@ from world_model.model.rows import split_rows
 from world_model.model.sampler import DECODE_FRAMES_PER_CALL, latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
 from world_model.model.vae import SensorVAE
-from world_model.observation import Observation
+from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.precision import check_dtype, dit_precision, resolve_bf16, resolve_device
 from world_model.rollout.builder import ConditionBuilder
 from world_model.scene import CATEGORIES, SceneFrame
@@ -127,9 +127,15 @@ class WorldModel:
 
     @torch.no_grad()
     def first_frame(
-        self, cond: Conditions, frame: SceneFrame, reference: Mapping[str, np.ndarray] | None = None, seed: int = 0
+        self,
+        cond: Conditions,
+        frame: SceneFrame,
+        reference: Mapping[str, np.ndarray] | None = None,
+        seed: int = 0,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> tuple[torch.Tensor, Observation]:
-        """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w) and its observation.
+        """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w) and its observation (of the
+        ``sensors`` decoded).
 
         From controls (``reference`` None) or anchored on the user's images (§6), by the
         reference model without its completion adapters. Then, for a frame generated from
@@ -144,22 +150,26 @@ class WorldModel:
         completion = {n: c for n, c in self._completion.items() if n in loaded}  # not removed since
         others = [n for n in loaded if n not in completion]
         with only_adapters(model, others) if completion else nullcontext():  # no switching without one
-            latents, obs = gen.first_frame(cond, reference, seed=seed)
+            latents, obs = gen.first_frame(cond, reference, seed=seed, sensors=sensors)
         wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
         if reference or not wanted:
             return latents, obs[0]
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
                 latents = gen.complete_category(cond, latents, [frame], category, seed=seed)
-        return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs())[0][0]
+        return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)[0][0]
 
     @torch.no_grad()
     def batch_first_frames(
-        self, cond: Conditions, frames: Sequence[SceneFrame], seeds: Sequence[int]
+        self,
+        cond: Conditions,
+        frames: Sequence[SceneFrame],
+        seeds: Sequence[int],
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> tuple[torch.Tensor, list[Observation]]:
         """First frames of ``len(frames)`` rollouts from controls, row i exactly
-        ``first_frame(cond row i, frames[i], seed=seeds[i])``: latents (R, 1, V, C, h, w) and R
-        observations. One batched reference-model call (computed row-independently on CPU,
+        ``first_frame(cond row i, frames[i], seed=seeds[i], sensors=sensors)``: latents
+        (R, 1, V, C, h, w) and R observations. One batched reference-model call (computed row-independently on CPU,
         :mod:`world_model.model.rows`), unless a completion adapter redraws a category in one of
         the frames: then one call per row."""
         if cond.batch_size != len(frames) or len(seeds) != len(frames):
@@ -169,7 +179,7 @@ class WorldModel:
         completion = {n: c for n, c in self._completion.items() if n in loaded}
         if any(o.category in completion.values() for f in frames for o in f.objects):
             pairs = [
-                self.first_frame(cond.apply(lambda _, v, i=i: v[i : i + 1]), f, seed=s)
+                self.first_frame(cond.apply(lambda _, v, i=i: v[i : i + 1]), f, seed=s, sensors=sensors)
                 for i, (f, s) in enumerate(zip(frames, seeds, strict=True))
             ]
             return torch.cat([lat for lat, _ in pairs]), [obs for _, obs in pairs]
@@ -178,7 +188,8 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(cond.frames(0, 1), seed=[int(s) for s in seeds])
-        return latents, [obs[0] for obs in self.decode(latents, **cond.frames(0, 1).decoder_inputs())]
+        observations = self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)
+        return latents, [obs[0] for obs in observations]
 
     def decode(
         self,
@@ -186,8 +197,10 @@ class WorldModel:
         labels: torch.Tensor | np.ndarray | None = None,
         style: torch.Tensor | np.ndarray | None = None,
         nearness: torch.Tensor | np.ndarray | None = None,
+        sensors: SensorSelection = ALL_SENSORS,
     ) -> list[list[Observation]]:
-        """(B, T, V, C, h, w) normalized latents → B lists of T observations; ``labels`` (B, T, Vc, 3, H, W)
+        """(B, T, V, C, h, w) normalized latents → B lists of T observations of the ``sensors``
+        decoded (the others None); ``labels`` (B, T, Vc, 3, H, W)
         the frames' camera label maps, ``style`` (B, Dt) the scenes' styles and ``nearness`` (B, T, H, W)
         the LiDAR view's nearness maps, for a decoder that draws them (``ConditionArrays.labels``,
         ``ConditionArrays.style``, ``ConditionArrays.lidar_nearness``).
@@ -208,6 +221,7 @@ class WorldModel:
             labels=labels,
             style=style,
             nearness=nearness,
+            sensors=sensors,
         )
 
 

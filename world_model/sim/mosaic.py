@@ -84,13 +84,14 @@ def bev_image(bev: np.ndarray, size: int, frame: SceneFrame | None) -> np.ndarra
 def mosaic(obs: Observation, frame: SceneFrame | None = None, rig: CameraRig | None = None) -> np.ndarray:
     """All camera views in ring layout, the BEV (when present) to their right and the colour-mapped
     LiDAR range image below, as one uint8 (H, W, 3) RGB image."""
+    cameras, lidar = obs.sensor("cameras"), obs.sensor("lidar")  # both, or SensorNotDecoded
     rig = rig if rig is not None else (frame.rig if frame is not None else None)
-    if rig is None and obs.cameras.shape[0] == len(DEFAULT_CAMERA_NAMES):
-        rig = default_rig(width=obs.cameras.shape[2], height=obs.cameras.shape[1])
-    top = _camera_grid(obs.cameras, ring_layout(rig, obs.cameras.shape[0]))
+    if rig is None and cameras.shape[0] == len(DEFAULT_CAMERA_NAMES):
+        rig = default_rig(width=cameras.shape[2], height=cameras.shape[1])
+    top = _camera_grid(cameras, ring_layout(rig, cameras.shape[0]))
     if obs.bev is not None:
         panel = bev_image(obs.bev, top.shape[0], frame)
         pad = np.full((top.shape[0], panel.shape[1], 3), BACKGROUND, dtype=np.uint8)
         pad[: panel.shape[0]] = panel[: top.shape[0]]
         top = np.concatenate([top, pad], axis=1)
-    return np.concatenate([top, lidar_image(obs.lidar, top.shape[1])], axis=0)
+    return np.concatenate([top, lidar_image(lidar, top.shape[1])], axis=0)
