@@ -90,6 +90,7 @@ def sample_latents(
         model.train(was_training)
 
 
+# function-size: the decoder's three optional maps as Conditions.decoder_inputs names them, and the sensors
 @torch.no_grad()
 def latents_to_observations(
     vae: SensorVAE,
