@@ -393,10 +393,7 @@ def _cmd_gallery(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
-    sub = p.add_subparsers(dest="command", required=True)
-
+def _add_demo_parser(sub: argparse._SubParsersAction) -> None:
     d = sub.add_parser("demo", help="run a scenario and write an mp4 of the sensor mosaic")
     d.add_argument("--scenario", default="highway_sunny_day")
     d.add_argument("--backend", default="world_model", choices=("procedural", "world_model"))
@@ -410,6 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--scale", type=_positive_int, default=3, help="integer upscaling of the mosaic in the video")
     d.set_defaults(func=_cmd_demo)
 
+
+def _add_record_parser(sub: argparse._SubParsersAction) -> None:
     r = sub.add_parser("record", help="record training clips (procedural sensors) from scenarios")
     r.add_argument("--scenario", nargs="+", required=True, help="scenario names/paths, or 'all'")
     r.add_argument("--episodes", type=_positive_int, default=1)
@@ -442,6 +441,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.set_defaults(func=_cmd_record)
 
+
+def _add_import_parser(sub: argparse._SubParsersAction) -> None:
     imp = sub.add_parser("import", help="import real driving logs as training clips").add_subparsers(
         dest="source", required=True
     )
@@ -454,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
     n.add_argument("--scenarios", default=None, help="also write a log-replay scenario YAML per scene here")
     n.set_defaults(func=_cmd_import_nuscenes)
 
+
+def _add_eval_parser(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("eval", help="score a policy over scenarios (PDM-style)")
     e.add_argument("--policy", default="idm")
     e.add_argument("--scenarios", nargs="+", default=["all"])
@@ -484,6 +487,12 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="--ray: the number of Ray workers (actors of one CPU each; default: one per CPU of the instance)",
     )
+    _add_eval_report_arguments(e)
+    e.set_defaults(func=_cmd_eval)
+
+
+def _add_eval_report_arguments(e: argparse.ArgumentParser) -> None:
+    """The flags of ``m4world eval --report``: the evaluation set, the extra rows and how they run."""
     e.add_argument(
         "--report",
         action="store_true",
@@ -541,8 +550,9 @@ def build_parser() -> argparse.ArgumentParser:
         "window (config model.sink_frames): student_sink_N, and student_refresh_K_sink_N for each "
         "--refresh-steps row",
     )
-    e.set_defaults(func=_cmd_eval)
 
+
+def _add_train_parser(sub: argparse._SubParsersAction) -> None:
     from world_model.train.cli import DESCRIPTION, EPILOG, add_train_arguments, run_train
 
     t = sub.add_parser(
@@ -555,11 +565,15 @@ def build_parser() -> argparse.ArgumentParser:
     add_train_arguments(t)
     t.set_defaults(func=run_train)
 
+
+def _add_export_parser(sub: argparse._SubParsersAction) -> None:
     x = sub.add_parser("export", help="collect a training run's stage exports into a checkpoint bundle")
     x.add_argument("--run", required=True)
     x.add_argument("--out", required=True)
     x.set_defaults(func=_cmd_export)
 
+
+def _add_streaming_parser(sub: argparse._SubParsersAction) -> None:
     st = sub.add_parser(
         "streaming",
         help="show (or, with --write, set) a bundle's streaming.json: how the env and the report run the student",
@@ -592,6 +606,8 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)
 
+
+def _add_bench_parser(sub: argparse._SubParsersAction) -> None:
     b = sub.add_parser(
         "bench",
         help="run a benchmark (m4world bench NAME [its options]) or the suite (JSON per benchmark in --out)",
@@ -614,6 +630,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.set_defaults(func=_cmd_bench)
 
+
+def _add_text_embeddings_parser(sub: argparse._SubParsersAction) -> None:
     te = sub.add_parser(
         "text-embeddings",
         help="precompute the text embeddings of some episodes, for a machine without the text encoder",
@@ -626,10 +644,14 @@ def build_parser() -> argparse.ArgumentParser:
     te.add_argument("--out", required=True, help="the .npz file to write")
     te.set_defaults(func=_cmd_text_embeddings)
 
+
+def _add_evalset_parser(sub: argparse._SubParsersAction) -> None:
     v = sub.add_parser("evalset", help="record the held-out evaluation set (seeds disjoint from training)")
     v.add_argument("--out", default="data/evalset")
     v.set_defaults(func=_cmd_evalset)
 
+
+def _add_gallery_parser(sub: argparse._SubParsersAction) -> None:
     g = sub.add_parser("gallery", help="render PNG mosaics of scenarios under several weathers/times")
     g.add_argument("--out", default="docs/images")
     g.add_argument("--seconds", type=_positive_float, default=3.0)
@@ -637,6 +659,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--width", type=_positive_int, default=224)
     g.set_defaults(func=_cmd_gallery)
 
+
+def _add_agreement_parser(sub: argparse._SubParsersAction) -> None:
     ag = sub.add_parser(
         "agreement",
         help="run the policy zoo on the ground truth and the world model; report how well their scores agree",
@@ -669,12 +693,35 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ag.set_defaults(func=_cmd_agreement)
 
+
+def _add_zoo_parser(sub: argparse._SubParsersAction) -> None:
     z = sub.add_parser("zoo", help="list the zoo's policies that see (names for --policy)")
     z.set_defaults(func=_cmd_zoo)
 
+
+def _add_scenarios_parser(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser("scenarios", help="list (or validate) scenarios")
     s.add_argument("--check", nargs="*", help="scenario files to validate")
     s.set_defaults(func=_cmd_scenarios)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="m4world", description="M4World-Gym: world-model driving environment")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_demo_parser(sub)
+    _add_record_parser(sub)
+    _add_import_parser(sub)
+    _add_eval_parser(sub)
+    _add_train_parser(sub)
+    _add_export_parser(sub)
+    _add_streaming_parser(sub)
+    _add_bench_parser(sub)
+    _add_text_embeddings_parser(sub)
+    _add_evalset_parser(sub)
+    _add_gallery_parser(sub)
+    _add_agreement_parser(sub)
+    _add_zoo_parser(sub)
+    _add_scenarios_parser(sub)
     return p
 
 

@@ -25,7 +25,6 @@ KNOWN_OFFENDERS = {
     "m4world_env/bench/longtail.py::evaluate",
     "m4world_env/bench/longtail.py::judge_ordinary",
     "m4world_env/agreement/render.py::build_summary",
-    "m4world_env/cli.py::build_parser",
     "m4world_env/traffic/roads.py::build_roundabout",
 }
 
