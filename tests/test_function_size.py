@@ -17,7 +17,6 @@ KNOWN_OFFENDERS = {
     "world_model/eval/judge_data.py::JudgeData.add_crop",
     "world_model/eval/questions.py::build_questions",
     "world_model/eval/train_segmenter.py::_train",
-    "world_model/train/recipe.py::run_recipe",  # its parameters follow the recipe's command line
     "m4world_env/agreement/plot.py::scatter_plot",
     "m4world_env/bench/env.py::bench_backend",
     "m4world_env/bench/env.py::bench_workers",

@@ -142,14 +142,15 @@ def test_every_stage_trains_with_the_model_on_another_device(dry_recipe, tmp_pat
 def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_was(dry_recipe, tmp_path):
     from safetensors.torch import load_file
 
-    from world_model.train.recipe import run_recipe
+    from world_model.train.recipe import RecipeOptions, run_recipe
     from world_model.train.seed_run import seed_run
 
     out = tmp_path / "again"
     shutil.copytree(dry_recipe / "data", out / "data")  # recorded: the recipe skips them
     shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
     source = dry_recipe / "bundle"
-    summary = run_recipe(out, "dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("rollout_decoder",))
+    options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("rollout_decoder",))
+    summary = run_recipe(out, options)
     assert summary["phases"] == ["rollout_decoder"] and set(summary["final_loss"]) == {"rollout_decoder"}
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
     assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
@@ -164,4 +165,4 @@ def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_wa
     assert seeded["seeded_from"] == str(source)
     assert seed_run(source, out / "run") == []  # a seeded run keeps what it has
     with pytest.raises(ValueError, match="--phases"):
-        run_recipe(out, "dry", "cpu", workers=1, progress=False, phases=("paint",))
+        run_recipe(out, replace(options, from_bundle=None, phases=("paint",)))

@@ -316,25 +316,47 @@ def stage_time_limit(spec: RecipeScale, stages_left: tuple[str, ...], elapsed_s:
     return max(1.0, left * share)
 
 
-def check_run_options(
-    out: Path, device: str, workers: int | None, seed: int, max_file_mib: float, from_bundle: str | Path | None
-) -> None:
+@dataclass(frozen=True)
+class RecipeOptions:
+    """How :func:`run_recipe` runs: the recipe's command-line flags but ``--out`` and ``--join``."""
+
+    scale: str = "gpu"  # a key of SCALES
+    device: str = "auto"
+    workers: int | None = None  # recording processes; None: every core
+    seed: int = 0
+    max_file_mib: float = 16.0  # the largest file of bundle_parts/
+    progress: bool = True
+    time_limit_s: float | None = None  # None: the scale's
+    from_bundle: str | Path | None = None  # start the run from this bundle's components
+    phases: tuple[str, ...] = PHASES  # the phases to train
+
+
+def check_run_options(out: Path, options: RecipeOptions) -> None:
     """Refuse, before anything is recorded, the options of :func:`run_recipe` that would fail in a
     later phase: a ValueError (FileNotFoundError for a missing folder) naming the flag and value."""
     from world_model.bundle import CheckpointError, load_bundle_files
     from world_model.train.device import resolve_device
 
+    if options.scale not in SCALES:
+        raise ValueError(f"--scale must be one of {', '.join(SCALES)}, got {options.scale!r}")
+    unknown = [p for p in options.phases if p not in PHASES]
+    if unknown or not options.phases:
+        raise ValueError(f"--phases takes one or more of {', '.join(PHASES)}, got {', '.join(unknown) or 'none'}")
+    time_limit_s = options.time_limit_s
+    if time_limit_s is not None and not 0 < time_limit_s < math.inf:
+        raise ValueError(f"--time-limit-s must be a finite number above 0, got {time_limit_s}")
     cli_args.check_out(out, "folder")
+    workers, seed, max_file_mib = options.workers, options.seed, options.max_file_mib
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
         raise ValueError(f"--workers must be a positive integer (or None: every core), got {workers!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= cli_args.MAX_SEED:
         raise ValueError(f"--seed must be an integer in [0, 2**63 - 1], got {seed!r}")
     if not (isinstance(max_file_mib, int | float) and math.isfinite(max_file_mib) and max_file_mib * MIB >= 1):
         raise ValueError(f"--max-file-mib must be a finite size of at least one byte (1/{MIB} MiB), got {max_file_mib}")
-    resolve_device(device)
-    if from_bundle is not None:
+    resolve_device(options.device)
+    if options.from_bundle is not None:
         try:
-            load_bundle_files(from_bundle)  # a folder that is no bundle is named now, not after the recording
+            load_bundle_files(options.from_bundle)  # a folder that is no bundle is named now, not after the recording
         except CheckpointError as e:
             raise ValueError(f"--from-bundle: {e}") from None
 
@@ -356,88 +378,103 @@ def phase_options(
     return stage_options(stage, **settings)
 
 
-def run_recipe(
-    out: Path,
-    scale: str = "gpu",
-    device: str = "auto",
-    workers: int | None = None,
-    seed: int = 0,
-    max_file_mib: float = 16.0,
-    progress: bool = True,
-    time_limit_s: float | None = None,
-    from_bundle: str | Path | None = None,
-    phases: tuple[str, ...] = PHASES,
-) -> dict:
-    """Record, train the chain and write the bundle into ``out`` (module docstring); the summary.
-    ``time_limit_s`` overrides the scale's time limit; ``from_bundle`` and ``phases``: retrain those
-    phases of that bundle (module docstring)."""
-    if scale not in SCALES:
-        raise ValueError(f"--scale must be one of {', '.join(SCALES)}, got {scale!r}")
-    unknown = [p for p in phases if p not in PHASES]
-    if unknown or not phases:
-        raise ValueError(f"--phases takes one or more of {', '.join(PHASES)}, got {', '.join(unknown) or 'none'}")
-    phases = tuple(p for p in PHASES if p in phases)  # the chain's order
+class _Stopwatch:
+    """Prints the recipe's phases as they start, with the seconds since the recipe began: a run cut
+    short shows where it was."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.start
+
+    def say(self, message: str) -> None:
+        print(f"[{self.elapsed():6.1f} s] {message}", flush=True)
+
+
+@dataclass
+class _PhaseResults:
+    """What the trained phases leave for the summary, by phase."""
+
+    seconds: dict[str, float] = field(default_factory=dict)
+    losses: dict[str, float] = field(default_factory=dict)
+    steps: dict[str, int] = field(default_factory=dict)
+
+
+def _train_phases(
+    spec: RecipeScale, phases: tuple[str, ...], options: RecipeOptions, out: Path, clock: _Stopwatch
+) -> _PhaseResults:
+    """Train ``phases`` in order into ``out/run``, each within its share of the time left; the
+    adapters adapt the bundle exported (``out/bundle``) just before the first of them."""
     from world_model.bundle import export_bundle
     from world_model.train.run import StageRuntime
     from world_model.train.stages import train_stage
 
-    spec = SCALES[scale]
-    if time_limit_s is not None:
-        if not 0 < time_limit_s < math.inf:
-            raise ValueError(f"--time-limit-s must be a finite number above 0, got {time_limit_s}")
-        spec = replace(spec, time_limit_s=time_limit_s)
-    check_run_options(out, device, workers, seed, max_file_mib, from_bundle)
-    out.mkdir(parents=True, exist_ok=True)
-    data, run = out / "data", out / "run"
-    data.mkdir(exist_ok=True)
-    times, losses, steps_done = {}, {}, {}
-    t0 = time.perf_counter()
-
-    def say(message: str) -> None:  # the phases as they start: a run cut short shows where it was
-        print(f"[{time.perf_counter() - t0:6.1f} s] {message}", flush=True)
-
-    say(f"recording {spec.episodes * spec.seeds} clips per scenario into {data}")
-    clips = record_clips(data, spec, workers or os.cpu_count() or 1, seed)
-    times["record"] = time.perf_counter() - t0
-    if from_bundle is not None:
-        from world_model.train.seed_run import seed_run
-
-        say(f"run seeded from {from_bundle}: {', '.join(seed_run(from_bundle, run)) or 'nothing new'}")
+    data, run, bundle = out / "data", out / "run", out / "bundle"
     config = recipe_config(spec)
-    bundle = out / "bundle"
+    results = _PhaseResults()
     for k, phase in enumerate(phases):
         t = time.perf_counter()
-        limit = stage_time_limit(spec, phases[k:], t - t0)
-        options = phase_options(phase, spec, config, seed, data, bundle)
-        say(
-            f"{phase}: up to {options.steps} steps at batch {options.batch_size}"
+        limit = stage_time_limit(spec, phases[k:], t - clock.start)
+        stage_options = phase_options(phase, spec, config, options.seed, data, bundle)
+        clock.say(
+            f"{phase}: up to {stage_options.steps} steps at batch {stage_options.batch_size}"
             + (f", {limit:.0f} s with its setup" if limit else "")
         )
         if phase == next((p for p in phases if p in ADAPTERS), None):  # adapters adapt the bundle's own (bf16) weights
             export_bundle(run, bundle)
-        runtime = StageRuntime(progress=progress, device=device, time_limit_s=limit)
-        summary = train_stage(phase if phase in CHAIN else "lora", data, run, options, runtime)
+        runtime = StageRuntime(progress=options.progress, device=options.device, time_limit_s=limit)
+        summary = train_stage(phase if phase in CHAIN else "lora", data, run, stage_options, runtime)
         if phase in ADAPTERS:
             rename_adapter(Path(summary["stage_dir"]), phase)
-        times[phase], losses[phase] = time.perf_counter() - t, summary["final_loss"]
-        steps_done[phase] = summary["step"]
-        say(f"{phase}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {times[phase]:.0f} s")
+        results.seconds[phase], results.losses[phase] = time.perf_counter() - t, summary["final_loss"]
+        results.steps[phase] = summary["step"]
+        clock.say(f"{phase}: {summary['step']} steps, loss {summary['final_loss']:.4f}, {results.seconds[phase]:.0f} s")
+    return results
+
+
+def run_recipe(out: Path, options: RecipeOptions) -> dict:
+    """Record, train the chain and write the bundle into ``out`` (module docstring); the summary.
+    ``options.time_limit_s`` overrides the scale's time limit; ``options.from_bundle`` and
+    ``options.phases``: retrain those phases of that bundle (module docstring)."""
+    from world_model.bundle import export_bundle
+
+    check_run_options(out, options)
+    phases = tuple(p for p in PHASES if p in options.phases)  # the chain's order
+    spec = SCALES[options.scale]
+    if options.time_limit_s is not None:
+        spec = replace(spec, time_limit_s=options.time_limit_s)
+    out.mkdir(parents=True, exist_ok=True)
+    data, run = out / "data", out / "run"
+    data.mkdir(exist_ok=True)
+    clock = _Stopwatch()
+    clock.say(f"recording {spec.episodes * spec.seeds} clips per scenario into {data}")
+    clips = record_clips(data, spec, options.workers or os.cpu_count() or 1, options.seed)
+    times = {"record": clock.elapsed()}
+    if options.from_bundle is not None:
+        from world_model.train.seed_run import seed_run
+
+        clock.say(
+            f"run seeded from {options.from_bundle}: {', '.join(seed_run(options.from_bundle, run)) or 'nothing new'}"
+        )
+    trained = _train_phases(spec, phases, options, out, clock)
+    times |= trained.seconds
     t = time.perf_counter()
-    bundle = export_bundle(run, bundle)  # the same weights, now with run/lora/ as its adapters
-    parts = split_files(bundle, out / "bundle_parts", int(max_file_mib * MIB))
+    bundle = export_bundle(run, out / "bundle")  # the same weights, now with run/lora/ as its adapters
+    parts = split_files(bundle, out / "bundle_parts", int(options.max_file_mib * MIB))
     times["bundle"] = time.perf_counter() - t
     summary = {
-        "scale": scale,
-        "from_bundle": None if from_bundle is None else str(from_bundle),
+        "scale": options.scale,
+        "from_bundle": None if options.from_bundle is None else str(options.from_bundle),
         "phases": list(phases),
         "preset": spec.preset,
-        "device": device,
+        "device": options.device,
         "clips": clips,
         "seconds": {k: round(v, 1) for k, v in times.items()},
-        "total_s": round(time.perf_counter() - t0, 1),
+        "total_s": round(clock.elapsed(), 1),
         "time_limit_s": spec.time_limit_s,
-        "steps": steps_done,
-        "final_loss": losses,
+        "steps": trained.steps,
+        "final_loss": trained.losses,
         "bundle": str(bundle),
         "largest_part_mib": round(max(p.stat().st_size for p in parts) / MIB, 2),
     }
@@ -481,18 +518,18 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if not a.out:
             raise ValueError("--out is required (the folder the recipe writes into)")
-        summary = run_recipe(
-            Path(a.out),
-            a.scale,
-            a.device,
-            a.workers,
-            a.seed,
-            a.max_file_mib,
+        options = RecipeOptions(
+            scale=a.scale,
+            device=a.device,
+            workers=a.workers,
+            seed=a.seed,
+            max_file_mib=a.max_file_mib,
             progress=not a.no_progress,
             time_limit_s=a.time_limit_s,
             from_bundle=a.from_bundle,
             phases=tuple(a.phases),
         )
+        summary = run_recipe(Path(a.out), options)
     except (FileNotFoundError, ValueError, RuntimeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
