@@ -88,7 +88,8 @@ def test_world_model_qualifiers_become_model_options():
 
 
 def test_world_model_step_breakdown_counts_the_condition_arrays(tiny_bundle):
-    r = bench_env.bench_backend("world_model", "merge_cut_in", 2, 2, 0, str(tiny_bundle), warmup=1, resets=0)
+    run = bench_env.BackendRun("merge_cut_in", 2, 2, 0, str(tiny_bundle), warmup=1, resets=0)
+    r = bench_env.bench_backend("world_model", run)
     part = r["vector_step_breakdown_ms_per_env_step"]
     assert part["conditions"] > 0 and part["student"] > 0 and part["decode"] > 0
 

@@ -18,8 +18,6 @@ KNOWN_OFFENDERS = {
     "world_model/eval/questions.py::build_questions",
     "world_model/eval/train_segmenter.py::_train",
     "m4world_env/agreement/plot.py::scatter_plot",
-    "m4world_env/bench/env.py::bench_backend",
-    "m4world_env/bench/env.py::bench_workers",
     "m4world_env/bench/longtail.py::_render_both",
     "m4world_env/bench/longtail.py::evaluate",
     "m4world_env/bench/longtail.py::judge_ordinary",

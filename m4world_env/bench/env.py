@@ -46,6 +46,7 @@ import statistics
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import gymnasium as gym
@@ -199,28 +200,37 @@ def _timed(fn, total: list[float]):  # noqa: ANN001, ANN202 (wraps any callable)
     return timed
 
 
-# Over 80 lines, 10 parameters: one backend's single and vector passes, top to bottom, with the CLI's options.
-def bench_backend(
-    backend: str,
-    scenario: str,
-    steps: int,
-    num_envs: int,
-    seed: int,
-    checkpoint: str | None = None,
-    compile_model: bool = False,
-    warmup: int = 2,
-    device: str = "cpu",
-    resets: int = 2,
-) -> dict:
-    """One backend: ``steps`` timed single-env steps and ``steps / num_envs`` (at least 10) timed
-    vector steps, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles);
-    ``resets`` timed resets of the single env and of the vector env (all sub-envs at once), each
-    after one untimed. A vector step is split into traffic (the sub-envs' bridges), conditions
-    (BEV raster, text, crops), student, decode and other (rewards, observations, Python), per env
-    step."""
-    kw = make_kwargs(backend, checkpoint, compile_model, device)
-    single = gym.make("M4World-v0", scenario=scenario, **kw)
-    totals, traffic = _time_single(single, steps, seed, warmup)
+@dataclass(frozen=True)
+class BackendRun:
+    """One backend's timed pass (:func:`bench_backend`), as the command line sets it: ``steps`` timed
+    single-env steps and ``steps / num_envs`` (at least 10) timed vector steps of ``num_envs``
+    sub-envs, each after ``warmup`` untimed ones (first calls allocate, torch.compile compiles);
+    ``resets`` timed resets of the single env and of the vector env, each after one untimed; the
+    world model's bundle, ``torch.compile`` and device (:func:`make_kwargs`)."""
+
+    scenario: str
+    steps: int
+    num_envs: int
+    seed: int
+    checkpoint: str | None = None
+    compile_model: bool = False
+    warmup: int = 2
+    device: str = "cpu"
+    resets: int = 2
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace, steps: int, warmup: int) -> BackendRun:
+        """The run the command line's flags ask for, at ``steps`` and ``warmup``."""
+        return cls(args.scenario, steps, args.num_envs, args.seed, args.checkpoint, args.compile, warmup, args.device)
+
+
+def bench_backend(backend: str, run: BackendRun) -> dict:
+    """One backend's single-env and vector passes (:class:`BackendRun`). A vector step is split
+    into traffic (the sub-envs' bridges), conditions (BEV raster, text, crops), student, decode and
+    other (rewards, observations, Python), per env step."""
+    kw = make_kwargs(backend, run.checkpoint, run.compile_model, run.device)
+    single = gym.make("M4World-v0", scenario=run.scenario, **kw)
+    totals, traffic = _time_single(single, run.steps, run.seed, run.warmup)
     step_s = statistics.median(totals)
     result = {
         "single_median_step_ms": 1e3 * step_s,
@@ -230,11 +240,29 @@ def bench_backend(
     }
     venv = gym.make_vec(
         "M4World-v0",
-        num_envs=num_envs,
+        num_envs=run.num_envs,
         vectorization_mode="vector_entry_point",
-        scenario=scenario,
+        scenario=run.scenario,
         **kw,
     )
+    result |= _time_resets(single, venv, run.seed, run.resets)
+    single.close()
+    rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
+    if rollouts is not None:  # what dtype "auto" chose on this machine
+        result["dit_dtype"] = rollouts.wm.dtype
+    vec_times, parts = _time_vector_steps(venv, run, with_model=rollouts is not None)
+    result |= _vector_figures(vec_times, parts, run.num_envs, step_s, with_model=rollouts is not None)
+    venv.close()
+    del single, venv
+    # Each round builds new envs (--no-isolate: in this process): collect the old ones now rather
+    # than during a later round's timed steps.
+    gc.collect()
+    return result
+
+
+def _time_resets(single: gym.Env, venv: gym.vector.VectorEnv, seed: int, resets: int) -> dict[str, float]:
+    """The median of ``resets`` resets of the single env and of the vector env (all sub-envs at
+    once), each after an untimed one; nothing at 0 resets."""
     single_resets, vector_resets = [], []
     for r in range(1 + resets):  # the first of each is warm-up (allocation, first text encodings)
         t0 = time.perf_counter()
@@ -244,47 +272,60 @@ def bench_backend(
         if r:
             single_resets.append(t1 - t0)
             vector_resets.append(time.perf_counter() - t1)
-    if resets:
-        result["single_reset_ms"] = 1e3 * statistics.median(single_resets)
-        result["vector_reset_ms"] = 1e3 * statistics.median(vector_resets)
-        result["vector_reset_vs_single"] = result["vector_reset_ms"] / result["single_reset_ms"]
-    single.close()
-    rollouts = getattr(venv.unwrapped.backend, "rollouts", None)  # world-model backend only
-    if rollouts is not None:  # what dtype "auto" chose on this machine
-        result["dit_dtype"] = rollouts.wm.dtype
+    if not resets:
+        return {}
+    single_ms, vector_ms = 1e3 * statistics.median(single_resets), 1e3 * statistics.median(vector_resets)
+    return {"single_reset_ms": single_ms, "vector_reset_ms": vector_ms, "vector_reset_vs_single": vector_ms / single_ms}
+
+
+def _time_vector_steps(
+    venv: gym.vector.VectorEnv, run: BackendRun, with_model: bool
+) -> tuple[list[float], list[dict[str, float]]]:
+    """The wall time of each timed vector step and its parts: traffic, then (``with_model``: the
+    world-model backend) conditions, student and decode, and the rest as other."""
     traffic_s = [0.0]
     for env in venv.unwrapped.envs:  # the traffic half of each sub-env's step, timed in place
         env.advance = _timed(env.advance, traffic_s)
-    stage_seconds = _stage_seconds_reader(venv.unwrapped.backend) if rollouts is not None else None
+    stage_seconds = _stage_seconds_reader(venv.unwrapped.backend) if with_model else None
 
     def model_seconds() -> dict[str, float]:
         seconds = stage_seconds()
         seconds["conditions"] += seconds.pop("crops")
         return seconds
 
-    policies = [ConstantSpeedLaneKeeping() for _ in range(num_envs)]
+    policies = [ConstantSpeedLaneKeeping() for _ in range(run.num_envs)]
     vec_times, parts = [], []
-    for i in range(warmup + max(steps // num_envs, 10)):
+    for i in range(run.warmup + max(run.steps // run.num_envs, 10)):
         actions = np.stack([p(e.bridge) for p, e in zip(policies, venv.unwrapped.envs, strict=True)])
-        before = model_seconds() if rollouts is not None else {}
+        before = model_seconds() if with_model else {}
         traffic_s[0] = 0.0
         t0 = time.perf_counter()
         venv.step(actions)
-        if i < warmup:
+        if i < run.warmup:
             continue
         vec_times.append(time.perf_counter() - t0)
         part = {"traffic": traffic_s[0]}
-        if rollouts is not None:
+        if with_model:
             after = model_seconds()
             part.update({k: after[k] - before[k] for k in ("conditions", "student", "decode")})
         part["other"] = vec_times[-1] - sum(part.values())
         parts.append(part)
+    return vec_times, parts
+
+
+def _vector_figures(
+    vec_times: list[float], parts: list[dict[str, float]], num_envs: int, step_s: float, with_model: bool
+) -> dict:
+    """The vector pass's report: its step's breakdown, the share outside the networks
+    (``with_model``) and its throughput beside ``num_envs`` single steps of ``step_s`` in a row."""
     vec_s = statistics.median(vec_times)
     # Per env step, ms: the median over steps of each part of a vector step, divided by num_envs.
-    result["vector_step_breakdown_ms_per_env_step"] = {
-        k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]
+    result: dict = {
+        "vector_step_breakdown_ms_per_env_step": {
+            k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]
+        }
     }
-    if rollouts is not None:
+    if with_model:
         outside = [p["traffic"] + p["conditions"] + p["other"] for p in parts]
         result["vector_outside_model_share"] = statistics.median(outside) / vec_s
         result["non_model_env_steps_per_s"] = num_envs / statistics.median(outside)
@@ -298,21 +339,16 @@ def bench_backend(
             "batched_vs_sequential_speedup": sequential_s / vec_s,
         }
     )
-    venv.close()
-    del single, venv
-    # Each round builds new envs (--no-isolate: in this process): collect the old ones now rather
-    # than during a later round's timed steps.
-    gc.collect()
     return result
 
 
-def bench_backend_isolated(backend: str, args: argparse.Namespace, steps: int, warmup: int) -> dict:
+def bench_backend_isolated(backend: str, run: BackendRun) -> dict:
     """:func:`bench_backend` in a fresh process: no backend shares the process with another (the
     world model's torch threads and imports, earlier rounds' envs) while it is timed."""
-    cmd = [*PROBE, "--backend-probe", backend, "--scenario", args.scenario, "--steps", str(steps)]
-    cmd += ["--num-envs", str(args.num_envs), "--seed", str(args.seed), "--warmup", str(warmup), "--out", "-"]
-    cmd += ["--device", args.device]
-    cmd += (["--checkpoint", args.checkpoint] if args.checkpoint else []) + (["--compile"] if args.compile else [])
+    cmd = [*PROBE, "--backend-probe", backend, "--scenario", run.scenario, "--steps", str(run.steps)]
+    cmd += ["--num-envs", str(run.num_envs), "--seed", str(run.seed), "--warmup", str(run.warmup), "--out", "-"]
+    cmd += ["--device", run.device]
+    cmd += (["--checkpoint", run.checkpoint] if run.checkpoint else []) + (["--compile"] if run.compile_model else [])
     probe = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its errors reach the terminal
     if probe.returncode:
         raise SystemExit(
@@ -360,7 +396,52 @@ def _digest(h, arrays) -> None:  # noqa: ANN001 (hashlib object, arrays)
         h.update(np.ascontiguousarray(a).tobytes())
 
 
-# Over 80 lines: one timed vector env, its step's parts and digest, top to bottom.
+def _workers_venv(
+    workers: int, scenario: str, num_envs: int, checkpoint: str | None, device: str
+) -> gym.vector.VectorEnv:
+    """A vector env of ``num_envs`` world-model sub-envs with ``config.workers`` = ``workers`` (the
+    key left out at 0, so a checkout without it runs too), its models on ``device``."""
+    config: dict = {**CONFIG, **({"workers": workers} if workers else {})}
+    if device != "cpu":
+        config["model"] = {"device": device}
+    kw = {"backend": "world_model", "config": config, **({"checkpoint": checkpoint} if checkpoint else {})}
+    return gym.make_vec(
+        "M4World-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=scenario, **kw
+    )
+
+
+def _vector_parts_reader(base: object):  # noqa: ANN202 (a reader of seconds)
+    """A reader of the seconds so far of each part of a vector step of ``base`` (the unwrapped
+    vector env): the simulation workers' parts and main's wait for them, or (no workers) the traffic,
+    crops and conditions in this process; then student and decode."""
+    stages = _stage_seconds_reader(base.backend)
+    pool = getattr(base, "simulation_workers", None)  # None at 0 workers (or in a checkout without them)
+    traffic_s = [0.0]
+    if pool is None:
+        for env in base.envs:
+            env.advance = _timed(env.advance, traffic_s)
+
+    def parts_so_far() -> dict[str, float]:
+        s = stages()
+        model = {"student": s["student"], "decode": s["decode"]}
+        if pool is not None:
+            return {**pool.seconds(), "workers_wait": pool.wait_s, **model}
+        return {"traffic": traffic_s[0], "crops": s["crops"], "conditions": s["conditions"], **model}
+
+    return parts_so_far
+
+
+def _step_parts(before: dict[str, float], after: dict[str, float], wall: float) -> dict[str, float]:
+    """One vector step's parts (the readings of :func:`_vector_parts_reader` around it), with
+    ``non_model`` (everything but student and decode) and ``other`` (the non-model time no part counts)."""
+    part = {k: after[k] - before[k] for k in after}
+    non_model = wall - part["student"] - part["decode"]
+    counted = part.get("workers_wait", sum(part.get(k, 0.0) for k in ("traffic", "crops", "conditions")))
+    part["other"] = non_model - counted
+    part["non_model"] = non_model
+    return part
+
+
 def bench_workers(
     workers: int,
     scenario: str,
@@ -384,14 +465,7 @@ def bench_workers(
     import hashlib
 
     start = time.perf_counter()  # progress on stderr: a run cut short shows where it was
-    config: dict = {**CONFIG, **({"workers": workers} if workers else {})}
-    if device != "cpu":
-        config["model"] = {"device": device}
-    kw = {"backend": "world_model", "config": config, **({"checkpoint": checkpoint} if checkpoint else {})}
-    venv = gym.make_vec(
-        "M4World-v0", num_envs=num_envs, vectorization_mode="vector_entry_point", scenario=scenario, **kw
-    )
-    base = venv.unwrapped
+    venv = _workers_venv(workers, scenario, num_envs, checkpoint, device)
 
     def say(what: str) -> None:
         print(f"[{time.perf_counter() - start:6.1f} s] workers={workers}: {what}", file=sys.stderr, flush=True)
@@ -403,20 +477,7 @@ def bench_workers(
     say(f"reset in {reset_s:.1f} s")
     h = hashlib.sha256()
     _digest(h, obs.values())
-    stages = _stage_seconds_reader(base.backend)
-    pool = getattr(base, "simulation_workers", None)  # None at 0 workers (or in a checkout without them)
-
-    def parts_so_far() -> dict[str, float]:
-        s = stages()
-        model = {"student": s["student"], "decode": s["decode"]}
-        if pool is not None:
-            return {**pool.seconds(), "workers_wait": pool.wait_s, **model}
-        return {"traffic": traffic_s[0], "crops": s["crops"], "conditions": s["conditions"], **model}
-
-    traffic_s = [0.0]
-    if pool is None:
-        for env in base.envs:
-            env.advance = _timed(env.advance, traffic_s)
+    parts_so_far = _vector_parts_reader(venv.unwrapped)
     actions = np.zeros((num_envs, 2), np.float32)
     walls, parts = [], []
     for i in range(warmup + vector_steps):
@@ -428,13 +489,8 @@ def bench_workers(
         _digest(h, [*obs.values(), rewards, terminated, truncated])
         if i < warmup:
             continue
-        part = {k: after[k] - before[k] for k in after}
-        non_model = wall - part["student"] - part["decode"]
-        counted = part.get("workers_wait", sum(part.get(k, 0.0) for k in ("traffic", "crops", "conditions")))
-        part["other"] = non_model - counted
-        part["non_model"] = non_model
         walls.append(wall)
-        parts.append(part)
+        parts.append(_step_parts(before, after, wall))
         say(f"vector step {len(walls)}: {wall:.2f} s")
     venv.close()
     per_env = {k: 1e3 * statistics.median(p[k] for p in parts) / num_envs for k in parts[0]}
@@ -591,20 +647,8 @@ def compare_backends(args: argparse.Namespace) -> dict:
         hw = {e: bench_highway_env(e, max(steps // 6, 20), args.seed) for e in ("highway-v0", "highway-fast-v0")}
         rnd = {"highway_env": hw, "backends": {}}
         for backend in args.backend:
-            if args.isolate:
-                r = bench_backend_isolated(backend, args, steps, warmup_of(backend))
-            else:
-                r = bench_backend(
-                    backend,
-                    args.scenario,
-                    steps,
-                    args.num_envs,
-                    args.seed,
-                    args.checkpoint,
-                    args.compile,
-                    warmup_of(backend),
-                    args.device,
-                )
+            run = BackendRun.from_args(args, steps, warmup_of(backend))
+            r = bench_backend_isolated(backend, run) if args.isolate else bench_backend(backend, run)
             r["single_vs_highway_fast_v0"] = r["single_steps_per_s"] / hw["highway-fast-v0"]["steps_per_s"]
             r["vector_aggregate_vs_highway_v0"] = r["vector_aggregate_steps_per_s"] / hw["highway-v0"]["steps_per_s"]
             rnd["backends"][backend] = r
@@ -642,17 +686,7 @@ def main(argv: list[str] | None = None) -> None:
         print(json.dumps(r))
         return
     if args.backend_probe:
-        r = bench_backend(
-            args.backend_probe,
-            args.scenario,
-            args.steps,
-            args.num_envs,
-            args.seed,
-            args.checkpoint,
-            args.compile,
-            args.warmup,
-            args.device,
-        )
+        r = bench_backend(args.backend_probe, BackendRun.from_args(args, args.steps, args.warmup))
         print(json.dumps(r))
         return
     if args.rounds < 1:
