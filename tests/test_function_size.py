@@ -18,9 +18,6 @@ KNOWN_OFFENDERS = {
     "world_model/eval/questions.py::build_questions",
     "world_model/eval/train_segmenter.py::_train",
     "m4world_env/agreement/plot.py::scatter_plot",
-    "m4world_env/bench/longtail.py::_render_both",
-    "m4world_env/bench/longtail.py::evaluate",
-    "m4world_env/bench/longtail.py::judge_ordinary",
     "m4world_env/agreement/render.py::build_summary",
     "m4world_env/traffic/roads.py::build_roundabout",
 }

@@ -58,7 +58,13 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(tmp_pa
         return float(np.abs(generated.astype(int) - truth).mean())
 
     result = bench.evaluate(
-        model, vae, clips, views, ["tree_truck"], scorer, steps=1, search_dirs=[tmp_path / "adapters"]
+        model,
+        vae,
+        clips,
+        views,
+        ["tree_truck"],
+        scorer,
+        bench.RenderOptions(steps=1, search_dirs=[tmp_path / "adapters"]),
     )
     assert len(calls) == 3 * len(views) and all(g == t for g, t in calls)  # crops of the same box
     assert list(result["images"]) == ["truth", "autoencoder", "base", "adapted"]
@@ -91,7 +97,7 @@ def test_evaluate_scores_rare_views_before_and_after_and_draws_the_figure(tmp_pa
     frames = bench.ordinary_frames(plain, 3, 0.1)
     assert len(frames) == 1  # one clip: one frame
     scores = bench.judge_ordinary(
-        Judge(), model, vae, plain, frames, ["tree_truck"], 1, 0, search_dirs=[tmp_path / "adapters"]
+        Judge(), model, vae, plain, frames, ["tree_truck"], bench.RenderOptions(1, 0, [tmp_path / "adapters"])
     )
     assert set(scores) == {"truth", "base", "adapted"}
     assert all(s["weather"] == 1.0 and s["time_of_day"] == 0.0 and s["existence"] == 0.0 for s in scores.values())
@@ -118,7 +124,7 @@ def test_completion_task_regenerates_only_the_rare_object(tmp_path, monkeypatch)
         torch.nn.init.normal_(p, std=0.3)
     save_adapter(reference, "tree_truck", tmp_path / "adapters" / "tree_truck", LoraConfig(rank=2), fingerprint)
     remove_adapters(reference)
-    kw = {"steps": 1, "search_dirs": [tmp_path / "adapters"]}
+    render = bench.RenderOptions(steps=1, search_dirs=[tmp_path / "adapters"])
     calls = []
     original = bench.ReferenceGenerator.complete_object
 
@@ -127,8 +133,8 @@ def test_completion_task_regenerates_only_the_rare_object(tmp_path, monkeypatch)
         return original(self, cond, frames, cameras, lidar, track_id, **k)
 
     monkeypatch.setattr(bench.ReferenceGenerator, "complete_object", recording)
-    done = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="completion", **kw)
-    first = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="first_frame", **kw)
+    done = bench.evaluate(reference, vae, clips, views, ["tree_truck"], options=replace(render, task="completion"))
+    first = bench.evaluate(reference, vae, clips, views, ["tree_truck"], options=replace(render, task="first_frame"))
 
     def away_from_box(name, result):
         errs = []
@@ -144,12 +150,19 @@ def test_completion_task_regenerates_only_the_rare_object(tmp_path, monkeypatch)
     assert away_from_box("base", done) < away_from_box("base", first)
     assert done["base_median"] != done["adapted_median"]  # the adapter changed the completed object
     with pytest.raises(ValueError, match="reference model"):
-        bench.evaluate(teacher, vae, clips, views, ["tree_truck"], task="completion", **kw)
+        bench.evaluate(teacher, vae, clips, views, ["tree_truck"], options=replace(render, task="completion"))
     nameless = [replace(v, track="") for v in views]
     with pytest.raises(ValueError, match="names no object"):
-        bench.evaluate(reference, vae, clips, nameless, ["tree_truck"], task="completion", **kw)
+        bench.evaluate(reference, vae, clips, nameless, ["tree_truck"], options=replace(render, task="completion"))
     # reset: the base row is the first frame from controls; the adapter redraws the category's boxes in it
-    reset = bench.evaluate(reference, vae, clips, views, ["tree_truck"], task="reset", category="tree_truck", **kw)
+    reset = bench.evaluate(
+        reference,
+        vae,
+        clips,
+        views,
+        ["tree_truck"],
+        options=replace(render, task="reset", category="tree_truck"),
+    )
     for a, b in zip(reset["images"]["base"], first["images"]["base"], strict=True):
         assert np.array_equal(a, b)
     assert reset["adapted_median"] != reset["base_median"]  # (latent cells outside the boxes: test_env_world_model)

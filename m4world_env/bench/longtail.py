@@ -40,7 +40,7 @@ import argparse
 import json
 import sys
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -177,25 +177,34 @@ def _render(gen: ReferenceGenerator, clips, views, steps, seed, task: str, blank
     return out
 
 
-# Eleven parameters: evaluate's options, passed through as they are.
+@dataclass(frozen=True)
+class RenderOptions:
+    """How views are rendered without and with the adapters (:func:`_render_both`), as the command
+    line's ``--steps``, ``--seed``, ``--task``, ``--blank-px`` and ``--case`` set it."""
+
+    steps: int | None = None  # sampling steps; None: the preset's
+    seed: int = 0  # the noise, the same for both renderings
+    search_dirs: Sequence[str | Path] = ()  # where the adapters are found besides their paths
+    task: str = "first_frame"  # one of TASKS
+    blank_px: int = -1  # completion: the margin of the object blanked in the cameras (-1: none)
+    category: str = ""  # reset: the object category the adapters complete
+
+
 def _render_both(  # noqa: ANN202 (two lists of observations)
     model,  # noqa: ANN001 - MultiViewDiT
     vae: SensorVAE,
     clips: Sequence[Clip],
     views: Sequence[RareView],
     adapters: Sequence[str | Path],
-    steps: int | None,
-    seed: int,
-    search_dirs: Sequence[str | Path],
-    task: str = "first_frame",
-    blank_px: int = -1,
-    category: str = "",
+    options: RenderOptions,
 ):
     """``views``' frames (:func:`_render`) without, then with, the adapters (same noise).
 
-    ``reset``: what the env's ``reset()`` draws with a completion adapter of ``category``
+    ``reset``: what the env's ``reset()`` draws with a completion adapter of ``options.category``
     (``WorldModel.first_frame``): the base model's first frames from controls, then, with the
     adapters, that category's boxes regenerated in them (``ReferenceGenerator.complete_category``)."""
+    steps, seed, search_dirs, task = options.steps, options.seed, options.search_dirs, options.task
+    blank_px, category = options.blank_px, options.category
     if task not in TASKS:
         raise ValueError(f"unknown task {task!r}; choose one of {TASKS}")
     gen = ReferenceGenerator(model, vae)
@@ -223,7 +232,6 @@ def _render_both(  # noqa: ANN202 (two lists of observations)
     return base_obs, adapted_obs
 
 
-# Twelve parameters: the benchmark's options, each with its default, for the tests' small runs.
 def evaluate(
     model,  # noqa: ANN001 - MultiViewDiT
     vae: SensorVAE,
@@ -231,25 +239,17 @@ def evaluate(
     views: Sequence[RareView],
     adapters: Sequence[str | Path],
     scorer: Scorer = mean_colour_error,
-    steps: int | None = None,
-    seed: int = 0,
-    search_dirs: Sequence[str | Path] = (),
-    task: str = "first_frame",
-    blank_px: int = -1,
-    category: str = "",
+    options: RenderOptions = RenderOptions(),
 ) -> dict:
-    """Render every rare view with and without ``adapters`` (same seed; ``task`` and ``blank_px``
-    as in :func:`_render`, ``category`` the one ``reset`` completes: :func:`_render_both`) and
-    score the object's box.
+    """Render every rare view with and without ``adapters`` (same seed; ``options`` as in
+    :func:`_render_both`) and score the object's box.
 
     Returns per-view scores, their medians and the rendered cameras (``"images"``: truth, base,
     adapted lists of (H, W, 3) uint8 views) for the figure.
     """
     if not views:
         raise ValueError("no rare-object views to evaluate: no clip shows an object of the case's category")
-    base_obs, adapted_obs = _render_both(
-        model, vae, clips, views, adapters, steps, seed, search_dirs, task, blank_px, category
-    )
+    base_obs, adapted_obs = _render_both(model, vae, clips, views, adapters, options)
     truth = [np.asarray(clips[rv.clip].cameras[rv.frame, rv.view]) for rv in views]
     text = make_text_encoder(vae.cfg.text) if vae.draws_labels else None
     autoencoded = [autoencode(vae, clips[rv.clip], rv.frame, text)[rv.view] for rv in views]
@@ -322,7 +322,6 @@ def ordinary_frames(clips: Sequence[Clip], count: int, near: float) -> list[Rare
     return out
 
 
-# Eleven parameters: evaluate's options and the judge, as main passes them.
 def judge_ordinary(
     judge,  # noqa: ANN001 - a JudgeBackend
     model,  # noqa: ANN001 - MultiViewDiT
@@ -330,18 +329,13 @@ def judge_ordinary(
     clips: Sequence[Clip],
     frames: Sequence[RareView],
     adapters: Sequence[str | Path],
-    steps: int | None,
-    seed: int,
-    search_dirs: Sequence[str | Path] = (),
-    task: str = "first_frame",
-    category: str = "",
+    options: RenderOptions,
 ) -> dict[str, dict[str, float]]:
     """Weather, time-of-day and existence (largest object) yes-frequencies on ordinary frames,
-    for the truth and for the model without / with the adapters (same noise). ``completion``
-    regenerates each frame's largest object only: its existence is the telling score there."""
-    base_obs, adapted_obs = _render_both(
-        model, vae, clips, frames, adapters, steps, seed, search_dirs, task, -1, category
-    )
+    for the truth and for the model without / with the adapters (same noise; ``options`` as in
+    :func:`_render_both`). ``completion`` regenerates each frame's largest object only: its
+    existence is the telling score there."""
+    base_obs, adapted_obs = _render_both(model, vae, clips, frames, adapters, options)
     meta = [clips[rv.clip].frames[rv.frame] for rv in frames]
     weathers, times = [m.prompt.weather for m in meta], [m.prompt.time_of_day for m in meta]
     # Each frame's judged object is the one ordinary_frames picked (its track).
@@ -494,19 +488,8 @@ def main(argv: list[str] | None = None) -> int:
     clips = list(iter_clips(a.data))
     views = rare_views(clips, a.case, a.max_views, ReferenceConfig().near_plane_m)
     dirs = [run / "lora"]
-    result = evaluate(
-        model,
-        vae,
-        clips,
-        views,
-        [a.case],
-        steps=a.steps,
-        seed=a.seed,
-        search_dirs=dirs,
-        task=a.task,
-        blank_px=a.blank_px,
-        category=a.case,
-    )
+    render = RenderOptions(a.steps, a.seed, dirs, a.task, a.blank_px, category=a.case)
+    result = evaluate(model, vae, clips, views, [a.case], options=render)
     out = Path(a.out)
     figure(result, views, out / "longtail.png")
     numbers = {k: v for k, v in result.items() if k != "images"}
@@ -519,10 +502,13 @@ def main(argv: list[str] | None = None) -> int:
         if a.ordinary_data:
             ordinary = list(iter_clips(a.ordinary_data))
             frames = ordinary_frames(ordinary, a.ordinary_frames, ReferenceConfig().near_plane_m)
-            args = (judge, model, vae, ordinary, frames, [a.case], a.steps, a.seed, dirs)
-            numbers["ordinary_judge"] = judge_ordinary(*args)
+            args = (judge, model, vae, ordinary, frames, [a.case])
+            plain = RenderOptions(a.steps, a.seed, dirs)  # ordinary objects are never blanked
+            numbers["ordinary_judge"] = judge_ordinary(*args, plain)
             if a.task != "first_frame":  # weather and time of day come from the controls there
-                numbers["ordinary_judge_" + a.task] = judge_ordinary(*args, a.task, a.case)
+                numbers["ordinary_judge_" + a.task] = judge_ordinary(
+                    *args, replace(plain, task=a.task, category=a.case)
+                )
     (out / "longtail.json").write_text(json.dumps(numbers, indent=1))
     print(
         f"{a.case}: {numbers['views']} rare-object views, {numbers['scorer']} median "
