@@ -17,7 +17,6 @@ KNOWN_OFFENDERS = {
     "world_model/eval/judge_data.py::JudgeData.add_crop",
     "world_model/eval/questions.py::build_questions",
     "world_model/eval/train_segmenter.py::_train",
-    "m4world_env/agreement/plot.py::scatter_plot",
     "m4world_env/agreement/render.py::build_summary",
     "m4world_env/traffic/roads.py::build_roundabout",
 }

@@ -114,7 +114,6 @@ def scatter_plot(summary: Mapping[str, Any], path: str | Path) -> Path:
     names, and Pearson r / Spearman rho / MMRV in a text box. Written atomically (a temporary file
     in the same folder, then ``os.replace``); returns ``path``."""
     # The object API on an Agg canvas draws without pyplot's global state or the process's backend.
-    from matplotlib import colormaps
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -125,34 +124,7 @@ def scatter_plot(summary: Mapping[str, Any], path: str | Path) -> Path:
     ax = fig.add_subplot()
     ax.plot([0, 1], [0, 1], linestyle="--", color="0.55", linewidth=1, label="y = x", zorder=1)
 
-    policies = summary["policies"]
-    families = sorted({p["family"] for p in policies.values()})
-    palette = colormaps[FAMILY_COLORMAP]
-    points: list[tuple[str, float, float]] = []
-    for index, family in enumerate(families):
-        names = sorted(n for n, p in policies.items() if p["family"] == family)
-        pdms = [policies[n]["pdms"] for n in names]
-        x, y = [p["truth"] for p in pdms], [p["model"] for p in pdms]
-        bars = ax.errorbar(
-            x,
-            y,
-            xerr=_error_bars(pdms, "truth"),
-            yerr=_error_bars(pdms, "model"),
-            fmt=FAMILY_MARKERS[index % len(FAMILY_MARKERS)],
-            color=palette(index % palette.N),
-            markersize=MARKER_SIZE,
-            elinewidth=0.7,
-            capsize=2,
-            alpha=0.85,
-            label=f"{family} ({len(names)})",
-            zorder=3,
-        )
-        # A policy scoring exactly 0 or 1 sits on the frame: keep its marker and bars whole.
-        for artist in (*bars.lines[:1], *bars.lines[1], *bars.lines[2]):
-            artist.set_clip_on(False)
-        for artist in (*bars.lines[1], *bars.lines[2]):
-            artist.set_alpha(ERROR_BAR_ALPHA)
-        points += zip(names, x, y, strict=True)
+    points = _plot_families(ax, summary["policies"])
 
     a = summary["agreement"]
     stats_box = ax.text(
@@ -180,6 +152,47 @@ def scatter_plot(summary: Mapping[str, Any], path: str | Path) -> Path:
     # Names go last, once the layout fixes where everything is drawn.
     _place_labels(ax, points, obstacles=[stats_box, legend])
 
+    _save_png(fig, path)
+    return path
+
+
+def _plot_families(ax, policies: Mapping[str, Any]) -> list[tuple[str, float, float]]:  # noqa: ANN001 - Axes
+    """Each family's policies as points with their error bars, one marker and colour per family;
+    the (name, x, y) of every point, for the labels."""
+    from matplotlib import colormaps
+
+    families = sorted({p["family"] for p in policies.values()})
+    palette = colormaps[FAMILY_COLORMAP]
+    points: list[tuple[str, float, float]] = []
+    for index, family in enumerate(families):
+        names = sorted(n for n, p in policies.items() if p["family"] == family)
+        pdms = [policies[n]["pdms"] for n in names]
+        x, y = [p["truth"] for p in pdms], [p["model"] for p in pdms]
+        bars = ax.errorbar(
+            x,
+            y,
+            xerr=_error_bars(pdms, "truth"),
+            yerr=_error_bars(pdms, "model"),
+            fmt=FAMILY_MARKERS[index % len(FAMILY_MARKERS)],
+            color=palette(index % palette.N),
+            markersize=MARKER_SIZE,
+            elinewidth=0.7,
+            capsize=2,
+            alpha=0.85,
+            label=f"{family} ({len(names)})",
+            zorder=3,
+        )
+        # A policy scoring exactly 0 or 1 sits on the frame: keep its marker and bars whole.
+        for artist in (*bars.lines[:1], *bars.lines[1], *bars.lines[2]):
+            artist.set_clip_on(False)
+        for artist in (*bars.lines[1], *bars.lines[2]):
+            artist.set_alpha(ERROR_BAR_ALPHA)
+        points += zip(names, x, y, strict=True)
+    return points
+
+
+def _save_png(fig, path: Path) -> None:  # noqa: ANN001 - a matplotlib Figure
+    """``fig`` as a PNG at ``path``, atomically: a temporary file in the same folder, then ``os.replace``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -191,4 +204,3 @@ def scatter_plot(summary: Mapping[str, Any], path: str | Path) -> Path:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
-    return path
