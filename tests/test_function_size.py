@@ -18,7 +18,6 @@ KNOWN_OFFENDERS = {
     "world_model/eval/questions.py::build_questions",
     "world_model/eval/train_segmenter.py::_train",
     "m4world_env/agreement/render.py::build_summary",
-    "m4world_env/traffic/roads.py::build_roundabout",
 }
 
 

@@ -135,13 +135,25 @@ def _sine_between(
 
 def build_roundabout(road: RoundaboutRoad) -> RoadLayout:
     net = FastNetwork()
-    w, alpha, n = road.lane_width, road.entry_angle_deg, road.lanes
+    w, n = road.lane_width, road.lanes
     radii = [road.radius + k * w for k in range(n)]
-    r_out = radii[-1]
     names = list(ARMS)
+    _add_ring(net, road, radii)
     inner: set = set()
-    # Ring: for each arm, entry node at (theta - alpha), exit node at (theta + alpha); angles are
-    # unwrapped so every arc runs with decreasing highway-env angle.
+    for arm, theta in ARMS.items():
+        inner |= _add_arm(net, road, arm, theta, radii[-1])
+    spawn = [(f"{a}_far", f"{a}_mid") for a in ARMS] + [
+        (f"ring_in_{a}", f"ring_out_{b}") for a, b in zip(names, names[1:] + names[:1], strict=True)
+    ]
+    dests = [f"{a}_exit_far" for a in ARMS]
+    return RoadLayout(net, (f"{EGO_ARM}_far", f"{EGO_ARM}_mid"), spawn, dests, dests[0], w, inner)
+
+
+def _add_ring(net: FastNetwork, road: RoundaboutRoad, radii: list[float]) -> None:
+    """The ring's lanes, one per radius: for each arm, entry node at (theta - alpha), exit node at
+    (theta + alpha); angles are unwrapped so every arc runs with decreasing highway-env angle."""
+    w, alpha, n = road.lane_width, road.entry_angle_deg, road.lanes
+    names = list(ARMS)
     for i, arm in enumerate(names):
         theta = ARMS[arm]
         nxt = names[(i + 1) % len(names)]
@@ -167,54 +179,53 @@ def build_roundabout(road: RoundaboutRoad) -> RoadLayout:
                         speed_limit=road.speed_limit,
                     ),
                 )
-    # Approaches: straight, then an S-curve onto the outer ring lane; exits mirror them.
+
+
+def _add_arm(net: FastNetwork, road: RoundaboutRoad, arm: str, theta: float, r_out: float) -> set:
+    """One arm's approach (straight, then an S-curve onto the outer ring lane at ``r_out``) and its
+    exit, mirroring it; the arm's straight lanes, which are inner lanes of the layout."""
+    w, alpha = road.lane_width, road.entry_angle_deg
     sine_len = road.radius
-    for arm, theta in ARMS.items():
-        u = _unit(theta)
-        lat_ring = r_out * math.sin(math.radians(alpha))
-        long_ring = r_out * math.cos(math.radians(alpha))
-        d_mid = long_ring + sine_len
-        d_far = d_mid + road.access_length
-        inward, inward_lat = -u, np.array([u[1], -u[0]])
-        net.add_lane(
-            f"{arm}_far",
-            f"{arm}_mid",
-            StraightLane(
-                u * d_far + inward_lat * w / 2,
-                u * d_mid + inward_lat * w / 2,
-                w,
-                (C, C),
-                speed_limit=road.speed_limit,
-            ),
-        )
-        net.add_lane(
-            f"{arm}_mid",
-            f"ring_in_{arm}",
-            _sine_between(u * d_mid, sine_len, inward, w / 2, lat_ring, w, road.speed_limit),
-        )
-        outward_lat = np.array([-u[1], u[0]])
-        net.add_lane(
-            f"ring_out_{arm}",
-            f"{arm}_exit_mid",
-            _sine_between(u * long_ring, sine_len, u, lat_ring, w / 2, w, road.speed_limit),
-        )
-        net.add_lane(
-            f"{arm}_exit_mid",
-            f"{arm}_exit_far",
-            StraightLane(
-                u * d_mid + outward_lat * w / 2,
-                u * d_far + outward_lat * w / 2,
-                w,
-                (N, C),
-                speed_limit=road.speed_limit,
-            ),
-        )
-        inner |= {((f"{arm}_far", f"{arm}_mid", 0), 0), ((f"{arm}_exit_mid", f"{arm}_exit_far", 0), 0)}
-    spawn = [(f"{a}_far", f"{a}_mid") for a in ARMS] + [
-        (f"ring_in_{a}", f"ring_out_{b}") for a, b in zip(names, names[1:] + names[:1], strict=True)
-    ]
-    dests = [f"{a}_exit_far" for a in ARMS]
-    return RoadLayout(net, (f"{EGO_ARM}_far", f"{EGO_ARM}_mid"), spawn, dests, dests[0], w, inner)
+    u = _unit(theta)
+    lat_ring = r_out * math.sin(math.radians(alpha))
+    long_ring = r_out * math.cos(math.radians(alpha))
+    d_mid = long_ring + sine_len
+    d_far = d_mid + road.access_length
+    inward, inward_lat = -u, np.array([u[1], -u[0]])
+    net.add_lane(
+        f"{arm}_far",
+        f"{arm}_mid",
+        StraightLane(
+            u * d_far + inward_lat * w / 2,
+            u * d_mid + inward_lat * w / 2,
+            w,
+            (C, C),
+            speed_limit=road.speed_limit,
+        ),
+    )
+    net.add_lane(
+        f"{arm}_mid",
+        f"ring_in_{arm}",
+        _sine_between(u * d_mid, sine_len, inward, w / 2, lat_ring, w, road.speed_limit),
+    )
+    outward_lat = np.array([-u[1], u[0]])
+    net.add_lane(
+        f"ring_out_{arm}",
+        f"{arm}_exit_mid",
+        _sine_between(u * long_ring, sine_len, u, lat_ring, w / 2, w, road.speed_limit),
+    )
+    net.add_lane(
+        f"{arm}_exit_mid",
+        f"{arm}_exit_far",
+        StraightLane(
+            u * d_mid + outward_lat * w / 2,
+            u * d_far + outward_lat * w / 2,
+            w,
+            (N, C),
+            speed_limit=road.speed_limit,
+        ),
+    )
+    return {((f"{arm}_far", f"{arm}_mid", 0), 0), ((f"{arm}_exit_mid", f"{arm}_exit_far", 0), 0)}
 
 
 def _arc(p: np.ndarray, heading: float, turn: str, radius: float, w: float, speed_limit: float) -> CircularLane:
