@@ -50,6 +50,28 @@ def _pick_other(rng: np.random.Generator, options: tuple[str, ...], true: str) -
     return others[int(rng.integers(len(others)))]
 
 
+@dataclass
+class _Draw:
+    """What every question type draws from: the crops and their arrays, the object crops (not the
+    references), the one random stream (the types draw from it in a fixed order) and the cap of
+    source items per type."""
+
+    data: JudgeData
+    arr: dict[str, np.ndarray]
+    obj: np.ndarray
+    rng: np.random.Generator
+    max_per_type: int
+
+    def sub(self, idx: np.ndarray) -> np.ndarray:
+        """At most ``max_per_type`` of ``idx``, drawn at random, in order."""
+        if len(idx) > self.max_per_type:
+            return np.sort(self.rng.choice(idx, size=self.max_per_type, replace=False))
+        return idx
+
+    def cat(self, i: int) -> str:
+        return CROP_CLASSES[self.arr["category"][i]]
+
+
 def build_questions(
     data: JudgeData, seed: int = 0, max_per_type: int = 2000, degrade_config: DegradeConfig | None = None
 ) -> dict[str, QuestionSet]:
@@ -58,25 +80,28 @@ def build_questions(
     rng = np.random.default_rng(seed)
     degrade_config = degrade_config or DegradeConfig()
     arr = data.arrays()
-    n = len(data.crops)
     bg = CROP_CLASSES.index(BACKGROUND)
     obj = np.flatnonzero((arr["category"] != bg) & ~arr["reference"])
     background = np.flatnonzero(arr["category"] == bg)
+    draw = _Draw(data, arr, obj, rng, max_per_type)
+    qs = _scene_questions(draw)
+    qs |= _crop_questions(draw, background, degrade_config)
+    qs["visual_fidelity"] = _visual_fidelity(draw)
+    qs["textual_fidelity"] = _textual_fidelity(draw)
+    qs["cross_view_consistency"] = _cross_view_consistency(draw)
+    return qs
 
-    def sub(idx: np.ndarray) -> np.ndarray:
-        return np.sort(rng.choice(idx, size=max_per_type, replace=False)) if len(idx) > max_per_type else idx
 
-    def cat(i: int) -> str:
-        return CROP_CLASSES[arr["category"][i]]
-
-    qs: dict[str, QuestionSet] = {}
-    # Scene questions are asked of one camera view at a time, as the report asks them: each view
-    # of a sampled frame is a question of its own, grouped by view.
+def _scene_questions(draw: _Draw) -> dict[str, QuestionSet]:
+    """Weather and time of day. Scene questions are asked of one camera view at a time, as the
+    report asks them: each view of a sampled frame is a question of its own, grouped by view."""
+    data, rng = draw.data, draw.rng
     frames = np.stack(data.scene_frames) if data.scene_frames else np.zeros((0, 1, 1, 1, 3), np.uint8)
     views = frames.shape[1]
-    fidx = sub(np.arange(len(frames)))
+    fidx = draw.sub(np.arange(len(frames)))
     single = frames[fidx].reshape(len(fidx) * views, 1, *frames.shape[2:])
     view_names = [f"view {k}" for k in range(views)] * len(fidx)
+    qs: dict[str, QuestionSet] = {}
     for name, labels, vocab in (("weather", data.weather, WEATHERS), ("time_of_day", data.time_of_day, TIMES_OF_DAY)):
         true = [vocab[labels[i]] for i in fidx for _ in range(views)]
         asked = true + [_pick_other(rng, vocab, t) for t in true]
@@ -86,8 +111,15 @@ def build_questions(
             label=np.r_[np.ones(len(single), bool), np.zeros(len(single), bool)],
             group=view_names * 2,
         )
+    return qs
 
-    o, g = sub(obj), sub(background)
+
+def _crop_questions(draw: _Draw, background: np.ndarray, degrade_config: DegradeConfig) -> dict[str, QuestionSet]:
+    """Existence (objects' categories, and background crops asked about any), clarity (a crop
+    against its degraded copy) and colour, each of one crop."""
+    data, arr, obj, rng, cat = draw.data, draw.arr, draw.obj, draw.rng, draw.cat
+    qs: dict[str, QuestionSet] = {}
+    o, g = draw.sub(obj), draw.sub(background)
     qs["existence"] = QuestionSet(
         a=[data.crops[i] for i in o] * 2 + [data.crops[i] for i in g],
         asked=[cat(i) for i in o]
@@ -101,7 +133,7 @@ def build_questions(
         label=np.r_[np.ones(len(o), bool), np.zeros(len(o), bool)],
         group=[cat(i) for i in o] * 2,
     )
-    colored = sub(obj[arr["color"][obj] >= 0])
+    colored = draw.sub(obj[arr["color"][obj] >= 0])
     qs["color"] = QuestionSet(
         a=[data.crops[i] for i in colored] * 2,
         asked=[COLOR_CLASSES[arr["color"][i]] for i in colored]
@@ -109,10 +141,15 @@ def build_questions(
         label=np.r_[np.ones(len(colored), bool), np.zeros(len(colored), bool)],
         group=[cat(i) for i in colored] * 2,
     )
+    return qs
 
-    ref_of = {int(arr["track"][i]): i for i in range(n) if arr["reference"][i]}
+
+def _visual_fidelity(draw: _Draw) -> QuestionSet:
+    """An object's crop beside its track's reference crop (yes) and another track's (no)."""
+    data, arr, obj, rng, cat = draw.data, draw.arr, draw.obj, draw.rng, draw.cat
+    ref_of = {int(arr["track"][i]): i for i in range(len(data.crops)) if arr["reference"][i]}
     refs = np.array(sorted(ref_of.values()), dtype=np.int64)
-    with_ref = sub(np.array([i for i in obj if int(arr["track"][i]) in ref_of], dtype=np.int64))
+    with_ref = draw.sub(np.array([i for i in obj if int(arr["track"][i]) in ref_of], dtype=np.int64))
     pa, pb, lab, grp = [], [], [], []
     for i in with_ref:
         others = refs[arr["track"][refs] != arr["track"][i]]
@@ -122,10 +159,14 @@ def build_questions(
         pb += [data.crops[ref_of[int(arr["track"][i])]], data.crops[int(rng.choice(others))]]
         lab += [True, False]
         grp += [cat(i)] * 2
-    qs["visual_fidelity"] = QuestionSet(a=pa, b=pb, label=np.array(lab, bool), group=grp)
+    return QuestionSet(a=pa, b=pb, label=np.array(lab, bool), group=grp)
 
+
+def _textual_fidelity(draw: _Draw) -> QuestionSet:
+    """An object's crop asked about its own description (yes) and a different one (no)."""
+    data, obj, rng, cat = draw.data, draw.obj, draw.rng, draw.cat
     parsed = {i: parse_description(data.description[i]) for i in obj}
-    readable = sub(np.array([i for i in obj if not parsed[i].empty], dtype=np.int64))
+    readable = draw.sub(np.array([i for i in obj if not parsed[i].empty], dtype=np.int64))
     ta, asked, lab, grp = [], [], [], []
     for i in readable:
         wrong = [j for j in readable if parsed[j] != parsed[i]]
@@ -135,10 +176,14 @@ def build_questions(
         asked += [data.description[i], data.description[int(wrong[int(rng.integers(len(wrong)))])]]
         lab += [True, False]
         grp += [cat(i)] * 2
-    qs["textual_fidelity"] = QuestionSet(a=ta, asked=asked, label=np.array(lab, bool), group=grp)
+    return QuestionSet(a=ta, asked=asked, label=np.array(lab, bool), group=grp)
 
+
+def _cross_view_consistency(draw: _Draw) -> QuestionSet:
+    """Crops of one frame in two views: the same track (yes), another track (no)."""
+    data, arr, rng, cat = draw.data, draw.arr, draw.rng, draw.cat
     by_frame: dict[int, list[int]] = defaultdict(list)
-    for i in obj:
+    for i in draw.obj:
         by_frame[int(arr["frame"][i])].append(int(i))
     ca, cb, lab, grp = [], [], [], []
     for members in by_frame.values():
@@ -157,8 +202,7 @@ def build_questions(
                 cb.append(data.crops[int(diff[int(rng.integers(len(diff)))])])
                 lab.append(False)
                 grp.append(cat(i))
-    qs["cross_view_consistency"] = QuestionSet(a=ca, b=cb, label=np.array(lab, bool), group=grp)
-    return qs
+    return QuestionSet(a=ca, b=cb, label=np.array(lab, bool), group=grp)
 
 
 def answer(backend: JudgeBackend, qtype: str, q: QuestionSet) -> np.ndarray:
