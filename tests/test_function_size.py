@@ -15,7 +15,6 @@ REASON = "# function-size:"
 KNOWN_OFFENDERS = {
     "world_model/data/clips.py::write_clip",
     "world_model/eval/judge_data.py::JudgeData.add_crop",
-    "world_model/eval/train_segmenter.py::_train",
     "m4world_env/agreement/render.py::build_summary",
 }
 

@@ -195,6 +195,77 @@ def train_segmenter(
         torch.use_deterministic_algorithms(deterministic)
 
 
+def _sampling_weights(labels: np.ndarray, config: TrainSegmenterConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The loss's class weights, and each training view's chance of being drawn (views holding a
+    rare class more often)."""
+    weights = class_weights(labels, config.class_weight_power, config.max_class_weight)
+    rare = np.isin(labels, RARE).any(axis=(1, 2))
+    draw = np.where(rare, config.rare_view_weight, 1.0)
+    draw /= draw.sum()
+    return weights, draw
+
+
+def _report_progress(path: Path, done: int, steps: int, loss: float, rate: float, log: Callable[[str], None]) -> None:
+    """Log the step, loss, speed and time left, and write them to ``path`` (JSON)."""
+    eta = (steps - done) / rate
+    log(f"step {done}/{steps}: loss {loss:.4f}, {rate:.2f} steps/s, {eta / 60:.1f} min left")
+    progress = {"step": done, "steps": steps, "loss": loss, "steps_per_s": rate, "eta_s": eta}
+    write_json_atomic(path, progress)
+
+
+def _resume(checkpoints: Path, settings: dict, state: tuple, log: Callable[[str], None]) -> int:
+    """The step to start at: 0, or the latest checkpoint's, its net, optimizer and scheduler
+    (``state``) loaded; a checkpoint of other ``settings`` is refused."""
+    if (ckpt := load_latest(checkpoints)) is None:
+        return 0
+    if ckpt.meta.get("config") != settings:
+        raise ValueError(f"{checkpoints} holds a run with other settings; use another --work folder or delete it")
+    net, opt, sched = state
+    net.load_state_dict(ckpt.tensors["model"])
+    opt.load_state_dict(ckpt.train_state["optimizer"])
+    sched.load_state_dict(ckpt.train_state["scheduler"])
+    log(f"resuming at step {ckpt.step}")
+    return ckpt.step
+
+
+def _command(
+    data_dirs: Sequence[str | Path],
+    heldout_dirs: Sequence[str | Path],
+    evalset_dir: str | Path | None,
+    work: Path,
+    out_dir: str | Path,
+) -> str:
+    """The command line that trains this segmenter again, for its info."""
+    return " ".join(
+        [
+            "python -m world_model.eval.train_segmenter",
+            "--data",
+            *map(_command_path, data_dirs),
+            "--heldout",
+            *map(_command_path, heldout_dirs),
+        ]
+        + (["--evalset", _command_path(evalset_dir)] if evalset_dir is not None else [])
+        + ["--work", _command_path(work), "--out", _command_path(out_dir)]
+    )  # fmt: skip
+
+
+def _oracle_evalset(
+    segmenter: Segmenter,
+    evalset_dir: str | Path,
+    work: Path,
+    config: TrainSegmenterConfig,
+    log: Callable[[str], None],
+) -> dict:
+    """The segmenter's IoU per class on the evaluation set's clips (the oracle row of the report)."""
+    eval_refs = clip_refs([evalset_dir])
+    ev = collect_views(eval_refs, work / "labels", config.evalset_stride)
+    ev_sums = evaluate(segmenter, ev)
+    result = {"clips": len(eval_refs), "views": len(ev.images), "iou": _by_class(ev_sums.iou())}
+    for c, v in result["iou"].items():
+        log(f"evaluation set (oracle) IoU {c}: {v}")
+    return result
+
+
 def _train(
     data_dirs: Sequence[str | Path],
     heldout_dirs: Sequence[str | Path],
@@ -213,27 +284,14 @@ def _train(
     log(f"label maps of {len(train_refs)} training clips (cached in {work / 'labels'})")
     train = collect_views(train_refs, work / "labels", config.train_stride)
     log(f"train: {len(train.images)} views")
-    weights = class_weights(train.labels, config.class_weight_power, config.max_class_weight)
-    rare = np.isin(train.labels, RARE).any(axis=(1, 2))
-    draw = np.where(rare, config.rare_view_weight, 1.0)
-    draw /= draw.sum()
+    weights, draw = _sampling_weights(train.labels, config)
 
     torch.manual_seed(config.seed)
     net = SegNet(config.net)
     opt = torch.optim.AdamW(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, config.lr, total_steps=config.steps)
     settings = _config_dict(config)
-    first = 0
-    if (ckpt := load_latest(work / "checkpoints")) is not None:
-        if ckpt.meta.get("config") != settings:
-            raise ValueError(
-                f"{work / 'checkpoints'} holds a run with other settings; use another --work folder or delete it"
-            )
-        net.load_state_dict(ckpt.tensors["model"])
-        opt.load_state_dict(ckpt.train_state["optimizer"])
-        sched.load_state_dict(ckpt.train_state["scheduler"])
-        first = ckpt.step
-        log(f"resuming at step {first}")
+    first = _resume(work / "checkpoints", settings, (net, opt, sched), log)
     w = torch.from_numpy(weights).float()
     net.train()
     step_start, seen_start = time.time(), first
@@ -250,10 +308,7 @@ def _train(
         done = step + 1
         if done % config.log_every == 0 or done == config.steps:
             rate = (done - seen_start) / max(time.time() - step_start, 1e-9)
-            eta = (config.steps - done) / rate
-            log(f"step {done}/{config.steps}: loss {loss.item():.4f}, {rate:.2f} steps/s, {eta / 60:.1f} min left")
-            progress = {"step": done, "steps": config.steps, "loss": loss.item(), "steps_per_s": rate, "eta_s": eta}
-            write_json_atomic(work / "progress.json", progress)
+            _report_progress(work / "progress.json", done, config.steps, loss.item(), rate, log)
         out_of_time = max_minutes is not None and time.time() - start > 60.0 * max_minutes
         if done % config.ckpt_every == 0 or done == config.steps or out_of_time:
             state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict()}
@@ -268,17 +323,7 @@ def _train(
     held_sums = evaluate(segmenter, held)
     info = {
         "recipe": RECIPE,
-        "command": " ".join(
-            [
-                "python -m world_model.eval.train_segmenter",
-                "--data",
-                *map(_command_path, data_dirs),
-                "--heldout",
-                *map(_command_path, heldout_dirs),
-            ]
-            + (["--evalset", _command_path(evalset_dir)] if evalset_dir is not None else [])
-            + ["--work", _command_path(work), "--out", _command_path(out_dir)]
-        ),  # fmt: skip
+        "command": _command(data_dirs, heldout_dirs, evalset_dir, work, out_dir),
         "train": {"clips": len(train_refs), "views": len(train.images), "recording": _recording(train_refs[0].root)},
         "heldout": {
             "clips": len(held_refs),
@@ -292,12 +337,7 @@ def _train(
     for c, v in info["heldout"]["iou"].items():
         log(f"held-out IoU {c}: {v}")
     if evalset_dir is not None:
-        eval_refs = clip_refs([evalset_dir])
-        ev = collect_views(eval_refs, work / "labels", config.evalset_stride)
-        ev_sums = evaluate(segmenter, ev)
-        info["oracle_evalset"] = {"clips": len(eval_refs), "views": len(ev.images), "iou": _by_class(ev_sums.iou())}
-        for c, v in info["oracle_evalset"]["iou"].items():
-            log(f"evaluation set (oracle) IoU {c}: {v}")
+        info["oracle_evalset"] = _oracle_evalset(segmenter, evalset_dir, work, config, log)
     info["check_slice"] = _check_slice(held_refs, held, segmenter, config)
     info["train_seconds"] = round(time.time() - start, 1)
     segmenter.info = info
