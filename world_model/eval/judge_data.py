@@ -8,7 +8,7 @@ From each clip: object crops (the judge's own crop filter, :mod:`world_model.eva
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +67,23 @@ def degrade(crop: np.ndarray, rng: np.random.Generator, config: DegradeConfig = 
     return pixelate(crop, int(rng.integers(config.pixelate[0], config.pixelate[1] + 1)))
 
 
+@dataclass(frozen=True)
+class CropLabels:
+    """One crop's labels, as :class:`JudgeData` keeps them (its docstring)."""
+
+    category: int
+    color: int
+    track: int
+    frame: int
+    view: int
+    clip: int
+    reference: bool
+    description: str
+
+
+CROP_LABELS = tuple(f.name for f in fields(CropLabels))  # JudgeData's per-crop label lists
+
+
 @dataclass
 class JudgeData:
     """Crops (raw, variable size) with labels, and multi-view frames with scene labels.
@@ -92,27 +109,14 @@ class JudgeData:
     scene_clip: list[int] = field(default_factory=list)
     clip_names: list[str] = field(default_factory=list)
 
-    def add_crop(
-        self,
-        image: np.ndarray,
-        category: int,
-        color: int,
-        track: int,
-        frame: int,
-        view: int,
-        clip: int,
-        reference: bool,
-        description: str,
-    ) -> None:
+    def add_crop(self, image: np.ndarray, labels: CropLabels) -> None:
         self.crops.append(image)
-        self.category.append(category)
-        self.color.append(color)
-        self.track.append(track)
-        self.frame.append(frame)
-        self.view.append(view)
-        self.clip.append(clip)
-        self.reference.append(reference)
-        self.description.append(description)
+        for name in CROP_LABELS:
+            getattr(self, name).append(getattr(labels, name))
+
+    def labels(self, i: int) -> CropLabels:
+        """The labels of crop ``i``."""
+        return CropLabels(**{name: getattr(self, name)[i] for name in CROP_LABELS})
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The per-crop label lists as int / bool arrays (N,)."""
@@ -154,7 +158,7 @@ def collect(
                 color = COLOR_CLASSES.index(c.color_name) if c.color_name in COLOR_CLASSES else -1
                 cat = CROP_CLASSES.index(c.category)
                 info[c.track_id] = (cat, color, c.description)
-                data.add_crop(c.image, cat, color, tid, frame_id, c.view, ci, False, c.description)
+                data.add_crop(c.image, CropLabels(cat, color, tid, frame_id, c.view, ci, False, c.description))
             for _ in range(config.background_per_frame):
                 view = int(rng.integers(cams.shape[0]))
                 boxes = list(sim.object_boxes_2d(frame, view).values())
@@ -165,13 +169,14 @@ def collect(
                     box = (x0, y0, x0 + bw, y0 + bh)
                     if not _overlaps(box, boxes):
                         crop = np.ascontiguousarray(cams[view, y0 : y0 + bh, x0 : x0 + bw])
-                        data.add_crop(crop, CROP_CLASSES.index(BACKGROUND), -1, -1, frame_id, view, ci, False, "")
+                        labels = CropLabels(CROP_CLASSES.index(BACKGROUND), -1, -1, frame_id, view, ci, False, "")
+                        data.add_crop(crop, labels)
                         break
             frame_id += 1
         for tid_name, ref in sorted(clip.crops.items()):
             if tid_name in info and min(ref.shape[:2]) > 0:
                 cat, color, desc = info[tid_name]
-                data.add_crop(ref, cat, color, track_ids[(ci, tid_name)], -1, -1, ci, True, desc)
+                data.add_crop(ref, CropLabels(cat, color, track_ids[(ci, tid_name)], -1, -1, ci, True, desc))
         prompt = clip.frames[0].prompt
         for fi in range(0, clip.num_frames, config.scene_stride):
             data.scene_frames.append(np.asarray(clip.cameras[fi]).copy())

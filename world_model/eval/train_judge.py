@@ -74,12 +74,10 @@ def _collect_many(items: list[tuple[Path, str]], config: CollectConfig) -> Judge
         offset_frame = max(merged.frame, default=-1) + 1
         merged.clip_names += part.clip_names
         for i in range(len(part.crops)):
-            t, f = part.track[i], part.frame[i]
-            merged.add_crop(
-                part.crops[i], part.category[i], part.color[i], t + offset_track if t >= 0 else -1,
-                f + offset_frame if f >= 0 else -1, part.view[i], part.clip[i] + offset_clip, part.reference[i],
-                part.description[i],
-            )  # fmt: skip
+            labels = part.labels(i)
+            t, f = labels.track, labels.frame
+            track, frame = t + offset_track if t >= 0 else -1, f + offset_frame if f >= 0 else -1
+            merged.add_crop(part.crops[i], replace(labels, track=track, frame=frame, clip=labels.clip + offset_clip))
         merged.scene_frames += part.scene_frames
         merged.weather += part.weather
         merged.time_of_day += part.time_of_day
