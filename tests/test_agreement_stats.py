@@ -6,7 +6,7 @@ import math
 import pytest
 
 from m4world_env.agreement.plot import scatter_plot
-from m4world_env.agreement.render import build_summary, markdown_report
+from m4world_env.agreement.render import RunHeader, build_summary, markdown_report
 from m4world_env.agreement.stats import (
     MODEL,
     TRUTH,
@@ -293,16 +293,8 @@ def members():
 
 
 def make_summary(**kw):
-    return build_summary(
-        synthetic_records(),
-        checkpoint="world_model/checkpoints/tiny",
-        scenarios=SCENARIOS,
-        seeds=SEEDS,
-        steps=40,
-        seconds=123.0,
-        members=members(),
-        **kw,
-    )
+    header = RunHeader("world_model/checkpoints/tiny", SCENARIOS, SEEDS, steps=40, seconds=123.0)
+    return build_summary(synthetic_records(), header, members=members(), **kw)
 
 
 def test_build_summary_shape_and_json():
@@ -328,16 +320,10 @@ def test_build_summary_shape_and_json():
 
 def test_build_summary_refuses_unlisted_runs_and_unknown_members():
     with pytest.raises(ValueError, match="does not list"):
-        build_summary(
-            synthetic_records(), checkpoint="c", scenarios=SCENARIOS[:1], seeds=SEEDS, steps=1, seconds=1.0,
-            members=members(),
-        )  # fmt: skip
+        build_summary(synthetic_records(), RunHeader("c", SCENARIOS[:1], SEEDS, 1, 1.0), members=members())
     partial = {k: v for k, v in members().items() if k != "jittery"}
     with pytest.raises(ValueError, match="jittery"):
-        build_summary(
-            synthetic_records(), checkpoint="c", scenarios=SCENARIOS, seeds=SEEDS, steps=1, seconds=1.0,
-            members=partial,
-        )  # fmt: skip
+        build_summary(synthetic_records(), RunHeader("c", SCENARIOS, SEEDS, 1, 1.0), members=partial)
 
 
 def test_markdown_report_has_the_headline_tables_and_links():
@@ -369,9 +355,10 @@ def test_markdown_report_shows_undefined_statistics_as_na():
         for seed in SEEDS:
             records += [record(policy, "s", seed, TRUTH, 0.5), record(policy, "s", seed, MODEL, 0.4 + 0.1 * seed)]
     summary = build_summary(
-        records, checkpoint="c", scenarios=["s"], seeds=SEEDS, steps=1, seconds=30.0,
+        records,
+        RunHeader("c", ["s"], SEEDS, steps=1, seconds=30.0),
         members={p: {"family": "learned", "citation": f"{p}@v1"} for p in ("a", "b")},
-    )  # fmt: skip
+    )
     assert summary["agreement"]["pearson"] is None  # every policy's truth is 0.5: constant
     text = markdown_report(summary)
     assert "| Pearson r ↑ | n/a | 0.89 |" in text

@@ -98,14 +98,22 @@ def _plain_agreement(stats: Mapping[str, Any]) -> dict[str, Any]:
     return {k: _plain(v) if isinstance(v, float) else v for k, v in stats.items()}
 
 
+@dataclass(frozen=True)
+class RunHeader:
+    """What a zoo run was, the head of its summary: the world-model bundle, the scenarios and seeds
+    it ran, the policy steps per episode and its wall time."""
+
+    checkpoint: str
+    scenarios: Sequence[str]
+    seeds: Sequence[int]
+    steps: int
+    seconds: float
+
+
 def build_summary(
     records: Iterable[Record],
+    run: RunHeader,
     *,
-    checkpoint: str,
-    scenarios: Sequence[str],
-    seeds: Sequence[int],
-    steps: int,
-    seconds: float,
     members: Mapping[str, Mapping[str, str]],
     rng_seed: int = 0,
     top_k: int = DEFAULT_TOP_K,
@@ -117,6 +125,7 @@ def build_summary(
     seed that ``scenarios`` / ``seeds`` do not list are an error: the report's header would not
     describe them."""
     records = list(records)
+    scenarios, seeds = run.scenarios, run.seeds
     unlisted = sorted(
         {(str(r["scenario"]), int(r["seed"])) for r in records} - {(s, int(seed)) for s in scenarios for seed in seeds}
     )
@@ -157,11 +166,11 @@ def build_summary(
         for policy, scenario, seed, truth, model in most_disagreeing(records, top_k)
     ]
     return {
-        "checkpoint": str(checkpoint),
+        "checkpoint": str(run.checkpoint),
         "scenarios": [str(s) for s in scenarios],
         "seeds": [int(s) for s in seeds],
-        "steps": int(steps),
-        "seconds": float(seconds),
+        "steps": int(run.steps),
+        "seconds": float(run.seconds),
         "metrics": list(METRICS),
         "bootstrap": {"resamples": DEFAULT_RESAMPLES, "level": DEFAULT_LEVEL, "rng_seed": int(rng_seed)},
         "policies": policies,

@@ -43,7 +43,7 @@ from m4world_env.agreement import (
     FULL_STEPS,
 )
 from m4world_env.agreement.plot import scatter_plot
-from m4world_env.agreement.render import DEFAULT_TOP_K, build_summary, markdown_report
+from m4world_env.agreement.render import DEFAULT_TOP_K, RunHeader, build_summary, markdown_report
 from m4world_env.zoo.base import SENSOR_KEYS
 from world_model.bundle import load_bundle_files, resolve_bundle
 
@@ -314,16 +314,8 @@ def run_agreement(
         m.name: {"family": m.family, "citation": m.citation, "description": m.description}
         for m in (zoo.member(p) for p in plan.policies)
     }
-    summary = build_summary(
-        records,
-        checkpoint=plan.to_json()["checkpoint"],
-        scenarios=plan.scenarios,
-        seeds=plan.seeds,
-        steps=plan.steps,
-        seconds=tracker.wall_seconds,
-        members=members,
-        top_k=max(videos, DEFAULT_TOP_K),
-    )
+    header = RunHeader(plan.to_json()["checkpoint"], plan.scenarios, plan.seeds, plan.steps, tracker.wall_seconds)
+    summary = build_summary(records, header, members=members, top_k=max(videos, DEFAULT_TOP_K))
     if videos:
         summary["videos"] = write_videos(plan, summary["disagreements"][:videos], out / "videos", out)
     tracker.update(done, [])
