@@ -46,7 +46,7 @@ from m4world_env.scenario import (
     load_scenario,
     randomize_scenario,
 )
-from world_model.data import clip_exists, read_clip, write_clip, write_json_atomic
+from world_model.data import Clip, clip_exists, read_clip, write_clip, write_json_atomic
 from world_model.scene import CATEGORIES, CATEGORY_SIZES, NAMED_COLORS, TIMES_OF_DAY, WEATHERS
 from world_model.sensors import BevSpec, LidarSpec
 from world_model.sim import ProceduralSimulator
@@ -246,7 +246,7 @@ def _record_job(job: EvalJob, rec: RecordConfig, sim: ProceduralSimulator, confi
         "evalset_kind": job.kind,
         "crop_since": crops.since,
     }
-    write_clip(rec.out, job.name, frames, cams, lidar, bev, crops=crops.crops, extra_meta=meta)
+    write_clip(rec.out, Clip(job.name, frames, cams, lidar, bev, crops.crops, meta))
 
 
 def _config_dict(config: EvalsetConfig) -> dict:

@@ -33,7 +33,7 @@ import numpy as np
 from m4world_env.policies import IDMAutopilot, driving_style
 from m4world_env.scenario import Scenario, list_scenarios, load_scenario, randomize_scenario
 from m4world_env.traffic import TrafficBridge
-from world_model.data import clip_exists, register_clip, write_clip
+from world_model.data import Clip, clip_exists, register_clip, write_clip
 from world_model.data.clips import write_json_atomic
 from world_model.raster.crops import ReferenceCrops
 from world_model.scene import SceneFrame
@@ -189,23 +189,15 @@ def record_clip(scenario: Scenario, seed: int, cfg: RecordConfig, sim: Procedura
     """Record and write one clip, leaving its registration in ``dataset.json`` to the caller.
     Returns its number of frames."""
     frames, cams, lidar, bev, crops = record_episode(scenario, seed, cfg, sim=sim)
-    write_clip(
-        cfg.out,
-        clip_name(scenario.name, seed),
-        frames,
-        cams,
-        lidar,
-        bev,
-        crops=crops.crops,
-        extra_meta={
-            "seed": seed,
-            "randomized": cfg.randomize,
-            "base_scenario": scenario.name,
-            "crop_since": crops.since,
-            "ego_style": cfg.style(seed),
-        },
-        register=False,
-    )
+    meta = {
+        "seed": seed,
+        "randomized": cfg.randomize,
+        "base_scenario": scenario.name,
+        "crop_since": crops.since,
+        "ego_style": cfg.style(seed),
+    }
+    clip = Clip(clip_name(scenario.name, seed), frames, cams, lidar, bev, crops.crops, meta)
+    write_clip(cfg.out, clip, register=False)
     return len(frames)
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from world_model import Box3D, EgoState, MapGeometry, SceneFrame, SceneObject, ScenePrompt
-from world_model.data import write_clip
+from world_model.data import Clip, write_clip
 from world_model.model import ModelConfig
 from world_model.train.run import StageRuntime
 
@@ -92,7 +92,7 @@ def make_dataset(root: str | Path, cfg: ModelConfig, lengths: tuple[int, ...] = 
         frames = make_frames(cfg, n, seed=i)
         cams, lidar, bev = make_sensors(cfg, n, phase=0.37 * i)
         crops = {f"car{k}": np.full((12, 10, 3), 40 * k + 20, np.uint8) for k in range(2)}
-        write_clip(root, f"clip{i:02d}", frames, cams, lidar, bev, crops=crops)
+        write_clip(root, Clip(f"clip{i:02d}", frames, cams, lidar, bev, crops))
     return root
 
 

@@ -12,7 +12,7 @@ from m4world_env.env import M4WorldEnv
 from m4world_env.policies import IDMAutopilot
 from m4world_env.recorder import RecordConfig, record_episode
 from m4world_env.scenario import load_scenario
-from world_model.data import read_clip, write_clip
+from world_model.data import Clip, read_clip, write_clip
 from world_model.model.conditions import ConditionArrays
 from world_model.raster.classes import CLASS_PLANE, ROAD, VEHICLE
 from world_model.raster.maps import camera_labels, lidar_nearness_maps
@@ -74,7 +74,7 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     frames, cams, lidar, bev, crops = record_episode(scenario, _bridge_seed(), rec)
     assert [f.to_dict() for f in frames] == [f.to_dict() for f in env_frames]  # the same scene
     assert 0 in crops.since.values() and max(crops.since.values()) > 0, "crops at reset and later are covered"
-    write_clip(tmp_path, "clip", frames, cams, lidar, bev, crops=crops.crops, extra_meta={"crop_since": crops.since})
+    write_clip(tmp_path, Clip("clip", frames, cams, lidar, bev, crops.crops, {"crop_since": crops.since}))
     clip = read_clip(tmp_path, "clip")
 
     # The training data path (the encoders are pure functions of content, shared for brevity).

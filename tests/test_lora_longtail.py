@@ -9,7 +9,7 @@ import torch
 
 from m4world_env.bench import longtail as bench
 from tests.model_fixtures import make_frames, make_sensors, perturbed
-from world_model.data import iter_clips, write_clip
+from world_model.data import Clip, iter_clips, write_clip
 from world_model.lora import LoraConfig, add_adapter, base_fingerprint, remove_adapters, save_adapter
 from world_model.model import MultiViewDiT, SensorVAE, get_preset
 
@@ -24,7 +24,7 @@ def _clip(root, name, seed, rare):
             for fr in frames
         ]
     cams, lidar, bev = make_sensors(CFG, 3, phase=seed)
-    write_clip(root, name, frames, cams, lidar, bev)
+    write_clip(root, Clip(name, frames, cams, lidar, bev))
 
 
 def views_shape(views, clips) -> tuple[int, ...]:

@@ -10,7 +10,7 @@ import torch
 
 from tests.cli_status import exit_status
 from tests.model_fixtures import QUIET, kill_after_checkpoint, make_frames, make_sensors, perturbed, tiny_conditions
-from world_model.data import write_clip
+from world_model.data import Clip, write_clip
 from world_model.lora import apply_adapters, base_fingerprint, loaded_adapters, read_adapter, remove_adapters
 from world_model.model import MultiViewDiT, SensorVAE, get_preset, make_text_encoder
 from world_model.model.reference import ReferenceConfig, object_region
@@ -35,7 +35,7 @@ def _write(root: Path, name: str, n: int, seed: int, rare_from: int | None) -> N
             for f, fr in enumerate(frames)
         ]
     cams, lidar, bev = make_sensors(CFG, n, phase=0.37 * seed)
-    write_clip(root, name, frames, cams, lidar, bev)
+    write_clip(root, Clip(name, frames, cams, lidar, bev))
 
 
 @pytest.fixture(scope="module")

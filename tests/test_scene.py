@@ -1,7 +1,7 @@
 import numpy as np
 
 from world_model import Box3D, EgoState, LaneLine, MapGeometry, SceneFrame, SceneObject, ScenePrompt
-from world_model.data import list_clips, read_clip, write_clip
+from world_model.data import Clip, list_clips, read_clip, write_clip
 from world_model.geometry import BOX_CORNER_SIGNS, box_corners
 
 
@@ -67,7 +67,7 @@ def test_clip_write_read_roundtrip(tmp_path):
     cams = np.random.default_rng(0).integers(0, 255, (3, v, h, w, 3), dtype=np.uint8)
     lidar = np.full((3, 4, 32), 12.5, dtype=np.float32)
     bev = np.zeros((3, 8, 8, 3), dtype=np.uint8)
-    write_clip(tmp_path, "clip_000", frames, cams, lidar, bev, crops={"a": np.zeros((4, 4, 3), np.uint8)})
+    write_clip(tmp_path, Clip("clip_000", frames, cams, lidar, bev, crops={"a": np.zeros((4, 4, 3), np.uint8)}))
     assert list_clips(tmp_path) == ["clip_000"]
     clip = read_clip(tmp_path, "clip_000")
     assert clip.num_frames == 3 and abs(clip.fps - 10.0) < 1e-6

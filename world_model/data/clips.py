@@ -28,8 +28,8 @@ import hashlib
 import json
 import os
 import shutil
-from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +53,8 @@ class Clip:
     cameras: np.ndarray  # uint8 (T, V, H, W, 3)
     lidar: np.ndarray  # float16/float32 (T, beams, azimuth)
     bev: np.ndarray  # uint8 (T, h, w, c)
-    crops: dict[str, np.ndarray]
-    meta: dict
+    crops: dict[str, np.ndarray] = field(default_factory=dict)  # per track id: its reference crop
+    meta: dict = field(default_factory=dict)
 
     @property
     def num_frames(self) -> int:
@@ -89,19 +89,12 @@ def write_json_atomic(path: Path, obj: object) -> None:
     os.replace(tmp, path)
 
 
-def write_clip(
-    root: str | Path,
-    name: str,
-    frames: Sequence[SceneFrame],
-    cameras: np.ndarray,
-    lidar: np.ndarray,
-    bev: np.ndarray,
-    crops: dict[str, np.ndarray] | None = None,
-    extra_meta: dict | None = None,
-    register: bool = True,
-) -> Path:
-    """Write one clip atomically and, with ``register``, list it in ``dataset.json`` (writers in
-    parallel processes leave that to one process: :func:`register_clip`). Returns the clip dir."""
+def write_clip(root: str | Path, clip: Clip, register: bool = True) -> Path:
+    """Write ``clip`` atomically into ``root/clip.name`` and, with ``register``, list it in
+    ``dataset.json`` (writers in parallel processes leave that to one process:
+    :func:`register_clip`). ``clip.meta`` joins the written ``meta.json`` over the keys the format
+    derives from the clip. Returns the clip dir."""
+    name, frames, cameras, lidar, bev, crops = clip.name, clip.frames, clip.cameras, clip.lidar, clip.bev, clip.crops
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     t = len(frames)
@@ -126,7 +119,7 @@ def write_clip(
         "fps": round(fps, 6),
         "camera_names": list(first.rig.names),
         "static": first.static_dict(),
-        **(extra_meta or {}),
+        **clip.meta,
     }
     with open(partial / "frames.jsonl", "w") as f:
         for fr in frames:

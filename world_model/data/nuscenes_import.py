@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from world_model.data.clips import DatasetFormatError, list_clips, write_clip
+from world_model.data.clips import Clip, DatasetFormatError, list_clips, write_clip
 from world_model.data.nuscenes_map import corridor_map, map_expansion, map_layers, map_route
 from world_model.data.nuscenes_tables import (
     CAMERA_CHANNELS,
@@ -408,21 +408,8 @@ def import_scene(reader: _SceneReader, cfg: NuScenesImportConfig) -> str:
         lidars.append(reader.range_map(sd))
         bevs.append(sim.render_bev(frame))
     name = f"nuscenes_{scene['name']}"
-    write_clip(
-        cfg.out,
-        name,
-        frames,
-        np.stack(cams),
-        np.stack(lidars),
-        np.stack(bevs),
-        extra_meta={
-            "source": "nuscenes",
-            "version": cfg.version,
-            "scene_token": scene["token"],
-            "bev_from": bev_from,
-            **route_meta,
-        },
-    )
+    meta = {"source": "nuscenes", "version": cfg.version, "scene_token": scene["token"], "bev_from": bev_from}
+    write_clip(cfg.out, Clip(name, frames, np.stack(cams), np.stack(lidars), np.stack(bevs), meta=meta | route_meta))
     return name
 
 
