@@ -138,9 +138,9 @@ def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch)
     sampled = []
     real = WorldModel.batch_first_frames
 
-    def counting(self, cond, frames, seeds):
+    def counting(self, cond, frames, seeds, *rest):
         sampled.append(len(frames))
-        return real(self, cond, frames, seeds)
+        return real(self, cond, frames, seeds, *rest)
 
     monkeypatch.setattr(WorldModel, "batch_first_frames", counting)
     shared = M4WorldVectorEnv(4, "merge_cut_in", "world_model", str(active_bundle))
