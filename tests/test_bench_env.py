@@ -79,6 +79,12 @@ def test_world_model_qualifiers_become_model_options():
     assert sink["model"] == {"sink_frames": 1} and EnvConfig.from_dict(sink).model.sink_frames == 1
     with pytest.raises(SystemExit, match="sink=N"):
         bench_env.make_kwargs("world_model:sink=first", None)
+    fewer = bench_env.make_kwargs("world_model:keys=lidar+state:denoise=2:refresh=-1", None)["config"]
+    assert fewer == {"observation_keys": ["lidar", "state"], "model": {"denoising_steps": 2, "refresh_steps": [-1]}}
+    cfg = EnvConfig.from_dict(fewer)
+    assert cfg.observation_keys == ("lidar", "state") and cfg.model.denoising_steps == 2
+    with pytest.raises(SystemExit, match="denoise=N"):
+        bench_env.make_kwargs("world_model:denoise=two", None)
     # a backend's own bundle overrides --checkpoint, so two checkpoints share one run's rounds
     kw = bench_env.make_kwargs("world_model:checkpoint=runs/x/bundle", checkpoint="other")
     assert kw["checkpoint"] == "runs/x/bundle" and "model" not in kw["config"]

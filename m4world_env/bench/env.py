@@ -99,7 +99,8 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
     refresh, §4.2, skipped) or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising
     steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
     (``refresh_steps="all"``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
-    frames kept in context beside the window), ``threads=N`` or ``threads=torch``
+    frames kept in context beside the window), ``denoise=N`` (``denoising_steps``), ``keys=K[+K...]``
+    (``observation_keys``: e.g. ``keys=lidar`` decodes no camera), ``threads=N`` or ``threads=torch``
     (``config.model.threads``: N torch threads, or torch's own choice), and ``checkpoint=BUNDLE`` (this backend's bundle
     instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
     ``config.model.device`` of the world-model backends."""
@@ -142,15 +143,22 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
                 model["sink_frames"] = int(q.removeprefix("sink="))
             except ValueError:
                 raise SystemExit(f"sink=N takes a number of frames, got {q!r} in {backend!r}") from None
+        elif q.startswith("denoise="):
+            try:
+                model["denoising_steps"] = int(q.removeprefix("denoise="))
+            except ValueError:
+                raise SystemExit(f"denoise=N takes a number of denoising steps, got {q!r} in {backend!r}") from None
+        elif q.startswith("keys="):
+            kw["config"] = {**kw["config"], "observation_keys": q.removeprefix("keys=").split("+")}
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
-                "refresh=K[,K...], refresh=all, sink=N, threads=N|torch or checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all, sink=N, denoise=N, keys=K[+K...], threads=N|torch or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
     if model:
-        kw["config"] = {**CONFIG, "model": model}
+        kw["config"] = {**kw["config"], "model": model}
     return kw
 
 
