@@ -21,12 +21,13 @@ from typing import Any
 
 import numpy as np
 
+from world_model.observation import SENSOR_NAMES
 from world_model.sensors import CameraRig, LidarSpec
 
 # The one entry of an env's ``info`` a sensor policy may read: the ego's own speed (m/s).
 EGO_STATUS_KEYS = ("speed",)
 # The observation keys a sensor policy may see (an env's config observation_keys); never "state".
-SENSOR_KEYS = ("cameras", "lidar")
+SENSOR_KEYS = SENSOR_NAMES
 FAMILIES = ("modular", "learned", "perturbed")
 
 
