@@ -149,6 +149,7 @@ class WorldModelBackend:
             self.streaming = self.wm.streaming.override(mc.streaming_changes(), STREAMING_NAMES)
         except StreamingConfigError as e:  # e.g. refresh_steps beyond the bundle's denoising steps
             raise InvalidOptionError(str(e)) from e
+        self.wm.streaming = self.streaming  # the first frames' steps
         self.wm.student_cfg = replace(self.wm.student_cfg, streaming=self.streaming)
         if mc.compile:
             self.wm.student.compile_blocks()

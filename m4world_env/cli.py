@@ -312,6 +312,7 @@ STREAMING_FLAGS = {
     "context_refresh": "--[no-]refresh",
     "refresh_steps": "--refresh-steps",
     "sink_frames": "--sink-frames",
+    "first_frame_steps": "--first-frame-steps",
 }
 
 
@@ -319,7 +320,11 @@ def _cmd_streaming(args: argparse.Namespace) -> int:
     from world_model.bundle import load_bundle_files, set_streaming
     from world_model.streaming import REFRESH_EVERY_STEP, STREAMING_FILE, StreamingConfig, check_changes
 
-    changes = {"denoising_steps": args.denoising_steps, "sink_frames": args.sink_frames}
+    changes = {
+        "denoising_steps": args.denoising_steps,
+        "sink_frames": args.sink_frames,
+        "first_frame_steps": args.first_frame_steps,
+    }
     if args.refresh_steps is not None:
         every = args.refresh_steps == REFRESH_EVERY_STEP
         changes["refresh_steps"] = REFRESH_EVERY_STEP if every else _step_list(args.refresh_steps)
@@ -602,6 +607,13 @@ def _add_streaming_parser(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=None,
         help=f"first frames of a rollout kept in context beside the window, {STREAMING_BOUNDS['sink_frames']}",
+    )
+    st.add_argument(
+        "--first-frame-steps",
+        type=int,
+        default=None,
+        help="the reference model's Euler steps for a rollout's first frame (a reset), "
+        f"{STREAMING_BOUNDS['first_frame_steps']}",
     )
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)

@@ -11,6 +11,7 @@ import pytest
 from m4world_env.cli import main
 from m4world_env.config import EnvConfig, InvalidOptionError
 from m4world_env.env import M4WorldEnv
+from m4world_env.vector import M4WorldVectorEnv
 from world_model.bundle import STREAMING_FILE, CheckpointError, load_bundle_files, reseal_bundle, set_streaming
 from world_model.eval.report import StudentStreaming
 from world_model.rollout.runtime import load_world_model
@@ -76,8 +77,15 @@ OUT_OF_BOUNDS = [
     ({"refresh_steps": {0: 1}}, "refresh_steps", "{0: 1}"),
     ({"refresh_steps": b"\x00"}, "refresh_steps", r"b'\x00'"),
     ({"refresh_steps": []}, "refresh_steps", "[]"),
+    ({"first_frame_steps": 0}, "first_frame_steps", "0"),
+    ({"first_frame_steps": 51}, "first_frame_steps", "51"),
 ]
-CLI_FLAGS = {"denoising_steps": "--denoising-steps", "sink_frames": "--sink-frames", "refresh_steps": "--refresh-steps"}
+CLI_FLAGS = {
+    "denoising_steps": "--denoising-steps",
+    "sink_frames": "--sink-frames",
+    "refresh_steps": "--refresh-steps",
+    "first_frame_steps": "--first-frame-steps",
+}
 
 
 def _cli_args(settings: dict) -> list[str] | None:
@@ -171,6 +179,28 @@ def test_round_trip_and_a_null_refresh_steps_reading_as_every_step():
     # A file keeps refresh steps while its refresh is off (the refresh steps to use once it is on).
     off = {"context_refresh": False, "refresh_steps": [-2, -1]}
     assert StreamingConfig.from_dict(off).resolved_refresh_steps() == ()
+
+
+def test_a_resets_first_frame_takes_the_first_frame_steps(bundle, monkeypatch):
+    """The reference model samples an episode's first frame in the bundle's first_frame_steps, or
+    the env config's, single env and vector env alike."""
+    from world_model.model.reference import ReferenceGenerator
+
+    steps_taken = []
+    sample = ReferenceGenerator.sample
+
+    def counted(self, cond, extra=None, steps=None, seed=0, sampler=None):
+        steps_taken.append(steps)
+        return sample(self, cond, extra, steps, seed, sampler)
+
+    monkeypatch.setattr(ReferenceGenerator, "sample", counted)
+    set_streaming(bundle, StreamingConfig(first_frame_steps=3))
+    M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle)).reset(seed=0)
+    config = {"model": {"first_frame_steps": 2}}
+    M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle), config=config).reset(seed=0)
+    vector = M4WorldVectorEnv(2, "highway_sunny_day", backend="world_model", checkpoint=str(bundle))
+    vector.reset(seed=0)
+    assert steps_taken == [3, 2, 3]
 
 
 def test_bundle_carries_a_verified_streaming_file(bundle):

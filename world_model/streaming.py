@@ -39,6 +39,7 @@ STREAMING_BOUNDS = {
         "(0: the first step, -1: the last)"
     ),
     "sink_frames": f"an integer in [0, {MAX_SINK_FRAMES}]",
+    "first_frame_steps": f"an integer in [1, {MAX_DENOISING_STEPS}]",
 }
 
 
@@ -64,6 +65,10 @@ class StreamingConfig:
     # The first frames of a rollout kept in context beside the rolling window (an attention sink,
     # StreamingLLM / Deep Forcing); one frame lowers the shipped checkpoint's long-rollout errors.
     sink_frames: int = 1
+    # The reference model's Euler steps for a rollout's first frame, most of a reset's time: the
+    # shipped checkpoint's first frames are judged alike at 4 and at its sampler's 20
+    # (docs/experiments.md).
+    first_frame_steps: int = 4
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -158,7 +163,12 @@ def check_setting(key: str, value: Any, name: str | None = None) -> Any:
     hold), or :class:`StreamingConfigError` naming it ``name`` (default: ``key``) when it lies outside
     :data:`STREAMING_BOUNDS`. Refresh steps are only checked against the most steps allowed here:
     :func:`check_refresh_within` checks them against a config's own."""
-    form = {"denoising_steps": _denoising_steps, "context_refresh": _bool, "refresh_steps": _refresh_steps}
+    form = {
+        "denoising_steps": _denoising_steps,
+        "context_refresh": _bool,
+        "refresh_steps": _refresh_steps,
+        "first_frame_steps": _denoising_steps,
+    }
     checked = form.get(key, _sink_frames)(value)
     if checked is None:
         raise StreamingConfigError(f"{name or key} must be {STREAMING_BOUNDS[key]}, got {_shown(value)}")

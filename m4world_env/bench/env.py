@@ -99,7 +99,8 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
     refresh, §4.2, skipped) or ``refresh=K[,K...]`` (``refresh_steps``: refresh at those denoising
     steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
     (``refresh_steps="all"``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
-    frames kept in context beside the window), ``denoise=N`` (``denoising_steps``), ``keys=K[+K...]``
+    frames kept in context beside the window), ``denoise=N`` (``denoising_steps``), ``first=N``
+    (``first_frame_steps``: the reference model's steps at reset), ``keys=K[+K...]``
     (``observation_keys``: e.g. ``keys=lidar`` decodes no camera), ``threads=N`` or ``threads=torch``
     (``config.model.threads``: N torch threads, or torch's own choice), and ``checkpoint=BUNDLE`` (this backend's bundle
     instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
@@ -148,6 +149,11 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
                 model["denoising_steps"] = int(q.removeprefix("denoise="))
             except ValueError:
                 raise SystemExit(f"denoise=N takes a number of denoising steps, got {q!r} in {backend!r}") from None
+        elif q.startswith("first="):
+            try:
+                model["first_frame_steps"] = int(q.removeprefix("first="))
+            except ValueError:
+                raise SystemExit(f"first=N takes a number of first-frame steps, got {q!r} in {backend!r}") from None
         elif q.startswith("keys="):
             kw["config"] = {**kw["config"], "observation_keys": q.removeprefix("keys=").split("+")}
         else:
@@ -594,6 +600,8 @@ def build_parser() -> argparse.ArgumentParser:
         "compile (config.model.compile) and/or "
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
         "default: the last two denoising steps) or refresh=all (every step), sink=N (config.model.sink_frames), "
+        "denoise=N (config.model.denoising_steps), first=N (config.model.first_frame_steps), "
+        "keys=K[+K...] (observation_keys), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
         "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",
     )
