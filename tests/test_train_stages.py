@@ -374,3 +374,36 @@ def test_a_stage_time_limit_counts_its_setup_and_still_takes_one_step(dataset, t
     )
     assert out["stopped_by_time_limit"] and out["step"] == 1  # the setup used the time: one step, checkpointed
     assert load_latest(tmp_path / "run" / "vae" / "checkpoints").step == 1
+
+
+def test_range_head_stage_trains_the_head_alone_and_the_bundle_finishes_the_lidar_with_it(tmp_path):
+    cfg = with_layout(get_preset("tiny"), True)
+    data = make_dataset(tmp_path / "data", cfg, lengths=(5, 3))
+    run = tmp_path / "run"
+    train_stage("vae", data, run, stage_options("vae", preset="tiny", config=cfg, steps=2), QUIET)
+    train_stage("decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=2), QUIET)
+    student_cfg = cfg.for_student()
+    torch.manual_seed(0)
+    meta = {"stage": "ode", "model_config": student_cfg.to_dict(), "student_config": StudentConfig().to_dict()}
+    export_weights(run / "ode" / "model", MultiViewDiT(student_cfg).state_dict(), meta)
+
+    out = train_stage(
+        "range_head", data, run, stage_options("range_head", preset="tiny", config=cfg, steps=3, ckpt_every=1), QUIET
+    )
+    assert out["step"] == 3 and out["rollout_clips"] == 2
+    assert {"stretched_object_median_m", "head_object_median_m"} <= set(out["metrics"])
+    headed, drawn = load_vae(run / "range_head" / "model"), load_vae(run / "decoder" / "model")
+    assert headed.cfg.layout.range_head and not drawn.cfg.layout.range_head
+    head_free = {k: v for k, v in headed.state_dict().items() if not k.startswith("range_head.")}
+    assert head_free.keys() == drawn.state_dict().keys()
+    assert all(torch.equal(v, drawn.state_dict()[k]) for k, v in head_free.items())  # only the head trained
+    assert headed.range_head.net[-1].weight.abs().sum() > 0  # it moved from its zero start
+
+    again = train_stage(
+        "range_head", data, run, stage_options("range_head", preset="tiny", config=cfg, steps=4, ckpt_every=1), QUIET
+    )
+    assert again["resumed_from"] == 3 and again["step"] == 4
+    bundle = export_bundle(run, tmp_path / "bundle")
+    manifest = json.loads((bundle / "manifest.json").read_text())
+    assert manifest["components"]["vae"]["stage"] == "range_head"
+    assert manifest["model_config"]["layout"]["decoder"] and manifest["model_config"]["layout"]["range_head"]

@@ -6,7 +6,7 @@ Layout::
       manifest.json            format, version, the student's model config, and per component: file,
                                sha256, bytes, stage, and ``model_config`` where the component's
                                differs (the reference model: wider input, teacher depth)
-      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``rollout_decoder``, else
+      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``range_head``, else ``rollout_decoder``, else
                                ``decoder``, else ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
@@ -42,7 +42,7 @@ BUNDLE_VERSION = 1
 DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
-    "vae": ("rollout_decoder", "decoder", "vae"),
+    "vae": ("range_head", "rollout_decoder", "decoder", "vae"),
     "student": ("long", "dmd", "ode"),
     "reference": ("reference",),
 }
@@ -102,10 +102,14 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
-    # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it.
-    draws = found["vae"][0] in ("rollout_decoder", "decoder")
-    if config.get("layout", {}).get("decoder", False) != draws:
-        config["layout"] = {**config.get("layout", {}), "decoder": draws}
+    # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it, and
+    # finishes the LiDAR with a range head exactly when the range_head stage did.
+    vae_stage = found["vae"][0]
+    config["layout"] = {
+        **config.get("layout", {}),
+        "decoder": vae_stage in ("range_head", "rollout_decoder", "decoder"),
+        "range_head": vae_stage == "range_head",
+    }
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)

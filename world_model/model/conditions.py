@@ -34,6 +34,9 @@ lidar_nearness     (T, H, W) uint8       the range map the scene implies on the 
                                          (``layout.decoder``,
                                          :class:`~world_model.raster.maps.SceneRaster`);
                                          H = W = 0 without it. The DiTs do not read it.
+range_nearness     (T, B, A) uint8       the same at the range map's resolution (B beams,
+                                         A azimuth columns), for the VAE's range head
+                                         (``layout.range_head``); B = A = 0 without it.
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -154,6 +157,7 @@ class ConditionArrays:
     layout: np.ndarray
     labels: np.ndarray
     lidar_nearness: np.ndarray
+    range_nearness: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -168,6 +172,7 @@ class ConditionArrays:
         "layout",
         "labels",
         "lidar_nearness",
+        "range_nearness",
     )
 
     @property
@@ -238,6 +243,7 @@ def build_condition_arrays(
     unlabeled = [False] * t
     labels = raster.labels(frames, opts.labeled if opts.sensors.cameras else unlabeled)
     nearness = raster.nearness(frames, opts.labeled if opts.sensors.lidar else unlabeled)
+    ranges = raster.range_nearness(frames, opts.labeled if opts.sensors.lidar else unlabeled)
     tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
     text = np.zeros((cfg.text.max_tokens, cfg.text.dim), np.float32)
     text[: len(tokens)] = tokens
@@ -254,6 +260,7 @@ def build_condition_arrays(
         layout=layout,
         labels=labels,
         lidar_nearness=nearness,
+        range_nearness=ranges,
     )
 
 
@@ -371,6 +378,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     layout_channels = cfg.layout.channels if cfg.layout.enabled else 0
     label_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
     nearness_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
+    range_hw = (cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth) if cfg.layout.range_head else (0, 0)
     f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
     return {
         "camera": FieldSpec((vc, 7, 3), f32),
@@ -389,6 +397,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "layout": FieldSpec((t, v, layout_channels, h, w), f32),
         "labels": FieldSpec((t, vc, MAP_PLANES, *label_hw), u8),
         "lidar_nearness": FieldSpec((t, *nearness_hw), u8),
+        "range_nearness": FieldSpec((t, *range_hw), u8),
     }
 
 
@@ -414,6 +423,7 @@ class Conditions:
     layout: torch.Tensor
     labels: torch.Tensor
     lidar_nearness: torch.Tensor
+    range_nearness: torch.Tensor
     drop: torch.Tensor
 
     @property
@@ -450,8 +460,14 @@ class Conditions:
     def decoder_inputs(self) -> dict[str, torch.Tensor]:
         """What a decoder reads beside the latents, as keyword arguments of
         :func:`~world_model.model.sampler.latents_to_observations` and ``WorldModel.decode``: the
-        frames' camera label maps, the scene's style and the LiDAR view's nearness maps."""
-        return {"labels": self.labels, "style": self.style, "nearness": self.lidar_nearness}
+        frames' camera label maps, the scene's style, the LiDAR view's nearness maps and the range
+        map's."""
+        return {
+            "labels": self.labels,
+            "style": self.style,
+            "nearness": self.lidar_nearness,
+            "range_nearness": self.range_nearness,
+        }
 
     def frames(self, start: int, stop: int) -> Conditions:
         """Frames [start, stop) of the time-varying fields."""

@@ -125,11 +125,17 @@ class LayoutConfig:
     (:func:`~world_model.model.layout.lidar_nearness`), so the returns of a car ahead stand at its
     distance in this frame however far the DiT's range latents lag; the cameras read zeros there.
     The latents stay the encoder's: the ``decoder`` stages fine-tune the decoder alone, and the
-    DiTs do not depend on it."""
+    DiTs do not depend on it.
+
+    ``range_head``: the LiDAR is finished at the range map's own resolution by a
+    :class:`~world_model.model.range_head.RangeHead` reading the decoder's LiDAR view and the
+    range map the scene implies at that resolution, so an object stands with its own edges however
+    few columns of the view it had (its stage trains the head alone)."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
+    range_head: bool = False
 
     @property
     def channels(self) -> int:
@@ -411,8 +417,8 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
 
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
-    conditions the DiTs train on (they never read the label maps)."""
-    return replace(cfg, layout=replace(cfg.layout, decoder=False))
+    conditions the DiTs train on (they never read the label maps), without a range head."""
+    return replace(cfg, layout=replace(cfg.layout, decoder=False, range_head=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

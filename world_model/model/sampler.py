@@ -102,6 +102,7 @@ def latents_to_observations(
     style: torch.Tensor | np.ndarray | None = None,
     nearness: torch.Tensor | np.ndarray | None = None,
     sensors: SensorSelection = ALL_SENSORS,
+    range_nearness: torch.Tensor | np.ndarray | None = None,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres;
     a sensor left out of ``sensors`` is not decoded and is None in every observation).
@@ -111,7 +112,8 @@ def latents_to_observations(
     attached to the observations unchanged. ``labels`` (B, T, Vc, 3, H, W): the frames' camera label
     maps (``Conditions.labels``), ``style`` (B, Dt): each sample's scene style (``Conditions.style``)
     and ``nearness`` (B, T, H, W): the LiDAR view's nearness maps (``Conditions.lidar_nearness``),
-    read by a decoder that draws the scene.
+    read by a decoder that draws the scene; ``range_nearness`` (B, T, beams, azimuth): the same at
+    the range map's resolution (``Conditions.range_nearness``), read by a VAE's range head.
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
@@ -126,6 +128,8 @@ def latents_to_observations(
         else None
     )
     flat_near = torch.as_tensor(nearness, device=device).flatten(0, 1) if draw_lidar and nearness is not None else None
+    with_head = vae.range_head is not None and sensors.lidar and range_nearness is not None
+    flat_range = torch.as_tensor(range_nearness, device=device).flatten(0, 1) if with_head else None
     parts = [
         vae.decode_frames(
             flat[i : i + frames_per_call],
@@ -134,6 +138,7 @@ def latents_to_observations(
             None if flat_style is None else flat_style[i : i + frames_per_call],
             None if flat_near is None else flat_near[i : i + frames_per_call],
             sensors,
+            None if flat_range is None else flat_range[i : i + frames_per_call],
         )
         for i in range(0, b * t, frames_per_call)
     ]

@@ -28,6 +28,7 @@ from torch import nn
 
 from world_model.model.config import ModelConfig, VaeConfig
 from world_model.model.layout import NEARNESS_LEVELS
+from world_model.model.range_head import RangeHead
 from world_model.observation import ALL_SENSORS, SensorSelection
 from world_model.precision import bf16_autocast
 from world_model.raster.classes import (
@@ -213,6 +214,7 @@ class SensorVAE(nn.Module):
         self.encoder = Encoder(cfg.vae)
         draws = cfg.layout.decoder
         self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim if draws else 0, nearness_gate=draws)
+        self.range_head = RangeHead() if cfg.layout.range_head else None
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
         self.register_buffer("latent_std", torch.ones(c))
@@ -350,6 +352,7 @@ class SensorVAE(nn.Module):
         style: np.ndarray | torch.Tensor | None = None,
         nearness: np.ndarray | torch.Tensor | None = None,
         sensors: SensorSelection = ALL_SENSORS,
+        range_nearness: np.ndarray | torch.Tensor | None = None,
     ) -> tuple[np.ndarray | None, np.ndarray | None]:
         """latents (T, V+1, C, h, w) -> cameras uint8 (T, V, H, W, 3), lidar metres (T, beams, azimuth);
         a sensor left out of ``sensors`` is not decoded and comes back None.
@@ -358,7 +361,9 @@ class SensorVAE(nn.Module):
         style, (S,) for every frame or (T, S), required to decode the cameras when the decoder draws
         them (:attr:`draws_labels`; the conditions carry them, ``ConditionArrays.labels``,
         ``ConditionArrays.style``). ``nearness``: the LiDAR view's nearness maps (T, H, W) uint8,
-        required to decode the LiDAR then (``ConditionArrays.lidar_nearness``)."""
+        required to decode the LiDAR then (``ConditionArrays.lidar_nearness``). ``range_nearness``:
+        the same at the range map's resolution (T, beams, azimuth) uint8, required to decode the
+        LiDAR with a :attr:`range_head` (``ConditionArrays.range_nearness``)."""
         t, v1 = latents.shape[:2]
         latents = latents.float()
         cams = lid = cam_labels = cam_style = lidar_near = None
@@ -373,12 +378,32 @@ class SensorVAE(nn.Module):
                 images = self.decode(latents[:, :-1].flatten(0, 1), cam_labels, cam_style)
             cams = images_to_cameras(images.reshape(t, v1 - 1, 3, *self.cfg_hw))
         if sensors.lidar:
-            lid = images_to_lidar(
-                self.decode(latents[:, -1], nearness=lidar_near),
-                lidar_spec or self.cfg.sensors.lidar,
-                self.cfg.vae.lidar_no_return_fraction,
-            )
+            lid = self._decode_lidar(latents[:, -1], lidar_near, range_nearness, lidar_spec or self.cfg.sensors.lidar)
         return cams, lid
+
+    def _decode_lidar(
+        self,
+        latents: torch.Tensor,
+        nearness: torch.Tensor | None,
+        range_nearness: np.ndarray | torch.Tensor | None,
+        spec: LidarSpec,
+    ) -> np.ndarray:
+        """The LiDAR view's latents (T, C, h, w) -> metres (T, beams, azimuth): the view decoded,
+        then finished at the range map's resolution by the :attr:`range_head` when there is one."""
+        view = self.decode(latents, nearness=nearness)
+        fraction = self.cfg.vae.lidar_no_return_fraction
+        if self.range_head is None:
+            return images_to_lidar(view, spec, fraction)
+        want = (len(latents), spec.beams, spec.azimuth)
+        if range_nearness is None or tuple(range_nearness.shape) != want:
+            got = None if range_nearness is None else tuple(range_nearness.shape)
+            raise ValueError(
+                f"this VAE's range head draws the scene's range map: need range_nearness {want}, got {got}"
+            )
+        near = torch.as_tensor(range_nearness, device=latents.device)
+        return image_values_to_ranges(
+            self.range_head(view.float().mean(dim=1, keepdim=True), near)[:, 0], spec, fraction
+        )
 
     def _camera_maps(
         self,
@@ -421,12 +446,13 @@ class SensorVAE(nn.Module):
         labels: np.ndarray | None = None,
         style: np.ndarray | None = None,
         nearness: np.ndarray | None = None,
+        range_nearness: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """cameras uint8 (T, V, H, W, 3) + lidar metres (T, beams, azimuth) through the autoencoder
         and back, same layouts: the best any model generating through this VAE can render.
-        ``labels``, ``style`` and ``nearness`` as :meth:`decode_frames`."""
+        ``labels``, ``style``, ``nearness`` and ``range_nearness`` as :meth:`decode_frames`."""
         latents = self.encode_frames(np.asarray(cameras), np.asarray(lidar, np.float32))
-        return self.decode_frames(latents, labels=labels, style=style, nearness=nearness)
+        return self.decode_frames(latents, labels=labels, style=style, nearness=nearness, range_nearness=range_nearness)
 
     @property
     def cfg_hw(self) -> tuple[int, int]:
@@ -476,8 +502,7 @@ def lidar_to_images(
         r = torch.as_tensor(np.asarray(ranges, np.float32), device=device)
     if r.ndim < 2:
         raise ValueError(f"lidar must be (..., beams, azimuth), got shape {tuple(r.shape)}")
-    r = torch.where(r <= spec.no_return, torch.full_like(r, spec.max_range), r).clamp(0.0, spec.max_range)
-    x = r / spec.max_range * 2.0 - 1.0
+    x = ranges_to_image_values(r, spec)
     lead = x.shape[:-2]
     x = x.reshape(-1, 1, *x.shape[-2:])
     # Antialiased bilinear: azimuth is decimated (1024 -> 112) while beams are upsampled (32 -> 64).
@@ -487,6 +512,13 @@ def lidar_to_images(
     return x.expand(-1, 3, -1, -1).reshape(*lead, 3, cfg.sensors.height, cfg.sensors.width).contiguous()
 
 
+def ranges_to_image_values(ranges: torch.Tensor, spec: LidarSpec) -> torch.Tensor:
+    """Range maps in metres (..., beams, azimuth) -> image values in [-1, 1] at the same
+    resolution: 0 m at -1, ``max_range`` at +1, a ray without a return at +1 (nothing within range)."""
+    r = torch.where(ranges <= spec.no_return, torch.full_like(ranges, spec.max_range), ranges)
+    return r.clamp(0.0, spec.max_range) / spec.max_range * 2.0 - 1.0
+
+
 def images_to_lidar(images: torch.Tensor, spec: LidarSpec, no_return_fraction: float) -> np.ndarray:
     """(..., 3, H, W) in [-1, 1] -> float32 metres (..., beams, azimuth), no-return restored."""
     x = images.float().mean(dim=-3)
@@ -494,6 +526,11 @@ def images_to_lidar(images: torch.Tensor, spec: LidarSpec, no_return_fraction: f
     x = F.interpolate(
         x.reshape(-1, 1, *x.shape[-2:]), size=(spec.beams, spec.azimuth), mode="bilinear", align_corners=False
     )
-    r = ((x.clamp(-1, 1) + 1.0) * 0.5 * spec.max_range).reshape(*lead, spec.beams, spec.azimuth)
+    return image_values_to_ranges(x.reshape(*lead, spec.beams, spec.azimuth), spec, no_return_fraction)
+
+
+def image_values_to_ranges(values: torch.Tensor, spec: LidarSpec, no_return_fraction: float) -> np.ndarray:
+    """Range maps in image values (..., beams, azimuth), [-1, 1] -> float32 metres, no-return restored."""
+    r = (values.float().clamp(-1, 1) + 1.0) * 0.5 * spec.max_range
     r = torch.where(r >= no_return_fraction * spec.max_range, torch.full_like(r, spec.no_return), r)
-    return r.cpu().numpy().astype(np.float32)
+    return r.detach().cpu().numpy().astype(np.float32)

@@ -38,6 +38,10 @@ class SceneRaster:
         """The frames' LiDAR nearness maps (:func:`lidar_nearness_maps`)."""
         return lidar_nearness_maps(frames, self.cfg, labeled)
 
+    def range_nearness(self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None) -> np.ndarray:
+        """The frames' nearness maps at the range map's resolution (:func:`range_nearness_maps`)."""
+        return range_nearness_maps(frames, self.cfg, labeled)
+
 
 def _check_labeled(frames: Sequence[SceneFrame], labeled: Sequence[bool] | None) -> None:
     if labeled is not None and len(labeled) != len(frames):
@@ -83,4 +87,22 @@ def lidar_nearness_maps(
     for t, frame in enumerate(frames):
         if labeled is None or labeled[t]:
             out[t] = lidar_nearness(frame, s.lidar, (s.height, s.width))
+    return out
+
+
+def range_nearness_maps(
+    frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
+) -> np.ndarray:
+    """The ``range_nearness`` condition: the range map the scene implies at the LiDAR's own
+    resolution, one ray per beam and column, of every frame, (T, beams, azimuth) uint8
+    (:func:`~world_model.model.layout.lidar_nearness`), for a VAE with a range head
+    (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`."""
+    lidar = cfg.sensors.lidar
+    if not cfg.layout.range_head:
+        return np.zeros((len(frames), 0, 0), np.uint8)
+    _check_labeled(frames, labeled)
+    out = np.zeros((len(frames), lidar.beams, lidar.azimuth), np.uint8)
+    for t, frame in enumerate(frames):
+        if labeled is None or labeled[t]:
+            out[t] = lidar_nearness(frame, lidar, (lidar.beams, lidar.azimuth))
     return out

@@ -212,8 +212,9 @@ class RolloutBatch:
             lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
             labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
             nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
+            ranges = np.stack([np.concatenate([a.range_nearness for a in arrays[i]]) for i in active])
             if not self.every_frame:
-                lat, labels, nearness = lat[:, -1:], labels[:, -1:], nearness[:, -1:]
+                lat, labels, nearness, ranges = lat[:, -1:], labels[:, -1:], nearness[:, -1:], ranges[:, -1:]
             draws_cameras = self.wm.vae.draws_labels and self.sensors.cameras
             if draws_cameras and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
@@ -221,7 +222,7 @@ class RolloutBatch:
                     "every_frame and sensors (RolloutConditions)"
                 )
             style = np.stack([arrays[i][0].style for i in active])
-            observations = self.wm.decode(lat, labels, style, nearness, self.sensors)
+            observations = self.wm.decode(lat, labels, style, nearness, self.sensors, ranges)
             for i, obs in zip(active, observations, strict=True):
                 results[i] = obs
         return results

@@ -156,7 +156,9 @@ class WorldModel:
             return latents, obs[0]
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
-                latents = gen.complete_category(cond, latents, [frame], category, self.streaming.first_frame_steps, seed)
+                latents = gen.complete_category(
+                    cond, latents, [frame], category, self.streaming.first_frame_steps, seed
+                )
         return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)[0][0]
 
     @torch.no_grad()
@@ -187,7 +189,9 @@ class WorldModel:
         on_cpu = next(gen.model.parameters()).device.type == "cpu"
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
-            latents = gen.sample(cond.frames(0, 1), steps=self.streaming.first_frame_steps, seed=[int(s) for s in seeds])
+            latents = gen.sample(
+                cond.frames(0, 1), steps=self.streaming.first_frame_steps, seed=[int(s) for s in seeds]
+            )
         observations = self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)
         return latents, [obs[0] for obs in observations]
 
@@ -198,12 +202,15 @@ class WorldModel:
         style: torch.Tensor | np.ndarray | None = None,
         nearness: torch.Tensor | np.ndarray | None = None,
         sensors: SensorSelection = ALL_SENSORS,
+        range_nearness: torch.Tensor | np.ndarray | None = None,
     ) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations of the ``sensors``
         decoded (the others None); ``labels`` (B, T, Vc, 3, H, W)
         the frames' camera label maps, ``style`` (B, Dt) the scenes' styles and ``nearness`` (B, T, H, W)
         the LiDAR view's nearness maps, for a decoder that draws them (``ConditionArrays.labels``,
-        ``ConditionArrays.style``, ``ConditionArrays.lidar_nearness``).
+        ``ConditionArrays.style``, ``ConditionArrays.lidar_nearness``); ``range_nearness``
+        (B, T, beams, azimuth) the same at the range map's resolution, for a VAE with a range head
+        (``ConditionArrays.range_nearness``).
 
         On CPU each frame is decoded alone: the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
@@ -222,6 +229,7 @@ class WorldModel:
             style=style,
             nearness=nearness,
             sensors=sensors,
+            range_nearness=range_nearness,
         )
 
 

@@ -3,7 +3,7 @@
 ``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|cpu|dry]``
 
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
-2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference -> rollout_decoder into
+2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference -> rollout_decoder -> range_head into
    ``OUT/run`` through :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
    scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
    bundle's own weights, from the rare object's clips (``OUT/data_rare``);
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
 
 from world_model import cli_args
 
-CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder")
+CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder", "range_head")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). The reference
 # model is the one adapted: it draws the rare object into reset()'s first frame, where the student
@@ -109,6 +109,7 @@ SCALES = {
             "dmd": (300, 8),
             "long": (100, 8),
             "rollout_decoder": (1000, 64),
+            "range_head": (1500, 64),
             "reference": (1500, 32),
             "lora": (1500, 32),
         },
@@ -125,6 +126,7 @@ SCALES = {
             "long": 17,
             "reference": 30,
             "rollout_decoder": 60,
+            "range_head": 60,
             f"{RARE_CATEGORY}_completion": 20,
         },
     ),
@@ -147,6 +149,7 @@ SCALES = {
             "dmd": (50, 2),
             "long": (20, 2),
             "rollout_decoder": (4500, 16),
+            "range_head": (1500, 16),
             "reference": (800, 4),
             "lora": (300, 4),
         },
@@ -163,6 +166,7 @@ SCALES = {
             "long": 180,
             "reference": 720,
             "rollout_decoder": 1020,
+            "range_head": 900,
             f"{RARE_CATEGORY}_completion": 600,
         },
         text_encoder=None,

@@ -119,7 +119,9 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
         for g in range(0, len(clips), batch):
             rows = list(range(g, min(g + batch, len(clips))))
             cond = rollout_conditions(windows, rows, 0, 1, 0).to(device)
-            first = first_frames.sample(cond, steps=scfg.streaming.first_frame_steps, seed=[run.tcfg.seed + r for r in rows])
+            first = first_frames.sample(
+                cond, steps=scfg.streaming.first_frame_steps, seed=[run.tcfg.seed + r for r in rows]
+            )
             engine.start(first, cond)
             lengths = windows.lengths[rows]
             chunks = [first]

@@ -4,7 +4,9 @@ A later stage then trains on them as it would on the run that exported the bundl
 stages again on a shipped checkpoint whose DiTs stay as they are::
 
     RUN/vae/        the bundle's encoder with its decoder's plain trunk (the latents every stage reads)
-    RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start)
+    RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start),
+                    without its range head
+    RUN/range_head/ the bundle's VAE as it is, when it has a range head
     RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
     RUN/reference/  the reference model, under its own config
     RUN/lora/NAME/  the adapters
@@ -15,6 +17,7 @@ Exports already in the run are kept: seeding a run that has trained since leaves
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -50,8 +53,12 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
         written.append(stage)
 
     vae = files.tensors["vae"]
+    if cfg.layout.range_head:
+        export("range_head", vae, {"model_config": cfg.to_dict()})
     if cfg.layout.decoder:
-        export("decoder", vae, {"model_config": cfg.to_dict()})
+        decoder_cfg = replace(cfg, layout=replace(cfg.layout, range_head=False))
+        decoder = SensorVAE(decoder_cfg).state_dict()
+        export("decoder", {k: vae[k] for k in decoder}, {"model_config": decoder_cfg.to_dict()})
     plain_cfg = without_label_decoder(cfg)
     plain = SensorVAE(plain_cfg).state_dict()
     export("vae", {k: vae[k] for k in plain}, {"model_config": plain_cfg.to_dict()})

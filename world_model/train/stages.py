@@ -7,6 +7,7 @@ A run directory holds one sub-directory per stage::
     RUN_DIR/tf|ode|dmd|long/  the causal student's stages (world_model.train.student_stages)
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
     RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
+    RUN_DIR/range_head/  the VAE's range head, trained on the student's rollouts (world_model.train.range_head_stage)
     RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
 
 Each stage reads the exports of the stages before it. Rerunning a command resumes from the stage's
@@ -35,6 +36,7 @@ from world_model.model.config import ModelConfig, get_preset, without_label_deco
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.train.device import TrainPlace, resolve_device
 from world_model.train.lora_stage import LORA_STEPS, LoraStageOptions, lora_setup, lora_stage, lora_stage_dir
+from world_model.train.range_head_stage import range_head_stage
 from world_model.train.reference_stage import reference_stage
 from world_model.train.rollout_decoder_stage import rollout_decoder_stage
 from world_model.train.run import StageOptions, StageRun, StageRuntime
@@ -111,6 +113,17 @@ REGISTRY: dict[str, Stage] = {
             rollout_decoder_stage,
             16,
             2e-4,
+            100,
+            config_sections=("sensors", "vae", "layout"),
+            steps={"default": 1500},
+            check=check_decoder_config,
+        ),
+        # the VAE's range head alone, on the student's rollouts: the LiDAR at the range map's resolution
+        Stage(
+            "range_head",
+            range_head_stage,
+            16,
+            1e-3,
             100,
             config_sections=("sensors", "vae", "layout"),
             steps={"default": 1500},

@@ -1,0 +1,65 @@
+"""The range head: the LiDAR finished at the range map's resolution, and its loss."""
+
+import numpy as np
+import pytest
+import torch
+
+from world_model.model.layout import NEARNESS_LEVELS
+from world_model.model.range_head import RangeHead, range_loss
+from world_model.model.vae import images_to_lidar, ranges_to_image_values
+from world_model.sensors import LidarSpec
+
+SPEC = LidarSpec(beams=8, azimuth=64, max_range=100.0)
+
+
+def test_an_untrained_head_is_the_view_stretched_as_without_it():
+    torch.manual_seed(0)
+    view = torch.rand(2, 3, 16, 28) * 2 - 1
+    nearness = torch.randint(0, 256, (2, SPEC.beams, SPEC.azimuth), dtype=torch.uint8)
+    out = RangeHead()(view.mean(dim=1, keepdim=True), nearness)
+    assert out.shape == (2, 1, SPEC.beams, SPEC.azimuth)
+    without = images_to_lidar(view, SPEC, 0.99)
+    np.testing.assert_allclose(ranges_to_metres(out[:, 0]), without, atol=1e-4)
+
+
+def ranges_to_metres(values: torch.Tensor) -> np.ndarray:
+    from world_model.model.vae import image_values_to_ranges
+
+    return image_values_to_ranges(values, SPEC, 0.99)
+
+
+def test_a_full_share_stands_the_scene_at_the_range_maps_resolution_with_its_edges():
+    """A car one column wide of the view: the head at share 1 puts its range on its own columns
+    only, and no return where nothing is in range."""
+    head = RangeHead()
+    with torch.no_grad():
+        head.net[-1].bias.fill_(1.0)  # share 1 everywhere
+    view = torch.zeros(1, 1, 16, 28)  # 50 m everywhere
+    nearness = torch.zeros(1, SPEC.beams, SPEC.azimuth, dtype=torch.uint8)
+    nearness[0, 3:5, 30:33] = round(NEARNESS_LEVELS * (1 - 25.0 / SPEC.max_range))  # a car at 25 m
+    nearness[0, 6:] = round(NEARNESS_LEVELS * (1 - 8.0 / SPEC.max_range))  # the road at 8 m
+    metres = ranges_to_metres(head(view, nearness)[:, 0])[0]
+    assert np.allclose(metres[3:5, 30:33], 25.0, atol=0.4)
+    assert np.allclose(metres[6:], 8.0, atol=0.4)
+    assert (metres[:3] == SPEC.no_return).all() and (metres[3:5, :30] == SPEC.no_return).all()
+
+
+def test_the_head_refuses_nearness_of_another_batch():
+    with pytest.raises(ValueError, match="nearness must be"):
+        RangeHead()(torch.zeros(2, 1, 16, 28), torch.zeros(3, SPEC.beams, SPEC.azimuth, dtype=torch.uint8))
+
+
+def test_range_loss_weighs_the_objects_cells():
+    target = torch.zeros(1, 1, 2, 2)
+    prediction = torch.tensor([[[[1.0, 0.0], [0.0, 0.0]]]])
+    objects = torch.tensor([[[[True, False], [False, False]]]])
+    assert range_loss(prediction, target, objects, 1.0) == pytest.approx(0.25)
+    assert range_loss(prediction, target, objects, 10.0) == pytest.approx(10.0 / 13.0)
+    assert range_loss(prediction, target, ~objects, 10.0) == pytest.approx(1.0 / 31.0)
+    with pytest.raises(ValueError, match="shapes differ"):
+        range_loss(prediction, target[..., :1], objects, 10.0)
+
+
+def test_ranges_to_image_values_reads_no_return_as_the_far_end():
+    r = torch.tensor([0.0, 25.0, 100.0, 150.0])
+    assert torch.allclose(ranges_to_image_values(r, SPEC), torch.tensor([1.0, -0.5, 1.0, 1.0]))
