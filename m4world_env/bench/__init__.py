@@ -23,6 +23,7 @@ BENCHMARKS = (
     "judge",
     "layout",
     "layout_ablation",
+    "lidar_sectors",
     "longtail",
     "model",
     "precision",
