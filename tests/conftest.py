@@ -57,3 +57,31 @@ def active_bundle(tiny_bundle, tmp_path_factory):
     return save_bundle(
         tmp_path_factory.mktemp("bundle") / "active", files.model_config, tensors, component_configs=configs
     )
+
+
+@pytest.fixture(scope="session")
+def range_head_bundle(layout_bundle, tmp_path_factory):
+    """``layout_bundle`` whose VAE finishes the LiDAR with a range head (``layout.range_head``), its
+    last layer's weights random so that the head moves the LiDAR (a zero-initialized one does not)."""
+    import copy
+
+    import torch
+
+    from world_model.bundle import load_bundle_files, save_bundle
+    from world_model.model.config import ModelConfig
+    from world_model.model.vae import SensorVAE
+    from world_model.train.range_head_stage import with_range_head
+
+    files = load_bundle_files(layout_bundle)
+    cfg = with_range_head(ModelConfig.from_dict(files.model_config))
+    vae = SensorVAE(cfg)
+    vae.load_state_dict(files.tensors["vae"], strict=False)
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        vae.range_head.net[-1].weight.copy_(0.2 * torch.randn(vae.range_head.net[-1].weight.shape, generator=gen))
+        vae.range_head.net[-1].bias.fill_(0.5)
+    tensors = {**copy.copy(files.tensors), "vae": vae.state_dict()}
+    configs = {"reference": files.component_config("reference")}
+    return save_bundle(
+        tmp_path_factory.mktemp("bundle") / "range_head", cfg.to_dict(), tensors, component_configs=configs
+    )

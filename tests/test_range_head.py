@@ -63,3 +63,70 @@ def test_range_loss_weighs_the_objects_cells():
 def test_ranges_to_image_values_reads_no_return_as_the_far_end():
     r = torch.tensor([0.0, 25.0, 100.0, 150.0])
     assert torch.allclose(ranges_to_image_values(r, SPEC), torch.tensor([1.0, -0.5, 1.0, 1.0]))
+
+
+def _episode_lidar(env, seed: int, steps: int) -> list[np.ndarray]:
+    obs, _ = env.reset(seed=seed)
+    out = [obs["lidar"]]
+    for _ in range(steps):
+        obs, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+        out.append(obs["lidar"])
+    return out
+
+
+def test_the_env_finishes_the_lidar_with_the_bundles_range_head(range_head_bundle, layout_bundle, monkeypatch):
+    """The range head reads the scene at the range map's resolution: with it the env's LiDAR moves
+    from the plain decoder's, and an env that observes no LiDAR casts no range map."""
+    from m4world_env.env import M4WorldEnv
+    from world_model.raster import maps
+
+    full_resolution_casts = []
+    cast = maps.lidar_nearness
+
+    def counted(frame, lidar, hw):
+        full_resolution_casts.append(hw == (lidar.beams, lidar.azimuth))
+        return cast(frame, lidar, hw)
+
+    monkeypatch.setattr(maps, "lidar_nearness", counted)
+
+    def env(bundle, **config):
+        return M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle), config=config)
+
+    with_head = _episode_lidar(env(range_head_bundle), 0, 2)
+    assert sum(full_resolution_casts) == 3  # the reset's frame and each step's decoded one
+    plain = _episode_lidar(env(layout_bundle), 0, 2)
+    assert all(a.shape == b.shape for a, b in zip(with_head, plain, strict=True))
+    assert not any(np.array_equal(a, b) for a, b in zip(with_head, plain, strict=True))
+
+    full_resolution_casts.clear()
+    cameras_only = env(range_head_bundle, observation_keys=["cameras"])
+    cameras_only.reset(seed=0)
+    cameras_only.step(np.zeros(cameras_only.action_space.shape, np.float32))
+    assert not any(full_resolution_casts)
+
+
+def test_vector_rows_and_simulation_workers_match_the_single_env_with_a_range_head(range_head_bundle):
+    from m4world_env.env import M4WorldEnv
+    from m4world_env.vector import M4WorldVectorEnv
+
+    single = [
+        _episode_lidar(M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(range_head_bundle)), s, 2)
+        for s in (5, 6)
+    ]
+    for workers in (0, 1):
+        vector = M4WorldVectorEnv(
+            2,
+            "highway_sunny_day",
+            backend="world_model",
+            checkpoint=str(range_head_bundle),
+            config={"workers": workers},
+        )
+        obs, _ = vector.reset(seed=5)
+        rows = [obs["lidar"]]
+        for _ in range(2):
+            obs, *_ = vector.step(np.zeros(vector.action_space.shape, np.float32))
+            rows.append(obs["lidar"])
+        vector.close()
+        for i in range(2):
+            for t, frame in enumerate(rows):
+                np.testing.assert_array_equal(frame[i], single[i][t], err_msg=f"workers={workers} row {i} step {t}")
