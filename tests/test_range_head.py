@@ -81,13 +81,13 @@ def test_the_env_finishes_the_lidar_with_the_bundles_range_head(range_head_bundl
     from world_model.raster import maps
 
     full_resolution_casts = []
-    cast = maps.lidar_nearness
+    cast = maps.cast
 
-    def counted(frame, lidar, hw):
-        full_resolution_casts.append(hw == (lidar.beams, lidar.azimuth))
-        return cast(frame, lidar, hw)
+    def counted(poses, lidar, rays, margin):
+        full_resolution_casts.append(True)
+        return cast(poses, lidar, rays, margin)
 
-    monkeypatch.setattr(maps, "lidar_nearness", counted)
+    monkeypatch.setattr(maps, "cast", counted)
 
     def env(bundle, **config):
         return M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle), config=config)
@@ -130,3 +130,20 @@ def test_vector_rows_and_simulation_workers_match_the_single_env_with_a_range_he
         for i in range(2):
             for t, frame in enumerate(rows):
                 np.testing.assert_array_equal(frame[i], single[i][t], err_msg=f"workers={workers} row {i} step {t}")
+
+
+def test_the_range_map_the_scene_implies_is_the_lidars_own_cast():
+    """At the range map's resolution the scene's nearness is the simulator's LiDAR, quantized."""
+    from m4world_env.env import M4WorldEnv
+    from world_model.model.config import get_preset
+    from world_model.raster.maps import nearness_levels, range_nearness_maps
+    from world_model.train.range_head_stage import with_range_head
+
+    env = M4WorldEnv("highway_dense_rain_dusk", backend="procedural")
+    obs, _ = env.reset(seed=3)
+    cfg = with_range_head(get_preset("default"))
+    assert env.lidar_spec == cfg.sensors.lidar
+    maps = range_nearness_maps([env._frame], cfg)
+    assert maps.shape == (1, cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth)
+    np.testing.assert_array_equal(maps[0], nearness_levels(obs["lidar"], cfg.sensors.lidar))
+    assert (maps[0] > 0).any() and (maps[0] == 0).any()  # returns, and the sky

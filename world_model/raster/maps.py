@@ -10,15 +10,20 @@ left out (``labeled``): their maps draw nothing.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
 
 from world_model.model.config import ModelConfig
-from world_model.model.layout import lidar_nearness
+from world_model.model.layout import NEARNESS_LEVELS, lidar_nearness
 from world_model.raster.classes import MAP_PLANES, blank_maps
 from world_model.scene import SceneFrame
+from world_model.sensors import LidarSpec
+from world_model.sim.config import SimConfig
 from world_model.sim.labels import LabelRasterizer
+from world_model.sim.lidar import LidarRays, cast, lidar_rays
+from world_model.sim.poses import object_poses
 
 
 class SceneRaster:
@@ -94,15 +99,34 @@ def range_nearness_maps(
     frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
 ) -> np.ndarray:
     """The ``range_nearness`` condition: the range map the scene implies at the LiDAR's own
-    resolution, one ray per beam and column, of every frame, (T, beams, azimuth) uint8
-    (:func:`~world_model.model.layout.lidar_nearness`), for a VAE with a range head
-    (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`."""
+    resolution, every frame's, (T, beams, azimuth) uint8 in the steps of
+    :func:`~world_model.model.layout.lidar_nearness`, for a VAE with a range head
+    (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`.
+
+    Cast by the simulator's LiDAR (:mod:`world_model.sim.lidar`: its own beams, each box culled to
+    the sector it can hit), a few milliseconds a frame where a ray per cell against every box takes
+    tens."""
     lidar = cfg.sensors.lidar
     if not cfg.layout.range_head:
         return np.zeros((len(frames), 0, 0), np.uint8)
     _check_labeled(frames, labeled)
+    rays = _lidar_rays(lidar)
     out = np.zeros((len(frames), lidar.beams, lidar.azimuth), np.uint8)
     for t, frame in enumerate(frames):
         if labeled is None or labeled[t]:
-            out[t] = lidar_nearness(frame, lidar, (lidar.beams, lidar.azimuth))
+            ranges = cast(object_poses(frame, lidar.mount_height), lidar, rays, SimConfig().lidar_cull_margin_cols)
+            out[t] = nearness_levels(ranges, lidar)
     return out
+
+
+def nearness_levels(ranges: np.ndarray, lidar: LidarSpec) -> np.ndarray:
+    """Range maps in metres (``lidar.no_return`` where nothing is in range) -> uint8 nearness,
+    :data:`~world_model.model.layout.NEARNESS_LEVELS` steps of ``1 - range / max_range``, 0 for no return."""
+    hit = (ranges != lidar.no_return) & (ranges < lidar.max_range)
+    near = np.where(hit, 1.0 - ranges / lidar.max_range, 0.0)
+    return np.rint(near * NEARNESS_LEVELS).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=4)
+def _lidar_rays(lidar: LidarSpec) -> LidarRays:
+    return lidar_rays(lidar)
