@@ -149,11 +149,14 @@ def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_wa
     shutil.copytree(dry_recipe / "data", out / "data")  # recorded: the recipe skips them
     shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
     source = dry_recipe / "bundle"
-    options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("rollout_decoder",))
+    phases = ("rollout_decoder", "range_head")
+    with pytest.raises(ValueError, match="--phases rollout_decoder range_head"):  # the head finishes its decoder
+        run_recipe(out, RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=phases[:1]))
+    options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=phases)
     summary = run_recipe(out, options)
-    assert summary["phases"] == ["rollout_decoder"] and set(summary["final_loss"]) == {"rollout_decoder"}
+    assert summary["phases"] == list(phases) and set(summary["final_loss"]) == set(phases)
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
-    assert manifest["components"]["vae"]["stage"] == "rollout_decoder"
+    assert manifest["components"]["vae"]["stage"] == "range_head"
     for component in ("student", "reference"):  # untouched: the same tensors as the bundle it started from
         old, new = (load_file(str(b / f"{component}.safetensors")) for b in (source, out / "bundle"))
         assert old.keys() == new.keys() and all(torch.equal(old[k], new[k]) for k in old)

@@ -147,3 +147,20 @@ def test_the_range_map_the_scene_implies_is_the_lidars_own_cast():
     assert maps.shape == (1, cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth)
     np.testing.assert_array_equal(maps[0], nearness_levels(obs["lidar"], cfg.sensors.lidar))
     assert (maps[0] > 0).any() and (maps[0] == 0).any()  # returns, and the sky
+
+
+def test_a_range_head_leaves_the_latent_caches_key_alone():
+    """The latents depend on the encoder: a VAE with a range head reads the run's cached latents."""
+    from world_model.model.config import get_preset, with_layout
+    from world_model.model.vae import SensorVAE
+    from world_model.train.data import encoder_digest
+    from world_model.train.range_head_stage import with_range_head
+
+    cfg = with_layout(get_preset("tiny"), True)
+    torch.manual_seed(0)
+    plain = SensorVAE(cfg)
+    headed = SensorVAE(with_range_head(cfg))
+    headed.load_state_dict(plain.state_dict(), strict=False)
+    with torch.no_grad():
+        headed.range_head.net[0].weight.add_(1.0)
+    assert encoder_digest(headed) == encoder_digest(plain)

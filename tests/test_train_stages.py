@@ -11,7 +11,7 @@ import torch
 from safetensors.torch import load_file
 
 from tests.model_fixtures import QUIET, kill_after_checkpoint, make_dataset
-from world_model.bundle import export_bundle
+from world_model.bundle import CheckpointError, export_bundle
 from world_model.model import get_preset, sample_latents
 from world_model.model.conditions import Conditions
 from world_model.model.config import with_layout
@@ -407,3 +407,7 @@ def test_range_head_stage_trains_the_head_alone_and_the_bundle_finishes_the_lida
     manifest = json.loads((bundle / "manifest.json").read_text())
     assert manifest["components"]["vae"]["stage"] == "range_head"
     assert manifest["model_config"]["layout"]["decoder"] and manifest["model_config"]["layout"]["range_head"]
+    # the decoder trained on: the head finishes the one it was trained on, not this one
+    train_stage("decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=3), QUIET)
+    with pytest.raises(CheckpointError, match="train --stage range_head again"):
+        export_bundle(run, tmp_path / "stale")

@@ -47,6 +47,7 @@ COMPONENT_STAGES = {
     "reference": ("reference",),
 }
 REQUIRED = ("vae", "student")
+RANGE_HEAD_STAGE = "range_head"  # finishes the decoder it was trained on (model.json: "finishes")
 DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields and the bundle's other JSON files
 BF16_COMPONENTS = ("student", "reference")  # DiTs; the VAE stays float32
 OWN_CONFIG_COMPONENTS = ("reference",)  # may differ from the student's config (input width, depth)
@@ -99,17 +100,22 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
         raise CheckpointError(
             f"{run_dir} has no export for {missing}: train stages {[COMPONENT_STAGES[c] for c in missing]} first"
         )
+    if found["vae"][0] == RANGE_HEAD_STAGE:
+        _check_range_head(run_dir)
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
     # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it, and
     # finishes the LiDAR with a range head exactly when the range_head stage did.
     vae_stage = found["vae"][0]
-    config["layout"] = {
-        **config.get("layout", {}),
+    layout = config.get("layout", {})
+    drawn = {
         "decoder": vae_stage in ("range_head", "rollout_decoder", "decoder"),
         "range_head": vae_stage == "range_head",
     }
+    changed = {key: value for key, value in drawn.items() if layout.get(key, False) != value}
+    if changed:
+        config["layout"] = {**layout, **changed}
     tmp = out_dir.with_name(out_dir.name + ".partial")
     if tmp.exists():
         shutil.rmtree(tmp)
@@ -140,6 +146,23 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
 def _adapter_files_only(folder: str, names: list[str]) -> set[str]:
     """``copytree`` filter: adapter folders keep their two files, not the stage's checkpoints/logs."""
     return {n for n in names if n not in (META, WEIGHTS) and not (Path(folder) / n / META).exists()}
+
+
+def _check_range_head(run_dir: Path) -> None:
+    """Refuse a range head trained on another decoder than the run's latest one: a decoder stage
+    trained again after it (or seeded from another bundle) needs the head trained again too."""
+    from world_model.model.range_head import finished_digest
+
+    head_meta = json.loads((run_dir / RANGE_HEAD_STAGE / "model.json").read_text())
+    for stage in COMPONENT_STAGES["vae"][1:]:
+        file = run_dir / stage / "model.safetensors"
+        if file.exists():
+            if head_meta.get("finishes") != finished_digest(load_file(str(file))):
+                raise CheckpointError(
+                    f"{run_dir / RANGE_HEAD_STAGE} was trained on another decoder than {run_dir / stage}'s: "
+                    f"train --stage {RANGE_HEAD_STAGE} again"
+                )
+            return
 
 
 def _export_config(file: Path) -> dict | None:

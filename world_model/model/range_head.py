@@ -26,6 +26,9 @@ where the latents know better.
 
 from __future__ import annotations
 
+import hashlib
+from collections.abc import Mapping
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -63,6 +66,16 @@ class RangeHead(nn.Module):
         target = 1.0 - 2.0 * near
         share = torch.clamp(self.net(torch.cat([up, target, (near > 0).to(up.dtype)], dim=1)), 0.0, 1.0)
         return up + share * (target - up)
+
+
+def finished_digest(vae_state: Mapping[str, torch.Tensor]) -> str:
+    """What a range head was trained to finish: a digest of a VAE's weights but the head's own
+    (``range_head.*``). A head trained on one decoder does not finish another."""
+    h = hashlib.sha256()
+    for key in sorted(k for k in vae_state if not k.startswith("range_head.")):
+        h.update(key.encode())
+        h.update(vae_state[key].detach().cpu().float().contiguous().numpy().tobytes())
+    return "vae-" + h.hexdigest()[:16]
 
 
 def range_loss(

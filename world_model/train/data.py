@@ -187,11 +187,11 @@ def file_digest(path: Path) -> str:
 
 def encoder_digest(vae: SensorVAE) -> str:
     """What a clip's latents depend on: the encoder's weights and the latent normalization, not
-    the decoder (the ``decoder`` stage changes it alone) nor the file they were stored in (a
-    bundle keeps the run's VAE)."""
+    the decoder nor its range head (the decoder stages change them alone) nor the file they were
+    stored in (a bundle keeps the run's VAE)."""
     h = hashlib.sha256()
     state = vae.state_dict()
-    for key in sorted(k for k in state if not k.startswith("decoder.")):
+    for key in sorted(k for k in state if not k.startswith(("decoder.", "range_head."))):
         h.update(key.encode())
         h.update(state[key].detach().cpu().float().contiguous().numpy().tobytes())
     return "encoder-" + h.hexdigest()[:16]

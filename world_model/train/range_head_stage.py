@@ -25,7 +25,7 @@ import torch
 from world_model.data.clips import Clip
 from world_model.eval.decisions import FAR_ERROR_M, non_ground_returns
 from world_model.model.config import ModelConfig, without_label_decoder
-from world_model.model.range_head import range_loss
+from world_model.model.range_head import finished_digest, range_loss
 from world_model.model.vae import SensorVAE, ranges_to_image_values
 from world_model.raster.maps import range_nearness_maps
 from world_model.train.data import cached_nearness_maps, load_clips, nearness_cache_dir
@@ -146,4 +146,5 @@ def range_head_stage(run: StageRun) -> dict:
     head.load_state_dict(trainer.ema.model_state(head))
     vae = vae.cpu().eval()
     metrics = range_metrics(vae, examples, np.random.default_rng(tcfg.seed))
-    return {**summary, "rollout_clips": len(rollouts), "metrics": export_vae(run, STAGE, vae, trainer.step, metrics)}
+    exported = export_vae(run, STAGE, vae, trainer.step, metrics, finishes=finished_digest(vae.state_dict()))
+    return {**summary, "rollout_clips": len(rollouts), "metrics": exported}

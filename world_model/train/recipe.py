@@ -360,9 +360,17 @@ def check_run_options(out: Path, options: RecipeOptions) -> None:
     resolve_device(options.device)
     if options.from_bundle is not None:
         try:
-            load_bundle_files(options.from_bundle)  # a folder that is no bundle is named now, not after the recording
+            files = load_bundle_files(
+                options.from_bundle
+            )  # a folder that is no bundle is named now, not after the recording
         except CheckpointError as e:
             raise ValueError(f"--from-bundle: {e}") from None
+        decoders = [p for p in ("decoder", "rollout_decoder") if p in options.phases]
+        if decoders and "range_head" not in options.phases and files.model_config.get("layout", {}).get("range_head"):
+            raise ValueError(
+                f"--phases {' '.join(options.phases)}: the bundle's range head finishes the decoder it was trained "
+                f"on; train it again after {decoders[-1]}: --phases {' '.join(options.phases)} range_head"
+            )
 
 
 def phase_options(

@@ -24,6 +24,7 @@ import torch
 
 from world_model.bundle import load_bundle_files
 from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.range_head import finished_digest
 from world_model.model.vae import SensorVAE
 from world_model.train.checkpoint import export_weights
 from world_model.train.exports import EXPORT
@@ -54,7 +55,7 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
 
     vae = files.tensors["vae"]
     if cfg.layout.range_head:
-        export("range_head", vae, {"model_config": cfg.to_dict()})
+        export("range_head", vae, {"model_config": cfg.to_dict(), "finishes": finished_digest(vae)})
     if cfg.layout.decoder:
         decoder_cfg = replace(cfg, layout=replace(cfg.layout, range_head=False))
         decoder = SensorVAE(decoder_cfg).state_dict()

@@ -318,9 +318,11 @@ def style_drift(tr: Trainer, n: int, shape: torch.Size) -> torch.Tensor:
     return amplitude.to(coarse.device) * drift
 
 
-def export_vae(run: StageRun, stage: str, vae: SensorVAE, step: int, metrics: dict[str, float]) -> dict[str, float]:
-    """Write ``RUN/<stage>/model`` (weights, config, metrics) and its metrics.json; the metrics."""
-    meta = {"stage": stage, "step": step, "model_config": vae.cfg.to_dict(), "metrics": metrics}
+def export_vae(
+    run: StageRun, stage: str, vae: SensorVAE, step: int, metrics: dict[str, float], **meta: object
+) -> dict[str, float]:
+    """Write ``RUN/<stage>/model`` (weights, config, metrics, ``meta``) and its metrics.json; the metrics."""
+    meta = {"stage": stage, "step": step, "model_config": vae.cfg.to_dict(), "metrics": metrics, **meta}
     export_weights(run.stage_dir / EXPORT, vae.state_dict(), meta)
     write_json_atomic(run.stage_dir / "metrics.json", {"step": step, **metrics})
     return metrics
