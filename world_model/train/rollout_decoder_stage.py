@@ -129,7 +129,7 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
                 chunks.append(engine.step(rollout_conditions(windows, rows, 1 + k * c, c, 0).to(device)))
             latents = torch.cat(chunks, dim=1).to(torch.bfloat16).cpu()
             out += [latents[j, : lengths[j]].clone() for j in range(len(rows))]
-            progress = {"stage": f"{STAGE}: rollouts", "clips_done": len(out), "clips": len(clips)}
+            progress = {"stage": f"{run.stage_dir.name}: rollouts", "clips_done": len(out), "clips": len(clips)}
             write_json_atomic(run.stage_dir / "progress.json", {**progress, "updated": time.strftime("%FT%T%z")})
         partial = cache.with_suffix(".partial")
         torch.save(out, partial)
