@@ -64,7 +64,9 @@ class RangeHead(nn.Module):
         up = F.interpolate(view.float(), size=tuple(nearness.shape[-2:]), mode="bilinear", align_corners=False)
         near = nearness.to(device=up.device, dtype=up.dtype)[:, None] / NEARNESS_LEVELS
         target = 1.0 - 2.0 * near
-        share = torch.clamp(self.net(torch.cat([up, target, (near > 0).to(up.dtype)], dim=1)), 0.0, 1.0)
+        # Channels-last: oneDNN's convolutions at this width run about twice as fast on a CPU.
+        features = torch.cat([up, target, (near > 0).to(up.dtype)], dim=1).contiguous(memory_format=torch.channels_last)
+        share = torch.clamp(self.net(features), 0.0, 1.0)
         return up + share * (target - up)
 
 
