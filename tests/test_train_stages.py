@@ -94,20 +94,31 @@ def test_decoder_stage_keeps_the_encoder_and_learns_to_draw_the_label_maps(tmp_p
     assert any(mods.style.weight.abs().sum() > 0 for mods in drawn.decoder.label_mods)  # and the style
 
 
-def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tmp_path):
+def _decoder_run(tmp_path):
+    """A tiny layout run through its ``vae`` and ``decoder`` stages: (config, dataset, run)."""
     cfg = with_layout(get_preset("tiny"), True)
     data = make_dataset(tmp_path / "data", cfg, lengths=(5, 3))
     run = tmp_path / "run"
     train_stage("vae", data, run, stage_options("vae", preset="tiny", config=cfg, steps=2), QUIET)
     train_stage("decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=2), QUIET)
-    with pytest.raises(FileNotFoundError, match="--stage ode"):
-        train_stage(
-            "rollout_decoder", data, run, stage_options("rollout_decoder", preset="tiny", config=cfg, steps=2), QUIET
-        )
+    return cfg, data, run
+
+
+def _export_untrained_student(run, cfg) -> None:
+    """An ``ode`` export of a freshly initialized student: what the rollout stages stream."""
     student_cfg = cfg.for_student()
     torch.manual_seed(0)
     meta = {"stage": "ode", "model_config": student_cfg.to_dict(), "student_config": StudentConfig().to_dict()}
     export_weights(run / "ode" / "model", MultiViewDiT(student_cfg).state_dict(), meta)
+
+
+def test_rollout_decoder_stage_tunes_the_decoder_on_the_students_own_rollouts(tmp_path):
+    cfg, data, run = _decoder_run(tmp_path)
+    with pytest.raises(FileNotFoundError, match="--stage ode"):
+        train_stage(
+            "rollout_decoder", data, run, stage_options("rollout_decoder", preset="tiny", config=cfg, steps=2), QUIET
+        )
+    _export_untrained_student(run, cfg)
 
     out = train_stage(
         "rollout_decoder",
@@ -377,15 +388,8 @@ def test_a_stage_time_limit_counts_its_setup_and_still_takes_one_step(dataset, t
 
 
 def test_range_head_stage_trains_the_head_alone_and_the_bundle_finishes_the_lidar_with_it(tmp_path):
-    cfg = with_layout(get_preset("tiny"), True)
-    data = make_dataset(tmp_path / "data", cfg, lengths=(5, 3))
-    run = tmp_path / "run"
-    train_stage("vae", data, run, stage_options("vae", preset="tiny", config=cfg, steps=2), QUIET)
-    train_stage("decoder", data, run, stage_options("decoder", preset="tiny", config=cfg, steps=2), QUIET)
-    student_cfg = cfg.for_student()
-    torch.manual_seed(0)
-    meta = {"stage": "ode", "model_config": student_cfg.to_dict(), "student_config": StudentConfig().to_dict()}
-    export_weights(run / "ode" / "model", MultiViewDiT(student_cfg).state_dict(), meta)
+    cfg, data, run = _decoder_run(tmp_path)
+    _export_untrained_student(run, cfg)
 
     out = train_stage(
         "range_head", data, run, stage_options("range_head", preset="tiny", config=cfg, steps=3, ckpt_every=1), QUIET

@@ -84,6 +84,21 @@ def _student(kind: str, batch_size: int, lr: float, ckpt_every: int, steps: int)
     )
 
 
+def _decoder(kind: str, train: Callable[[Any], dict], lr: float) -> Stage:
+    """A stage of the VAE's decoder that draws the layout (its label maps, its LiDAR): the layout's
+    config sections, 1500 steps of 16 frames by default."""
+    return Stage(
+        kind,
+        train,
+        16,
+        lr,
+        100,
+        config_sections=("sensors", "vae", "layout"),
+        steps={"default": 1500},
+        check=check_decoder_config,
+    )
+
+
 # Sized for the 2-core CPU (docs/MODEL_CARD.md lists the measured seconds per step): one ``ode`` step
 # runs the TF model's 20-step guided ODE, one ``dmd``/``long`` step runs 1 + critic_updates self-rollouts.
 REGISTRY: dict[str, Stage] = {
@@ -91,16 +106,7 @@ REGISTRY: dict[str, Stage] = {
     for s in (
         Stage("vae", vae_stage, 16, 2e-3, 100, config_sections=("sensors", "vae")),
         # the decoder again, drawing the layout's label maps, on the frozen encoder's latents
-        Stage(
-            "decoder",
-            decoder_stage,
-            16,
-            5e-4,
-            100,
-            config_sections=("sensors", "vae", "layout"),
-            steps={"default": 1500},
-            check=check_decoder_config,
-        ),
+        _decoder("decoder", decoder_stage, 5e-4),
         Stage("teacher", teacher_stage, 4, 1e-3, 100, config_sections="teacher"),
         _student("tf", 4, 5e-4, 100, 500),
         _student("ode", 4, 5e-4, 20, 80),  # an ode step runs a 20-step guided ODE: checkpoint often
@@ -108,27 +114,9 @@ REGISTRY: dict[str, Stage] = {
         _student("long", 2, 5e-5, 10, 20),
         Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
         # the decoder once more, on the trained student's own rollouts streamed as the env does
-        Stage(
-            "rollout_decoder",
-            rollout_decoder_stage,
-            16,
-            2e-4,
-            100,
-            config_sections=("sensors", "vae", "layout"),
-            steps={"default": 1500},
-            check=check_decoder_config,
-        ),
+        _decoder("rollout_decoder", rollout_decoder_stage, 2e-4),
         # the VAE's range head alone, on the student's rollouts: the LiDAR at the range map's resolution
-        Stage(
-            "range_head",
-            range_head_stage,
-            16,
-            1e-3,
-            100,
-            config_sections=("sensors", "vae", "layout"),
-            steps={"default": 1500},
-            check=check_decoder_config,
-        ),
+        _decoder("range_head", range_head_stage, 1e-3),
         Stage(
             "lora",
             lora_stage,
