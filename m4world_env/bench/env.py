@@ -91,6 +91,15 @@ def _time_single(env: gym.Env, steps: int, seed: int, warmup: int = 0) -> tuple[
     return totals, traffic
 
 
+# The qualifiers that set one count of config.model: name -> (config key, what N is).
+COUNT_QUALIFIERS = {
+    "threads": ("threads", "a thread count"),
+    "sink": ("sink_frames", "a number of frames"),
+    "denoise": ("denoising_steps", "a number of denoising steps"),
+    "first": ("first_frame_steps", "a number of first-frame steps"),
+}
+
+
 def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = False, device: str = "cpu") -> dict:
     """gym.make keywords for a backend spec: ``procedural``, or ``world_model`` with optional
     ``:``-separated qualifiers of its model options: a dtype (``world_model:bfloat16`` beside
@@ -134,32 +143,20 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
                 raise SystemExit(f"refresh=K[,K...] takes denoising-step indices, got {q!r} in {backend!r}") from None
         elif q == "threads=torch":
             model["threads"] = None  # torch's own choice: one thread per core
-        elif q.startswith("threads="):
+        elif q.split("=", 1)[0] in COUNT_QUALIFIERS and "=" in q:
+            name, value = q.split("=", 1)
+            key, what = COUNT_QUALIFIERS[name]
             try:
-                model["threads"] = int(q.removeprefix("threads="))
+                model[key] = int(value)
             except ValueError:
-                raise SystemExit(f"threads=N|torch takes a thread count, got {q!r} in {backend!r}") from None
-        elif q.startswith("sink="):
-            try:
-                model["sink_frames"] = int(q.removeprefix("sink="))
-            except ValueError:
-                raise SystemExit(f"sink=N takes a number of frames, got {q!r} in {backend!r}") from None
-        elif q.startswith("denoise="):
-            try:
-                model["denoising_steps"] = int(q.removeprefix("denoise="))
-            except ValueError:
-                raise SystemExit(f"denoise=N takes a number of denoising steps, got {q!r} in {backend!r}") from None
-        elif q.startswith("first="):
-            try:
-                model["first_frame_steps"] = int(q.removeprefix("first="))
-            except ValueError:
-                raise SystemExit(f"first=N takes a number of first-frame steps, got {q!r} in {backend!r}") from None
+                raise SystemExit(f"{name}=N takes {what}, got {q!r} in {backend!r}") from None
         elif q.startswith("keys="):
             kw["config"] = {**kw["config"], "observation_keys": q.removeprefix("keys=").split("+")}
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
-                "refresh=K[,K...], refresh=all, sink=N, denoise=N, keys=K[+K...], threads=N|torch or checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all, sink=N, denoise=N, first=N, keys=K[+K...], threads=N|torch or "
+                "checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
