@@ -185,3 +185,22 @@ def test_only_adapters_switches_for_a_block_and_restores_everything(setup):
     assert {n: p.requires_grad for n, p in model.named_parameters()} == flags
     with pytest.raises(KeyError, match="not loaded"), only_adapters(model, ["c"]):
         pass
+
+
+def test_an_adapter_free_model_is_inspected_without_importing_peft():
+    """peft imports transformers (seconds, ~150 MB): a rollout without adapters never needs it."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import sys; from torch import nn; from world_model.lora import loaded_adapters; "
+        "assert loaded_adapters(nn.Linear(2, 2)) == []; "
+        "print(sorted(m for m in ('peft', 'transformers') if m in sys.modules))"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root), "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=root, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]"

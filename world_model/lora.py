@@ -29,6 +29,7 @@ import hashlib
 import json
 import os
 import re
+import sys
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -106,6 +107,10 @@ def _check_name(name: str) -> str:
 
 
 def _lora_layers(model: nn.Module) -> list[tuple[str, nn.Module]]:
+    if "peft.tuners.lora" not in sys.modules:
+        # No LoRA layer can exist before peft's is imported; importing it for nothing would pull in
+        # transformers (seconds and ~150 MB of resident memory) on every adapter-free rollout.
+        return []
     from peft.tuners.lora import LoraLayer
 
     return [(n, m) for n, m in model.named_modules() if isinstance(m, LoraLayer)]
