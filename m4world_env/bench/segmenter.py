@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from world_model.data import read_clip
-from world_model.eval.decisions import FRONT_VIEW, P50, P95, DecisionSums, camera_decisions, percentile, share
+from world_model.eval.decisions import P50, P95, DecisionSums, camera_decisions, front_view_index, percentile, share
 from world_model.eval.segmenter import DEFAULT_SEGMENTER_DIR, SCENE_CLASSES, Segmenter, load_segmenter
 from world_model.eval.segmenter_data import ClipRef, cached_scene_labels, clip_refs, collect_views
 from world_model.eval.train_segmenter import evaluate
@@ -55,10 +55,9 @@ def front_readings(segmenter: Segmenter, refs: list[ClipRef], cache_dir: Path, s
     sums = DecisionSums()
     for ref in refs:
         clip = read_clip(ref.root, ref.name)
-        names = [c.name for c in clip.frames[0].rig.cameras]
-        if FRONT_VIEW not in names:
+        front = front_view_index(clip.frames[0].rig.names)
+        if front is None:
             continue
-        front = names.index(FRONT_VIEW)
         labels = cached_scene_labels(clip, cache_dir)
         read = list(range(0, clip.num_frames, stride))
         predicted = segmenter.predict(np.asarray(clip.cameras[read, front]))

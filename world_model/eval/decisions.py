@@ -64,6 +64,11 @@ LANE_BAND_FRACTION = 0.25
 MIN_MARKING_ROWS = 2
 
 
+def front_view_index(view_names: Sequence[str]) -> int | None:
+    """The index of :data:`FRONT_VIEW` among a rig's camera names; None for a rig without one."""
+    return list(view_names).index(FRONT_VIEW) if FRONT_VIEW in view_names else None
+
+
 def percentile(values: Sequence[float], q: float) -> float | None:
     """The ``q``-th percentile of pooled readings (linear interpolation); None without any."""
     return float(np.percentile(values, q)) if len(values) else None

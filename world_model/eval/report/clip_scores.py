@@ -15,7 +15,13 @@ import numpy as np
 
 from world_model.data import Clip
 from world_model.eval.crops import CropConfig
-from world_model.eval.decisions import FRONT_VIEW, ClipDecisions, DecisionSums, camera_decisions, lidar_decisions
+from world_model.eval.decisions import (
+    ClipDecisions,
+    DecisionSums,
+    camera_decisions,
+    front_view_index,
+    lidar_decisions,
+)
 from world_model.eval.judge import CnnJudge, JudgeBackend
 from world_model.eval.metrics import (
     ChangeSums,
@@ -80,7 +86,7 @@ def clip_truth(clip: Clip, judge: JudgeBackend, config: ReportConfig, segmenter:
     labels = np.zeros((t, v, h, w), np.uint8)
     read = _scene_frames(clip, config)
     labels[read] = scene_labels([clip.frames[i] for i in read], h, w)
-    front, front_classes = _front_view(clip), None
+    front, front_classes = front_view_index(clip.frames[0].rig.names), None
     if segmenter is not None and front is not None:
         front_classes = np.zeros((t, h, w), np.uint8)
         front_classes[read] = segmenter.predict(cameras[read, front])
@@ -179,7 +185,7 @@ def clip_decisions(
     if gen.lidar is not None:
         for f, frame in enumerate(clip.frames):
             per_frame[f] = lidar_decisions(_ranges(clip.lidar, f), _ranges(gen.lidar, f), frame.lidar)
-    front = _front_view(clip)
+    front = front_view_index(clip.frames[0].rig.names)
     if front is not None and truth.front_classes is not None:
         read = _scene_frames(clip, config)
         predicted = segmenter.predict(np.asarray(gen.cameras[read, front]))
@@ -195,12 +201,6 @@ def clip_decisions(
 def _scene_frames(clip: Clip, config: ReportConfig) -> list[int]:
     """The frames the scene IoU and the FRONT readings read: every ``scene_frame_stride``-th."""
     return list(range(0, clip.num_frames, config.scene_frame_stride))
-
-
-def _front_view(clip: Clip) -> int | None:
-    """The FRONT camera's index in the clip's rig; None for a rig without one."""
-    names = clip.frames[0].rig.names
-    return names.index(FRONT_VIEW) if FRONT_VIEW in names else None
 
 
 def object_scores(
