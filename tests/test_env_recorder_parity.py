@@ -15,7 +15,7 @@ from m4world_env.scenario import load_scenario
 from world_model.data import Clip, read_clip, write_clip
 from world_model.model.conditions import ConditionArrays
 from world_model.raster.classes import CLASS_PLANE, ROAD, VEHICLE
-from world_model.raster.maps import camera_labels, lidar_nearness_maps
+from world_model.raster.maps import camera_labels, camera_precipitation, lidar_nearness_maps
 from world_model.rollout.runtime import WorldModel
 from world_model.sim.labels import LabelRasterizer
 from world_model.train.data import LatentWindows
@@ -92,10 +92,11 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
     raster = LabelRasterizer()
     labels = np.stack([raster.maps(f, f.rig, cfg.sensors.height, cfg.sensors.width) for f in clip.frames])
     nearness = lidar_nearness_maps(clip.frames, cfg)
+    rain, rain_rgb = camera_precipitation(clip.frames, cfg)
     for start, got in zip(starts, env_arrays, strict=True):
         want = train.frames(start, start + got.num_frames)
         for f in fields(ConditionArrays):
-            if f.name in ("labels", "lidar_nearness"):
+            if f.name in ("labels", "lidar_nearness", "precipitation", "precipitation_rgb"):
                 continue
             a, b = getattr(got, f.name), getattr(want, f.name)
             assert a.shape == b.shape and np.allclose(a, b, atol=1e-5), f"{f.name} differs at frame {start}"
@@ -106,14 +107,19 @@ def test_env_condition_arrays_equal_the_recorded_clips(tiny_bundle, layout_bundl
                 assert np.array_equal(got.labels[t - start], want_labels), f"labels differ at {t}"
                 want_near = nearness[t] if decoded else np.zeros_like(nearness[t])
                 assert np.array_equal(got.lidar_nearness[t - start], want_near), f"nearness differs at {t}"
+                want_rain = rain[t] if decoded else np.zeros_like(rain[t])
+                assert np.array_equal(got.precipitation[t - start], want_rain), f"rain differs at {t}"
+                assert np.array_equal(got.precipitation_rgb[t - start], rain_rgb[t] if decoded else np.zeros(3))
         else:
             assert got.labels.shape[3:] == (0, 0) and got.lidar_nearness.shape[1:] == (0, 0)
+            assert got.precipitation.shape[2:] == (0, 0)
     has_image = np.concatenate([a.obj_has_image for a in env_arrays])
     assert has_image[0].any()  # crops reached the conditions from the first frame
     if layout:
         assert train.layout.shape[2] == cfg.layout.channels and train.layout[:, :, 0].sum() > 0  # road seen
         assert nearness.shape[1:] == (cfg.sensors.height, cfg.sensors.width) and (nearness > 0).mean() > 0.3
         assert (labels[:, :, CLASS_PLANE] == ROAD).any() and (labels[:, :, CLASS_PLANE] == VEHICLE).any()
+        assert rain.any(), "the scenario's rain reaches the decoded cameras"
 
 
 def test_each_decoded_frame_has_its_label_map(layout_bundle):

@@ -37,6 +37,10 @@ lidar_nearness     (T, H, W) uint8       the range map the scene implies on the 
 range_nearness     (T, B, A) uint8       the same at the range map's resolution (B beams,
                                          A azimuth columns), for the VAE's range head
                                          (``layout.range_head``); B = A = 0 without it.
+precipitation      (T, Vc, H, W) uint8   the alpha of the rain or snow in front of each
+                                         camera, blended over the decoded cameras in
+precipitation_rgb  (T, 3) uint8          this colour (:class:`~world_model.raster.maps.
+                                         SceneRaster`); H = W = 0 without ``layout.decoder``.
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
@@ -158,6 +162,8 @@ class ConditionArrays:
     labels: np.ndarray
     lidar_nearness: np.ndarray
     range_nearness: np.ndarray
+    precipitation: np.ndarray
+    precipitation_rgb: np.ndarray
 
     TIME_FIELDS = (
         "ego",
@@ -173,6 +179,8 @@ class ConditionArrays:
         "labels",
         "lidar_nearness",
         "range_nearness",
+        "precipitation",
+        "precipitation_rgb",
     )
 
     @property
@@ -244,6 +252,7 @@ def build_condition_arrays(
     labels = raster.labels(frames, opts.labeled if opts.sensors.cameras else unlabeled)
     nearness = raster.nearness(frames, opts.labeled if opts.sensors.lidar else unlabeled)
     ranges = raster.range_nearness(frames, opts.labeled if opts.sensors.lidar else unlabeled)
+    precipitation, precipitation_rgb = raster.precipitation(frames, opts.labeled if opts.sensors.cameras else unlabeled)
     tokens = prompt_tokens(frames[0].prompt, cfg, text_encoder)
     text = np.zeros((cfg.text.max_tokens, cfg.text.dim), np.float32)
     text[: len(tokens)] = tokens
@@ -261,6 +270,8 @@ def build_condition_arrays(
         labels=labels,
         lidar_nearness=nearness,
         range_nearness=ranges,
+        precipitation=precipitation,
+        precipitation_rgb=precipitation_rgb,
     )
 
 
@@ -398,6 +409,8 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "labels": FieldSpec((t, vc, MAP_PLANES, *label_hw), u8),
         "lidar_nearness": FieldSpec((t, *nearness_hw), u8),
         "range_nearness": FieldSpec((t, *range_hw), u8),
+        "precipitation": FieldSpec((t, vc, *label_hw), u8),
+        "precipitation_rgb": FieldSpec((t, 3), u8),
     }
 
 
@@ -424,6 +437,8 @@ class Conditions:
     labels: torch.Tensor
     lidar_nearness: torch.Tensor
     range_nearness: torch.Tensor
+    precipitation: torch.Tensor
+    precipitation_rgb: torch.Tensor
     drop: torch.Tensor
 
     @property
@@ -461,12 +476,14 @@ class Conditions:
         """What a decoder reads beside the latents, as keyword arguments of
         :func:`~world_model.model.sampler.latents_to_observations` and ``WorldModel.decode``: the
         frames' camera label maps, the scene's style, the LiDAR view's nearness maps and the range
-        map's."""
+        map's, and the rain or snow over the cameras."""
         return {
             "labels": self.labels,
             "style": self.style,
             "nearness": self.lidar_nearness,
             "range_nearness": self.range_nearness,
+            "precipitation": self.precipitation,
+            "precipitation_rgb": self.precipitation_rgb,
         }
 
     def frames(self, start: int, stop: int) -> Conditions:

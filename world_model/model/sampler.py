@@ -103,6 +103,8 @@ def latents_to_observations(
     nearness: torch.Tensor | np.ndarray | None = None,
     sensors: SensorSelection = ALL_SENSORS,
     range_nearness: torch.Tensor | np.ndarray | None = None,
+    precipitation: torch.Tensor | np.ndarray | None = None,
+    precipitation_rgb: torch.Tensor | np.ndarray | None = None,
 ) -> list[list[Observation]]:
     """Decode latents (B, T, V, C, h, w) to B lists of T observations (cameras uint8, LiDAR metres;
     a sensor left out of ``sensors`` is not decoded and is None in every observation).
@@ -113,7 +115,9 @@ def latents_to_observations(
     maps (``Conditions.labels``), ``style`` (B, Dt): each sample's scene style (``Conditions.style``)
     and ``nearness`` (B, T, H, W): the LiDAR view's nearness maps (``Conditions.lidar_nearness``),
     read by a decoder that draws the scene; ``range_nearness`` (B, T, beams, azimuth): the same at
-    the range map's resolution (``Conditions.range_nearness``), read by a VAE's range head.
+    the range map's resolution (``Conditions.range_nearness``), read by a VAE's range head;
+    ``precipitation`` (B, T, Vc, H, W) and ``precipitation_rgb`` (B, T, 3): the rain or snow blended
+    over the decoded cameras (``Conditions.precipitation``, ``Conditions.precipitation_rgb``).
     """
     b, t = latents.shape[:2]
     flat = latents.flatten(0, 1)
@@ -143,6 +147,8 @@ def latents_to_observations(
         for i in range(0, b * t, frames_per_call)
     ]
     cams, lidar = (None if arrays[0] is None else np.concatenate(arrays) for arrays in zip(*parts, strict=True))
+    if cams is not None and precipitation is not None:
+        cams = with_precipitation(cams, _numpy(precipitation), _numpy(precipitation_rgb))
     return [
         [
             Observation(
@@ -154,6 +160,25 @@ def latents_to_observations(
         ]
         for i in range(b)
     ]
+
+
+def _numpy(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    return x.cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+def with_precipitation(cams: np.ndarray, alpha: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """Decoded cameras (N, Vc, H, W, 3) uint8 with each frame's rain or snow, alpha (N, Vc, H, W) and
+    colour (N, 3) (any leading shape of N frames), blended over them in place as the simulator
+    blends its own (:mod:`world_model.sim.precipitation`); frames without any are left as they are."""
+    if alpha.size == 0:  # a model without a label decoder: no maps, no precipitation
+        return cams
+    from world_model.sim.precipitation import blend  # the renderer loads only where it rains or snows
+
+    n, vc, h, w, _ = cams.shape
+    alpha, rgb = alpha.reshape(n, vc * h, w), rgb.reshape(n, 3)
+    for k in np.flatnonzero(alpha.reshape(n, -1).any(axis=1)):
+        cams[k] = blend(cams[k].reshape(vc * h, w, 3), alpha[k], rgb[k]).reshape(vc, h, w, 3)
+    return cams
 
 
 def generate(

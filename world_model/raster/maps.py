@@ -4,8 +4,9 @@ The VAE decoder draws the scene's layout from these at the views' full resolutio
 student's latents (``layout.decoder``; docs/layout.md): each camera's
 class ids, the objects' paint and the ground's surface (:meth:`LabelRasterizer.maps
 <world_model.sim.labels.LabelRasterizer.maps>`), and the range map the scene implies on the LiDAR
-view (:func:`~world_model.model.layout.lidar_nearness`). Frames that will not be decoded may be
-left out (``labeled``): their maps draw nothing.
+view (:func:`~world_model.model.layout.lidar_nearness`). Over the decoded cameras go the rain
+streaks or snow flakes the weather puts in front of each lens (:func:`camera_precipitation`).
+Frames that will not be decoded may be left out (``labeled``): their maps draw nothing.
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ from world_model.sensors import LidarSpec
 from world_model.sim.config import SimConfig
 from world_model.sim.labels import LabelRasterizer
 from world_model.sim.lidar import LidarRays, cast, lidar_rays
+from world_model.sim.lighting import lighting_for
 from world_model.sim.poses import object_poses
+from world_model.sim.precipitation import Overlay, precipitation_rgb
 
 
 class SceneRaster:
@@ -34,10 +37,17 @@ class SceneRaster:
     def __init__(self, cfg: ModelConfig, rasterizer: LabelRasterizer | None = None) -> None:
         self.cfg = cfg
         self.rasterizer = rasterizer or LabelRasterizer()
+        self.overlays: dict[tuple[str, int, int], Overlay] = {}
 
     def labels(self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None) -> np.ndarray:
         """The frames' camera label maps (:func:`camera_labels`)."""
         return camera_labels(frames, self.cfg, self.rasterizer, labeled)
+
+    def precipitation(
+        self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The frames' rain or snow over each camera and its colour (:func:`camera_precipitation`)."""
+        return camera_precipitation(frames, self.cfg, self.rasterizer.config, self.overlays, labeled)
 
     def nearness(self, frames: Sequence[SceneFrame], labeled: Sequence[bool] | None = None) -> np.ndarray:
         """The frames' LiDAR nearness maps (:func:`lidar_nearness_maps`)."""
@@ -75,6 +85,42 @@ def camera_labels(
         if labeled is None or labeled[t]:
             out[t] = raster.maps(frame, frame.rig, s.height, s.width)
     return out
+
+
+def camera_precipitation(
+    frames: Sequence[SceneFrame],
+    cfg: ModelConfig,
+    sim: SimConfig | None = None,
+    overlays: dict[tuple[str, int, int], Overlay] | None = None,
+    labeled: Sequence[bool] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``precipitation`` and ``precipitation_rgb`` conditions: the alpha, (T, Vc, H, W) uint8,
+    of the rain streaks or snow flakes the simulator blends over each camera of every frame (``sim``'s
+    :mod:`~world_model.sim.precipitation`: a function of the weather, the scenario and the frame
+    index, nothing the model could draw from its latents), 0 where the weather has none; and their
+    colour in the frame's light, (T, 3) uint8. Blended over the decoded cameras, so the world model's
+    rain and snow fall as the ground truth's. (T, Vc, 0, 0) and zeros without a label decoder
+    (``layout.decoder``). ``overlays``: the layer pools by (kind, H, W), kept across calls (a pool
+    is hundreds of antialiased streaks, drawn once). ``labeled`` as :func:`camera_labels`: the
+    other frames get none."""
+    s = cfg.sensors
+    rgb = np.zeros((len(frames), 3), np.uint8)
+    if not cfg.layout.decoder:
+        return np.zeros((len(frames), s.num_cameras, 0, 0), np.uint8), rgb
+    _check_labeled(frames, labeled)
+    sim = sim or SimConfig()
+    overlays = {} if overlays is None else overlays
+    out = np.zeros((len(frames), s.num_cameras, s.height, s.width), np.uint8)
+    for t, frame in enumerate(frames):
+        lighting = lighting_for(frame.prompt)
+        if lighting.precipitation == "none" or not (labeled is None or labeled[t]):
+            continue
+        key = (lighting.precipitation, s.height, s.width)
+        if key not in overlays:
+            overlays[key] = Overlay(lighting.precipitation, s.height, s.width, sim)
+        out[t] = overlays[key].alpha(frame, s.num_cameras).reshape(s.num_cameras, s.height, s.width)
+        rgb[t] = precipitation_rgb(lighting)
+    return out, rgb
 
 
 def lidar_nearness_maps(

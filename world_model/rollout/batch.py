@@ -213,8 +213,11 @@ class RolloutBatch:
             labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
             nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
             ranges = np.stack([np.concatenate([a.range_nearness for a in arrays[i]]) for i in active])
+            precipitation = np.stack([np.concatenate([a.precipitation for a in arrays[i]]) for i in active])
+            precipitation_rgb = np.stack([np.concatenate([a.precipitation_rgb for a in arrays[i]]) for i in active])
             if not self.every_frame:
                 lat, labels, nearness, ranges = lat[:, -1:], labels[:, -1:], nearness[:, -1:], ranges[:, -1:]
+                precipitation, precipitation_rgb = precipitation[:, -1:], precipitation_rgb[:, -1:]
             draws_cameras = self.wm.vae.draws_labels and self.sensors.cameras
             if draws_cameras and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
@@ -222,7 +225,9 @@ class RolloutBatch:
                     "every_frame and sensors (RolloutConditions)"
                 )
             style = np.stack([arrays[i][0].style for i in active])
-            observations = self.wm.decode(lat, labels, style, nearness, self.sensors, ranges)
+            observations = self.wm.decode(
+                lat, labels, style, nearness, self.sensors, ranges, precipitation, precipitation_rgb
+            )
             for i, obs in zip(active, observations, strict=True):
                 results[i] = obs
         return results

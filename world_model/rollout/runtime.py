@@ -203,6 +203,8 @@ class WorldModel:
         nearness: torch.Tensor | np.ndarray | None = None,
         sensors: SensorSelection = ALL_SENSORS,
         range_nearness: torch.Tensor | np.ndarray | None = None,
+        precipitation: torch.Tensor | np.ndarray | None = None,
+        precipitation_rgb: torch.Tensor | np.ndarray | None = None,
     ) -> list[list[Observation]]:
         """(B, T, V, C, h, w) normalized latents → B lists of T observations of the ``sensors``
         decoded (the others None); ``labels`` (B, T, Vc, 3, H, W)
@@ -210,7 +212,9 @@ class WorldModel:
         the LiDAR view's nearness maps, for a decoder that draws them (``ConditionArrays.labels``,
         ``ConditionArrays.style``, ``ConditionArrays.lidar_nearness``); ``range_nearness``
         (B, T, beams, azimuth) the same at the range map's resolution, for a VAE with a range head
-        (``ConditionArrays.range_nearness``).
+        (``ConditionArrays.range_nearness``); ``precipitation`` (B, T, Vc, H, W) and
+        ``precipitation_rgb`` (B, T, 3) the rain or snow blended over the cameras
+        (``ConditionArrays.precipitation``).
 
         On CPU each frame is decoded alone: the decoder's convolutions and group norms pick other
         kernels and reduction splits for another batch size (up to 1e-5 m of LiDAR apart,
@@ -230,6 +234,8 @@ class WorldModel:
             nearness=nearness,
             sensors=sensors,
             range_nearness=range_nearness,
+            precipitation=precipitation,
+            precipitation_rgb=precipitation_rgb,
         )
 
 

@@ -3,7 +3,9 @@
 Drawing hundreds of streaks every frame would cost more than the rest of the image, so a few
 larger-than-image alpha layers are drawn once; each frame picks a layer and an offset per view
 from a seed derived from the frame (scenario name and frame index), which keeps rendering a pure,
-deterministic function of the frame while the streaks move from frame to frame.
+deterministic function of the frame while the streaks move from frame to frame. The world model
+blends the same windows over its decoded cameras (:func:`world_model.raster.maps.camera_precipitation`):
+the streaks of a frame are nothing its latents could hold.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import numpy as np
 
 from world_model.scene import SceneFrame
 from world_model.sim.config import SimConfig
+from world_model.sim.lighting import Lighting
 
 # Streak length as a fraction of the image height, slant from vertical (radians), alpha range.
 RAIN_LENGTH_FRAC = (0.06, 0.16)
@@ -32,7 +35,7 @@ def frame_seed(frame: SceneFrame) -> int:
 
 
 def precipitation_layers(kind: str, h: int, w: int, config: SimConfig) -> np.ndarray:
-    """(layers, 2h, 2w) float32 alpha in [0, 1] for "rain" or "snow"."""
+    """(layers, 2h, 2w) uint8 alpha (255 = opaque) for "rain" or "snow"."""
     if kind not in ("rain", "snow"):
         raise ValueError(f"precipitation kind must be 'rain' or 'snow', got {kind!r}")
     rng = np.random.default_rng(config.precipitation_seed)
@@ -58,27 +61,36 @@ def precipitation_layers(kind: str, h: int, w: int, config: SimConfig) -> np.nda
             for x, y, r, a in zip(xs, ys, radii, alphas, strict=True):
                 centre = (round(x * scale), round(y * scale))
                 cv2.circle(layer, centre, max(1, round(r * scale)), int(255 * a), -1, cv2.LINE_AA, shift)
-    return layers.astype(np.float32) / 255.0
+    return layers
+
+
+def precipitation_rgb(lighting: Lighting) -> np.ndarray:
+    """(3,) uint8: the colour ``lighting``'s streaks or flakes are blended in."""
+    return np.clip(np.round(lighting.precipitation_color), 0, 255).astype(np.uint8)
+
+
+def blend(images: np.ndarray, alpha: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """``images`` (N, W, 3) uint8 with ``rgb`` (3,) uint8 blended over them by ``alpha`` (N, W)
+    uint8 (255 = opaque): the simulator's cameras and the world model's decoded ones alike."""
+    weight = alpha.astype(np.float32) / 255.0
+    solid = np.empty_like(images)
+    solid[:] = rgb
+    return cv2.blendLinear(images, solid, 1.0 - weight, weight)
 
 
 class Overlay:
-    """Rain or snow for one image size: the layer pool plus what blending needs, prepared once."""
+    """Rain or snow for one image size: the pool of alpha layers, drawn once, and each frame's
+    window of it."""
 
-    def __init__(self, kind: str, views: int, h: int, w: int, color: np.ndarray, config: SimConfig) -> None:
-        self.alpha = precipitation_layers(kind, h, w, config)
-        self.keep = 1.0 - self.alpha
-        self.views, self.h, self.w = views, h, w
-        self.solid = np.empty((views * h, w, 3), dtype=np.uint8)
-        self.solid[:] = np.clip(np.round(color), 0, 255).astype(np.uint8)
+    def __init__(self, kind: str, h: int, w: int, config: SimConfig) -> None:
+        self.layers = precipitation_layers(kind, h, w, config)
+        self.h, self.w = h, w
 
-    def apply(self, images: np.ndarray, frame: SceneFrame) -> np.ndarray:
-        """Blend this frame's streaks over ``images`` (V*H, W, 3) uint8: one random window of a
-        random layer per view, drawn from a seed derived from the frame."""
+    def alpha(self, frame: SceneFrame, views: int) -> np.ndarray:
+        """(views * H, W) uint8: ``frame``'s streaks over its ``views`` stacked views, one random
+        window of a random layer per view, drawn from a seed derived from the frame."""
         rng = np.random.default_rng(frame_seed(frame))
-        picks = rng.integers(0, len(self.alpha), self.views)
-        oy, ox = rng.integers(0, self.h, self.views), rng.integers(0, self.w, self.views)
-        windows = list(zip(picks, oy, ox, strict=True))
+        picks = rng.integers(0, len(self.layers), views)
+        oy, ox = rng.integers(0, self.h, views), rng.integers(0, self.w, views)
         h, w = self.h, self.w
-        alpha = np.concatenate([self.alpha[k, y : y + h, x : x + w] for k, y, x in windows])
-        keep = np.concatenate([self.keep[k, y : y + h, x : x + w] for k, y, x in windows])
-        return cv2.blendLinear(images, self.solid, keep, alpha)
+        return np.concatenate([self.layers[k, y : y + h, x : x + w] for k, y, x in zip(picks, oy, ox, strict=True)])

@@ -138,13 +138,11 @@ class ProceduralSimulator:
 
         if lighting.precipitation != "none":
             overlay = self._precip.get(
-                (lighting.precipitation, rig.num_views, h, w, weather, tod),
-                (),
-                lambda: precipitation.Overlay(
-                    lighting.precipitation, rig.num_views, h, w, lighting.precipitation_color, cfg
-                ),
+                (lighting.precipitation, h, w), (), lambda: precipitation.Overlay(lighting.precipitation, h, w, cfg)
             )
-            img = overlay.apply(img, frame)
+            img = precipitation.blend(
+                img, overlay.alpha(frame, rig.num_views), precipitation.precipitation_rgb(lighting)
+            )
         return img.reshape(rig.num_views, h, w, 3)
 
     def render_lidar(self, frame: SceneFrame) -> np.ndarray:

@@ -21,7 +21,7 @@ import torch
 from world_model.data.clips import Clip
 from world_model.model.conditions import Conditions
 from world_model.model.dit import MultiViewDiT
-from world_model.model.sampler import sample_latents
+from world_model.model.sampler import sample_latents, with_precipitation
 from world_model.raster.crops import RecordedCrops
 from world_model.rollout.batch import RolloutBatch
 from world_model.rollout.conditions import RolloutConditions
@@ -158,7 +158,8 @@ class StudentRow:
 
 
 def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
-    """The autoencoder's ceiling: each ground-truth frame encoded and decoded by ``wm``'s VAE.
+    """The autoencoder's ceiling: each ground-truth frame encoded and decoded by ``wm``'s VAE, with
+    the frame's rain or snow blended over its cameras as the env decodes them.
 
     No latent model (teacher or student) can score better than its autoencoder lets it, so this
     row tells which losses come from the VAE (objects a few pixels wide blurred away at 8x
@@ -174,7 +175,7 @@ def autoencoder_row(wm: WorldModel, batch_frames: int = 16) -> RowFn:
             nearness = wm.conditions.raster.nearness(clip.frames[part])
             ranges = wm.conditions.raster.range_nearness(clip.frames[part])
             c, lid = wm.vae.reconstruct_frames(clip.cameras[part], clip.lidar[part], labels, style, nearness, ranges)
-            cams.append(c)
+            cams.append(with_precipitation(c, *wm.conditions.raster.precipitation(clip.frames[part])))
             lids.append(lid)
         return Generated(cameras=np.concatenate(cams), lidar=np.concatenate(lids))
 
