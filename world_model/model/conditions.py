@@ -38,9 +38,11 @@ range_nearness     (T, B, A) uint8       the same at the range map's resolution 
                                          A azimuth columns), for the VAE's range head
                                          (``layout.range_head``); B = A = 0 without it.
 precipitation      (T, Vc, H, W) uint8   the alpha of the rain or snow in front of each
-                                         camera, blended over the decoded cameras in
-precipitation_rgb  (T, 3) uint8          this colour (:class:`~world_model.raster.maps.
-                                         SceneRaster`); H = W = 0 without ``layout.decoder``.
+                                         camera (255 = opaque), blended over the decoded
+                                         cameras (``SceneRaster.precipitation``); H = W
+                                         = 0 without ``layout.decoder``. The DiTs do not
+                                         read it.
+precipitation_rgb  (T, 3) uint8          the colour it is blended in
 =================  ====================  ===============================================
 
 Objects beyond the cap are dropped farthest first (distance of the box centre from the LiDAR).
