@@ -210,23 +210,30 @@ class RolloutBatch:
         results: list[list[Observation] | None] = [None] * self.n
         if active:
             lat = torch.cat([torch.cat(outs[i], dim=1) for i in active])
-            labels = np.stack([np.concatenate([a.labels for a in arrays[i]]) for i in active])
-            nearness = np.stack([np.concatenate([a.lidar_nearness for a in arrays[i]]) for i in active])
-            ranges = np.stack([np.concatenate([a.range_nearness for a in arrays[i]]) for i in active])
-            precipitation = np.stack([np.concatenate([a.precipitation for a in arrays[i]]) for i in active])
-            precipitation_rgb = np.stack([np.concatenate([a.precipitation_rgb for a in arrays[i]]) for i in active])
+
+            def decoded(field: str) -> np.ndarray:
+                """The ConditionArrays ``field`` of the frames to decode, (active rollouts, frames, ...)."""
+                rows = [np.concatenate([getattr(a, field) for a in arrays[i]]) for i in active]
+                return np.stack(rows if self.every_frame else [r[-1:] for r in rows])
+
             if not self.every_frame:
-                lat, labels, nearness, ranges = lat[:, -1:], labels[:, -1:], nearness[:, -1:], ranges[:, -1:]
-                precipitation, precipitation_rgb = precipitation[:, -1:], precipitation_rgb[:, -1:]
+                lat = lat[:, -1:]
+            labels = decoded("labels")
             draws_cameras = self.wm.vae.draws_labels and self.sensors.cameras
             if draws_cameras and (labels[..., CLASS_PLANE, 0, 0] == NO_LABEL).all(axis=-1).any():
                 raise RuntimeError(
                     "a frame to decode has no label map: build each step's conditions with the rollouts' "
                     "every_frame and sensors (RolloutConditions)"
                 )
-            style = np.stack([arrays[i][0].style for i in active])
             observations = self.wm.decode(
-                lat, labels, style, nearness, self.sensors, ranges, precipitation, precipitation_rgb
+                lat,
+                labels,
+                style=np.stack([arrays[i][0].style for i in active]),
+                nearness=decoded("lidar_nearness"),
+                sensors=self.sensors,
+                range_nearness=decoded("range_nearness"),
+                precipitation=decoded("precipitation"),
+                precipitation_rgb=decoded("precipitation_rgb"),
             )
             for i, obs in zip(active, observations, strict=True):
                 results[i] = obs
