@@ -313,6 +313,7 @@ STREAMING_FLAGS = {
     "refresh_steps": "--refresh-steps",
     "sink_frames": "--sink-frames",
     "first_frame_steps": "--first-frame-steps",
+    "first_frame_guidance": "--first-frame-guidance",
 }
 
 
@@ -324,6 +325,7 @@ def _cmd_streaming(args: argparse.Namespace) -> int:
         "denoising_steps": args.denoising_steps,
         "sink_frames": args.sink_frames,
         "first_frame_steps": args.first_frame_steps,
+        "first_frame_guidance": args.first_frame_guidance,
     }
     if args.refresh_steps is not None:
         every = args.refresh_steps == REFRESH_EVERY_STEP
@@ -614,6 +616,13 @@ def _add_streaming_parser(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="the reference model's Euler steps for a rollout's first frame (a reset), "
         f"{STREAMING_BOUNDS['first_frame_steps']}",
+    )
+    st.add_argument(
+        "--first-frame-guidance",
+        type=float,
+        default=None,
+        help="the cameras' classifier-free guidance scale of a rollout's first frame, "
+        f"{STREAMING_BOUNDS['first_frame_guidance']}",
     )
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)

@@ -63,15 +63,17 @@ class ModelBackendConfig:
 
     # Streaming (world_model.streaming.StreamingConfig: its fields, bounds and meanings):
     # None takes the bundle's streaming.json (the shipped one: 4 denoising steps, context refresh
-    # at the last two, one sink frame, 4 first-frame steps); a value replaces it. refresh_steps:
+    # at the last two, one sink frame, 4 first-frame steps guided at 2); a value replaces it. refresh_steps:
     # the denoising-step indices that refresh the context frame (0 = the first, -1 = the last) or
     # "all"; sink_frames: the first frames of an episode kept in context beside the rolling window;
-    # first_frame_steps: the reference model's Euler steps for an episode's first frame (a reset).
+    # first_frame_steps: the reference model's Euler steps for an episode's first frame (a reset);
+    # first_frame_guidance: the cameras' classifier-free guidance scale of that frame (1: none).
     denoising_steps: int | None = None
     context_refresh: bool | None = None
     refresh_steps: tuple[int, ...] | str | None = None
     sink_frames: int | None = None
     first_frame_steps: int | None = None
+    first_frame_guidance: float | None = None
     # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was

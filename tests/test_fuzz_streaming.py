@@ -22,6 +22,7 @@ from tests.fuzz_settings import EXAMPLES, FUZZ
 from world_model.bundle import STREAMING_FILE
 from world_model.streaming import (
     MAX_DENOISING_STEPS,
+    MAX_GUIDANCE,
     MAX_SINK_FRAMES,
     REFRESH_EVERY_STEP,
     STREAMING_BOUNDS,
@@ -44,7 +45,9 @@ VALUES = st.one_of(
     NUMBERS,
     st.integers(-MAX_DENOISING_STEPS - 2, MAX_SINK_FRAMES + 2).map(np.int64),
     st.booleans(),
-    st.sampled_from([np.True_, np.False_, REFRESH_EVERY_STEP, "0", b"\x00", 2.0, float("nan")]),
+    st.sampled_from(
+        [np.True_, np.False_, REFRESH_EVERY_STEP, "0", b"\x00", 2.0, 0.99, 20.5, float("inf"), float("nan")]
+    ),
     st.lists(NUMBERS, max_size=3),
     st.lists(st.integers(-6, 6), min_size=1, max_size=3).map(np.array),
     st.dictionaries(st.integers(0, 3), st.integers(0, 3), max_size=2),
@@ -57,6 +60,7 @@ def assert_inside_bounds(config: StreamingConfig) -> None:
     assert type(n) is int and 1 <= n <= MAX_DENOISING_STEPS
     assert type(config.sink_frames) is int and 0 <= config.sink_frames <= MAX_SINK_FRAMES
     assert type(config.context_refresh) is bool
+    assert type(config.first_frame_guidance) is float and 1.0 <= config.first_frame_guidance <= MAX_GUIDANCE
     if config.refresh_steps != REFRESH_EVERY_STEP:
         assert config.refresh_steps and all(type(k) is int and -n <= k < n for k in config.refresh_steps)
     assert all(0 <= k < n for k in config.resolved_refresh_steps())
@@ -98,6 +102,7 @@ CLI_FLAGS = st.fixed_dictionaries(
         "--refresh-steps": st.one_of(
             st.just(REFRESH_EVERY_STEP), st.lists(NUMBERS, min_size=1, max_size=3).map(lambda k: ",".join(map(str, k)))
         ),
+        "--first-frame-guidance": st.one_of(NUMBERS.map(str), st.sampled_from(["1.5", "0.5", "nan", "inf"])),
         "--no-refresh": st.just(None),
         "--refresh": st.just(None),
     },

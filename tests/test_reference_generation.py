@@ -45,6 +45,19 @@ def test_first_frame_shapes_observations_and_determinism(parts):
     assert torch.equal(lat, again) and not torch.equal(lat, other)
 
 
+def test_guidance_replaces_the_samplers_camera_scale_only(parts):
+    vae, model = parts
+    gen = ReferenceGenerator(model, vae)
+    cond = tiny_conditions(CFG, 3, batch=1)
+    for scale in (1.0, 2.0):
+        given = gen.sample(cond.frames(0, 1), steps=2, seed=3, guidance=scale)
+        spelled = gen.sample(cond.frames(0, 1), seed=3, sampler=replace(CFG.sampler, steps=2, camera_cfg_scale=scale))
+        assert torch.equal(given, spelled)
+    assert not torch.equal(given, gen.sample(cond.frames(0, 1), steps=2, seed=3))  # the config's 3
+    lat, _ = gen.first_frame(cond, steps=2, seed=3, guidance=2.0)
+    assert torch.equal(lat, given)
+
+
 def test_single_view_reference_is_pasted_and_anchors_the_frame(parts):
     vae, model = parts
     gen = ReferenceGenerator(model, vae)

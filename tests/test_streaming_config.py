@@ -79,12 +79,16 @@ OUT_OF_BOUNDS = [
     ({"refresh_steps": []}, "refresh_steps", "[]"),
     ({"first_frame_steps": 0}, "first_frame_steps", "0"),
     ({"first_frame_steps": 51}, "first_frame_steps", "51"),
+    ({"first_frame_guidance": 0.5}, "first_frame_guidance", "0.5"),
+    ({"first_frame_guidance": 21}, "first_frame_guidance", "21"),
+    ({"first_frame_guidance": float("nan")}, "first_frame_guidance", "nan"),
 ]
 CLI_FLAGS = {
     "denoising_steps": "--denoising-steps",
     "sink_frames": "--sink-frames",
     "refresh_steps": "--refresh-steps",
     "first_frame_steps": "--first-frame-steps",
+    "first_frame_guidance": "--first-frame-guidance",
 }
 
 
@@ -163,6 +167,8 @@ def test_numpy_numbers_are_taken_as_the_numbers_they_hold(tiny_bundle):
         ({"denoising_steps": True}, "denoising_steps"),
         ({"refresh_steps": "01"}, "refresh_steps"),
         ({"context_refresh": "yes"}, "context_refresh"),
+        ({"first_frame_guidance": True}, "first_frame_guidance"),
+        ({"first_frame_guidance": "2"}, "first_frame_guidance"),
         ({"sinks": 1}, "unknown keys"),
     ],
 )
@@ -181,26 +187,26 @@ def test_round_trip_and_a_null_refresh_steps_reading_as_every_step():
     assert StreamingConfig.from_dict(off).resolved_refresh_steps() == ()
 
 
-def test_a_resets_first_frame_takes_the_first_frame_steps(bundle, monkeypatch):
-    """The reference model samples an episode's first frame in the bundle's first_frame_steps, or
-    the env config's, single env and vector env alike."""
+def test_a_resets_first_frame_takes_the_first_frame_steps_and_guidance(bundle, monkeypatch):
+    """The reference model samples an episode's first frame in the bundle's first_frame_steps and
+    first_frame_guidance, or the env config's, single env and vector env alike."""
     from world_model.model.reference import ReferenceGenerator
 
-    steps_taken = []
+    taken = []
     sample = ReferenceGenerator.sample
 
-    def counted(self, cond, extra=None, steps=None, seed=0, sampler=None):
-        steps_taken.append(steps)
-        return sample(self, cond, extra, steps, seed, sampler)
+    def counted(self, cond, extra=None, steps=None, seed=0, sampler=None, guidance=None):
+        taken.append((steps, guidance))
+        return sample(self, cond, extra, steps, seed, sampler, guidance)
 
     monkeypatch.setattr(ReferenceGenerator, "sample", counted)
-    set_streaming(bundle, StreamingConfig(first_frame_steps=3))
+    set_streaming(bundle, StreamingConfig(first_frame_steps=3, first_frame_guidance=1.5))
     M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle)).reset(seed=0)
-    config = {"model": {"first_frame_steps": 2}}
+    config = {"model": {"first_frame_steps": 2, "first_frame_guidance": 4}}
     M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle), config=config).reset(seed=0)
     vector = M4WorldVectorEnv(2, "highway_sunny_day", backend="world_model", checkpoint=str(bundle))
     vector.reset(seed=0)
-    assert steps_taken == [3, 2, 3]
+    assert taken == [(3, 1.5), (2, 4.0), (3, 1.5)]
 
 
 def test_bundle_carries_a_verified_streaming_file(bundle):

@@ -30,6 +30,9 @@ MAX_DENOISING_STEPS = 50
 # commit (about 1 MB a frame for the shipped student in bf16), and every denoising pass attends to
 # all of them: 64 sink frames is 16 times the shipped 4-frame window.
 MAX_SINK_FRAMES = 64
+# Classifier-free guidance extrapolates the prompt's direction by this factor; the model config's
+# sampler guides at 3, and far beyond 10 a sample saturates its colours.
+MAX_GUIDANCE = 20.0
 # What each setting allows, as every error message says it (n: the denoising steps).
 STREAMING_BOUNDS = {
     "denoising_steps": f"an integer in [1, {MAX_DENOISING_STEPS}]",
@@ -40,6 +43,7 @@ STREAMING_BOUNDS = {
     ),
     "sink_frames": f"an integer in [0, {MAX_SINK_FRAMES}]",
     "first_frame_steps": f"an integer in [1, {MAX_DENOISING_STEPS}]",
+    "first_frame_guidance": f"a number in [1, {MAX_GUIDANCE:g}] (1: no guidance)",
 }
 
 
@@ -69,6 +73,11 @@ class StreamingConfig:
     # shipped checkpoint's first frames are judged alike at 4 and at its sampler's 20
     # (docs/experiments.md).
     first_frame_steps: int = 4
+    # The cameras' classifier-free guidance scale of that first frame. The model config's sampler
+    # guides at 3; the shipped reference model then draws the light of dusk and night too dark
+    # (the road in the ego's headlights most), and the student keeps that light for the episode
+    # (docs/experiments.md).
+    first_frame_guidance: float = 2.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -168,6 +177,7 @@ def check_setting(key: str, value: Any, name: str | None = None) -> Any:
         "context_refresh": _bool,
         "refresh_steps": _refresh_steps,
         "first_frame_steps": _denoising_steps,
+        "first_frame_guidance": _guidance,
     }
     checked = form.get(key, _sink_frames)(value)
     if checked is None:
@@ -218,6 +228,13 @@ def _denoising_steps(value: Any) -> int | None:
 
 def _sink_frames(value: Any) -> int | None:
     return _in_range(value, 0, MAX_SINK_FRAMES)
+
+
+def _guidance(value: Any) -> float | None:
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        return None
+    number = float(value)
+    return number if 1.0 <= number <= MAX_GUIDANCE else None  # NaN fails both
 
 
 def _bool(value: Any) -> bool | None:

@@ -339,12 +339,19 @@ class ReferenceGenerator:
         steps: int | None = None,
         seed: int | Sequence[int] = 0,
         sampler: SamplerConfig | None = None,
+        guidance: float | None = None,
     ) -> torch.Tensor:
         """Latents (B, T, V, C, h, w) for ``cond`` anchored on ``extra`` (B, T, V, C + 1, h, w)
         reference channels (:func:`reference_input`); None = controls only. ``seed``: of the
-        batch's noise, or one per row (row i's noise then as in a batch of one seeded ``seed[i]``)."""
+        batch's noise, or one per row (row i's noise then as in a batch of one seeded ``seed[i]``).
+        ``steps`` and ``guidance`` (the cameras' classifier-free guidance scale) replace those of
+        ``sampler`` (default: the model config's)."""
         mc = self.mcfg
-        sampler = replace(sampler or mc.sampler, **({"steps": steps} if steps else {}))
+        sampler = replace(
+            sampler or mc.sampler,
+            **({"steps": steps} if steps else {}),
+            **({"camera_cfg_scale": guidance} if guidance is not None else {}),
+        )
         shape = (cond.batch_size, *mc.latent_shape(cond.num_frames))
         if extra is not None and tuple(extra.shape) != (*shape[:3], reference_channels(mc), *shape[4:]):
             raise ValueError(f"reference channels must be {(*shape[:3], reference_channels(mc), *shape[4:])}")
@@ -383,16 +390,18 @@ class ReferenceGenerator:
         steps: int | None = None,
         seed: int = 0,
         sensors: SensorSelection = ALL_SENSORS,
+        guidance: float | None = None,
     ) -> tuple[torch.Tensor, list[Observation]]:
         """The first multi-view frame (+ LiDAR) from controls (``reference=None``), one view
-        (``{"FRONT": (H, W, 3)}``) or all views (``{"cameras": (V, H, W, 3)}``).
+        (``{"FRONT": (H, W, 3)}``) or all views (``{"cameras": (V, H, W, 3)}``); ``steps`` and
+        ``guidance`` as in :meth:`sample`.
 
         Returns normalized latents (B, 1, V, C, h, w), ready to seed the causal student's cache,
         and B observations, of the ``sensors`` decoded. Only the first frame of ``cond`` is used.
         """
         cond = cond.frames(0, 1)
         extra = self.encode_reference(reference, cond.batch_size) if reference else None
-        lat = self.sample(cond, extra, steps, seed)
+        lat = self.sample(cond, extra, steps, seed, guidance=guidance)
         obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs(), sensors=sensors)
         return lat, [o[0] for o in obs]
 
@@ -414,11 +423,13 @@ class ReferenceGenerator:
         category: str,
         steps: int | None = None,
         seed: int = 0,
+        guidance: float | None = None,
     ) -> torch.Tensor:
         """Task (c) on first frames already generated: regenerate the projected boxes of every
         ``category`` object in ``latents`` (B, 1, V, C, h, w), one SceneFrame per row, the rest of
         each frame observed. A row without the category comes back unchanged (all of it observed,
-        and observed cells are pasted back); so does the batch when no row holds it."""
+        and observed cells are pasted back); so does the batch when no row holds it. ``steps`` and
+        ``guidance`` as in :meth:`sample`."""
         if latents.shape[1] != 1 or len(frames) != latents.shape[0]:
             raise ValueError(
                 f"need one frame per row of single-frame latents, got {len(frames)} for {tuple(latents.shape)}"
@@ -427,7 +438,7 @@ class ReferenceGenerator:
         if not region.any():
             return latents
         mask = torch.as_tensor(~region, dtype=latents.dtype, device=latents.device)[:, None, :, None]
-        return self.sample(cond.frames(0, 1), reference_input(latents, mask), steps, seed)
+        return self.sample(cond.frames(0, 1), reference_input(latents, mask), steps, seed, guidance=guidance)
 
     def complete_object(
         self,

@@ -145,20 +145,19 @@ class WorldModel:
         frame without the category, stay exactly what the base model drew. A user's images are
         kept as given."""
         gen = self.first_frames
+        steps, guidance = self.streaming.first_frame_steps, self.streaming.first_frame_guidance
         model = gen.model
         loaded = loaded_adapters(model)
         completion = {n: c for n, c in self._completion.items() if n in loaded}  # not removed since
         others = [n for n in loaded if n not in completion]
         with only_adapters(model, others) if completion else nullcontext():  # no switching without one
-            latents, obs = gen.first_frame(cond, reference, self.streaming.first_frame_steps, seed, sensors)
+            latents, obs = gen.first_frame(cond, reference, steps, seed, sensors, guidance=guidance)
         wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
         if reference or not wanted:
             return latents, obs[0]
         for name, category in wanted.items():
             with only_adapters(model, [*others, name]):
-                latents = gen.complete_category(
-                    cond, latents, [frame], category, self.streaming.first_frame_steps, seed
-                )
+                latents = gen.complete_category(cond, latents, [frame], category, steps, seed, guidance=guidance)
         return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)[0][0]
 
     @torch.no_grad()
@@ -190,7 +189,10 @@ class WorldModel:
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
             latents = gen.sample(
-                cond.frames(0, 1), steps=self.streaming.first_frame_steps, seed=[int(s) for s in seeds]
+                cond.frames(0, 1),
+                steps=self.streaming.first_frame_steps,
+                seed=[int(s) for s in seeds],
+                guidance=self.streaming.first_frame_guidance,
             )
         observations = self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)
         return latents, [obs[0] for obs in observations]

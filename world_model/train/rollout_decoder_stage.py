@@ -120,7 +120,10 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
             rows = list(range(g, min(g + batch, len(clips))))
             cond = rollout_conditions(windows, rows, 0, 1, 0).to(device)
             first = first_frames.sample(
-                cond, steps=scfg.streaming.first_frame_steps, seed=[run.tcfg.seed + r for r in rows]
+                cond,
+                steps=scfg.streaming.first_frame_steps,
+                seed=[run.tcfg.seed + r for r in rows],
+                guidance=scfg.streaming.first_frame_guidance,
             )
             engine.start(first, cond)
             lengths = windows.lengths[rows]
