@@ -3,6 +3,7 @@
 import json
 import math
 
+import numpy as np
 import pytest
 
 from m4world_env.agreement.plot import scatter_plot
@@ -12,6 +13,7 @@ from m4world_env.agreement.stats import (
     TRUTH,
     agreement,
     agreement_by_scenario,
+    agreement_intervals,
     bootstrap_mean_ci,
     episode_key,
     kendall_tau,
@@ -74,6 +76,17 @@ def test_a_reversed_ranking_is_perfectly_anticorrelated():
     assert pearson(x, y) == pytest.approx(-1.0)
     assert spearman(x, y) == pytest.approx(-1.0)
     assert kendall_tau(x, y) == pytest.approx(-1.0)
+
+
+def test_correlations_are_scipys_with_ties():
+    from scipy import stats as scipy_stats
+
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        x, y = rng.integers(0, 6, 12) / 5, rng.integers(0, 6, 12) / 5  # scores with ties
+        assert pearson(x, y) == pytest.approx(scipy_stats.pearsonr(x, y).statistic, abs=1e-12)
+        assert spearman(x, y) == pytest.approx(scipy_stats.spearmanr(x, y).statistic, abs=1e-12)
+        assert kendall_tau(x, y) == pytest.approx(scipy_stats.kendalltau(x, y, variant="b").statistic, abs=1e-12)
 
 
 def test_a_correlation_with_a_constant_side_is_nan():
@@ -231,6 +244,27 @@ def test_collision_agreement_and_zoo_agreement_on_a_hand_made_set():
     assert a["mean_abs_delta"] == pytest.approx(0.4)
 
 
+def test_agreement_intervals_bracket_the_run_and_resample_whole_episodes():
+    records = synthetic_records()
+    a, ci = agreement(records), agreement_intervals(records, rng_seed=0, resamples=500)
+    for name, (low, high) in ci.items():
+        assert low <= a[name] + 1e-9 and a[name] - 1e-9 <= high, (name, low, a[name], high)
+    assert ci == agreement_intervals(records, rng_seed=0, resamples=500)  # deterministic per seed
+    # The same scores on every episode: nothing to resample, every draw gives the run's value.
+    flat = [r | {"scenario": "s", "seed": 0} for r in records if r["scenario"] == SCENARIOS[0] and r["seed"] == 0]
+    flat = [r | {"seed": seed} for r in flat for seed in (0, 1, 2)]
+    for name, (low, high) in agreement_intervals(flat, resamples=200).items():
+        assert (low, high) == (pytest.approx(agreement(flat)[name]),) * 2 or math.isnan(low), name
+    # A policy that skipped an episode would make its means incomparable.
+    with pytest.raises(ValueError, match=r"policy 'a' drove 1 of the run's 2 episodes"):
+        agreement_intervals(
+            [record("a", "s", 0, TRUTH, 0.5), record("a", "s", 0, MODEL, 0.5)]
+            + [record(p, "s", k, b, 0.5) for p in "b" for k in (0, 1) for b in (TRUTH, MODEL)]
+        )
+    one = [record(p, "s", 0, b, v) for p, v in (("a", 0.2), ("b", 0.8)) for b in (TRUTH, MODEL)]
+    assert all(math.isnan(low) for low, _ in agreement_intervals(one).values())  # one episode: no interval
+
+
 def test_agreement_by_scenario_uses_each_scenarios_records_alone():
     records = []
     for i, (policy, truth) in enumerate([("a", 0.9), ("b", 0.5), ("c", 0.1)]):
@@ -301,7 +335,7 @@ def test_build_summary_shape_and_json():
     summary = make_summary()
     assert set(summary) == {
         "checkpoint", "scenarios", "seeds", "steps", "seconds", "metrics", "bootstrap",
-        "policies", "agreement", "by_scenario", "disagreements",
+        "policies", "agreement", "agreement_ci", "by_scenario", "disagreements",
     }  # fmt: skip
     assert list(summary["policies"]) == sorted(POLICIES)
     entry = summary["policies"]["gap_keeper"]
@@ -334,8 +368,13 @@ def test_markdown_report_has_the_headline_tables_and_links():
     assert "## Agreement over the zoo" in text
     assert "| statistic | **this run** | NAVSIM v2 pseudo-simulation †" in text
     a = summary["agreement"]
-    assert f"| Pearson r ↑ | {a['pearson']:.3f} | 0.89 | 0.942 | 0.924 |" in text
-    assert f"| MMRV ↓ | {a['mmrv']:.3f} | – | 0.044 | – |" in text
+    low, high = summary["agreement_ci"]["pearson"]
+    assert f"| Pearson r ↑ | {a['pearson']:.3f} [{low:.3f}, {high:.3f}] | 0.89 | 0.942 | 0.924 |" in text
+    low, high = summary["agreement_ci"]["mmrv"]
+    assert f"| MMRV ↓ | {a['mmrv']:.3f} [{low:.3f}, {high:.3f}] | – | 0.044 | – |" in text
+    assert "95% bootstrap intervals (BCa)" in text
+    old = {k: v for k, v in summary.items() if k != "agreement_ci"}  # a summary written before intervals
+    assert f"| Pearson r ↑ | {a['pearson']:.3f} | 0.89 |" in markdown_report(old)
     assert "| policies | 5 | 83 | – | – |" in text
     assert "Published figures of other systems" in text
     assert "not measurements of this world model" in text
@@ -360,6 +399,7 @@ def test_markdown_report_shows_undefined_statistics_as_na():
         members={p: {"family": "learned", "citation": f"{p}@v1"} for p in ("a", "b")},
     )
     assert summary["agreement"]["pearson"] is None  # every policy's truth is 0.5: constant
+    assert summary["agreement_ci"]["pearson"] is None
     text = markdown_report(summary)
     assert "| Pearson r ↑ | n/a | 0.89 |" in text
 

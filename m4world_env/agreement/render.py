@@ -29,6 +29,7 @@ constant side, is ``None`` rather than ``nan`` so ``json.dumps(summary, allow_na
         "kendall": float | None, "mmrv": float, "mean_abs_delta": float,
         "collision_agreement": float, "episodes": int, "policies": int,
       },
+      "agreement_ci": {statistic: [low, high] | None},  # stats.agreement_intervals, over episodes
       "by_scenario": {scenario: <same shape as "agreement">},  # in name order
       "disagreements": [                        # the largest |model - truth| PDMS first
         {"key": "policy/scenario/seed", "policy": str, "scenario": str, "seed": int,
@@ -52,6 +53,7 @@ from m4world_env.agreement.stats import (
     Record,
     agreement,
     agreement_by_scenario,
+    agreement_intervals,
     episode_key,
     most_disagreeing,
     policy_scores,
@@ -175,6 +177,10 @@ def build_summary(
         "bootstrap": {"resamples": DEFAULT_RESAMPLES, "level": DEFAULT_LEVEL, "rng_seed": int(rng_seed)},
         "policies": policies,
         "agreement": _plain_agreement(agreement(records)),
+        "agreement_ci": {
+            name: None if math.isnan(low) else [low, high]
+            for name, (low, high) in agreement_intervals(records, rng_seed=rng_seed).items()
+        },
         "by_scenario": {name: _plain_agreement(a) for name, a in agreement_by_scenario(records).items()},
         "disagreements": disagreements,
     }
@@ -226,13 +232,21 @@ def _headline(summary: Mapping[str, Any]) -> list[str]:
         values = [getattr(r, field) for r in refs]
         return [label, ours, *(dash if v is None else f"{v:g}" for v in values)]
 
+    intervals = summary.get("agreement_ci", {})
+
+    def ours(statistic: str) -> str:
+        """The run's value and, where the summary has it, its bootstrap interval."""
+        interval = intervals.get(statistic)
+        bounds = "" if interval is None else f" [{number(interval[0])}, {number(interval[1])}]"
+        return number(a[statistic]) + bounds
+
     rows = [
-        ref_row("Pearson r ↑", number(a["pearson"]), "pearson"),
-        ["Spearman ρ ↑", number(a["spearman"]), *(dash for _ in refs)],
-        ["Kendall τ ↑", number(a["kendall"]), *(dash for _ in refs)],
-        ref_row("MMRV ↓", number(a["mmrv"]), "mmrv"),
-        ["mean |ΔPDMS| ↓", number(a["mean_abs_delta"]), *(dash for _ in refs)],
-        ["collision agreement (episodes) ↑", number(a["collision_agreement"]), *(dash for _ in refs)],
+        ref_row("Pearson r ↑", ours("pearson"), "pearson"),
+        ["Spearman ρ ↑", ours("spearman"), *(dash for _ in refs)],
+        ["Kendall τ ↑", ours("kendall"), *(dash for _ in refs)],
+        ref_row("MMRV ↓", ours("mmrv"), "mmrv"),
+        ["mean |ΔPDMS| ↓", ours("mean_abs_delta"), *(dash for _ in refs)],
+        ["collision agreement (episodes) ↑", ours("collision_agreement"), *(dash for _ in refs)],
         ref_row("policies", str(a["policies"]), "policies"),
         ["episodes (paired)", str(a["episodes"]), *(dash for _ in refs)],
     ]
@@ -241,6 +255,12 @@ def _headline(summary: Mapping[str, Any]) -> list[str]:
     lines.append(
         f"Over the {a['policies']} policies' mean {a['metric'].upper()}: the world model's scores "
         "against the ground truth's (the procedural renderer)."
+        + (
+            f" In brackets, {level_percent(summary)} bootstrap intervals (BCa) with the episodes, "
+            "(scenario, seed) pairs, resampled: how much the statistic could move with other seeds."
+            if intervals
+            else ""
+        )
     )
     lines += ["", *_table(header, rows), ""]
     settings = "; ".join(f"{r.system}: {r.setting}" for r in refs)

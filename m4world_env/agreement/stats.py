@@ -15,6 +15,7 @@ functions never return numpy scalars.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
@@ -49,9 +50,39 @@ def _pair_arrays(x: Sequence[float], y: Sequence[float]) -> tuple[np.ndarray, np
     return a, b
 
 
-def _undefined_correlation(a: np.ndarray, b: np.ndarray) -> bool:
-    """A correlation is 0/0 when either side has no spread: one value (or one policy) included."""
-    return bool(np.ptp(a) == 0 or np.ptp(b) == 0)
+# Row-wise forms: (B, P) scores -> (B,) statistics, one per row; the functions below are their one-row
+# case, and the bootstrap evaluates all its draws at once with them.
+
+
+def _pearson_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pearson's r of each row pair; nan where either row has no spread (0/0: one value included)."""
+    da, db = a - a.mean(axis=-1, keepdims=True), b - b.mean(axis=-1, keepdims=True)
+    constant = (np.ptp(a, axis=-1) == 0) | (np.ptp(b, axis=-1) == 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = (da * db).sum(axis=-1) / np.sqrt((da * da).sum(axis=-1) * (db * db).sum(axis=-1))
+    return np.where(constant, np.nan, np.clip(r, -1.0, 1.0))
+
+
+def _spearman_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return _pearson_rows(scipy_stats.rankdata(a, axis=-1), scipy_stats.rankdata(b, axis=-1))
+
+
+def _kendall_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """tau-b = sum_{i<j} s_a s_b / sqrt(sum_{i<j} s_a^2 * sum_{i<j} s_b^2), s = sign of the pair's
+    difference (every pair counted twice on both sides of the ratio: the same ratio)."""
+    sa = np.sign(a[..., :, None] - a[..., None, :])
+    sb = np.sign(b[..., :, None] - b[..., None, :])
+    constant = (np.ptp(a, axis=-1) == 0) | (np.ptp(b, axis=-1) == 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tau = (sa * sb).sum(axis=(-2, -1)) / np.sqrt((sa * sa).sum(axis=(-2, -1)) * (sb * sb).sum(axis=(-2, -1)))
+    return np.where(constant, np.nan, tau)
+
+
+def _mmrv_rows(real: np.ndarray, sim: np.ndarray) -> np.ndarray:
+    # violated[..., i, j]: the simulator's strict order of (i, j) differs from the truth's
+    violated = (sim[..., :, None] > sim[..., None, :]) != (real[..., :, None] > real[..., None, :])
+    weights = np.abs(real[..., :, None] - real[..., None, :]) * violated
+    return weights.max(axis=-1).mean(axis=-1)
 
 
 def pearson(x: Sequence[float], y: Sequence[float]) -> float:
@@ -63,9 +94,7 @@ def pearson(x: Sequence[float], y: Sequence[float]) -> float:
     the ratio is 0/0 there, and no value would be honest (SIMPLER's code returns 1 when both sides
     are the same constant; here a zoo whose scores do not vary has no correlation to report)."""
     a, b = _pair_arrays(x, y)
-    if _undefined_correlation(a, b):
-        return math.nan
-    return float(scipy_stats.pearsonr(a, b).statistic)
+    return float(_pearson_rows(a, b))
 
 
 def spearman(x: Sequence[float], y: Sequence[float]) -> float:
@@ -76,9 +105,7 @@ def spearman(x: Sequence[float], y: Sequence[float]) -> float:
     with tied values given the average of the ranks they span (ranks of [0.2, 0.5, 0.5, 0.9] are
     [1, 2.5, 2.5, 4]). ``nan`` when either side is constant (its ranks are constant too)."""
     a, b = _pair_arrays(x, y)
-    if _undefined_correlation(a, b):
-        return math.nan
-    return float(scipy_stats.spearmanr(a, b).statistic)
+    return float(_spearman_rows(a, b))
 
 
 def kendall_tau(x: Sequence[float], y: Sequence[float]) -> float:
@@ -90,9 +117,7 @@ def kendall_tau(x: Sequence[float], y: Sequence[float]) -> float:
     pairs tied in y (a pair tied on one side is neither concordant nor discordant). ``nan`` when
     either side is constant (every pair is tied there: the denominator is 0)."""
     a, b = _pair_arrays(x, y)
-    if _undefined_correlation(a, b):
-        return math.nan
-    return float(scipy_stats.kendalltau(a, b, variant="b").statistic)
+    return float(_kendall_rows(a, b))
 
 
 def mmrv(real: Sequence[float], sim: Sequence[float]) -> float:
@@ -118,10 +143,7 @@ def mmrv(real: Sequence[float], sim: Sequence[float]) -> float:
     instead; the two agree whenever ``sim`` has no ties, and the published SIMPLER figures come
     from the code. A single policy has nothing to violate: 0."""
     r, s = _pair_arrays(real, sim)
-    # violated[i, j]: the simulator's strict order of (i, j) differs from the truth's
-    violated = (s[:, None] > s[None, :]) != (r[:, None] > r[None, :])
-    weights = np.abs(r[:, None] - r[None, :]) * violated
-    return float(weights.max(axis=1).mean())
+    return float(_mmrv_rows(r, s))
 
 
 def bootstrap_mean_ci(
@@ -267,6 +289,87 @@ def agreement(records: Iterable[Record], metric: str = "pdms") -> dict[str, Any]
     }
 
 
+# The statistics of :func:`agreement` that :func:`agreement_intervals` bounds.
+INTERVAL_STATISTICS = ("pearson", "spearman", "kendall", "mmrv", "mean_abs_delta", "collision_agreement")
+
+
+def agreement_intervals(
+    records: Iterable[Record],
+    metric: str = "pdms",
+    *,
+    rng_seed: int = 0,
+    resamples: int = DEFAULT_RESAMPLES,
+    level: float = DEFAULT_LEVEL,
+) -> dict[str, tuple[float, float]]:
+    """statistic -> (low, high): bootstrap intervals at ``level`` of :func:`agreement`'s statistics
+    (:data:`INTERVAL_STATISTICS`), the run's episodes resampled.
+
+    The unit drawn is the episode, a (scenario, seed) pair that every policy drove: each of
+    ``resamples`` draws takes the E episodes with replacement and recomputes every policy's means on
+    both backends from them, then the statistics, so a scene that is hard for the world model weighs
+    on every policy of a draw at once, as it does in the run. The intervals are bias-corrected and
+    accelerated (BCa, ``scipy.stats.bootstrap``): a correlation of noisy means is biased low under
+    resampling, and the percentile interval of its draws would lie mostly below the run's own value.
+    ``(nan, nan)`` where the bootstrap cannot tell (fewer than two episodes, a constant side).
+    Every policy must have driven every episode (an agreement run's plan), else ``ValueError``."""
+    _check_metric(metric)
+    if resamples < 1:
+        raise ValueError(f"resamples must be >= 1, got {resamples}")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    grouped = _by_policy(paired_episodes(records))
+    if not grouped:
+        raise ValueError("no episodes to compare")
+    episodes = {(str(t["scenario"]), int(t["seed"])) for ps in grouped.values() for t, _ in ps}
+    for policy, ps in grouped.items():
+        if len(ps) != len(episodes):
+            raise ValueError(f"policy {policy!r} drove {len(ps)} of the run's {len(episodes)} episodes")
+    undefined = {name: (math.nan, math.nan) for name in INTERVAL_STATISTICS}
+    if len(episodes) < 2:
+        return undefined
+    # (P, E) in one episode order for all: _by_policy keeps each policy's pairs in (scenario, seed) order.
+    truth = np.array([[float(t[metric]) for t, _ in ps] for ps in grouped.values()])
+    model = np.array([[float(m[metric]) for _, m in ps] for ps in grouped.values()])
+    same = np.array([[bool(t["collision"]) == bool(m["collision"]) for t, m in ps] for ps in grouped.values()])
+
+    def statistics(drawn: np.ndarray, axis: int = -1) -> np.ndarray:
+        """(..., E) drawn episode indices -> (6, ...) statistics, one per draw."""
+        t = np.moveaxis(truth[:, drawn].mean(axis=-1), 0, -1)  # (..., P)
+        m = np.moveaxis(model[:, drawn].mean(axis=-1), 0, -1)
+        return np.stack(
+            [
+                _pearson_rows(t, m),
+                _spearman_rows(t, m),
+                _kendall_rows(t, m),
+                _mmrv_rows(t, m),
+                np.abs(m - t).mean(axis=-1),
+                same[:, drawn].mean(axis=(0, -1)),
+            ]
+        )
+
+    run = statistics(np.arange(len(episodes)))
+    if np.isnan(run).any():
+        return undefined
+    with warnings.catch_warnings():
+        # A statistic whose jackknife values are all equal has no acceleration (0/0): nan, below.
+        warnings.simplefilter("ignore", scipy_stats.DegenerateDataWarning)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        result = scipy_stats.bootstrap(
+            (np.arange(len(episodes)),),
+            statistics,
+            vectorized=True,
+            n_resamples=resamples,
+            confidence_level=level,
+            method="BCa",
+            random_state=np.random.default_rng(rng_seed),
+        )
+    out = {}
+    for k, name in enumerate(INTERVAL_STATISTICS):
+        low, high = float(result.confidence_interval.low[k]), float(result.confidence_interval.high[k])
+        if math.isnan(low) and np.ptp(result.bootstrap_distribution[k]) == 0:
+            low = high = float(run[k])  # every draw gives the run's value: nothing to bound
+        out[name] = (low, high)
+    return out
 def agreement_by_scenario(records: Iterable[Record], metric: str = "pdms") -> dict[str, dict[str, Any]]:
     """scenario -> :func:`agreement` over that scenario's records alone, scenarios in name order."""
     by_scenario: dict[str, list[Record]] = {}
