@@ -31,7 +31,7 @@ MAX_DENOISING_STEPS = 50
 # all of them: 64 sink frames is 16 times the shipped 4-frame window.
 MAX_SINK_FRAMES = 64
 # Classifier-free guidance extrapolates the prompt's direction by this factor; the model config's
-# sampler guides at 3, and far beyond 10 a sample saturates its colours.
+# sampler guides at 3, and the bound refuses a digit's slip (30 for 3.0) rather than any scale in use.
 MAX_GUIDANCE = 20.0
 # What each setting allows, as every error message says it (n: the denoising steps).
 STREAMING_BOUNDS = {
