@@ -370,6 +370,8 @@ def agreement_intervals(
             low = high = float(run[k])  # every draw gives the run's value: nothing to bound
         out[name] = (low, high)
     return out
+
+
 def agreement_by_scenario(records: Iterable[Record], metric: str = "pdms") -> dict[str, dict[str, Any]]:
     """scenario -> :func:`agreement` over that scenario's records alone, scenarios in name order."""
     by_scenario: dict[str, list[Record]] = {}
