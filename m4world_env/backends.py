@@ -132,8 +132,11 @@ class WorldModelBackend:
         every_frame: bool = False,
         sensors: SensorSelection = ALL_SENSORS,
     ) -> None:
+        import torch
+
         from world_model.rollout.batch import RolloutBatch
         from world_model.rollout.runtime import load_world_model
+        from world_model.rollout.shards import ShardedRollouts, shard_count, usable_cpus
 
         mc = config.model
         try:
@@ -141,8 +144,6 @@ class WorldModelBackend:
         except ValueError as e:
             raise InvalidOptionError(f"config.model.device: {e}") from e
         if mc.threads is not None:
-            import torch
-
             torch.set_num_threads(mc.threads)
         self.wm = load_world_model(checkpoint, device=device, dtype=mc.dtype)
         try:
@@ -154,7 +155,12 @@ class WorldModelBackend:
         if mc.compile:
             self.wm.student.compile_blocks()
         self.sensors = sensors
-        self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame, sensors=sensors)
+        requested = 1 if mc.compile else mc.rollout_threads  # compiled blocks: one thread (EnvConfig)
+        shards = shard_count(requested, num_rollouts, device.type, usable_cpus(), torch.get_num_threads())
+        if shards > 1:
+            self.rollouts = ShardedRollouts(self.wm, num_rollouts, shards, every_frame=every_frame, sensors=sensors)
+        else:
+            self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame, sensors=sensors)
         self.rig = self.wm.rig
         self.model_cfg = self.wm.cfg
         self.with_bev = with_bev

@@ -87,6 +87,11 @@ class ModelBackendConfig:
     # a step from collapsing when other processes (other envs, a learner) share the cores
     # (docs/performance.md, m4world bench threads). None leaves torch's setting as it is.
     threads: int | None = DEFAULT_TORCH_THREADS
+    # A vector env's rollouts stepped in this many groups at once, a Python thread each
+    # (world_model.rollout.shards): None = as many as the process's CPUs hold groups of ``threads``
+    # torch threads (on CPU; one on a GPU), at most one a sub-env. The observations are the same
+    # bit for bit whatever the number (docs/performance.md).
+    rollout_threads: int | None = None
 
     def streaming_changes(self) -> dict[str, Any]:
         """The streaming settings given (not None): changes to the bundle's streaming.json."""
@@ -142,6 +147,13 @@ class EnvConfig:
             raise InvalidOptionError(str(e)) from e
         if m.threads is not None:
             _check_int_range(m.threads, 1, MAX_TORCH_THREADS, "config.model.threads")
+        if m.rollout_threads is not None:
+            _check_int_range(m.rollout_threads, 1, MAX_TORCH_THREADS, "config.model.rollout_threads")
+            if m.compile and m.rollout_threads > 1:
+                raise InvalidOptionError(
+                    f"config.model.rollout_threads={m.rollout_threads} needs config.model.compile off: compiled "
+                    "blocks step the rollouts on one thread"
+                )
         device = m.device.split(":", 1)
         if device[0] not in DEVICE_TYPES or (len(device) == 2 and (device[0] != "cuda" or not device[1].isdigit())):
             raise InvalidOptionError(f"config.model.device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {m.device!r}")

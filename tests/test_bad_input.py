@@ -142,6 +142,11 @@ def test_a_config_that_is_not_a_dict_is_refused(config):
         ({"model": {"sink_frames": 10**6}}, r"config\.model\.sink_frames"),
         ({"model": {"device": "mps"}}, r"config\.model\.device"),
         ({"model": {"device": "meta"}}, r"config\.model\.device"),
+        ({"model": {"rollout_threads": 0}}, r"config\.model\.rollout_threads"),
+        ({"model": {"rollout_threads": 10**6}}, r"config\.model\.rollout_threads"),
+        ({"model": {"rollout_threads": 1.5}}, r"config\.model\.rollout_threads"),
+        ({"model": {"rollout_threads": True}}, r"config\.model\.rollout_threads"),
+        ({"model": {"rollout_threads": "2"}}, r"config\.model\.rollout_threads"),
     ],
 )
 def test_out_of_bounds_options_are_refused_by_name(config, match):

@@ -135,9 +135,10 @@ def test_pooled_text_embedding_does_not_depend_on_the_strings_encoded_with_it():
     assert np.array_equal(together[0], alone[0])
 
 
-def test_vector_reset_samples_every_first_frame_in_one_reference_call(active_bundle, monkeypatch):
+@pytest.mark.parametrize("groups, calls", [(1, [3]), (2, [1, 2])])
+def test_vector_reset_samples_every_first_frame_in_one_reference_call(active_bundle, monkeypatch, groups, calls):
     """The reset and the autoreset of every row (episodes truncated together): one batched
-    reference-model sample each."""
+    reference-model sample each, a sample per group of rollouts stepped on threads of their own."""
     from m4world_env.scenario import load_scenario
     from world_model.model.reference import ReferenceGenerator
 
@@ -152,13 +153,14 @@ def test_vector_reset_samples_every_first_frame_in_one_reference_call(active_bun
     short = load_scenario("merge_cut_in").model_copy(update={"duration": 1.0})  # 5 steps
     venv = gym.make_vec(
         "M4World-v0", num_envs=3, vectorization_mode="vector_entry_point", scenario=short,
-        backend="world_model", checkpoint=str(active_bundle), config=KEYS,
+        backend="world_model", checkpoint=str(active_bundle),
+        config={**KEYS, "model": {"rollout_threads": groups}},
     )  # fmt: skip
     venv.reset(seed=0)
-    assert batches == [3]
+    assert sorted(batches) == calls
     batches.clear()
     for _ in range(5):
         *_, terminated, truncated, _ = venv.step(ACTIONS)
     assert (terminated | truncated).all() and batches == []
     venv.step(ACTIONS)  # NEXT_STEP autoreset of all three rows
-    assert batches == [3]
+    assert sorted(batches) == calls

@@ -94,6 +94,7 @@ def _time_single(env: gym.Env, steps: int, seed: int, warmup: int = 0) -> tuple[
 # The qualifiers that set one count of config.model: name -> (config key, what N is).
 COUNT_QUALIFIERS = {
     "threads": ("threads", "a thread count"),
+    "rollout-threads": ("rollout_threads", "a number of rollout groups stepped at once"),
     "sink": ("sink_frames", "a number of frames"),
     "denoise": ("denoising_steps", "a number of denoising steps"),
     "first": ("first_frame_steps", "a number of first-frame steps"),
@@ -111,9 +112,11 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
     frames kept in context beside the window), ``denoise=N`` (``denoising_steps``), ``first=N``
     (``first_frame_steps``: the reference model's steps at reset), ``keys=K[+K...]``
     (``observation_keys``: e.g. ``keys=lidar`` decodes no camera), ``threads=N`` or ``threads=torch``
-    (``config.model.threads``: N torch threads, or torch's own choice), and ``checkpoint=BUNDLE`` (this backend's bundle
-    instead of ``--checkpoint``'s: two checkpoints compared within one run's rounds). ``device``:
-    ``config.model.device`` of the world-model backends."""
+    (``config.model.threads``: N torch threads, or torch's own choice), ``rollout-threads=N``
+    (``config.model.rollout_threads``: the vector env's rollouts in N groups on threads of their
+    own), and ``checkpoint=BUNDLE`` (this backend's bundle instead of ``--checkpoint``'s: two
+    checkpoints compared within one run's rounds). ``device``: ``config.model.device`` of the
+    world-model backends."""
     name, *qualifiers = backend.split(":")
     kw = {"backend": name, "config": CONFIG}
     if name != "world_model":
@@ -155,8 +158,8 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
-                "refresh=K[,K...], refresh=all, sink=N, denoise=N, first=N, keys=K[+K...], threads=N|torch or "
-                "checkpoint=BUNDLE"
+                "refresh=K[,K...], refresh=all, sink=N, denoise=N, first=N, keys=K[+K...], threads=N|torch, "
+                "rollout-threads=N or checkpoint=BUNDLE"
             )
     if checkpoint:
         kw["checkpoint"] = checkpoint
@@ -598,7 +601,8 @@ def build_parser() -> argparse.ArgumentParser:
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
         "default: the last two denoising steps) or refresh=all (every step), sink=N (config.model.sink_frames), "
         "denoise=N (config.model.denoising_steps), first=N (config.model.first_frame_steps), "
-        "keys=K[+K...] (observation_keys), "
+        "keys=K[+K...] (observation_keys), threads=N|torch (config.model.threads), "
+        "rollout-threads=N (config.model.rollout_threads), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
         "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",
     )

@@ -52,7 +52,10 @@ class RolloutBatch:
     frame's label map then). ``timer``: where the time of the stages ``student`` and ``decode``
     goes (:mod:`world_model.rollout.timing`; none by default, which waits for no device).
     ``sensors``: the sensors decoded, first frames included (the others are None in every
-    observation; the arrays need the label maps only of the sensors decoded)."""
+    observation; the arrays need the label maps only of the sensors decoded). ``restart_in_place``:
+    a row restarted while others run joins the batch's frame positions (default: with more than
+    one rollout); a lone rollout restarts from a fresh engine instead, so that a reset with the
+    same seed repeats its episode bit for bit."""
 
     def __init__(
         self,
@@ -61,9 +64,11 @@ class RolloutBatch:
         every_frame: bool = False,
         timer: StageTimer | None = None,
         sensors: SensorSelection = ALL_SENSORS,
+        restart_in_place: bool | None = None,
     ) -> None:
         self.wm = wm
         self.n = num_rollouts
+        self.restart_in_place = num_rollouts > 1 if restart_in_place is None else restart_in_place
         self.every_frame = every_frame
         self.sensors = sensors
         self.timer = timer
@@ -150,7 +155,7 @@ class RolloutBatch:
         """Seed the student's cache of ``rows`` with their first frames (R, 1, V, C, h, w)."""
         for row, a in zip(rows, arrays, strict=True):
             self.last_arrays[row] = a
-        if self.engine.batch_size == self.n and self.n > 1:
+        if self.engine.batch_size == self.n and self.restart_in_place:
             with torch.no_grad(), split_rows(len(rows)) if self._on_cpu else nullcontext():
                 self.engine.start_rows(rows, latents, Conditions.collate(arrays))
             return
@@ -170,7 +175,19 @@ class RolloutBatch:
         (:meth:`RolloutConditions.advance <world_model.rollout.conditions.RolloutConditions.advance>`):
         one per causal chunk of the step, or ``None`` for an idle rollout, whose output is
         discarded. Returns each active rollout's observations of the step's last frame (of every
-        frame with ``every_frame``)."""
+        frame with ``every_frame``): :meth:`decode_step` of :meth:`advance`."""
+        outs = self.advance(arrays)
+        with timed(self.timer, "decode"):
+            return self.decode_step(arrays, outs)
+
+    def advance(
+        self, arrays: Sequence[Sequence[ConditionArrays] | None], chunks: int | None = None
+    ) -> list[list[torch.Tensor]]:
+        """The student's part of :meth:`step_arrays`: each rollout's latents of the step, one
+        (1, chunk, V, C, h, w) tensor per chunk (an idle rollout's too, to be discarded).
+        ``chunks``: the step's chunks when every rollout here may be idle while rollouts elsewhere
+        step (another group of :class:`~world_model.rollout.shards.ShardedRollouts`): the idle
+        ones advance as they would in one batch with those, keeping the frame positions alike."""
         if len(arrays) != self.n:
             raise ValueError(f"need one list of condition arrays (or None) per rollout: {self.n}, got {len(arrays)}")
         if self.engine.batch_size != self.n:
@@ -182,7 +199,9 @@ class RolloutBatch:
                 f"every rollout's step must be the same number of the model's {self.chunk_frames}-frame chunks, "
                 f"got chunks of {sorted(shapes)} frames"
             )
-        steps = len(next(iter(shapes), ()))
+        steps = len(next(iter(shapes), ())) if chunks is None else chunks
+        if shapes and steps != len(next(iter(shapes))):
+            raise ValueError(f"chunks={chunks} differs from the {len(next(iter(shapes)))} chunks the arrays give")
         outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
         with torch.no_grad():
             for k in range(steps):
@@ -198,14 +217,13 @@ class RolloutBatch:
                     latents = self.engine.step(cond)
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
-        with timed(self.timer, "decode"):
-            return self._decode(arrays, outs)
+        return outs
 
-    def _decode(
+    def decode_step(
         self, arrays: Sequence[Sequence[ConditionArrays] | None], outs: list[list[torch.Tensor]]
     ) -> list[list[Observation] | None]:
-        """The observations of the step's latents ``outs`` of each rollout, one decoder call for
-        every active rollout's frames."""
+        """The decoder's part of :meth:`step_arrays`: the observations of the step's latents
+        ``outs`` (:meth:`advance`) of each active rollout, in one decoder call; None for the idle."""
         active = [i for i, row in enumerate(arrays) if row is not None]
         results: list[list[Observation] | None] = [None] * self.n
         if active:

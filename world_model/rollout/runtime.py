@@ -10,8 +10,9 @@ samples first frames and decodes latents. Streaming many rollouts through it:
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Mapping, Sequence
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -60,6 +61,13 @@ class WorldModel:
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
         self._adapter_dirs: dict[tuple[str, str], Path] = {}  # (model, adapter name) -> its directory
         self._completion: dict[str, str] = {}  # reference-model completion adapter -> the category it completes
+        # First frames switch the reference model's adapters on and off around a completion: one
+        # at a time when rollouts start on several threads (world_model.rollout.shards).
+        self._switching = threading.Lock()
+
+    def _switching_adapters(self, completion: Mapping[str, str]) -> AbstractContextManager:
+        """Held while the reference model's adapters are switched for ``completion`` (none: nothing)."""
+        return self._switching if completion else nullcontext()
 
     @property
     def dtype(self) -> str:
@@ -150,14 +158,15 @@ class WorldModel:
         loaded = loaded_adapters(model)
         completion = {n: c for n, c in self._completion.items() if n in loaded}  # not removed since
         others = [n for n in loaded if n not in completion]
-        with only_adapters(model, others) if completion else nullcontext():  # no switching without one
-            latents, obs = gen.first_frame(cond, reference, steps, seed, sensors, guidance=guidance)
-        wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
-        if reference or not wanted:
-            return latents, obs[0]
-        for name, category in wanted.items():
-            with only_adapters(model, [*others, name]):
-                latents = gen.complete_category(cond, latents, [frame], category, steps, seed, guidance=guidance)
+        with self._switching_adapters(completion):
+            with only_adapters(model, others) if completion else nullcontext():  # no switching without one
+                latents, obs = gen.first_frame(cond, reference, steps, seed, sensors, guidance=guidance)
+            wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
+            if reference or not wanted:
+                return latents, obs[0]
+            for name, category in wanted.items():
+                with only_adapters(model, [*others, name]):
+                    latents = gen.complete_category(cond, latents, [frame], category, steps, seed, guidance=guidance)
         return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)[0][0]
 
     @torch.no_grad()
@@ -187,7 +196,8 @@ class WorldModel:
         others = [n for n in loaded if n not in completion]
         on_cpu = next(gen.model.parameters()).device.type == "cpu"
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
-        with only_adapters(gen.model, others) if completion else nullcontext(), rowwise:
+        switched = only_adapters(gen.model, others) if completion else nullcontext()
+        with self._switching_adapters(completion), switched, rowwise:
             latents = gen.sample(
                 cond.frames(0, 1),
                 steps=self.streaming.first_frame_steps,
