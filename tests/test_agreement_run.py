@@ -75,7 +75,9 @@ def test_a_stopped_run_resumes_the_cells_it_had_not_finished(finished_run, activ
     ran = []
     real = agreement_run.run_cell
     monkeypatch.setattr(
-        agreement_run, "run_cell", lambda cell, p, on_step=None: ran.append(cell) or real(cell, p, on_step)
+        agreement_run,
+        "run_cell",
+        lambda cell, p, on_step=None, rollout_threads=None: ran.append(cell) or real(cell, p, on_step, rollout_threads),
     )
     again = run_agreement(plan(active_bundle), resumed, videos=0, progress=False)
     assert [c.backend for c in ran] == ["world_model"]
@@ -131,8 +133,8 @@ def test_the_command_builds_its_plan_from_the_run_size_and_the_flags(tmp_path, m
 
 
 def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch):
-    """Three rows of one scene and seed and one of another: the reference model samples two first
-    frames, and every row equals a vector env of its own."""
+    """Three rows of one scene and seed and one of another in one group of rollouts: the reference
+    model samples two first frames, and every row equals a vector env of its own."""
     from world_model.rollout.runtime import WorldModel
 
     sampled = []
@@ -143,7 +145,8 @@ def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch)
         return real(self, cond, frames, seeds, *rest)
 
     monkeypatch.setattr(WorldModel, "batch_first_frames", counting)
-    shared = M4WorldVectorEnv(4, "merge_cut_in", "world_model", str(active_bundle))
+    one_group = {"model": {"rollout_threads": 1}}
+    shared = M4WorldVectorEnv(4, "merge_cut_in", "world_model", str(active_bundle), config=one_group)
     obs, _ = shared.reset(seed=[3, 3, 5, 3])
     assert sampled == [2]
     actions = np.array([[0.5, 0.0], [-0.5, 0.1], [0.0, 0.0], [0.5, 0.0]], dtype=np.float32)

@@ -151,10 +151,16 @@ def _check_plan(plan: AgreementPlan, out: Path) -> None:
         _write_json(path, wanted)
 
 
-def run_cell(cell: Cell, plan: AgreementPlan, on_step: Callable[[int], None] | None = None) -> list[dict[str, Any]]:
+def run_cell(
+    cell: Cell,
+    plan: AgreementPlan,
+    on_step: Callable[[int], None] | None = None,
+    rollout_threads: int | None = None,
+) -> list[dict[str, Any]]:
     """Every policy of ``plan`` for one episode of ``cell``'s scenario and seed on its backend, in one
     vector env; returns one record per policy (its ``episode_metrics`` and who, where, what).
-    ``on_step(t)`` is called after each step ``t`` (1, 2, ...)."""
+    ``on_step(t)`` is called after each step ``t`` (1, 2, ...). ``rollout_threads``: the world
+    model's ``config.model.rollout_threads`` (None: the env's default, a group per core)."""
     from m4world_env import zoo
     from m4world_env.evaluate import episode_policy_seed
     from m4world_env.vector import M4WorldVectorEnv
@@ -166,7 +172,7 @@ def run_cell(cell: Cell, plan: AgreementPlan, on_step: Callable[[int], None] | N
         scenario=cell.scenario,
         backend=cell.backend,
         checkpoint=plan.checkpoint if cell.backend == "world_model" else None,
-        config={"observation_keys": list(SENSOR_KEYS)},
+        config={"observation_keys": list(SENSOR_KEYS), "model": {"rollout_threads": rollout_threads}},
     )
     try:
         obs, infos = venv.reset(seed=[cell.seed] * n)
@@ -249,10 +255,10 @@ class Progress:
         )
 
 
-def timed_cell(cell: Cell, plan: AgreementPlan, out: Path) -> dict[str, Any]:
+def timed_cell(cell: Cell, plan: AgreementPlan, out: Path, rollout_threads: int | None = None) -> dict[str, Any]:
     """Run ``cell`` and write its result (records and seconds) to its file; returns the result."""
     started = time.perf_counter()
-    records = run_cell(cell, plan, on_step=lambda t: _write_json(cell.step_path(out), {"step": t}))
+    records = run_cell(cell, plan, lambda t: _write_json(cell.step_path(out), {"step": t}), rollout_threads)
     result = {**asdict(cell), "seconds": time.perf_counter() - started, "records": records}
     _write_json(cell.path(out), result)
     cell.step_path(out).unlink(missing_ok=True)
@@ -268,10 +274,13 @@ def run_agreement(
     progress: bool = True,
 ) -> dict[str, Any]:
     """Run (or resume) ``plan`` into ``out`` and write its report; returns the summary. ``jobs``:
-    cells run at once, each in a process of its own (the env's one torch thread each)."""
+    cells run at once, each in a process of its own (the env's one torch thread each), the
+    process's CPUs shared out among them (a world-model cell's rollouts in that many groups on
+    threads, ``config.model.rollout_threads``; the records do not depend on it)."""
     from tqdm import tqdm
 
     from m4world_env import zoo
+    from world_model.rollout.shards import usable_cpus
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
@@ -282,12 +291,13 @@ def run_agreement(
     done = [json.loads(c.path(out).read_text()) for c in todo if c.path(out).exists()]
     # The world model's cells first: they take most of the time, the ground truth's fill the gaps.
     left = sorted((c for c in todo if not c.path(out).exists()), key=lambda c: c.backend != "world_model")
+    groups = max(1, usable_cpus() // jobs)
     tracker = Progress(out, plan, todo, jobs)
     bar = tqdm(total=len(todo), initial=len(done), desc="agreement", unit="cell", disable=not progress)
     tracker.update(done, left[:jobs])
     if jobs == 1:
         for i, cell in enumerate(left):
-            done.append(timed_cell(cell, plan, out))
+            done.append(timed_cell(cell, plan, out, groups))
             tracker.update(done, left[i + 1 : i + 2])
             bar.update(1)
     else:
@@ -295,7 +305,7 @@ def run_agreement(
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-            running = {pool.submit(timed_cell, c, plan, out): c for c in left}
+            running = {pool.submit(timed_cell, c, plan, out, groups): c for c in left}
             try:
                 while running:
                     finished, _ = wait(running, timeout=PROGRESS_SECONDS, return_when=FIRST_COMPLETED)
