@@ -8,13 +8,15 @@ Equal to the local vector env of N sub-envs: ``reset(seed=s)`` seeds sub-env ``i
 whichever actor runs it, autoreset is the same next-step autoreset (each actor's own), infos are
 re-batched as the local env batches them, and a bad action is refused before any actor steps.
 On the world-model backend, CPU rows are equal bit for bit at the same torch thread count: each actor
-runs ``int(cpus_per_worker)`` threads (at least one).
+runs ``int(cpus_per_worker)`` threads (at least one), and as many groups of rollouts unless
+``config.model.rollout_threads`` says otherwise (the node's other CPUs belong to other actors).
 """
 
 from __future__ import annotations
 
 import contextlib
 import numbers
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -52,6 +54,8 @@ class VectorWorker:
         from m4world_env.vector import M4WorldVectorEnv
 
         torch.set_num_threads(threads)
+        if config.model.rollout_threads is None:  # the actor's CPUs, not the node's
+            config = replace(config, model=replace(config.model, rollout_threads=threads))
         self.venv = M4WorldVectorEnv(num_envs, scenario, backend, checkpoint, config=config)
 
     def spaces(self) -> tuple[Any, Any, dict[str, Any]]:
