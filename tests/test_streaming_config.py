@@ -206,7 +206,7 @@ def test_a_resets_first_frame_takes_the_first_frame_steps_and_guidance(bundle, m
     M4WorldEnv("highway_sunny_day", backend="world_model", checkpoint=str(bundle), config=config).reset(seed=0)
     vector = M4WorldVectorEnv(2, "highway_sunny_day", backend="world_model", checkpoint=str(bundle))
     vector.reset(seed=0)
-    assert taken == [(3, 1.5), (2, 4.0), (3, 1.5)]
+    assert taken[:3] == [(3, 1.5), (2, 4.0), (3, 1.5)] and set(taken[3:]) <= {(3, 1.5)}  # a call a group
 
 
 def test_bundle_carries_a_verified_streaming_file(bundle):

@@ -45,6 +45,12 @@ def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
     return digest.digest()
 
 
+def check_starts(rows: Sequence[int], frames: Sequence[SceneFrame], seeds: Sequence[int], arrays: Sequence) -> None:
+    """A ``start_rows`` call's arguments: distinct rows, one frame, seed and arrays per row."""
+    if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
+        raise ValueError(f"need distinct rows and one frame, seed and arrays per row, got rows {list(rows)}")
+
+
 class RolloutBatch:
     """``num_rollouts`` independent rollouts advanced together, one causal chunk per step, from the
     condition arrays a :class:`~world_model.rollout.conditions.RolloutConditions` builds.
@@ -129,8 +135,7 @@ class RolloutBatch:
         """:meth:`start_row` of several rows from controls, their first frames sampled in one
         batched reference-model call (:meth:`WorldModel.batch_first_frames`); each row exactly as
         its own :meth:`start_row` would be."""
-        if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
-            raise ValueError(f"need distinct rows and one frame, seed and arrays per row, got rows {list(rows)}")
+        check_starts(rows, frames, seeds, arrays)
         for row, seed in zip(rows, seeds, strict=True):
             self.gens[row] = torch.Generator().manual_seed(int(seed))
         # Rows that start from the same controls and seed (one scene and seed under several

@@ -25,7 +25,7 @@ import numpy as np
 
 from world_model.model.conditions import ConditionArrays
 from world_model.observation import ALL_SENSORS, Observation, SensorSelection
-from world_model.rollout.batch import RolloutBatch
+from world_model.rollout.batch import RolloutBatch, check_starts
 from world_model.rollout.runtime import WorldModel
 from world_model.rollout.timing import StageTimer, timed
 from world_model.scene import SceneFrame
@@ -68,6 +68,7 @@ class ShardedRollouts:
             raise ValueError(f"shards must be in [1, {num_rollouts}] (one rollout a group at least), got {shards}")
         self.wm = wm
         self.n = num_rollouts
+        self.every_frame, self.sensors = every_frame, sensors
         bounds = np.linspace(0, num_rollouts, shards + 1).round().astype(int)
         self.groups = [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
         self.parts = [
@@ -114,8 +115,7 @@ class ShardedRollouts:
         arrays: Sequence[ConditionArrays],
     ) -> list[Observation]:
         """:meth:`RolloutBatch.start_rows`, each group's rows at once on its thread."""
-        if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
-            raise ValueError(f"need distinct rows and one frame, seed and arrays per row, got rows {list(rows)}")
+        check_starts(rows, frames, seeds, arrays)
         picks = [[k for k, row in enumerate(rows) if row in group] for group in self.groups]
         busy = [(part, group, ks) for part, group, ks in zip(self.parts, self.groups, picks, strict=True) if ks]
         results = self._each(
