@@ -156,11 +156,15 @@ class WorldModelBackend:
             self.wm.student.compile_blocks()
         self.sensors = sensors
         requested = 1 if mc.compile else mc.rollout_threads  # compiled blocks: one thread (EnvConfig)
-        shards = shard_count(requested, num_rollouts, device.type, usable_cpus(), torch.get_num_threads())
+        cpus, threads = usable_cpus(), torch.get_num_threads()
+        shards = shard_count(requested, num_rollouts, device.type, cpus, threads)
         if shards > 1:
             self.rollouts = ShardedRollouts(self.wm, num_rollouts, shards, every_frame=every_frame, sensors=sensors)
-        else:
-            self.rollouts = RolloutBatch(self.wm, num_rollouts, every_frame=every_frame, sensors=sensors)
+        else:  # one group (a single env): a core to spare decodes beside the cache write
+            spare = requested is None and shard_count(None, 2, device.type, cpus, threads) > 1
+            self.rollouts = RolloutBatch(
+                self.wm, num_rollouts, every_frame=every_frame, sensors=sensors, decode_beside_commit=spare
+            )
         self.rig = self.wm.rig
         self.model_cfg = self.wm.cfg
         self.with_bev = with_bev

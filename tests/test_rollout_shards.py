@@ -119,3 +119,44 @@ def test_stage_times_are_wall_times_of_the_groups_together(active_bundle, one_th
         assert timer.seconds["student"] > 0 and timer.seconds["decode"] > 0
     finally:
         venv.close()
+
+
+def _single_episode(bundle, rollout_threads: int | None) -> tuple[list, bool]:
+    env = gym.make(
+        "M4World-v0", scenario="merge_cut_in", backend="world_model", checkpoint=str(bundle),
+        config={**KEYS, "model": {"rollout_threads": rollout_threads}},
+    )  # fmt: skip
+    beside = env.unwrapped.backend.rollouts._beside is not None
+    out = [env.reset(seed=4)[0]]
+    out += [env.step(ACTIONS[0])[0] for _ in range(8)]
+    out.append(env.reset(seed=5)[0])
+    out += [env.step(ACTIONS[2])[0] for _ in range(3)]
+    env.close()
+    return out, beside
+
+
+def test_a_single_env_decodes_beside_the_cache_write_and_observes_the_same(active_bundle, one_thread, monkeypatch):
+    monkeypatch.setattr("world_model.rollout.shards.usable_cpus", lambda: 2)
+    beside, on = _single_episode(active_bundle, None)
+    plain, off = _single_episode(active_bundle, 1)  # one thread asked for: nothing beside
+    assert on and not off
+    for step, (a, b) in enumerate(zip(beside, plain, strict=True)):
+        for key in a:
+            assert np.array_equal(a[key], b[key]), f"step {step}, {key}"
+
+
+def test_a_decode_error_beside_the_cache_write_reaches_the_caller(active_bundle, one_thread, monkeypatch):
+    monkeypatch.setattr("world_model.rollout.shards.usable_cpus", lambda: 2)
+    env = gym.make("M4World-v0", scenario="merge_cut_in", backend="world_model", checkpoint=str(active_bundle))
+    env.reset(seed=0)
+    rollouts = env.unwrapped.backend.rollouts
+    position = rollouts.engine.position
+
+    def broken(*args):
+        raise RuntimeError("decoder broke")
+
+    monkeypatch.setattr(rollouts, "decode_step", broken)
+    with pytest.raises(RuntimeError, match="decoder broke"):
+        env.step(ACTIONS[0])
+    assert rollouts.engine.position > position  # the cache write finished all the same
+    env.close()

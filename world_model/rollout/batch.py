@@ -14,15 +14,18 @@ depend on which other rollouts share its batch: a vector env equals N single env
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import fields, replace
+from functools import partial
 
 import numpy as np
 import torch
 
 from world_model.model.conditions import ConditionArrays, Conditions
 from world_model.model.rows import split_rows
+from world_model.model.tokens import ControlTokens
 from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.raster.classes import CLASS_PLANE, NO_LABEL
 from world_model.rollout.runtime import WorldModel
@@ -61,7 +64,9 @@ class RolloutBatch:
     observation; the arrays need the label maps only of the sensors decoded). ``restart_in_place``:
     a row restarted while others run joins the batch's frame positions (default: with more than
     one rollout); a lone rollout restarts from a fresh engine instead, so that a reset with the
-    same seed repeats its episode bit for bit."""
+    same seed repeats its episode bit for bit. ``decode_beside_commit``: :meth:`step_arrays` decodes
+    on a second thread while the student writes the step's last chunk into its cache (the two are
+    independent: the same observations, for a core that would idle; both count to ``decode``)."""
 
     def __init__(
         self,
@@ -71,10 +76,12 @@ class RolloutBatch:
         timer: StageTimer | None = None,
         sensors: SensorSelection = ALL_SENSORS,
         restart_in_place: bool | None = None,
+        decode_beside_commit: bool = False,
     ) -> None:
         self.wm = wm
         self.n = num_rollouts
         self.restart_in_place = num_rollouts > 1 if restart_in_place is None else restart_in_place
+        self._beside = ThreadPoolExecutor(1, thread_name_prefix="decode") if decode_beside_commit else None
         self.every_frame = every_frame
         self.sensors = sensors
         self.timer = timer
@@ -181,15 +188,26 @@ class RolloutBatch:
         one per causal chunk of the step, or ``None`` for an idle rollout, whose output is
         discarded. Returns each active rollout's observations of the step's last frame (of every
         frame with ``every_frame``): :meth:`decode_step` of :meth:`advance`."""
-        outs = self.advance(arrays)
-        with timed(self.timer, "decode"):
-            return self.decode_step(arrays, outs)
+        outs, commit = self.advance(arrays)
+        if self._beside is None:
+            with timed(self.timer, "student", self._device):
+                commit()
+            with timed(self.timer, "decode"):
+                return self.decode_step(arrays, outs)
+        with timed(self.timer, "decode", self._device):
+            decoded = self._beside.submit(self.decode_step, arrays, outs)
+            try:
+                commit()
+            finally:
+                wait([decoded])
+            return decoded.result()
 
     def advance(
         self, arrays: Sequence[Sequence[ConditionArrays] | None], chunks: int | None = None
-    ) -> list[list[torch.Tensor]]:
+    ) -> tuple[list[list[torch.Tensor]], Callable[[], None]]:
         """The student's part of :meth:`step_arrays`: each rollout's latents of the step, one
-        (1, chunk, V, C, h, w) tensor per chunk (an idle rollout's too, to be discarded).
+        (1, chunk, V, C, h, w) tensor per chunk (an idle rollout's too, to be discarded), and the
+        cache write of the step's last chunk, which must run before the next step.
         ``chunks``: the step's chunks when every rollout here may be idle while rollouts elsewhere
         step (another group of :class:`~world_model.rollout.shards.ShardedRollouts`): the idle
         ones advance as they would in one batch with those, keeping the frame positions alike."""
@@ -208,6 +226,7 @@ class RolloutBatch:
         if shapes and steps != len(next(iter(shapes))):
             raise ValueError(f"chunks={chunks} differs from the {len(next(iter(shapes)))} chunks the arrays give")
         outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
+        commit: Callable[[], None] = _nothing
         with torch.no_grad():
             for k in range(steps):
                 batch = []
@@ -218,11 +237,19 @@ class RolloutBatch:
                     arr = self.last_arrays[i]
                     batch.append(arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames))
                 cond = Conditions.collate(batch)
-                with timed(self.timer, "student", self._device), self._row_independent():
-                    latents = self.engine.step(cond)
+                with timed(self.timer, "student", self._device):
+                    commit()  # the step's previous chunk
+                    with self._row_independent():
+                        latents, tokens = self.engine.denoise(cond)
+                commit = partial(self._commit, latents, cond, tokens)
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
-        return outs
+        return outs, commit
+
+    def _commit(self, latents: torch.Tensor, cond: Conditions, tokens: ControlTokens) -> None:
+        """Write a denoised chunk into the student's cache (:meth:`StreamingEngine.commit`)."""
+        with torch.no_grad(), self._row_independent():
+            self.engine.commit(latents, cond, tokens)
 
     def decode_step(
         self, arrays: Sequence[Sequence[ConditionArrays] | None], outs: list[list[torch.Tensor]]
@@ -261,6 +288,10 @@ class RolloutBatch:
             for i, obs in zip(active, observations, strict=True):
                 results[i] = obs
         return results
+
+
+def _nothing() -> None:
+    """No cache write pending."""
 
 
 def _repeat_frames(arrays: ConditionArrays, frames: int) -> ConditionArrays:

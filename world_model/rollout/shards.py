@@ -145,7 +145,10 @@ class ShardedRollouts:
         chunks = next((len(row) for row in arrays if row is not None), 0)
         device = next(self.wm.student.parameters()).device
         with timed(self.timer, "student", device):
-            outs = self._each([lambda p=p, a=a: p.advance(a, chunks) for p, a in zip(self.parts, mine, strict=True)])
+            calls = [lambda p=p, a=a: p.advance(a, chunks) for p, a in zip(self.parts, mine, strict=True)]
+            advanced = self._each(calls)
+            self._each([commit for _, commit in advanced])
+        outs = [o for o, _ in advanced]
         with timed(self.timer, "decode"):
             decoded = self._each(
                 [lambda p=p, a=a, o=o: p.decode_step(a, o) for p, a, o in zip(self.parts, mine, outs, strict=True)]

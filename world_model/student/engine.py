@@ -281,11 +281,27 @@ class StreamingEngine:
         exit_step: int | None = None,
         grad: bool = False,
     ) -> torch.Tensor:
-        """Generate the next chunk (B, chunk_frames, V, C, h, w) for the chunk's ``controls``.
+        """Generate the next chunk (B, chunk_frames, V, C, h, w) for the chunk's ``controls``:
+        :meth:`denoise`, then :meth:`commit` it.
 
         ``exit_step``/``grad``: Self-Forcing training (see :func:`few_step_sample`); the returned
         latents then carry the exit step's graph, while the cache is written from a detached copy.
         """
+        x0, tokens = self.denoise(controls, noise, exit_step=exit_step, grad=grad)
+        self.commit(x0.detach(), controls, tokens)
+        return x0
+
+    def denoise(
+        self,
+        controls: Conditions,
+        noise: torch.Tensor | None = None,
+        *,
+        exit_step: int | None = None,
+        grad: bool = False,
+    ) -> tuple[torch.Tensor, ControlTokens]:
+        """The next chunk's latents and its control tokens, the cache left as it is: :meth:`step`
+        without the :meth:`commit`, which must follow before the next chunk (a caller may decode
+        the latents meanwhile)."""
         if self.last is None:
             raise RuntimeError("call start() before step()")
         c = self.cfg.clip.chunk_frames
@@ -304,8 +320,7 @@ class StreamingEngine:
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):  # control tokens: graph only if trained
             x0_fn, tokens = self._chunk(controls)
         x0 = few_step_sample(x0_fn, noise.to(dev), self.times, self.scfg.renoise, exit_step, grad, self.gen)
-        self.commit(x0.detach(), controls, tokens)
-        return x0
+        return x0, tokens
 
     def commit(self, latents: torch.Tensor, controls: Conditions, tokens: ControlTokens | None = None) -> None:
         """Append clean chunk latents (B, chunk, ...) to the context: re-run at t = 1 into the cache.
