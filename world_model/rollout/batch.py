@@ -188,10 +188,8 @@ class RolloutBatch:
         one per causal chunk of the step, or ``None`` for an idle rollout, whose output is
         discarded. Returns each active rollout's observations of the step's last frame (of every
         frame with ``every_frame``): :meth:`decode_step` of :meth:`advance`."""
-        outs, commit = self.advance(arrays)
+        outs, commit = self.advance(arrays, defer_last_commit=self._beside is not None)
         if self._beside is None:
-            with timed(self.timer, "student", self._device):
-                commit()
             with timed(self.timer, "decode"):
                 return self.decode_step(arrays, outs)
         with timed(self.timer, "decode", self._device):
@@ -203,11 +201,15 @@ class RolloutBatch:
             return decoded.result()
 
     def advance(
-        self, arrays: Sequence[Sequence[ConditionArrays] | None], chunks: int | None = None
+        self,
+        arrays: Sequence[Sequence[ConditionArrays] | None],
+        chunks: int | None = None,
+        defer_last_commit: bool = False,
     ) -> tuple[list[list[torch.Tensor]], Callable[[], None]]:
         """The student's part of :meth:`step_arrays`: each rollout's latents of the step, one
-        (1, chunk, V, C, h, w) tensor per chunk (an idle rollout's too, to be discarded), and the
-        cache write of the step's last chunk, which must run before the next step.
+        (1, chunk, V, C, h, w) tensor per chunk (an idle rollout's too, to be discarded), and what
+        is left of the step's cache writes: with ``defer_last_commit`` the last chunk's, which must
+        run before the next step; else nothing.
         ``chunks``: the step's chunks when every rollout here may be idle while rollouts elsewhere
         step (another group of :class:`~world_model.rollout.shards.ShardedRollouts`): the idle
         ones advance as they would in one batch with those, keeping the frame positions alike."""
@@ -226,7 +228,6 @@ class RolloutBatch:
         if shapes and steps != len(next(iter(shapes))):
             raise ValueError(f"chunks={chunks} differs from the {len(next(iter(shapes)))} chunks the arrays give")
         outs: list[list[torch.Tensor]] = [[] for _ in range(self.n)]
-        commit: Callable[[], None] = _nothing
         with torch.no_grad():
             for k in range(steps):
                 batch = []
@@ -237,14 +238,15 @@ class RolloutBatch:
                     arr = self.last_arrays[i]
                     batch.append(arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames))
                 cond = Conditions.collate(batch)
-                with timed(self.timer, "student", self._device):
-                    commit()  # the step's previous chunk
-                    with self._row_independent():
-                        latents, tokens = self.engine.denoise(cond)
-                commit = partial(self._commit, latents, cond, tokens)
+                with timed(self.timer, "student", self._device), self._row_independent():
+                    latents, tokens = self.engine.denoise(cond)
+                    if k < steps - 1 or not defer_last_commit:
+                        self.engine.commit(latents, cond, tokens)
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
-        return outs, commit
+        if steps and defer_last_commit:
+            return outs, partial(self._commit, latents, cond, tokens)
+        return outs, _nothing
 
     def _commit(self, latents: torch.Tensor, cond: Conditions, tokens: ControlTokens) -> None:
         """Write a denoised chunk into the student's cache (:meth:`StreamingEngine.commit`)."""

@@ -145,10 +145,8 @@ class ShardedRollouts:
         chunks = next((len(row) for row in arrays if row is not None), 0)
         device = next(self.wm.student.parameters()).device
         with timed(self.timer, "student", device):
-            calls = [lambda p=p, a=a: p.advance(a, chunks) for p, a in zip(self.parts, mine, strict=True)]
-            advanced = self._each(calls)
-            self._each([commit for _, commit in advanced])
-        outs = [o for o, _ in advanced]
+            calls = [lambda p=p, a=a: p.advance(a, chunks)[0] for p, a in zip(self.parts, mine, strict=True)]
+            outs = self._each(calls)
         with timed(self.timer, "decode"):
             decoded = self._each(
                 [lambda p=p, a=a, o=o: p.decode_step(a, o) for p, a, o in zip(self.parts, mine, outs, strict=True)]
