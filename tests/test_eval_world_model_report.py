@@ -205,13 +205,13 @@ def test_student_row_marks_each_causal_chunk_for_the_chunk_jump_scores(tiny_bund
     wm.student.cfg = cfg
     wm = replace(wm, cfg=cfg)
     passes = []
-    real_step = StreamingEngine.step
+    real_denoise = StreamingEngine.denoise  # a chunk's generation, in step() or before a deferred commit
 
     def counted(self, controls, *a, **kw):
         passes.append(controls.num_frames)
-        return real_step(self, controls, *a, **kw)
+        return real_denoise(self, controls, *a, **kw)
 
-    monkeypatch.setattr(StreamingEngine, "step", counted)
+    monkeypatch.setattr(StreamingEngine, "denoise", counted)
     row = world_model_row(wm, seed=3)
     gen = row(clip)
     # frame 0 from the reference model, then one 2-frame chunk per engine step (the last one padded)
