@@ -89,8 +89,9 @@ class ModelBackendConfig:
     threads: int | None = DEFAULT_TORCH_THREADS
     # A vector env's rollouts stepped in this many groups at once, a Python thread each
     # (world_model.rollout.shards): None = as many as the process's CPUs hold groups of ``threads``
-    # torch threads (on CPU; one on a GPU), at most one a sub-env. The observations are the same
-    # bit for bit whatever the number (docs/performance.md).
+    # torch threads (on CPU; one on a GPU), at most one a sub-env; a single env then decodes on a
+    # second thread beside the student's cache write. The observations are the same bit for bit
+    # whatever the number (docs/performance.md).
     rollout_threads: int | None = None
 
     def streaming_changes(self) -> dict[str, Any]:
