@@ -160,8 +160,8 @@ class WorldModelBackend:
         shards = shard_count(requested, num_rollouts, device.type, cpus, threads)
         if shards > 1:
             self.rollouts = ShardedRollouts(self.wm, num_rollouts, shards, every_frame=every_frame, sensors=sensors)
-        else:  # one group (a single env): a core to spare decodes beside the cache write
-            spare = requested is None and shard_count(None, 2, device.type, cpus, threads) > 1
+        else:  # one group (a single env): where two would fit, the spare core decodes beside the cache write
+            spare = requested is None and shard_count(None, 2, device.type, cpus, threads) == 2
             self.rollouts = RolloutBatch(
                 self.wm, num_rollouts, every_frame=every_frame, sensors=sensors, decode_beside_commit=spare
             )

@@ -238,10 +238,11 @@ class RolloutBatch:
                     arr = self.last_arrays[i]
                     batch.append(arr if arr.num_frames == self.chunk_frames else _repeat_frames(arr, self.chunk_frames))
                 cond = Conditions.collate(batch)
-                with timed(self.timer, "student", self._device), self._row_independent():
-                    latents, tokens = self.engine.denoise(cond)
+                with timed(self.timer, "student", self._device):
+                    with self._row_independent():
+                        latents, tokens = self.engine.denoise(cond)
                     if k < steps - 1 or not defer_last_commit:
-                        self.engine.commit(latents, cond, tokens)
+                        self._commit(latents, cond, tokens)
                 for i in range(self.n):
                     outs[i].append(latents[i : i + 1])
         if steps and defer_last_commit:
