@@ -163,7 +163,7 @@ class WorldModelBackend:
         else:  # one group (a single env): where two would fit, the spare core decodes beside the cache write
             spare = requested is None and shard_count(None, 2, device.type, cpus, threads) == 2
             self.rollouts = RolloutBatch(
-                self.wm, num_rollouts, every_frame=every_frame, sensors=sensors, decode_beside_commit=spare
+                self.wm, num_rollouts, every_frame=every_frame, sensors=sensors, decode_beside=spare
             )
         self.rig = self.wm.rig
         self.model_cfg = self.wm.cfg

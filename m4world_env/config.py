@@ -90,8 +90,8 @@ class ModelBackendConfig:
     # A vector env's rollouts stepped in this many groups at once, a Python thread each
     # (world_model.rollout.shards): None = as many as the process's CPUs hold groups of ``threads``
     # torch threads (on CPU; one on a GPU), at most one a sub-env; a single env then decodes on a
-    # second thread beside the student's cache write. The observations are the same bit for bit
-    # whatever the number (docs/performance.md).
+    # second thread beside the student's cache writes (a step's, a reset's). The observations are
+    # the same bit for bit whatever the number (docs/performance.md).
     rollout_threads: int | None = None
 
     def streaming_changes(self) -> dict[str, Any]:

@@ -138,13 +138,13 @@ def test_rows_that_start_alike_share_one_first_frame(active_bundle, monkeypatch)
     from world_model.rollout.runtime import WorldModel
 
     sampled = []
-    real = WorldModel.batch_first_frames
+    real = WorldModel.batch_first_latents
 
     def counting(self, cond, frames, seeds, *rest):
         sampled.append(len(frames))
         return real(self, cond, frames, seeds, *rest)
 
-    monkeypatch.setattr(WorldModel, "batch_first_frames", counting)
+    monkeypatch.setattr(WorldModel, "batch_first_latents", counting)
     one_group = {"model": {"rollout_threads": 1}}
     shared = M4WorldVectorEnv(4, "merge_cut_in", "world_model", str(active_bundle), config=one_group)
     obs, _ = shared.reset(seed=[3, 3, 5, 3])

@@ -135,7 +135,7 @@ def _single_episode(bundle, rollout_threads: int | None) -> tuple[list, bool]:
     return out, beside
 
 
-def test_a_single_env_decodes_beside_the_cache_write_and_observes_the_same(active_bundle, one_thread, monkeypatch):
+def test_a_single_env_decodes_beside_the_cache_writes_and_observes_the_same(active_bundle, one_thread, monkeypatch):
     monkeypatch.setattr("world_model.rollout.shards.usable_cpus", lambda: 2)
     beside, on = _single_episode(active_bundle, None)
     plain, off = _single_episode(active_bundle, 1)  # one thread asked for: nothing beside
@@ -159,4 +159,20 @@ def test_a_decode_error_beside_the_cache_write_reaches_the_caller(active_bundle,
     with pytest.raises(RuntimeError, match="decoder broke"):
         env.step(ACTIONS[0])
     assert rollouts.engine.position > position  # the cache write finished all the same
+    env.close()
+
+
+def test_a_first_frame_decode_error_beside_the_cache_seed_reaches_the_caller(active_bundle, one_thread, monkeypatch):
+    monkeypatch.setattr("world_model.rollout.shards.usable_cpus", lambda: 2)
+    env = gym.make("M4World-v0", scenario="merge_cut_in", backend="world_model", checkpoint=str(active_bundle))
+    rollouts = env.unwrapped.backend.rollouts
+    assert rollouts._beside is not None and rollouts.engine.cache is None
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("decoder broke")
+
+    monkeypatch.setattr(rollouts.wm, "decode", broken)
+    with pytest.raises(RuntimeError, match="decoder broke"):
+        env.reset(seed=0)
+    assert rollouts.engine.cache is not None  # the first frame seeded the cache all the same
     env.close()

@@ -400,10 +400,22 @@ class ReferenceGenerator:
         and B observations, of the ``sensors`` decoded. Only the first frame of ``cond`` is used.
         """
         cond = cond.frames(0, 1)
-        extra = self.encode_reference(reference, cond.batch_size) if reference else None
-        lat = self.sample(cond, extra, steps, seed, guidance=guidance)
+        lat = self.first_latents(cond, reference, steps, seed, guidance)
         obs = latents_to_observations(self.vae, lat, self.mcfg.sensors.lidar, **cond.decoder_inputs(), sensors=sensors)
         return lat, [o[0] for o in obs]
+
+    def first_latents(
+        self,
+        cond: Conditions,
+        reference: Mapping[str, np.ndarray] | None = None,
+        steps: int | None = None,
+        seed: int = 0,
+        guidance: float | None = None,
+    ) -> torch.Tensor:
+        """:meth:`first_frame`'s latents (B, 1, V, C, h, w), not decoded."""
+        cond = cond.frames(0, 1)
+        extra = self.encode_reference(reference, cond.batch_size) if reference else None
+        return self.sample(cond, extra, steps, seed, guidance=guidance)
 
     def from_first_frame(
         self, cond: Conditions, reference: Mapping[str, np.ndarray], steps: int | None = None, seed: int = 0

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import fields, replace
 from functools import partial
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -32,6 +33,8 @@ from world_model.rollout.runtime import WorldModel
 from world_model.rollout.timing import StageTimer, timed
 from world_model.scene import SceneFrame
 from world_model.student.engine import StreamingEngine
+
+T = TypeVar("T")
 
 
 def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
@@ -64,9 +67,10 @@ class RolloutBatch:
     observation; the arrays need the label maps only of the sensors decoded). ``restart_in_place``:
     a row restarted while others run joins the batch's frame positions (default: with more than
     one rollout); a lone rollout restarts from a fresh engine instead, so that a reset with the
-    same seed repeats its episode bit for bit. ``decode_beside_commit``: :meth:`step_arrays` decodes
-    on a second thread while the student writes the step's last chunk into its cache (the two are
-    independent: the same observations, for a core that would idle; both count to ``decode``)."""
+    same seed repeats its episode bit for bit. ``decode_beside``: decode on a second thread while
+    the student writes its cache, a step's last chunk (:meth:`step_arrays`; both count to
+    ``decode``) or a reset's first frames: the two are independent, so the observations are the
+    same, for a core that would idle."""
 
     def __init__(
         self,
@@ -76,12 +80,12 @@ class RolloutBatch:
         timer: StageTimer | None = None,
         sensors: SensorSelection = ALL_SENSORS,
         restart_in_place: bool | None = None,
-        decode_beside_commit: bool = False,
+        decode_beside: bool = False,
     ) -> None:
         self.wm = wm
         self.n = num_rollouts
         self.restart_in_place = num_rollouts > 1 if restart_in_place is None else restart_in_place
-        self._beside = ThreadPoolExecutor(1, thread_name_prefix="decode") if decode_beside_commit else None
+        self._beside = ThreadPoolExecutor(1, thread_name_prefix="decode") if decode_beside else None
         self.every_frame = every_frame
         self.sensors = sensors
         self.timer = timer
@@ -126,11 +130,8 @@ class RolloutBatch:
         (§6), seeded with ``seed``, and seeds the student's cache."""
         self.gens[row] = torch.Generator().manual_seed(int(seed))
         with torch.no_grad():
-            latents, obs = self.wm.first_frame(
-                Conditions.collate([arrays]), frame, reference, seed=int(seed), sensors=self.sensors
-            )
-        self._start([row], latents, [arrays])
-        return obs
+            latents = self.wm.first_latents(Conditions.collate([arrays]), frame, reference, seed=int(seed))
+        return self._first_observations(latents, [arrays], partial(self._start, [row], latents, [arrays]))[0]
 
     def start_rows(
         self,
@@ -140,7 +141,7 @@ class RolloutBatch:
         arrays: Sequence[ConditionArrays],
     ) -> list[Observation]:
         """:meth:`start_row` of several rows from controls, their first frames sampled in one
-        batched reference-model call (:meth:`WorldModel.batch_first_frames`); each row exactly as
+        batched reference-model call (:meth:`WorldModel.batch_first_latents`); each row exactly as
         its own :meth:`start_row` would be."""
         check_starts(rows, frames, seeds, arrays)
         for row, seed in zip(rows, seeds, strict=True):
@@ -150,18 +151,41 @@ class RolloutBatch:
         # what each row's own call gives; on a GPU the smaller batch may round differently).
         keys = [start_key(a, s, f) for a, s, f in zip(arrays, seeds, frames, strict=True)]
         unique = list(dict.fromkeys(keys))
-        firsts = [keys.index(k) for k in unique]
-        latents, obs = self.wm.batch_first_frames(
-            Conditions.collate([arrays[i] for i in firsts]),
-            [frames[i] for i in firsts],
-            [int(seeds[i]) for i in firsts],
-            self.sensors,
+        firsts = [arrays[keys.index(k)] for k in unique]
+        latents = self.wm.batch_first_latents(
+            Conditions.collate(firsts),
+            [frames[keys.index(k)] for k in unique],
+            [int(seeds[keys.index(k)]) for k in unique],
         )
         source = [unique.index(k) for k in keys]
-        latents = latents[source]
-        obs = [obs[j].copy() for j in source]
-        self._start(list(rows), latents, list(arrays))
-        return obs
+        start = partial(self._start, list(rows), latents[source], list(arrays))
+        obs = self._first_observations(latents, firsts, start)
+        return [obs[j].copy() for j in source]
+
+    def _first_observations(
+        self, latents: torch.Tensor, arrays: Sequence[ConditionArrays], start: Callable[[], None]
+    ) -> list[Observation]:
+        """The observations of first frames ``latents`` (R, 1, V, C, h, w) whose condition arrays are
+        ``arrays``, decoded while ``start`` seeds the student's cache with them (the two are
+        independent: beside each other with ``decode_beside``)."""
+        inputs = Conditions.collate(list(arrays)).frames(0, 1).decoder_inputs()
+        decode = partial(self.wm.decode, latents, **inputs, sensors=self.sensors)
+        return [obs[0] for obs in self._beside_of(decode, start)]
+
+    def _beside_of(self, work: Callable[[], T], other: Callable[[], None]) -> T:
+        """``work()``'s result, ``other()`` done too: on two threads with ``decode_beside`` (the
+        same results, for a core that would idle), else one after the other. An error of either
+        reaches the caller once both have finished."""
+        if self._beside is None:
+            result = work()
+            other()
+            return result
+        future = self._beside.submit(work)
+        try:
+            other()
+        finally:
+            wait([future])
+        return future.result()
 
     def _start(self, rows: list[int], latents: torch.Tensor, arrays: list[ConditionArrays]) -> None:
         """Seed the student's cache of ``rows`` with their first frames (R, 1, V, C, h, w)."""
@@ -189,16 +213,8 @@ class RolloutBatch:
         discarded. Returns each active rollout's observations of the step's last frame (of every
         frame with ``every_frame``): :meth:`decode_step` of :meth:`advance`."""
         outs, commit = self.advance(arrays, defer_last_commit=self._beside is not None)
-        if self._beside is None:
-            with timed(self.timer, "decode"):
-                return self.decode_step(arrays, outs)
         with timed(self.timer, "decode", self._device):
-            decoded = self._beside.submit(self.decode_step, arrays, outs)
-            try:
-                commit()
-            finally:
-                wait([decoded])
-            return decoded.result()
+            return self._beside_of(partial(self.decode_step, arrays, outs), commit)
 
     def advance(
         self,

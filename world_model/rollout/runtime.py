@@ -134,16 +134,15 @@ class WorldModel:
         return [name for model in models.values() for name in loaded_adapters(model)]
 
     @torch.no_grad()
-    def first_frame(
+    def first_latents(
         self,
         cond: Conditions,
         frame: SceneFrame,
         reference: Mapping[str, np.ndarray] | None = None,
         seed: int = 0,
-        sensors: SensorSelection = ALL_SENSORS,
-    ) -> tuple[torch.Tensor, Observation]:
-        """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w) and its observation (of the
-        ``sensors`` decoded).
+    ) -> torch.Tensor:
+        """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w), to decode with
+        :meth:`decode` (with ``cond``'s first frame's decoder inputs).
 
         From controls (``reference`` None) or anchored on the user's images (§6), by the
         reference model without its completion adapters. Then, for a frame generated from
@@ -160,52 +159,44 @@ class WorldModel:
         others = [n for n in loaded if n not in completion]
         with self._switching_adapters(completion):
             with only_adapters(model, others) if completion else nullcontext():  # no switching without one
-                latents, obs = gen.first_frame(cond, reference, steps, seed, sensors, guidance=guidance)
+                latents = gen.first_latents(cond, reference, steps, seed, guidance=guidance)
             wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
             if reference or not wanted:
-                return latents, obs[0]
+                return latents
             for name, category in wanted.items():
                 with only_adapters(model, [*others, name]):
                     latents = gen.complete_category(cond, latents, [frame], category, steps, seed, guidance=guidance)
-        return latents, self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)[0][0]
+        return latents
 
     @torch.no_grad()
-    def batch_first_frames(
-        self,
-        cond: Conditions,
-        frames: Sequence[SceneFrame],
-        seeds: Sequence[int],
-        sensors: SensorSelection = ALL_SENSORS,
-    ) -> tuple[torch.Tensor, list[Observation]]:
-        """First frames of ``len(frames)`` rollouts from controls, row i exactly
-        ``first_frame(cond row i, frames[i], seed=seeds[i], sensors=sensors)``: latents
-        (R, 1, V, C, h, w) and R observations. One batched reference-model call (computed row-independently on CPU,
-        :mod:`world_model.model.rows`), unless a completion adapter redraws a category in one of
-        the frames: then one call per row."""
+    def batch_first_latents(self, cond: Conditions, frames: Sequence[SceneFrame], seeds: Sequence[int]) -> torch.Tensor:
+        """First frames' latents (R, 1, V, C, h, w) of ``len(frames)`` rollouts from controls, row i
+        exactly ``first_latents(cond row i, frames[i], seed=seeds[i])``. One batched
+        reference-model call (computed row-independently on CPU, :mod:`world_model.model.rows`),
+        unless a completion adapter redraws a category in one of the frames: then one call per row."""
         if cond.batch_size != len(frames) or len(seeds) != len(frames):
             raise ValueError(f"need one frame and one seed per row of cond ({cond.batch_size})")
         gen = self.first_frames
         loaded = loaded_adapters(gen.model)
         completion = {n: c for n, c in self._completion.items() if n in loaded}
         if any(o.category in completion.values() for f in frames for o in f.objects):
-            pairs = [
-                self.first_frame(cond.apply(lambda _, v, i=i: v[i : i + 1]), f, seed=s, sensors=sensors)
-                for i, (f, s) in enumerate(zip(frames, seeds, strict=True))
-            ]
-            return torch.cat([lat for lat, _ in pairs]), [obs for _, obs in pairs]
+            return torch.cat(
+                [
+                    self.first_latents(cond.apply(lambda _, v, i=i: v[i : i + 1]), f, seed=s)
+                    for i, (f, s) in enumerate(zip(frames, seeds, strict=True))
+                ]
+            )
         others = [n for n in loaded if n not in completion]
         on_cpu = next(gen.model.parameters()).device.type == "cpu"
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         switched = only_adapters(gen.model, others) if completion else nullcontext()
         with self._switching_adapters(completion), switched, rowwise:
-            latents = gen.sample(
+            return gen.sample(
                 cond.frames(0, 1),
                 steps=self.streaming.first_frame_steps,
                 seed=[int(s) for s in seeds],
                 guidance=self.streaming.first_frame_guidance,
             )
-        observations = self.decode(latents, **cond.frames(0, 1).decoder_inputs(), sensors=sensors)
-        return latents, [obs[0] for obs in observations]
 
     def decode(
         self,
