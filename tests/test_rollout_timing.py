@@ -21,7 +21,7 @@ def test_a_step_waits_for_the_device_only_when_timed(tiny_bundle, monkeypatch):
     monkeypatch.setattr(RolloutBatch, "_device", property(lambda self: torch.device("cuda", 0)))
     monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: waits.append(device))
     # The first frame's sampling is not what is timed here: a blank one seeds the student's cache.
-    monkeypatch.setattr(wm, "first_frame", lambda *a, **k: (torch.zeros(1, *wm.cfg.latent_shape(1)), None))
+    monkeypatch.setattr(wm, "first_latents", lambda *a, **k: torch.zeros(1, *wm.cfg.latent_shape(1)))
     conditions, rollouts = RolloutConditions(wm.conditions, 1), RolloutBatch(wm, 1)
     rollouts.start_row(0, frames[0], 0, conditions.restart(0, frames[0], RecordedCrops()))
     rollouts.step_arrays([conditions.advance(0, frames[1 : 1 + chunk])])

@@ -213,7 +213,8 @@ class RolloutBatch:
         discarded. Returns each active rollout's observations of the step's last frame (of every
         frame with ``every_frame``): :meth:`decode_step` of :meth:`advance`."""
         outs, commit = self.advance(arrays, defer_last_commit=self._beside is not None)
-        with timed(self.timer, "decode", self._device):
+        # The decoder's output is on the host; a cache write beside it may still be queued on the device.
+        with timed(self.timer, "decode", self._device if self._beside is not None else None):
             return self._beside_of(partial(self.decode_step, arrays, outs), commit)
 
     def advance(
