@@ -129,9 +129,10 @@ class RolloutBatch:
         its first frame comes from the reference model, anchored on ``reference`` images when given
         (§6), seeded with ``seed``, and seeds the student's cache."""
         self.gens[row] = torch.Generator().manual_seed(int(seed))
+        cond = Conditions.collate([arrays])
         with torch.no_grad():
-            latents = self.wm.first_latents(Conditions.collate([arrays]), frame, reference, seed=int(seed))
-        return self._first_observations(latents, [arrays], partial(self._start, [row], latents, [arrays]))[0]
+            latents = self.wm.first_latents(cond, frame, reference, seed=int(seed))
+        return self._first_observations(latents, cond, partial(self._start, [row], latents, [arrays]))[0]
 
     def start_rows(
         self,
@@ -151,25 +152,21 @@ class RolloutBatch:
         # what each row's own call gives; on a GPU the smaller batch may round differently).
         keys = [start_key(a, s, f) for a, s, f in zip(arrays, seeds, frames, strict=True)]
         unique = list(dict.fromkeys(keys))
-        firsts = [arrays[keys.index(k)] for k in unique]
-        latents = self.wm.batch_first_latents(
-            Conditions.collate(firsts),
-            [frames[keys.index(k)] for k in unique],
-            [int(seeds[keys.index(k)]) for k in unique],
-        )
+        firsts = [keys.index(k) for k in unique]
+        cond = Conditions.collate([arrays[i] for i in firsts])
+        latents = self.wm.batch_first_latents(cond, [frames[i] for i in firsts], [int(seeds[i]) for i in firsts])
         source = [unique.index(k) for k in keys]
         start = partial(self._start, list(rows), latents[source], list(arrays))
-        obs = self._first_observations(latents, firsts, start)
+        obs = self._first_observations(latents, cond, start)
         return [obs[j].copy() for j in source]
 
     def _first_observations(
-        self, latents: torch.Tensor, arrays: Sequence[ConditionArrays], start: Callable[[], None]
+        self, latents: torch.Tensor, cond: Conditions, start: Callable[[], None]
     ) -> list[Observation]:
-        """The observations of first frames ``latents`` (R, 1, V, C, h, w) whose condition arrays are
-        ``arrays``, decoded while ``start`` seeds the student's cache with them (the two are
-        independent: beside each other with ``decode_beside``)."""
-        inputs = Conditions.collate(list(arrays)).frames(0, 1).decoder_inputs()
-        decode = partial(self.wm.decode, latents, **inputs, sensors=self.sensors)
+        """The observations of first frames ``latents`` (R, 1, V, C, h, w) sampled for ``cond``,
+        decoded while ``start`` seeds the student's cache with them (the two are independent:
+        beside each other with ``decode_beside``)."""
+        decode = partial(self.wm.decode, latents, **cond.frames(0, 1).decoder_inputs(), sensors=self.sensors)
         return [obs[0] for obs in self._beside_of(decode, start)]
 
     def _beside_of(self, work: Callable[[], T], other: Callable[[], None]) -> T:
