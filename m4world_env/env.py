@@ -392,6 +392,14 @@ class M4WorldEnv(gym.Env):
             cfg=self.cfg.reward,
         )
 
+    @property
+    def scene_frame(self) -> SceneFrame:
+        """The scene the last observation shows (the last sensor frame of the last reset or step,
+        also after the episode ended)."""
+        if self._frame is None:
+            raise ResetNeeded("call env.reset() first: no scene yet")
+        return self._frame
+
     def state_observation(self) -> np.ndarray:
         """The ``state`` observation of the newest frame (:func:`state_from_frame`, clipped)."""
         return np.clip(state_from_frame(self._frame, self.cfg.state_objects), -STATE_BOUND, STATE_BOUND)

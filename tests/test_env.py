@@ -128,10 +128,14 @@ def test_step_before_reset_and_after_termination():
     env = M4WorldEnv("stopped_vehicle_snow", config=SMALL)
     with pytest.raises(ResetNeeded):
         env.step(np.zeros(2, np.float32))
+    with pytest.raises(ResetNeeded):
+        env.scene_frame  # noqa: B018  (the property raises)
     env.reset(seed=0)
+    assert env.scene_frame.time == 0.0
     terminated = truncated = False
     while not (terminated or truncated):
         _, _, terminated, truncated, info = env.step(np.array([1.0, 0.0], np.float32))  # full throttle
+        assert env.scene_frame.time == pytest.approx(info["time"])  # the scene the observation shows
     with pytest.raises(ResetNeeded):
         env.step(np.zeros(2, np.float32))
     env.reset(seed=1)

@@ -21,6 +21,7 @@ BENCHMARKS = (
     "env",
     "first_frame",
     "judge",
+    "lane_markings",
     "layout",
     "layout_ablation",
     "lidar_sectors",

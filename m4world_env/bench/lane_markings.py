@@ -1,0 +1,190 @@
+"""What a lane finder reads on the world model vs the ground truth, on the same states: how bright
+the lane markings low in FRONT are, and the road beside them.
+
+    m4world bench lane_markings --out F.json [--scenarios highway_sunny_day ...] [--seeds 0 1 2] \
+        [--steps 20] [--checkpoint BUNDLE]
+
+For each scenario and seed, one episode: the built-in ``lane_keeping`` policy drives
+``backend="procedural"`` (the ground truth) and its very actions are fed to ``backend="world_model"``
+(cameras only), both reset with the seed, so the traffic is the same on both. After each step, on the
+lower half of both FRONT views (where lane finders look), the mean luminance (the mean of R, G, B,
+0-255) of the pixels the scene's label map calls markings, and of those it calls road; a frame with
+fewer than ``MIN_MARKING_PIXELS`` marking pixels there is left out. The markings are where the scene
+puts them on both backends (the decoder draws the label map); how they stand out from the road is the
+model's. An episode stops when either env ends.
+
+Per scenario (its seeds and steps pooled): the frames read, the markings' and the road's mean
+luminance on each backend and their contrast (markings over road), with the world model's contrast
+over the ground truth's. A markdown table is printed; the JSON holds the figures and the settings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+import m4world_env  # noqa: F401  (registers M4World-v0)
+from m4world_env.evaluate import make_policy
+from m4world_env.scenario import ScenarioError, load_scenario
+from world_model.cli_args import check_out, positive_int, seed
+from world_model.raster.classes import CLASS_PLANE, MARKING, ROAD
+from world_model.sensors import DEFAULT_CAMERA_NAMES
+from world_model.sim.labels import LabelRasterizer
+
+DEFAULT_SCENARIOS = (
+    "highway_sunny_day",
+    "highway_dense_rain_dusk",
+    "merge_cut_in",
+    "two_way_overtake_dusk",
+    "roundabout_fog",
+    "stopped_vehicle_snow",
+)
+POLICY = "lane_keeping"
+FRONT = DEFAULT_CAMERA_NAMES.index("FRONT")
+MIN_MARKING_PIXELS = 6  # fewer markings in the lower half: a frame with no lane line to read
+Reading = tuple[float, float]  # (markings, road) mean luminance of one FRONT view
+
+
+def front_reading(image: np.ndarray, classes: np.ndarray) -> Reading | None:
+    """The mean luminance of the markings and of the road in the lower half of a view: ``image``
+    (H, W, 3) uint8, ``classes`` (H, W) its label map's class ids; None with fewer than
+    :data:`MIN_MARKING_PIXELS` markings or no road there."""
+    if image.shape[:2] != classes.shape:
+        raise ValueError(f"image {image.shape[:2]} and label map {classes.shape} differ in size")
+    half = image.shape[0] // 2
+    luminance, low = image[half:].astype(np.float64).mean(-1), classes[half:]
+    markings, road = luminance[low == MARKING], luminance[low == ROAD]
+    if markings.size < MIN_MARKING_PIXELS or road.size == 0:
+        return None
+    return float(markings.mean()), float(road.mean())
+
+
+def world_model_kwargs(checkpoint: str | None) -> dict:
+    """gym.make keywords of the world-model env: cameras only, ``checkpoint`` where given."""
+    kw: dict = {"backend": "world_model", "config": {"observation_keys": ["cameras"]}}
+    return {**kw, "checkpoint": checkpoint} if checkpoint else kw
+
+
+def episode(scenario: str, seed: int, steps: int, model: dict) -> list[tuple[Reading, Reading]]:
+    """Up to ``steps`` policy steps of ``scenario``: after each, the ground truth's FRONT reading and
+    the ``model`` env's (gym.make keywords, fed the same actions), where both have one."""
+    truth_env = gym.make("M4World-v0", scenario=scenario, backend="procedural")
+    model_env = gym.make("M4World-v0", scenario=scenario, **model)
+    rasterizer = LabelRasterizer()
+    try:
+        act = make_policy(POLICY, truth_env)
+        obs, info = truth_env.reset(seed=seed)
+        model_env.reset(seed=seed)
+        pairs = []
+        for _ in range(steps):
+            action = act(obs, info)
+            obs, _r, t_term, t_trunc, info = truth_env.step(action)
+            model_obs, _r, m_term, m_trunc, _ = model_env.step(action)
+            truth_view, model_view = obs["cameras"][FRONT], model_obs["cameras"][FRONT]
+            frame = truth_env.unwrapped.scene_frame
+            truth, model_reading = (
+                front_reading(view, rasterizer.maps(frame, frame.rig, *view.shape[:2])[FRONT, CLASS_PLANE])
+                for view in (truth_view, model_view)  # each read on the label map at its own size
+            )
+            if truth is not None and model_reading is not None:
+                pairs.append((truth, model_reading))
+            if t_term or t_trunc or m_term or m_trunc:
+                break
+        return pairs
+    finally:
+        truth_env.close()
+        model_env.close()
+
+
+def figures(pairs: list[tuple[Reading, Reading]]) -> dict[str, float | int | None]:
+    """The readings' means: markings and road on each backend, their contrast (markings over road)
+    on each, and the world model's contrast over the ground truth's (None without a frame)."""
+    if not pairs:
+        return dict.fromkeys(("marking_truth", "marking_model", "road_truth", "road_model"), None) | {
+            "frames": 0,
+            "contrast_truth": None,
+            "contrast_model": None,
+            "contrast_ratio": None,
+        }
+    a = np.array(pairs, dtype=np.float64)  # (N, backend, markings | road)
+    mean = a.mean(0)
+    contrast_truth, contrast_model = mean[0, 0] / mean[0, 1], mean[1, 0] / mean[1, 1]
+    return {
+        "frames": len(pairs),
+        "marking_truth": float(mean[0, 0]),
+        "marking_model": float(mean[1, 0]),
+        "road_truth": float(mean[0, 1]),
+        "road_model": float(mean[1, 1]),
+        "contrast_truth": float(contrast_truth),
+        "contrast_model": float(contrast_model),
+        "contrast_ratio": float(contrast_model / contrast_truth),
+    }
+
+
+def table(results: dict[str, dict]) -> str:
+    """A markdown table of :func:`figures` per scenario."""
+    head = ["scenario", "frames", "markings (truth / model)", "road (truth / model)", "contrast (truth / model)"]
+    head.append("ratio")
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for name, f in results.items():
+        if not f["frames"]:
+            lines.append(f"| {name} | 0 | - | - | - | - |")
+            continue
+        lines.append(
+            f"| {name} | {f['frames']} | {f['marking_truth']:.0f} / {f['marking_model']:.0f} | "
+            f"{f['road_truth']:.0f} / {f['road_model']:.0f} | {f['contrast_truth']:.2f} / {f['contrast_model']:.2f} | "
+            f"{f['contrast_ratio']:.2f} |"
+        )
+    return "\n".join(lines)
+
+
+def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
+    """Every episode; the figures per scenario (seeds pooled), with the settings."""
+    model = world_model_kwargs(checkpoint)
+    results = {}
+    for scenario in scenarios:
+        pairs = []
+        for s in seeds:
+            found = episode(scenario, s, steps, model)
+            pairs += found
+            print(f"{scenario} seed {s}: {len(found)} frames read", file=sys.stderr, flush=True)
+        results[scenario] = figures(pairs)
+    return {
+        "scenarios": scenarios,
+        "seeds": seeds,
+        "steps": steps,
+        "checkpoint": checkpoint,
+        "policy": POLICY,
+        "min_marking_pixels": MIN_MARKING_PIXELS,
+        "results": results,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="m4world bench lane_markings", description=__doc__.splitlines()[0])
+    p.add_argument("--scenarios", nargs="+", default=list(DEFAULT_SCENARIOS))
+    p.add_argument("--seeds", type=seed, nargs="+", default=[0, 1, 2])
+    p.add_argument("--steps", type=positive_int, default=20, help="policy steps per episode (at most)")
+    p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
+    p.add_argument("--out", required=True, help="JSON file")
+    a = p.parse_args(argv)
+    try:
+        check_out(a.out, "file")
+        for scenario in a.scenarios:
+            load_scenario(scenario)
+    except (ValueError, ScenarioError) as e:
+        p.error(str(e))
+    result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(result, indent=1))
+    print(table(result["results"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
