@@ -20,31 +20,17 @@ over the ground truth's. A markdown table is printed; the JSON holds the figures
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
-from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 
-import m4world_env  # noqa: F401  (registers M4World-v0)
-from m4world_env.evaluate import make_policy
-from m4world_env.scenario import ScenarioError, load_scenario
-from world_model.cli_args import check_out, positive_int, seed
+from m4world_env.agreement import FULL_SCENARIOS
+from m4world_env.same_states import POLICY, parse_replay_args, replay_parser, replayed_steps, write_result
 from world_model.raster.classes import CLASS_PLANE, MARKING, ROAD
 from world_model.sensors import DEFAULT_CAMERA_NAMES
 from world_model.sim.labels import LabelRasterizer
 
-DEFAULT_SCENARIOS = (
-    "highway_sunny_day",
-    "highway_dense_rain_dusk",
-    "merge_cut_in",
-    "two_way_overtake_dusk",
-    "roundabout_fog",
-    "stopped_vehicle_snow",
-)
-POLICY = "lane_keeping"
+DEFAULT_SCENARIOS = FULL_SCENARIOS  # the agreement report's: where policies are scored
 FRONT = DEFAULT_CAMERA_NAMES.index("FRONT")
 MIN_MARKING_PIXELS = 6  # fewer markings in the lower half: a frame with no lane line to read
 Reading = tuple[float, float]  # (markings, road) mean luminance of one FRONT view
@@ -73,32 +59,17 @@ def world_model_kwargs(checkpoint: str | None) -> dict:
 def episode(scenario: str, seed: int, steps: int, model: dict) -> list[tuple[Reading, Reading]]:
     """Up to ``steps`` policy steps of ``scenario``: after each, the ground truth's FRONT reading and
     the ``model`` env's (gym.make keywords, fed the same actions), where both have one."""
-    truth_env = gym.make("M4World-v0", scenario=scenario, backend="procedural")
-    model_env = gym.make("M4World-v0", scenario=scenario, **model)
     rasterizer = LabelRasterizer()
-    try:
-        act = make_policy(POLICY, truth_env)
-        obs, info = truth_env.reset(seed=seed)
-        model_env.reset(seed=seed)
-        pairs = []
-        for _ in range(steps):
-            action = act(obs, info)
-            obs, _r, t_term, t_trunc, info = truth_env.step(action)
-            model_obs, _r, m_term, m_trunc, _ = model_env.step(action)
-            truth_view, model_view = obs["cameras"][FRONT], model_obs["cameras"][FRONT]
-            frame = truth_env.unwrapped.scene_frame
-            truth, model_reading = (
-                front_reading(view, rasterizer.maps(frame, frame.rig, *view.shape[:2])[FRONT, CLASS_PLANE])
-                for view in (truth_view, model_view)  # each read on the label map at its own size
-            )
-            if truth is not None and model_reading is not None:
-                pairs.append((truth, model_reading))
-            if t_term or t_trunc or m_term or m_trunc:
-                break
-        return pairs
-    finally:
-        truth_env.close()
-        model_env.close()
+    pairs = []
+    for step in replayed_steps(scenario, seed, steps, model):
+        frame = step.truth.scene_frame
+        truth, model_reading = (
+            front_reading(view, rasterizer.maps(frame, frame.rig, *view.shape[:2])[FRONT, CLASS_PLANE])
+            for view in (step.truth_obs["cameras"][FRONT], step.model_obs["cameras"][FRONT])  # each at its own size
+        )
+        if truth is not None and model_reading is not None:
+            pairs.append((truth, model_reading))
+    return pairs
 
 
 def figures(pairs: list[tuple[Reading, Reading]]) -> dict[str, float | int | None]:
@@ -166,22 +137,10 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench lane_markings", description=__doc__.splitlines()[0])
-    p.add_argument("--scenarios", nargs="+", default=list(DEFAULT_SCENARIOS))
-    p.add_argument("--seeds", type=seed, nargs="+", default=[0, 1, 2])
-    p.add_argument("--steps", type=positive_int, default=20, help="policy steps per episode (at most)")
-    p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
-    p.add_argument("--out", required=True, help="JSON file")
-    a = p.parse_args(argv)
-    try:
-        check_out(a.out, "file")
-        for scenario in a.scenarios:
-            load_scenario(scenario)
-    except (ValueError, ScenarioError) as e:
-        p.error(str(e))
+    p = replay_parser("m4world bench lane_markings", __doc__.splitlines()[0], DEFAULT_SCENARIOS, (0, 1, 2), 20)
+    a = parse_replay_args(p, argv)
     result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(result, indent=1))
+    write_result(a.out, result)
     print(table(result["results"]))
     return 0
 

@@ -22,19 +22,12 @@ figures and the run's settings.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from collections.abc import Iterable
-from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 
-import m4world_env  # noqa: F401  (registers M4World-v0)
-from m4world_env.evaluate import make_policy
-from m4world_env.scenario import ScenarioError, load_scenario
-from world_model.cli_args import check_out, positive_int, seed
+from m4world_env.same_states import POLICY, parse_replay_args, replay_parser, replayed_steps, write_result
 from world_model.eval.decisions import (
     BEAM_BANDS,
     FAR_ERROR_M,
@@ -55,7 +48,6 @@ DEFAULT_SCENARIOS = (
     "highway_dense_rain_dusk",
     "intersection_pedestrian_night",
 )
-POLICY = "lane_keeping"
 ALL = "all scenarios"  # the row pooled over every scenario
 COLUMNS = ("objects", "median_error_m", "farther_or_missed", "missed", "phantom")
 
@@ -78,25 +70,12 @@ def compare(truths: Iterable[np.ndarray], models: Iterable[np.ndarray], spec: Li
 def episode(scenario: str, seed: int, steps: int, model: dict) -> tuple[list[np.ndarray], list[np.ndarray], LidarSpec]:
     """Up to ``steps`` policy steps of ``scenario``: the ground truth's range maps after each step,
     the ``model`` env's (gym.make keywords) fed the same actions, and the model env's LidarSpec."""
-    truth_env = gym.make("M4World-v0", scenario=scenario, backend="procedural")
-    model_env = gym.make("M4World-v0", scenario=scenario, **model)
-    try:
-        act = make_policy(POLICY, truth_env)
-        obs, info = truth_env.reset(seed=seed)
-        model_env.reset(seed=seed)
-        truths, models = [], []
-        for _ in range(steps):
-            action = act(obs, info)
-            obs, _r, t_term, t_trunc, info = truth_env.step(action)
-            model_obs, _r, m_term, m_trunc, _ = model_env.step(action)
-            truths.append(obs["lidar"])
-            models.append(model_obs["lidar"])
-            if t_term or t_trunc or m_term or m_trunc:
-                break
-        return truths, models, model_env.unwrapped.lidar_spec
-    finally:
-        truth_env.close()
-        model_env.close()
+    truths, models, spec = [], [], None
+    for step in replayed_steps(scenario, seed, steps, model):
+        truths.append(step.truth_obs["lidar"])
+        models.append(step.model_obs["lidar"])
+        spec = step.model.lidar_spec
+    return truths, models, spec
 
 
 def figures(sums: DecisionSums) -> dict[str, dict]:
@@ -161,22 +140,10 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench lidar_sectors", description=__doc__.splitlines()[0])
-    p.add_argument("--scenarios", nargs="+", default=list(DEFAULT_SCENARIOS))
-    p.add_argument("--seeds", type=seed, nargs="+", default=[0, 1])
-    p.add_argument("--steps", type=positive_int, default=40, help="policy steps per episode (at most)")
-    p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
-    p.add_argument("--out", required=True, help="JSON file")
-    a = p.parse_args(argv)
-    try:
-        check_out(a.out, "file")
-        for scenario in a.scenarios:
-            load_scenario(scenario)
-    except (ValueError, ScenarioError) as e:
-        p.error(str(e))
+    p = replay_parser("m4world bench lidar_sectors", __doc__.splitlines()[0], DEFAULT_SCENARIOS, (0, 1), 40)
+    a = parse_replay_args(p, argv)
     result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(result, indent=1))
+    write_result(a.out, result)
     print(table(result["results"]))
     return 0
 

@@ -1,0 +1,85 @@
+"""The ground truth's episode replayed on another backend: what the same-states benchmarks share.
+
+``lane_keeping`` drives ``backend="procedural"`` (the ground truth) and its very actions are fed to
+a second env (``gym.make`` keywords), both reset with the seed, so the traffic is the same on both;
+an episode stops when either env ends. :func:`replayed_steps` yields each step's envs and
+observations (the ground truth's ``scene_frame`` is the scene both show);
+:func:`replay_parser` and :func:`parse_replay_args` are the benchmarks' shared options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+
+import m4world_env  # noqa: F401  (registers M4World-v0)
+from m4world_env.evaluate import make_policy
+from m4world_env.scenario import ScenarioError, load_scenario
+from world_model.cli_args import check_out, positive_int, seed
+
+POLICY = "lane_keeping"
+
+
+class ReplayStep(NamedTuple):
+    """One policy step on both envs (their unwrapped envs: ``truth.scene_frame``, ``model.lidar_spec``)."""
+
+    truth: Any
+    truth_obs: dict
+    model: Any
+    model_obs: dict
+
+
+def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterator[ReplayStep]:
+    """Up to ``steps`` policy steps of ``scenario``, each once both envs took it: the ``model`` env
+    (gym.make keywords) fed the ground truth's very actions."""
+    truth_env = gym.make("M4World-v0", scenario=scenario, backend="procedural")
+    model_env = gym.make("M4World-v0", scenario=scenario, **model)
+    try:
+        act = make_policy(POLICY, truth_env)
+        obs, info = truth_env.reset(seed=seed)
+        model_env.reset(seed=seed)
+        for _ in range(steps):
+            action = act(obs, info)
+            obs, _r, t_term, t_trunc, info = truth_env.step(action)
+            model_obs, _r, m_term, m_trunc, _ = model_env.step(action)
+            yield ReplayStep(truth_env.unwrapped, obs, model_env.unwrapped, model_obs)
+            if t_term or t_trunc or m_term or m_trunc:
+                break
+    finally:
+        truth_env.close()
+        model_env.close()
+
+
+def replay_parser(prog: str, description: str, scenarios: Sequence[str], seeds: Sequence[int], steps: int):  # noqa: ANN201
+    """An ArgumentParser with the replay benchmarks' options: --scenarios, --seeds, --steps,
+    --checkpoint and --out (a JSON file)."""
+    p = argparse.ArgumentParser(prog=prog, description=description)
+    p.add_argument("--scenarios", nargs="+", default=list(scenarios))
+    p.add_argument("--seeds", type=seed, nargs="+", default=list(seeds))
+    p.add_argument("--steps", type=positive_int, default=steps, help="policy steps per episode (at most)")
+    p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
+    p.add_argument("--out", required=True, help="JSON file")
+    return p
+
+
+def parse_replay_args(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """``p``'s arguments, an unwritable --out or an unknown scenario refused by name."""
+    a = p.parse_args(argv)
+    try:
+        check_out(a.out, "file")
+        for scenario in a.scenarios:
+            load_scenario(scenario)
+    except (ValueError, ScenarioError) as e:
+        p.error(str(e))
+    return a
+
+
+def write_result(out: str | Path, result: dict) -> None:
+    """``result`` as JSON at ``out`` (its folder made)."""
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    Path(out).write_text(json.dumps(result, indent=1))
