@@ -4,14 +4,14 @@
 a second env (``gym.make`` keywords), both reset with the seed, so the traffic is the same on both;
 an episode stops when either env ends. :func:`replayed_steps` yields each step's envs and
 observations (the ground truth's ``scene_frame`` is the scene both show);
-:func:`replay_parser` and :func:`parse_replay_args` are the benchmarks' shared options.
+:func:`replay_main` is their shared command.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -55,20 +55,24 @@ def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterato
         model_env.close()
 
 
-def replay_parser(prog: str, description: str, scenarios: Sequence[str], seeds: Sequence[int], steps: int):  # noqa: ANN201
-    """An ArgumentParser with the replay benchmarks' options: --scenarios, --seeds, --steps,
-    --checkpoint and --out (a JSON file)."""
+def replay_main(
+    prog: str,
+    description: str,
+    defaults: tuple[Sequence[str], Sequence[int], int],
+    run: Callable[[list[str], list[int], int, str | None], dict],
+    table: Callable[[dict], str],
+    argv: list[str] | None,
+) -> int:
+    """A same-states benchmark's command: --scenarios, --seeds, --steps (``defaults``), --checkpoint
+    and --out (a JSON file; unwritable, or an unknown scenario, refused by name); ``run``'s result
+    written there as JSON and its ``results`` printed by ``table``."""
+    scenarios, seeds, steps = defaults
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("--scenarios", nargs="+", default=list(scenarios))
     p.add_argument("--seeds", type=seed, nargs="+", default=list(seeds))
     p.add_argument("--steps", type=positive_int, default=steps, help="policy steps per episode (at most)")
     p.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     p.add_argument("--out", required=True, help="JSON file")
-    return p
-
-
-def parse_replay_args(p: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
-    """``p``'s arguments, an unwritable --out or an unknown scenario refused by name."""
     a = p.parse_args(argv)
     try:
         check_out(a.out, "file")
@@ -76,10 +80,8 @@ def parse_replay_args(p: argparse.ArgumentParser, argv: list[str] | None) -> arg
             load_scenario(scenario)
     except (ValueError, ScenarioError) as e:
         p.error(str(e))
-    return a
-
-
-def write_result(out: str | Path, result: dict) -> None:
-    """``result`` as JSON at ``out`` (its folder made)."""
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    Path(out).write_text(json.dumps(result, indent=1))
+    result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(result, indent=1))
+    print(table(result["results"]))
+    return 0

@@ -25,7 +25,7 @@ import sys
 import numpy as np
 
 from m4world_env.agreement import FULL_SCENARIOS
-from m4world_env.same_states import POLICY, parse_replay_args, replay_parser, replayed_steps, write_result
+from m4world_env.same_states import POLICY, replay_main, replayed_steps
 from world_model.raster.classes import CLASS_PLANE, MARKING, ROAD
 from world_model.sensors import DEFAULT_CAMERA_NAMES
 from world_model.sim.labels import LabelRasterizer
@@ -63,10 +63,10 @@ def episode(scenario: str, seed: int, steps: int, model: dict) -> list[tuple[Rea
     pairs = []
     for step in replayed_steps(scenario, seed, steps, model):
         frame = step.truth.scene_frame
-        truth, model_reading = (
-            front_reading(view, rasterizer.maps(frame, frame.rig, *view.shape[:2])[FRONT, CLASS_PLANE])
-            for view in (step.truth_obs["cameras"][FRONT], step.model_obs["cameras"][FRONT])  # each at its own size
-        )
+        views = step.truth_obs["cameras"][FRONT], step.model_obs["cameras"][FRONT]
+        sizes = {view.shape[:2] for view in views}  # the label map at each view's size, once where alike
+        classes = {size: rasterizer.maps(frame, frame.rig, *size)[FRONT, CLASS_PLANE] for size in sizes}
+        truth, model_reading = (front_reading(view, classes[view.shape[:2]]) for view in views)
         if truth is not None and model_reading is not None:
             pairs.append((truth, model_reading))
     return pairs
@@ -137,12 +137,8 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = replay_parser("m4world bench lane_markings", __doc__.splitlines()[0], DEFAULT_SCENARIOS, (0, 1, 2), 20)
-    a = parse_replay_args(p, argv)
-    result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
-    write_result(a.out, result)
-    print(table(result["results"]))
-    return 0
+    description = __doc__.splitlines()[0]
+    return replay_main("m4world bench lane_markings", description, (DEFAULT_SCENARIOS, (0, 1, 2), 20), run, table, argv)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from m4world_env.same_states import POLICY, parse_replay_args, replay_parser, replayed_steps, write_result
+from m4world_env.same_states import POLICY, replay_main, replayed_steps
 from world_model.eval.decisions import (
     BEAM_BANDS,
     FAR_ERROR_M,
@@ -140,12 +140,8 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = replay_parser("m4world bench lidar_sectors", __doc__.splitlines()[0], DEFAULT_SCENARIOS, (0, 1), 40)
-    a = parse_replay_args(p, argv)
-    result = run(a.scenarios, a.seeds, a.steps, a.checkpoint)
-    write_result(a.out, result)
-    print(table(result["results"]))
-    return 0
+    description = __doc__.splitlines()[0]
+    return replay_main("m4world bench lidar_sectors", description, (DEFAULT_SCENARIOS, (0, 1), 40), run, table, argv)
 
 
 if __name__ == "__main__":
