@@ -104,7 +104,7 @@ def parse_action(text: str) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench action_response", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench action_response", description=__doc__.split("\n\n")[0])
     p.add_argument("--backend", nargs="+", default=["procedural", "world_model", "world_model:sink=0"])
     p.add_argument("--actions", nargs=2, default=["0,0", "-1,0"], metavar="A", help="the two continuous actions held")
     p.add_argument("--scenario", default="highway_sunny_day")

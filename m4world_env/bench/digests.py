@@ -60,7 +60,7 @@ def observation_digests(*, backend: str, scenarios: list[str], seeds: tuple[int,
 def main(argv: list[str] | None = None) -> int:
     from m4world_env.scenario import list_scenarios
 
-    parser = argparse.ArgumentParser(prog="m4world bench digests", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="m4world bench digests", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--compare", type=Path, help="an earlier run's file to compare with")
     parser.add_argument("--backend", default="world_model", choices=("world_model", "procedural"))

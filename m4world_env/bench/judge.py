@@ -40,7 +40,7 @@ def _median_rate(fn: Callable[[], object], items: int, repeats: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench judge", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench judge", description=__doc__.split("\n\n")[0])
     p.add_argument("--evalset", required=True, help="directory of the recorded evaluation set")
     p.add_argument("--judge", default=str(DEFAULT_JUDGE_DIR), help="judge directory (default: shipped)")
     p.add_argument("--out", default=None, help="write the JSON figures here")

@@ -137,7 +137,7 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    description = __doc__.splitlines()[0]
+    description = __doc__.split("\n\n")[0]
     return replay_main("m4world bench lane_markings", description, (DEFAULT_SCENARIOS, (0, 1, 2), 20), run, table, argv)
 
 

@@ -140,7 +140,7 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    description = __doc__.splitlines()[0]
+    description = __doc__.split("\n\n")[0]
     return replay_main("m4world bench lidar_sectors", description, (DEFAULT_SCENARIOS, (0, 1), 40), run, table, argv)
 
 

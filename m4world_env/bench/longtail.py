@@ -423,7 +423,7 @@ def record_case(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="m4world bench longtail", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="m4world bench longtail", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="record the rare clips and a base dataset without the case")
     r.add_argument("--preset", default="tiny")

@@ -178,7 +178,7 @@ def bench_config(
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="m4world bench model", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench model", description=__doc__.split("\n\n")[0])
     p.add_argument("--presets", nargs="+", default=["tiny", "default"])
     p.add_argument("--models", nargs="+", default=["student"], choices=["student", "teacher"])
     p.add_argument("--dtypes", nargs="+", default=["auto"], choices=["auto", *DTYPES], help="auto: as the env runs it")

@@ -42,7 +42,7 @@ def episode(dtype: str, scenario: str, seed: int, steps: int, checkpoint: str | 
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="m4world bench precision", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench precision", description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default="highway_sunny_day")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--steps", type=int, default=40)

@@ -33,7 +33,7 @@ def record_once(workers: int, args: argparse.Namespace, out: Path) -> float:
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="m4world bench record", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench record", description=__doc__.split("\n\n")[0])
     p.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="worker counts; the first is the baseline")
     p.add_argument("--clips", type=int, default=8)
     p.add_argument("--duration", type=float, default=5.0, help="seconds per clip")

@@ -25,7 +25,7 @@ from world_model.lora import read_adapter, resolve_adapter
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="m4world bench reset", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="m4world bench reset", description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="tree_truck_highway")
     ap.add_argument("--checkpoint", default=None, help="world-model bundle (default: the shipped one)")
     ap.add_argument("--rounds", type=int, default=5)

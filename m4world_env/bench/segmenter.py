@@ -82,7 +82,7 @@ def front_readings(segmenter: Segmenter, refs: list[ClipRef], cache_dir: Path, s
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench segmenter", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench segmenter", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", nargs="+", required=True, help="recorded datasets (held-out clips, the evaluation set)")
     p.add_argument("--segmenter", default=str(DEFAULT_SEGMENTER_DIR), help="a saved segmenter directory")
     p.add_argument("--stride", type=int, default=4, help="every n-th frame of each clip")

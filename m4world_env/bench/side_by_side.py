@@ -69,7 +69,7 @@ def views_at(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench side_by_side", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench side_by_side", description=__doc__.split("\n\n")[0])
     p.add_argument("--scenario", default="highway_sunny_day")
     p.add_argument("--seed", type=int, default=3)
     p.add_argument("--policy", default="lane_keeping")

@@ -268,7 +268,7 @@ OPTIONAL_SECTIONS = {"compiled_vs_eager": compiled_vs_eager}  # needs a C++ comp
 
 
 def main(argv: list[str] | None = None) -> None:
-    p = argparse.ArgumentParser(prog="m4world bench student", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench student", description=__doc__.split("\n\n")[0])
     p.add_argument("--preset", default="default")
     p.add_argument("--envs", type=int, default=8, help="batched rollouts for the speed comparisons")
     p.add_argument("--rollout-envs", type=int, default=1, help="rows of the long rollout")

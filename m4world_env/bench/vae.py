@@ -106,7 +106,7 @@ def evaluate_vae(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="m4world bench vae", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="m4world bench vae", description=__doc__.split("\n\n")[0])
     p.add_argument("--vae", action="append", required=True, help="VAE export or bundle (repeatable)")
     p.add_argument("--ordinary-data", required=True, help="clips without the case (not trained on)")
     p.add_argument("--case-data", required=True, help="clips with the long-tail case (not trained on)")
