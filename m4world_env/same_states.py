@@ -4,7 +4,8 @@
 a second env (``gym.make`` keywords), both reset with the seed, so the traffic is the same on both;
 an episode stops when either env ends. :func:`replayed_steps` yields each step's envs and
 observations (the ground truth's ``scene_frame`` is the scene both show);
-:func:`replay_main` is their shared command.
+:func:`model_env_kwargs` the world-model env observing one sensor, :func:`replay_settings` the
+settings every result records, :func:`replay_main` their shared command.
 """
 
 from __future__ import annotations
@@ -55,19 +56,32 @@ def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterato
         model_env.close()
 
 
+def model_env_kwargs(sensor: str, checkpoint: str | None) -> dict:
+    """gym.make keywords of the world-model env that observes ``sensor`` ("cameras" or "lidar")
+    only, the bundle ``checkpoint`` where given."""
+    kw: dict = {"backend": "world_model", "config": {"observation_keys": [sensor]}}
+    return {**kw, "checkpoint": checkpoint} if checkpoint else kw
+
+
+def replay_settings(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
+    """The settings every same-states benchmark's result records beside its own."""
+    return {"scenarios": scenarios, "seeds": seeds, "steps": steps, "checkpoint": checkpoint, "policy": POLICY}
+
+
 def replay_main(
     prog: str,
-    description: str,
+    doc: str,
     defaults: tuple[Sequence[str], Sequence[int], int],
     run: Callable[[list[str], list[int], int, str | None], dict],
     table: Callable[[dict], str],
     argv: list[str] | None,
 ) -> int:
-    """A same-states benchmark's command: --scenarios, --seeds, --steps (``defaults``), --checkpoint
-    and --out (a JSON file; unwritable, or an unknown scenario, refused by name); ``run``'s result
-    written there as JSON and its ``results`` printed by ``table``."""
+    """A same-states benchmark's command, described by the first paragraph of its module's ``doc``:
+    --scenarios, --seeds, --steps (``defaults``), --checkpoint and --out (a JSON file; unwritable, or
+    an unknown scenario, refused by name); ``run``'s result written there as JSON and its
+    ``results`` printed by ``table``."""
     scenarios, seeds, steps = defaults
-    p = argparse.ArgumentParser(prog=prog, description=description)
+    p = argparse.ArgumentParser(prog=prog, description=doc.split("\n\n")[0])
     p.add_argument("--scenarios", nargs="+", default=list(scenarios))
     p.add_argument("--seeds", type=seed, nargs="+", default=list(seeds))
     p.add_argument("--steps", type=positive_int, default=steps, help="policy steps per episode (at most)")

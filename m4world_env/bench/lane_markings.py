@@ -25,7 +25,7 @@ import sys
 import numpy as np
 
 from m4world_env.agreement import FULL_SCENARIOS
-from m4world_env.same_states import POLICY, replay_main, replayed_steps
+from m4world_env.same_states import model_env_kwargs, replay_main, replay_settings, replayed_steps
 from world_model.raster.classes import CLASS_PLANE, MARKING, ROAD
 from world_model.sensors import DEFAULT_CAMERA_NAMES
 from world_model.sim.labels import LabelRasterizer
@@ -52,8 +52,7 @@ def front_reading(image: np.ndarray, classes: np.ndarray) -> Reading | None:
 
 def world_model_kwargs(checkpoint: str | None) -> dict:
     """gym.make keywords of the world-model env: cameras only, ``checkpoint`` where given."""
-    kw: dict = {"backend": "world_model", "config": {"observation_keys": ["cameras"]}}
-    return {**kw, "checkpoint": checkpoint} if checkpoint else kw
+    return model_env_kwargs("cameras", checkpoint)
 
 
 def episode(scenario: str, seed: int, steps: int, model: dict) -> list[tuple[Reading, Reading]]:
@@ -126,19 +125,14 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
             print(f"{scenario} seed {s}: {len(found)} frames read", file=sys.stderr, flush=True)
         results[scenario] = figures(pairs)
     return {
-        "scenarios": scenarios,
-        "seeds": seeds,
-        "steps": steps,
-        "checkpoint": checkpoint,
-        "policy": POLICY,
+        **replay_settings(scenarios, seeds, steps, checkpoint),
         "min_marking_pixels": MIN_MARKING_PIXELS,
         "results": results,
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    description = __doc__.split("\n\n")[0]
-    return replay_main("m4world bench lane_markings", description, (DEFAULT_SCENARIOS, (0, 1, 2), 20), run, table, argv)
+    return replay_main("m4world bench lane_markings", __doc__, (DEFAULT_SCENARIOS, (0, 1, 2), 20), run, table, argv)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from m4world_env.same_states import POLICY, replay_main, replayed_steps
+from m4world_env.same_states import model_env_kwargs, replay_main, replay_settings, replayed_steps
 from world_model.eval.decisions import (
     BEAM_BANDS,
     FAR_ERROR_M,
@@ -54,8 +54,7 @@ COLUMNS = ("objects", "median_error_m", "farther_or_missed", "missed", "phantom"
 
 def world_model_kwargs(checkpoint: str | None) -> dict:
     """gym.make keywords of the world-model env: LiDAR only, ``checkpoint`` where given."""
-    kw: dict = {"backend": "world_model", "config": {"observation_keys": ["lidar"]}}
-    return {**kw, "checkpoint": checkpoint} if checkpoint else kw
+    return model_env_kwargs("lidar", checkpoint)
 
 
 def compare(truths: Iterable[np.ndarray], models: Iterable[np.ndarray], spec: LidarSpec) -> DecisionSums:
@@ -127,11 +126,7 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
     pooled = sum(per_scenario.values(), DecisionSums())
     results = {name: figures(sums) for name, sums in per_scenario.items()}
     return {
-        "scenarios": scenarios,
-        "seeds": seeds,
-        "steps": steps,
-        "checkpoint": checkpoint,
-        "policy": POLICY,
+        **replay_settings(scenarios, seeds, steps, checkpoint),
         "object_range_m": OBJECT_RANGE_M,
         "far_error_m": FAR_ERROR_M,
         "steps_run": steps_run,
@@ -140,8 +135,7 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
 
 
 def main(argv: list[str] | None = None) -> int:
-    description = __doc__.split("\n\n")[0]
-    return replay_main("m4world bench lidar_sectors", description, (DEFAULT_SCENARIOS, (0, 1), 40), run, table, argv)
+    return replay_main("m4world bench lidar_sectors", __doc__, (DEFAULT_SCENARIOS, (0, 1), 40), run, table, argv)
 
 
 if __name__ == "__main__":
