@@ -13,7 +13,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from world_model import cli_args
-from world_model.train.recipe import CHAIN
 from world_model.train.student_flags import BASE_HELP, add_lora_flags, add_student_flags
 
 if TYPE_CHECKING:
@@ -32,8 +31,9 @@ RUN/bundle. Multi-GPU: torchrun --nproc-per-node N -m world_model.train -- FLAGS
 --batch-size is the global batch, a multiple of N; the "--" keeps torchrun from reading --run as its
 --run-path). Rerunning the same command resumes from each stage's last checkpoint.
 """
-# the stages of --all (CHAIN) that train only with --layout
-DECODER_STAGES = ("decoder", "rollout_decoder", "range_head", "camera_decoder")
+# --all; the decoder stages with --layout
+PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder", "range_head")
+DECODER_STAGES = ("decoder", "rollout_decoder", "range_head")
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:
@@ -105,7 +105,7 @@ def run_train(args: argparse.Namespace) -> int:
     try:
         # Each stage resumes from its own last checkpoint, and a finished stage returns at once:
         # rerunning the same command after an interruption loses nothing.
-        chain = [s for s in CHAIN if s not in DECODER_STAGES or config.layout.decoder]
+        chain = [s for s in PIPELINE if s not in DECODER_STAGES or config.layout.decoder]
         for stage in chain if args.all else (args.stage,):
             options = stages.stage_options(stage, **chain_settings(args, config))
             summary = stages.train_stage(stage, args.data, args.run, options, runtime)

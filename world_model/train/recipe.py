@@ -50,19 +50,7 @@ if TYPE_CHECKING:
 
 from world_model import cli_args
 
-CHAIN = (
-    "vae",
-    "decoder",
-    "teacher",
-    "tf",
-    "ode",
-    "dmd",
-    "long",
-    "reference",
-    "rollout_decoder",
-    "range_head",
-    "camera_decoder",
-)
+CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder", "range_head")
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). The reference
 # model is the one adapted: it draws the rare object into reset()'s first frame, where the student
@@ -122,7 +110,6 @@ SCALES = {
             "long": (100, 8),
             "rollout_decoder": (1000, 64),
             "range_head": (1500, 64),
-            "camera_decoder": (1000, 64),
             "reference": (1500, 32),
             "lora": (1500, 32),
         },
@@ -140,7 +127,6 @@ SCALES = {
             "reference": 30,
             "rollout_decoder": 60,
             "range_head": 60,
-            "camera_decoder": 60,
             f"{RARE_CATEGORY}_completion": 20,
         },
     ),
@@ -164,7 +150,6 @@ SCALES = {
             "long": (20, 2),
             "rollout_decoder": (4500, 16),
             "range_head": (1500, 16),
-            "camera_decoder": (4500, 16),
             "reference": (800, 4),
             "lora": (300, 4),
         },
@@ -182,7 +167,6 @@ SCALES = {
             "reference": 720,
             "rollout_decoder": 1020,
             "range_head": 900,
-            "camera_decoder": 1020,
             f"{RARE_CATEGORY}_completion": 600,
         },
         text_encoder=None,
@@ -381,18 +365,11 @@ def check_run_options(out: Path, options: RecipeOptions) -> None:
             )  # a folder that is no bundle is named now, not after the recording
         except CheckpointError as e:
             raise ValueError(f"--from-bundle: {e}") from None
-        layout = files.model_config.get("layout", {})
         decoders = [p for p in ("decoder", "rollout_decoder") if p in options.phases]
-        if decoders and "range_head" not in options.phases and layout.get("range_head"):
+        if decoders and "range_head" not in options.phases and files.model_config.get("layout", {}).get("range_head"):
             raise ValueError(
                 f"--phases {' '.join(options.phases)}: the bundle's range head finishes the decoder it was trained "
                 f"on; train it again after {decoders[-1]}: --phases {' '.join(options.phases)} range_head"
-            )
-        decoders += [p for p in ("range_head",) if p in options.phases]
-        if decoders and "camera_decoder" not in options.phases and layout.get("camera_decoder"):
-            raise ValueError(
-                f"--phases {' '.join(options.phases)}: the bundle's camera decoder keeps the VAE it was trained on; "
-                f"train it again after {decoders[-1]}: --phases {' '.join(options.phases)} camera_decoder"
             )
 
 

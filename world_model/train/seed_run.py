@@ -6,8 +6,7 @@ stages again on a shipped checkpoint whose DiTs stay as they are::
     RUN/vae/        the bundle's encoder with its decoder's plain trunk (the latents every stage reads)
     RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start),
                     without its range head
-    RUN/camera_decoder/ the bundle's VAE as it is, when it draws the cameras with a decoder of their own
-    RUN/range_head/ the bundle's VAE without a camera decoder, when it has a range head
+    RUN/range_head/ the bundle's VAE as it is, when it has a range head
     RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
     RUN/reference/  the reference model, under its own config
     RUN/lora/NAME/  the adapters
@@ -55,10 +54,6 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
         written.append(stage)
 
     vae = files.tensors["vae"]
-    if cfg.layout.camera_decoder:
-        export("camera_decoder", vae, {"model_config": cfg.to_dict()})
-        cfg = replace(cfg, layout=replace(cfg.layout, camera_decoder=False))
-        vae = {k: v for k, v in vae.items() if not k.startswith("camera_decoder.")}
     if cfg.layout.range_head:
         export("range_head", vae, {"model_config": cfg.to_dict(), "finishes": finished_digest(vae)})
     if cfg.layout.decoder:

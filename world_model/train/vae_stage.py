@@ -37,7 +37,7 @@ from world_model.model.vae import (
     kl_loss,
     weighted_l1,
 )
-from world_model.raster.classes import CLASS_PLANE, MARKING, blank_maps
+from world_model.raster.classes import blank_maps
 from world_model.raster.maps import lidar_nearness_maps
 from world_model.scene import SceneFrame
 from world_model.sim.labels import LabelRasterizer
@@ -94,8 +94,7 @@ def vae_metrics(
         ids = view_labels(labels, clip.frames[f], cfg, views).to(device) if labels else None
         near = view_nearness(clip.frames[f], cfg, views).to(device) if vae.draws_labels else None
         style = None if styles is None else torch.from_numpy(styles[ci]).to(device).expand(len(x), -1)
-        lidar = torch.arange(len(x)) == cfg.sensors.lidar_view
-        rec = vae.decode(vae.encode(x), ids, style, near, lidar).float().cpu()
+        rec = vae.decode(vae.encode(x), ids, style, near).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
         truth = np.asarray(clip.lidar[f], dtype=np.float32)
@@ -250,13 +249,11 @@ def decoder_loss(
     picks: Sequence[tuple[int, int, int]],
     latents: torch.Tensor,
     styles: Sequence[np.ndarray] | None,
-    marking_weight: float = 1.0,
 ) -> tuple[torch.Tensor, int]:
     """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
     with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; its LiDAR
     ``nearness`` maps, :func:`cached_nearness_maps`; and their
-    clips' ``styles``), and the batch size. A pixel the label map calls a lane marking weighs
-    ``marking_weight`` times as much as it would otherwise."""
+    clips' ``styles``), and the batch size."""
     cfg = vae.cfg
     batch = sampler.batch(picks)
     images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
@@ -265,17 +262,8 @@ def decoder_loss(
     near = None
     if nearness is not None:
         near = tr.shard(torch.from_numpy(np.stack([picked_nearness(nearness, c, f, v, cfg) for c, f, v in picks])))
-    weights = with_marking_weight(weights, ids, marking_weight)
-    place = tr.place
-    own_lidar = batch.is_lidar[place.local_rows(len(picks))] if place.distributed else batch.is_lidar
-    err = weighted_l1(vae.decode(tr.shard(latents), ids, style, near, own_lidar), images, weights)
+    err = weighted_l1(vae.decode(tr.shard(latents), ids, style, near), images, weights)
     return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
-
-
-def with_marking_weight(weights: torch.Tensor, labels: torch.Tensor, marking_weight: float) -> torch.Tensor:
-    """Per-pixel loss ``weights`` (N, 1, H, W) with the pixels that the label maps ``labels``
-    (N, 3, H, W) call a lane marking weighing ``marking_weight`` times as much."""
-    return weights * torch.where(labels[:, CLASS_PLANE : CLASS_PLANE + 1] == MARKING, marking_weight, 1.0)
 
 
 def export_decoder(
