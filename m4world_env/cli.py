@@ -247,7 +247,12 @@ def _cmd_agreement(args: argparse.Namespace) -> int:
     scenarios = tuple(args.scenarios) if args.scenarios else base.scenarios
     seeds = tuple(range(args.seed, args.seed + (args.seeds or len(base.seeds))))
     plan = AgreementPlan(
-        policies=policies, scenarios=scenarios, seeds=seeds, steps=args.steps or base.steps, checkpoint=args.checkpoint
+        policies=policies,
+        scenarios=scenarios,
+        seeds=seeds,
+        steps=args.steps or base.steps,
+        checkpoint=args.checkpoint,
+        truth_noise=args.truth_noise,
     )
     for name in scenarios:
         load_scenario(name)  # an unknown or broken scenario is refused now, not after the first cells
@@ -709,8 +714,17 @@ def _add_agreement_parser(sub: argparse._SubParsersAction) -> None:
     ag.add_argument(
         "--videos",
         type=_non_negative_int,
-        default=DEFAULT_VIDEOS,
-        help="side-by-side videos of the episodes the backends disagree on most",
+        default=None,
+        help=f"side-by-side videos of the episodes the backends disagree on most (default: {DEFAULT_VIDEOS}; "
+        "none with --truth-noise)",
+    )
+    ag.add_argument(
+        "--truth-noise",
+        type=float,
+        default=None,
+        metavar="SIGMA",
+        help="in the world model's place, the ground truth with its cameras seen through Gaussian noise of "
+        "SIGMA grey levels: how far two ground truths no policy should tell apart score apart (the floor)",
     )
     ag.set_defaults(func=_cmd_agreement)
 

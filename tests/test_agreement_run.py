@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -102,6 +103,10 @@ def test_plans_name_every_cell_and_refuse_what_cannot_run():
         ("--seeds", {"seeds": (1, 1)}),
         ("--scenarios", {"scenarios": ("my/road.yaml",)}),
         ("--steps", {"steps": 0}),
+        ("--truth-noise", {"truth_noise": 0.0}),
+        ("--truth-noise", {"truth_noise": float("nan")}),
+        ("--truth-noise", {"truth_noise": 65.0}),
+        ("--truth-noise", {"truth_noise": True}),
     ):
         with pytest.raises(ValueError, match=flag):
             AgreementPlan(**{"policies": ("a",), "scenarios": ("s",), "seeds": (0,), "steps": 2, **kwargs})
@@ -113,12 +118,45 @@ def test_plans_name_every_cell_and_refuse_what_cannot_run():
         (["--policies", "nobody"], "unknown zoo policy"),
         (["--scenarios", "no_such_road"], "no_such_road"),
         (["--checkpoint", "/no/such/bundle"], "no bundle"),
+        (["--truth-noise", "-1"], "--truth-noise"),
+        (["--truth-noise", "2", "--videos", "1"], "--videos 0"),
     ],
 )
 def test_the_command_refuses_bad_options_before_any_work(args, message, tmp_path, capsys):
     assert main(["agreement", "--out", str(tmp_path / "run"), *args]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run" / "episodes").exists()
+
+
+def test_the_noisy_ground_truth_takes_the_world_models_place_seen_through_camera_noise(tmp_path, monkeypatch):
+    """The floor: the 'world_model' cells drive the ground truth, each policy seeing its cameras
+    through the noise (its LiDAR as it is); the cells are what the plan says, run after run."""
+    noisy = AgreementPlan(
+        policies=POLICIES, scenarios=("highway_dense_rain_dusk",), seeds=(1,), steps=3, truth_noise=2.0
+    )
+    assert noisy.to_json()["truth_noise"] == 2.0 and "truth_noise" not in replace(noisy, truth_noise=None).to_json()
+    seen = []
+    real = agreement_run.noisy_cameras
+    spy = lambda obs, sigma, rng: seen.append((obs, real(obs, sigma, rng))) or seen[-1][1]  # noqa: E731
+    monkeypatch.setattr(agreement_run, "noisy_cameras", spy)
+    summary = run_agreement(noisy, tmp_path / "floor", progress=False)
+    assert summary["checkpoint"].startswith("the ground truth") and "videos" not in summary
+    assert len(seen) >= len(POLICIES)  # the first frame and each step's, per row
+    for raw, through in seen:
+        assert np.array_equal(through["lidar"], raw["lidar"]) and through["cameras"].dtype == np.uint8
+        diff = through["cameras"].astype(np.float32) - raw["cameras"]
+        assert 1.0 < float(diff.std()) < 3.0
+    again = run_agreement(noisy, tmp_path / "again", progress=False)
+    assert again["agreement"] == summary["agreement"] and again["policies"] == summary["policies"]
+
+
+def test_noisy_cameras_keeps_uint8_within_its_range():
+    rng = np.random.default_rng(0)
+    obs = {"cameras": np.array([[[[0, 128, 255]]]], np.uint8).repeat(500, axis=1), "lidar": np.ones((2, 3), np.float32)}
+    out = agreement_run.noisy_cameras(obs, 10.0, rng)
+    assert out["cameras"].dtype == np.uint8 and out["lidar"] is obs["lidar"]
+    assert out["cameras"][..., 0].min() == 0 and out["cameras"][..., 2].max() == 255
+    assert 8.0 < float(np.std(out["cameras"][..., 1].astype(np.float32))) < 12.0
 
 
 def test_the_command_builds_its_plan_from_the_run_size_and_the_flags(tmp_path, monkeypatch):

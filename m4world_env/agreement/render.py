@@ -9,7 +9,7 @@ The summary's shape (every float a plain float; a statistic that is undefined, a
 constant side, is ``None`` rather than ``nan`` so ``json.dumps(summary, allow_nan=False)`` works)::
 
     {
-      "checkpoint": str,                        # the world-model bundle the run used
+      "checkpoint": str,                        # the world-model bundle the run used (or its stand-in)
       "scenarios": [str, ...],
       "seeds": [int, ...],
       "steps": int,                             # policy steps per episode

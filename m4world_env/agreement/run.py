@@ -3,6 +3,7 @@
     m4world agreement --out out/agreement              # 3 scenarios x 2 seeds
     m4world agreement --full --out out/agreement_full  # 6 scenarios x 4 seeds
     m4world agreement --checkpoint MY_BUNDLE --out out/agreement_mine
+    m4world agreement --truth-noise 2 --out out/agreement_floor  # the ground truth against itself
 
 The work is cut into cells, one per (backend, scenario, seed). A cell runs every policy at once in
 one vector env (one row per policy, one batched world-model call per step): every row starts from
@@ -16,6 +17,11 @@ settings); ``OUT/progress.json`` tells how far it is. At the end: ``summary.json
 A row's episode is exactly ``m4world eval --policy P --scenarios S --seed SEED --backend B
 --max-steps STEPS``'s (the vector env equals single envs bit for bit on CPU, and the policy's seed is
 drawn the same way). A run's wall time and its cells' own times are in its report.
+
+With ``truth_noise`` (``--truth-noise SIGMA``) the world model's place is taken by the ground truth
+whose cameras the policies see through Gaussian noise of SIGMA grey levels (:func:`noisy_cameras`),
+the LiDAR as it is: two ground truths no policy should tell apart. How far their scores still fall
+apart, with this zoo, these scenarios and seeds, is what no world model can be asked to beat.
 """
 
 from __future__ import annotations
@@ -52,15 +58,21 @@ PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run 
 SHIPPED_CHECKPOINT = "shipped"  # how a plan names the bundle that comes with the package
 
 
+TRUTH_NOISE_MAX = 64.0  # grey levels: beyond this the cameras are mostly noise
+
+
 @dataclass(frozen=True)
 class AgreementPlan:
-    """What a run covers. ``checkpoint``: a bundle path, or None for the shipped one."""
+    """What a run covers. ``checkpoint``: a bundle path, or None for the shipped one.
+    ``truth_noise``: None, the world model; else the ground truth seen through camera noise of that
+    many grey levels in its place (module docstring)."""
 
     policies: tuple[str, ...]
     scenarios: tuple[str, ...]
     seeds: tuple[int, ...]
     steps: int
     checkpoint: str | None = None
+    truth_noise: float | None = None
 
     def __post_init__(self) -> None:
         if not self.policies or not self.scenarios or not self.seeds:
@@ -73,6 +85,11 @@ class AgreementPlan:
                 raise ValueError(f"--scenarios {name}: give a bundled scenario's name (m4world scenarios lists them)")
         if isinstance(self.steps, bool) or not isinstance(self.steps, int) or self.steps < 1:
             raise ValueError(f"--steps must be a positive integer, got {self.steps!r}")
+        noise = self.truth_noise
+        if noise is not None and (
+            isinstance(noise, bool) or not isinstance(noise, int | float) or not 0 < noise <= TRUTH_NOISE_MAX
+        ):
+            raise ValueError(f"--truth-noise must be grey levels in (0, {TRUTH_NOISE_MAX:g}], got {noise!r}")
 
     def to_json(self) -> dict[str, Any]:
         """The plan as ``plan.json`` keeps it: with each member's citation and the digests of its
@@ -81,12 +98,26 @@ class AgreementPlan:
         from m4world_env import zoo
 
         d = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
-        d["checkpoint"] = SHIPPED_CHECKPOINT if self.checkpoint is None else str(Path(self.checkpoint).resolve())
+        d["checkpoint"] = bundle_name(self.checkpoint)
         members = [zoo.member(p) for p in self.policies]
         d["citations"] = [m.citation for m in members]
         d["member_files"] = {m.name: [_digest(f) for f in m.files] for m in members if m.files}
         d["checkpoint_manifest"] = _digest(resolve_bundle(self.checkpoint) / "manifest.json")
+        if self.truth_noise is None:  # a world-model run's plan as it always was: its runs resume
+            del d["truth_noise"]
         return d
+
+    @property
+    def model_side(self) -> str:
+        """What the report compares with the ground truth: the bundle, or the noisy ground truth."""
+        if self.truth_noise is None:
+            return bundle_name(self.checkpoint)
+        return f"the ground truth, its cameras seen through noise of {self.truth_noise:g} grey levels"
+
+
+def bundle_name(checkpoint: str | None) -> str:
+    """How a plan names its bundle: :data:`SHIPPED_CHECKPOINT`, or the bundle's absolute path."""
+    return SHIPPED_CHECKPOINT if checkpoint is None else str(Path(checkpoint).resolve())
 
 
 def _digest(path: Path) -> str:
@@ -167,18 +198,25 @@ def run_cell(
 
     members = [zoo.member(name) for name in plan.policies]
     n = len(members)
+    noise = plan.truth_noise if cell.backend == "world_model" else None
+    backend = cell.backend if noise is None else "procedural"
     venv = M4WorldVectorEnv(
         num_envs=n,
         scenario=cell.scenario,
-        backend=cell.backend,
-        checkpoint=plan.checkpoint if cell.backend == "world_model" else None,
+        backend=backend,
+        checkpoint=plan.checkpoint if backend == "world_model" else None,
         config={"observation_keys": list(SENSOR_KEYS), "model": {"rollout_threads": rollout_threads}},
     )
+
+    def seen(row: dict[str, np.ndarray], i: int, t: int) -> dict[str, np.ndarray]:
+        """Row ``i``'s observation after step ``t`` as its policy sees it."""
+        return row if noise is None else noisy_cameras(row, noise, np.random.default_rng((cell.seed, i, t)))
+
     try:
         obs, infos = venv.reset(seed=[cell.seed] * n)
         geometry = zoo.SensorGeometry.of_env(venv.envs[0])
         drivers = [m.build(geometry, episode_policy_seed(env)) for m, env in zip(members, venv.envs, strict=True)]
-        rows_obs = [{k: obs[k][i] for k in obs} for i in range(n)]
+        rows_obs = [seen({k: obs[k][i] for k in obs}, i, 0) for i in range(n)]
         rows_info: list[dict[str, Any]] = [{"speed": float(infos["speed"][i])} for i in range(n)]
         active = [True] * n
         steps = [0] * n
@@ -191,7 +229,8 @@ def run_cell(
             for i, env in enumerate(venv.envs):
                 if not active[i]:
                     continue
-                rows_obs[i], _reward, terminated, truncated, rows_info[i] = env.finish_step(chunks[i], observations[i])
+                row, _reward, terminated, truncated, rows_info[i] = env.finish_step(chunks[i], observations[i])
+                rows_obs[i] = seen(row, i, t + 1)
                 steps[i] = t + 1
                 active[i] = not (terminated or truncated)
             if on_step is not None:
@@ -213,6 +252,13 @@ def run_cell(
         }
         for i, (m, info) in enumerate(zip(members, rows_info, strict=True))
     ]
+
+
+def noisy_cameras(obs: dict[str, np.ndarray], sigma: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """An observation dict with its ``"cameras"`` (uint8) seen through Gaussian noise of ``sigma``
+    grey levels, rounded and clipped to 0..255; the other sensors as they are."""
+    cameras = obs["cameras"].astype(np.float32) + rng.normal(0.0, sigma, obs["cameras"].shape).astype(np.float32)
+    return {**obs, "cameras": np.clip(np.rint(cameras), 0, 255).astype(np.uint8)}
 
 
 class Progress:
@@ -269,11 +315,13 @@ def run_agreement(
     plan: AgreementPlan,
     out: str | Path,
     *,
-    videos: int = DEFAULT_VIDEOS,
+    videos: int | None = None,
     jobs: int = 1,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Run (or resume) ``plan`` into ``out`` and write its report; returns the summary. ``jobs``:
+    """Run (or resume) ``plan`` into ``out`` and write its report; returns the summary. ``videos``:
+    how many of the most disagreeing episodes get a video (None: :data:`DEFAULT_VIDEOS`, none in
+    a ``truth_noise`` run, which has no world model to show). ``jobs``:
     cells run at once, each in a process of its own (the env's one torch thread each), the
     process's CPUs shared out among them (a world-model cell's rollouts in that many groups on
     threads, ``config.model.rollout_threads``; the records do not depend on it)."""
@@ -284,6 +332,12 @@ def run_agreement(
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
+    if videos is None:
+        videos = DEFAULT_VIDEOS if plan.truth_noise is None else 0
+    if videos and plan.truth_noise is not None:
+        raise ValueError(
+            "videos show the world model beside the ground truth; a --truth-noise run has none: --videos 0"
+        )
     out = Path(out)
     load_bundle_files(plan.checkpoint)  # a missing or broken bundle is refused before any cell runs
     _check_plan(plan, out)
@@ -324,7 +378,7 @@ def run_agreement(
         m.name: {"family": m.family, "citation": m.citation, "description": m.description}
         for m in (zoo.member(p) for p in plan.policies)
     }
-    header = RunHeader(plan.to_json()["checkpoint"], plan.scenarios, plan.seeds, plan.steps, tracker.wall_seconds)
+    header = RunHeader(plan.model_side, plan.scenarios, plan.seeds, plan.steps, tracker.wall_seconds)
     summary = build_summary(records, header, members=members, top_k=max(videos, DEFAULT_TOP_K))
     if videos:
         summary["videos"] = write_videos(plan, summary["disagreements"][:videos], out / "videos", out)
