@@ -56,8 +56,6 @@ from world_model.bundle import load_bundle_files, resolve_bundle
 BACKEND_PAIR = ("procedural", "world_model")
 PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
 SHIPPED_CHECKPOINT = "shipped"  # how a plan names the bundle that comes with the package
-
-
 TRUTH_NOISE_MAX = 64.0  # grey levels: beyond this the cameras are mostly noise
 
 
