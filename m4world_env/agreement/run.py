@@ -330,12 +330,7 @@ def run_agreement(
 
     if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
         raise ValueError(f"jobs must be a positive integer, got {jobs!r}")
-    if videos is None:
-        videos = DEFAULT_VIDEOS if plan.truth_noise is None else 0
-    if videos and plan.truth_noise is not None:
-        raise ValueError(
-            "videos show the world model beside the ground truth; a --truth-noise run has none: --videos 0"
-        )
+    videos = _videos_of(plan, videos)
     out = Path(out)
     load_bundle_files(plan.checkpoint)  # a missing or broken bundle is refused before any cell runs
     _check_plan(plan, out)
@@ -419,6 +414,17 @@ def default_plan(*, full: bool = False, checkpoint: str | None = None) -> Agreem
         steps=FULL_STEPS if full else DEFAULT_STEPS,
         checkpoint=checkpoint,
     )
+
+
+def _videos_of(plan: AgreementPlan, videos: int | None) -> int:
+    """:func:`run_agreement`'s ``videos`` checked and settled (None: its default)."""
+    if videos is None:
+        return DEFAULT_VIDEOS if plan.truth_noise is None else 0
+    if videos and plan.truth_noise is not None:
+        raise ValueError(
+            "videos show the world model beside the ground truth; a --truth-noise run has none: --videos 0"
+        )
+    return videos
 
 
 def minutes(seconds: float) -> str:
