@@ -50,11 +50,6 @@ def front_reading(image: np.ndarray, classes: np.ndarray) -> Reading | None:
     return float(markings.mean()), float(road.mean())
 
 
-def world_model_kwargs(checkpoint: str | None) -> dict:
-    """gym.make keywords of the world-model env: cameras only, ``checkpoint`` where given."""
-    return model_env_kwargs("cameras", checkpoint)
-
-
 def episode(scenario: str, seed: int, steps: int, model: dict) -> list[tuple[Reading, Reading]]:
     """Up to ``steps`` policy steps of ``scenario``: after each, the ground truth's FRONT reading and
     the ``model`` env's (gym.make keywords, fed the same actions), where both have one."""
@@ -115,7 +110,7 @@ def table(results: dict[str, dict]) -> str:
 
 def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
     """Every episode; the figures per scenario (seeds pooled), with the settings."""
-    model = world_model_kwargs(checkpoint)
+    model = model_env_kwargs("cameras", checkpoint)  # the cameras alone: no LiDAR decoded
     results = {}
     for scenario in scenarios:
         pairs = []
