@@ -217,3 +217,34 @@ def test_both_train_clis_retain_the_heap_unless_default_heap(tmp_path, monkeypat
         assert main(args) == 0 and calls == [1]
         calls.clear()
         assert main([*args, "--default-heap"]) == 0 and calls == []
+
+
+def test_ode_targets_of_a_batch_are_each_rows_own_under_guidance():
+    """The guided ODE's unconditional forwards attend to their own row's history K/V, computed under
+    dropped conditions: a batch of two gives what each row gives alone."""
+    from dataclasses import replace
+
+    from world_model.model import MultiViewDiT
+    from world_model.student import StudentConfig
+    from world_model.student.training import ode_targets
+
+    cfg = get_preset("tiny").for_student()
+    cfg = replace(cfg, sampler=replace(cfg.sampler, steps=4, camera_cfg_scale=3.0, lidar_apg_scale=3.0))
+    torch.manual_seed(0)
+    model = MultiViewDiT(cfg).eval()
+    for p in model.parameters():  # adaLN-zero would make every velocity zero
+        torch.nn.init.normal_(p, std=0.05)
+    scfg, c = StudentConfig(), cfg.clip.chunk_frames
+    f = scfg.prefix_frames + c
+    cond = tiny_conditions(cfg, f + c, batch=2)
+    gen = torch.Generator().manual_seed(1)
+    history, noise = (
+        torch.randn(2, *cfg.latent_shape(f), generator=gen),
+        torch.randn(2, *cfg.latent_shape(c), generator=gen),
+    )
+    points, end = ode_targets(model, history, cond, noise, scfg)
+    for row in range(2):
+        alone = cond.apply(lambda _, v, row=row: v[row : row + 1])
+        row_points, row_end = ode_targets(model, history[row : row + 1], alone, noise[row : row + 1], scfg)
+        assert torch.allclose(end[row : row + 1], row_end, atol=1e-6), (row, (end[row] - row_end[0]).abs().max())
+        assert torch.allclose(points[:, row : row + 1], row_points, atol=1e-6)

@@ -43,7 +43,8 @@ class GuidedVelocity:
         self.guided = self.sampler.camera_cfg_scale != 1.0 or self.sampler.lidar_apg_scale != 1.0
         # Conditional and unconditional rows interleaved (c0, u0, c1, u1, ...): each sample's pair
         # is one contiguous block, as in a batch of one, so the forward can be row-independent
-        # (world_model.model.rows).
+        # (world_model.model.rows). Per-row tensors of ``forward_kwargs`` (a history's K/V) are in
+        # that order too: ``pairs`` picks it from [conditional rows; unconditional rows].
         b = cond.batch_size
         self.pairs = torch.arange(2 * b, device=cond.drop.device).view(2, b).t().flatten()
         both = Conditions.cat([cond, cond.with_drop(True)]).apply(lambda _, v: v[self.pairs]) if self.guided else cond

@@ -85,13 +85,9 @@ def ode_targets(
     chunk_cond = cond.frames(f, f + c)
     velocity = GuidedVelocity(model, chunk_cond, sampler)
     hist_cond = cond.frames(0, f)
-    if velocity.guided:
-        kv = history_kv(
-            model,
-            torch.cat([history, history]),
-            Conditions.cat([hist_cond, hist_cond.with_drop(True)]),
-            scfg.prefix_frames,
-        )
+    if velocity.guided:  # each row's history twice, in the rows' order of the guided forward
+        both = Conditions.cat([hist_cond, hist_cond.with_drop(True)]).apply(lambda _, v: v[velocity.pairs])
+        kv = history_kv(model, torch.cat([history, history])[velocity.pairs], both, scfg.prefix_frames)
     else:
         kv = history_kv(model, history, hist_cond, scfg.prefix_frames)
     velocity.kwargs.update(kv_context=kv, frame_offset=f)
