@@ -319,6 +319,7 @@ STREAMING_FLAGS = {
     "sink_frames": "--sink-frames",
     "first_frame_steps": "--first-frame-steps",
     "first_frame_guidance": "--first-frame-guidance",
+    "one_step_first_frame": "--[no-]one-step-first-frame",
 }
 
 
@@ -331,6 +332,7 @@ def _cmd_streaming(args: argparse.Namespace) -> int:
         "sink_frames": args.sink_frames,
         "first_frame_steps": args.first_frame_steps,
         "first_frame_guidance": args.first_frame_guidance,
+        "one_step_first_frame": args.one_step_first_frame,
     }
     if args.refresh_steps is not None:
         every = args.refresh_steps == REFRESH_EVERY_STEP
@@ -628,6 +630,13 @@ def _add_streaming_parser(sub: argparse._SubParsersAction) -> None:
         default=None,
         help="the cameras' classifier-free guidance scale of a rollout's first frame, "
         f"{STREAMING_BOUNDS['first_frame_guidance']}",
+    )
+    st.add_argument(
+        "--one-step-first-frame",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="a rollout's first frame from controls in one step of the bundle's first-frame model, when it has "
+        "one (--no-one-step-first-frame: the reference model's --first-frame-steps guided steps)",
     )
     st.add_argument("--write", action="store_true", help="write the result into the bundle (re-hashed manifest)")
     st.set_defaults(func=_cmd_streaming)

@@ -67,13 +67,16 @@ class ModelBackendConfig:
     # the denoising-step indices that refresh the context frame (0 = the first, -1 = the last) or
     # "all"; sink_frames: the first frames of an episode kept in context beside the rolling window;
     # first_frame_steps: the reference model's Euler steps for an episode's first frame (a reset);
-    # first_frame_guidance: the cameras' classifier-free guidance scale of that frame (1: none).
+    # first_frame_guidance: the cameras' classifier-free guidance scale of that frame (1: none);
+    # one_step_first_frame: a first frame from controls in one step of the bundle's first-frame model,
+    # when it has one (False: the reference model's first_frame_steps guided steps).
     denoising_steps: int | None = None
     context_refresh: bool | None = None
     refresh_steps: tuple[int, ...] | str | None = None
     sink_frames: int | None = None
     first_frame_steps: int | None = None
     first_frame_guidance: float | None = None
+    one_step_first_frame: bool | None = None
     # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was

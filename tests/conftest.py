@@ -60,6 +60,28 @@ def active_bundle(tiny_bundle, tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def first_frame_bundle(active_bundle, tmp_path_factory):
+    """``active_bundle`` with a one-step first-frame model: the reference model's weights with
+    other noise on them (a first frame it draws differs from the reference model's)."""
+    import torch
+
+    from world_model.bundle import load_bundle_files, save_bundle
+
+    files = load_bundle_files(active_bundle)
+    gen = torch.Generator().manual_seed(1)
+    tensors = dict(files.tensors)
+    noisy = {k: v + 0.05 * torch.randn(v.shape, generator=gen) for k, v in tensors["reference"].items()}
+    tensors["first_frame"] = noisy
+    own = files.component_config("reference")
+    return save_bundle(
+        tmp_path_factory.mktemp("bundle") / "first_frame",
+        files.model_config,
+        tensors,
+        component_configs={"reference": own, "first_frame": own},
+    )
+
+
+@pytest.fixture(scope="session")
 def range_head_bundle(layout_bundle, tmp_path_factory):
     """``layout_bundle`` whose VAE finishes the LiDAR with a range head (``layout.range_head``), its
     last layer's weights random so that the head moves the LiDAR (a zero-initialized one does not)."""

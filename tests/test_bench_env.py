@@ -71,6 +71,8 @@ def test_world_model_qualifiers_become_model_options():
     assert model == {"compile": True, "refresh_steps": [0, 3]}
     assert EnvConfig.from_dict(kw["config"]).model.refresh_steps == (0, 3)  # what gym.make gets
     assert bench_env.make_kwargs("world_model:no-refresh", None)["config"]["model"] == {"context_refresh": False}
+    for q, on in (("one-step-first", True), ("no-one-step-first", False)):
+        assert bench_env.make_kwargs(f"world_model:{q}", None)["config"]["model"] == {"one_step_first_frame": on}
     every = bench_env.make_kwargs("world_model:refresh=all", None)["config"]
     assert every["model"] == {"refresh_steps": "all"} and EnvConfig.from_dict(every).model.refresh_steps == "all"
     with pytest.raises(SystemExit, match="refresh=K"):

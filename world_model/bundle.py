@@ -10,6 +10,7 @@ Layout::
                                ``decoder``, else ``vae``)
       student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
+      first_frame.safetensors  the one-step first-frame model (stage ``first_frame``), optional
       streaming.json           how the student streams at inference (denoising steps, context
                                refresh, sink frames: :class:`~world_model.streaming.StreamingConfig`)
       adapters/                optional LoRA adapters (``lora`` stage output)
@@ -45,12 +46,14 @@ COMPONENT_STAGES = {
     "vae": ("range_head", "rollout_decoder", "decoder", "vae"),
     "student": ("long", "dmd", "ode"),
     "reference": ("reference",),
+    "first_frame": ("first_frame",),
 }
 REQUIRED = ("vae", "student")
 RANGE_HEAD_STAGE = "range_head"  # finishes the decoder it was trained on (model.json: "finishes")
 DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields and the bundle's other JSON files
-BF16_COMPONENTS = ("student", "reference")  # DiTs; the VAE stays float32
-OWN_CONFIG_COMPONENTS = ("reference",)  # may differ from the student's config (input width, depth)
+BF16_COMPONENTS = ("student", "reference", "first_frame")  # DiTs; the VAE stays float32
+# May differ from the student's config (input width, depth); the first-frame model has the reference model's.
+OWN_CONFIG_COMPONENTS = ("reference", "first_frame")
 
 
 class CheckpointError(ValueError):

@@ -44,6 +44,7 @@ STREAMING_BOUNDS = {
     "sink_frames": f"an integer in [0, {MAX_SINK_FRAMES}]",
     "first_frame_steps": f"an integer in [1, {MAX_DENOISING_STEPS}]",
     "first_frame_guidance": f"a number in [1, {MAX_GUIDANCE:g}] (1: no guidance)",
+    "one_step_first_frame": "true or false",
 }
 
 
@@ -78,6 +79,11 @@ class StreamingConfig:
     # (the road in the ego's headlights most), and the student keeps that light for the episode
     # (docs/experiments.md).
     first_frame_guidance: float = 2.0
+    # A first frame from controls alone in one unguided step of the bundle's first-frame model (when
+    # the bundle has one: the reference model's sampler at the two settings above, distilled), not
+    # in the reference model's first_frame_steps guided steps. The two settings above still set the
+    # reference model's sampling: a first frame anchored on the user's images, an object completed.
+    one_step_first_frame: bool = True
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -178,6 +184,7 @@ def check_setting(key: str, value: Any, name: str | None = None) -> Any:
         "refresh_steps": _refresh_steps,
         "first_frame_steps": _denoising_steps,
         "first_frame_guidance": _guidance,
+        "one_step_first_frame": _bool,
     }
     checked = form.get(key, _sink_frames)(value)
     if checked is None:

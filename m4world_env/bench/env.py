@@ -110,7 +110,9 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
     steps only, e.g. ``refresh=0``; the env's default is the last two) or ``refresh=all``
     (``refresh_steps="all"``: every step, the paper's), ``sink=N`` (``sink_frames``: the first N
     frames kept in context beside the window), ``denoise=N`` (``denoising_steps``), ``first=N``
-    (``first_frame_steps``: the reference model's steps at reset), ``keys=K[+K...]``
+    (``first_frame_steps``: the reference model's steps at reset), ``one-step-first`` or
+    ``no-one-step-first`` (``one_step_first_frame``: a reset's first frame in one step of the
+    bundle's first-frame model, or in the reference model's steps), ``keys=K[+K...]``
     (``observation_keys``: e.g. ``keys=lidar`` decodes no camera), ``threads=N`` or ``threads=torch``
     (``config.model.threads``: N torch threads, or torch's own choice), ``rollout-threads=N``
     (``config.model.rollout_threads``: the vector env's rollouts in N groups on threads of their
@@ -133,6 +135,8 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
             model["compile"] = True
         elif q == "no-refresh":
             model["context_refresh"] = False
+        elif q in ("one-step-first", "no-one-step-first"):
+            model["one_step_first_frame"] = q == "one-step-first"
         elif q.startswith("checkpoint="):
             checkpoint = q.removeprefix("checkpoint=")
             if not checkpoint:
@@ -158,7 +162,8 @@ def make_kwargs(backend: str, checkpoint: str | None, compile_model: bool = Fals
         else:
             raise SystemExit(
                 f"unknown qualifier {q!r} in {backend!r}: a dtype {DTYPES}, compile, no-refresh, "
-                "refresh=K[,K...], refresh=all, sink=N, denoise=N, first=N, keys=K[+K...], threads=N|torch, "
+                "refresh=K[,K...], refresh=all, sink=N, denoise=N, first=N, [no-]one-step-first, keys=K[+K...], "
+                "threads=N|torch, "
                 "rollout-threads=N or checkpoint=BUNDLE"
             )
     if checkpoint:
@@ -601,7 +606,8 @@ def build_parser() -> argparse.ArgumentParser:
         "no-refresh (config.model.context_refresh off) or refresh=K[,K...] (config.model.refresh_steps; "
         "default: the last two denoising steps) or refresh=all (every step), sink=N (config.model.sink_frames), "
         "denoise=N (config.model.denoising_steps), first=N (config.model.first_frame_steps), "
-        "keys=K[+K...] (observation_keys), threads=N|torch (config.model.threads), "
+        "[no-]one-step-first (config.model.one_step_first_frame), keys=K[+K...] (observation_keys), "
+        "threads=N|torch (config.model.threads), "
         "rollout-threads=N (config.model.rollout_threads), "
         "and checkpoint=BUNDLE (this backend's bundle instead of --checkpoint's), "
         "e.g. world_model:compile or world_model:compile:no-refresh or world_model:checkpoint=runs/x/bundle",

@@ -3,7 +3,8 @@ judged against the evaluation set's true first frames, for a grid of sampler set
 
 Each clip's first frame is generated ``--seeds`` times (different noise) by the checkpoint's
 reference model — and, with ``--teacher``, by the bidirectional teacher as a plain text-to-scene
-sampler — for every camera guidance scale in ``--cfg`` and step count in ``--steps``. Every
+sampler — for every camera guidance scale in ``--cfg`` and step count in ``--steps``, and by the bundle's
+one-step first-frame model where it has one (one unguided step, what a reset then draws). Every
 generated frame is scored by the report's judge and metrics (weather, time of day, existence, ...,
 PSNR, LiDAR MAE) next to the Oracle (the true frame). This separates what the first frame gets
 wrong from what the causal student loses over a rollout (the report's student row).
@@ -26,7 +27,7 @@ from world_model.data import Clip, iter_clips
 from world_model.eval.report import Generated, ReportConfig, RowFn, evaluate_rows, oracle_row
 from world_model.model.conditions import Conditions
 from world_model.model.config import SamplerConfig
-from world_model.model.reference import ReferenceGenerator
+from world_model.model.reference import ONE_STEP, ReferenceGenerator
 from world_model.rollout.runtime import WorldModel, load_world_model
 
 SEED_SEPARATOR = "#seed"
@@ -84,6 +85,8 @@ def main(argv: list[str] | None = None) -> dict:
             for steps in args.steps or [base.steps]:
                 sampler = replace(base, camera_cfg_scale=cfg, steps=steps)
                 rows[f"{name} cfg={cfg:g} steps={steps}"] = first_frame_row(wm, gen, sampler)
+    if wm.one_step_frames is not None:
+        rows["first_frame model, one step"] = first_frame_row(wm, wm.one_step_frames, ONE_STEP)
     t0 = time.perf_counter()
     report = evaluate_rows(rows, clips, config=ReportConfig(frame_stride=1, lidar_stride=1))
     result = {

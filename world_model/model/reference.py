@@ -229,6 +229,11 @@ def task_mask(
 # -- inference --------------------------------------------------------------------------------
 
 
+# How a one-step first-frame model (the ``first_frame`` stage's, distilled from a reference model's
+# guided sampler) samples: one Euler step from pure noise, its x0-prediction, unguided.
+ONE_STEP = SamplerConfig(steps=1, camera_cfg_scale=1.0, lidar_apg_scale=1.0)
+
+
 class _WithReference:
     """Presents a reference model to :class:`GuidedVelocity` as a plain DiT: the reference
     channels are appended to x (and repeated for the unconditional half of guidance; the

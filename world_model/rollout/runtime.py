@@ -15,6 +15,7 @@ from collections.abc import Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,7 +26,7 @@ from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.reference import ReferenceGenerator, reference_model_config
+from world_model.model.reference import ONE_STEP, ReferenceGenerator, reference_model_config
 from world_model.model.rows import split_rows
 from world_model.model.sampler import DECODE_FRAMES_PER_CALL, latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
@@ -53,12 +54,14 @@ class WorldModel:
     text: TextEncoder
     path: Path | None = None
     streaming: StreamingConfig = field(default_factory=StreamingConfig)  # the bundle's streaming.json
+    first_frame: MultiViewDiT | None = None  # the one-step first-frame model, when the bundle has one
 
     def __post_init__(self) -> None:
         self.image = VaeCropEncoder(self.vae)
         self.rig: CameraRig = self.cfg.sensors.rig()
         self.conditions = ConditionBuilder(self.cfg, self.text, self.image)
         self.first_frames = ReferenceGenerator(self.reference or self.student, self.vae)
+        self.one_step_frames = None if self.first_frame is None else ReferenceGenerator(self.first_frame, self.vae)
         self._adapter_dirs: dict[tuple[str, str], Path] = {}  # (model, adapter name) -> its directory
         self._completion: dict[str, str] = {}  # reference-model completion adapter -> the category it completes
         # First frames switch the reference model's adapters on and off around a completion: one
@@ -144,7 +147,8 @@ class WorldModel:
         """A rollout's first frame (batch 1): latents (1, 1, V, C, h, w), to decode with
         :meth:`decode` (with ``cond``'s first frame's decoder inputs).
 
-        From controls (``reference`` None) or anchored on the user's images (§6), by the
+        From controls (``reference`` None: by the bundle's one-step first-frame model where
+        :meth:`_first_frame_sampling` picks it) or anchored on the user's images (§6), by the
         reference model without its completion adapters. Then, for a frame generated from
         controls, each completion adapter whose category is in ``frame`` regenerates that
         category's projected boxes with the rest of the frame observed (task (c), what the adapter
@@ -159,7 +163,11 @@ class WorldModel:
         others = [n for n in loaded if n not in completion]
         with self._switching_adapters(completion):
             with only_adapters(model, others) if completion else nullcontext():  # no switching without one
-                latents = gen.first_latents(cond, reference, steps, seed, guidance=guidance)
+                if reference:
+                    latents = gen.first_latents(cond, reference, steps, seed, guidance=guidance)
+                else:
+                    sampler, how = self._first_frame_sampling(others)
+                    latents = sampler.sample(cond.frames(0, 1), seed=seed, **how)
             wanted = {n: c for n, c in completion.items() if any(o.category == c for o in frame.objects)}
             if reference or not wanted:
                 return latents
@@ -171,8 +179,8 @@ class WorldModel:
     @torch.no_grad()
     def batch_first_latents(self, cond: Conditions, frames: Sequence[SceneFrame], seeds: Sequence[int]) -> torch.Tensor:
         """First frames' latents (R, 1, V, C, h, w) of ``len(frames)`` rollouts from controls, row i
-        exactly ``first_latents(cond row i, frames[i], seed=seeds[i])``. One batched
-        reference-model call (computed row-independently on CPU, :mod:`world_model.model.rows`),
+        exactly ``first_latents(cond row i, frames[i], seed=seeds[i])``. One batched call of the
+        first-frame or reference model (computed row-independently on CPU, :mod:`world_model.model.rows`),
         unless a completion adapter redraws a category in one of the frames: then one call per row."""
         if cond.batch_size != len(frames) or len(seeds) != len(frames):
             raise ValueError(f"need one frame and one seed per row of cond ({cond.batch_size})")
@@ -190,13 +198,19 @@ class WorldModel:
         on_cpu = next(gen.model.parameters()).device.type == "cpu"
         rowwise = split_rows(len(frames)) if on_cpu else nullcontext()
         switched = only_adapters(gen.model, others) if completion else nullcontext()
+        sampler, how = self._first_frame_sampling(others)
         with self._switching_adapters(completion), switched, rowwise:
-            return gen.sample(
-                cond.frames(0, 1),
-                steps=self.streaming.first_frame_steps,
-                seed=[int(s) for s in seeds],
-                guidance=self.streaming.first_frame_guidance,
-            )
+            return sampler.sample(cond.frames(0, 1), seed=[int(s) for s in seeds], **how)
+
+    def _first_frame_sampling(self, others: Sequence[str]) -> tuple[ReferenceGenerator, dict[str, Any]]:
+        """Who draws a first frame from controls, and the keywords of its ``sample``: the bundle's
+        first-frame model in one unguided step (:data:`ONE_STEP`) where the streaming config asks
+        for it and the reference model has no adapter in use (``others``; the first-frame model
+        has none), else the reference model at the streaming config's first-frame settings."""
+        s = self.streaming
+        if self.one_step_frames is not None and s.one_step_first_frame and not others:
+            return self.one_step_frames, {"sampler": ONE_STEP}
+        return self.first_frames, {"steps": s.first_frame_steps, "guidance": s.first_frame_guidance}
 
     def decode(
         self,
@@ -271,6 +285,9 @@ def load_world_model(
         ref_cfg = reference_model_config(cfg) if own is None else ModelConfig.from_dict(own)
         if ref_cfg.shared_settings() != cfg.shared_settings():
             raise ValueError("the reference model's sensors, VAE or controls differ from the student's")
+        first_own = files.component_config("first_frame") if files.has("first_frame") else None
+        if first_own is not None and ModelConfig.from_dict(first_own) != ref_cfg:
+            raise ValueError("the first-frame model's config differs from the reference model's")
         bf16 = resolve_bf16(dtype, cfg.dit.autocast_bf16, device)
         cfg, ref_cfg = (replace(c, dit=replace(c.dit, autocast_bf16=bf16)) for c in (cfg, ref_cfg))
         trained = StudentConfig.from_dict(files.manifest.get("student_config", {}))
@@ -280,20 +297,22 @@ def load_world_model(
         with dit_precision(bf16):  # the weights' dtype below, whatever precision context encloses the load
             dit = MultiViewDiT(cfg)
             ref = MultiViewDiT(ref_cfg) if files.has("reference") else None
+            first = MultiViewDiT(ref_cfg) if files.has("first_frame") else None  # a reference model's copy
         dit.load_state_dict(files.tensors["student"])
-        if ref is not None:
-            ref.load_state_dict(files.tensors["reference"])
+        for module, component in ((ref, "reference"), (first, "first_frame")):
+            if module is not None:
+                module.load_state_dict(files.tensors[component])
     except (KeyError, RuntimeError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {files.path} does not match this version of the model: {e}") from e
-    for module in (vae, dit, ref):
+    for module in (vae, dit, ref, first):
         if module is not None:
             module.to(device).eval().requires_grad_(False)
     if cfg.dit.autocast_bf16:
         # Weights kept in bf16 once, instead of autocast re-casting them at every call (~15% of a step).
-        for module in (dit, ref):
+        for module in (dit, ref, first):
             if module is not None:
                 module.to(torch.bfloat16)
-    return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path, streaming)
+    return WorldModel(cfg, scfg, vae, dit, ref, make_text_encoder(cfg.text), files.path, streaming, first)
 
 
 def save_untrained_bundle(

@@ -20,19 +20,32 @@ if TYPE_CHECKING:
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
-stages: vae, decoder, teacher, tf, ode, dmd, long, reference, rollout_decoder, range_head, lora (each writes
-RUN/<stage>/; lora RUN/lora/CASE/); decoder (with --layout) fine-tunes the VAE's decoder to draw the
+stages: vae, decoder, teacher, tf, ode, dmd, long, reference, first_frame, rollout_decoder, range_head, lora
+(each writes RUN/<stage>/; lora RUN/lora/CASE/); first_frame teaches a copy of the reference model to
+draw reset()'s first frame in one step; decoder (with --layout) fine-tunes the VAE's decoder to draw the
 layout's label maps, rollout_decoder fine-tunes it again on the trained student's own rollouts,
 range_head trains the VAE's range head (the LiDAR at the range map's resolution) on them.
---all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> reference -> [rollout_decoder
--> range_head]
+--all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> reference -> first_frame ->
+[rollout_decoder -> range_head]
 at the preset's steps, then writes
 RUN/bundle. Multi-GPU: torchrun --nproc-per-node N -m world_model.train -- FLAGS (data parallel;
 --batch-size is the global batch, a multiple of N; the "--" keeps torchrun from reading --run as its
 --run-path). Rerunning the same command resumes from each stage's last checkpoint.
 """
 # --all; the decoder stages with --layout
-PIPELINE = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder", "range_head")
+PIPELINE = (
+    "vae",
+    "decoder",
+    "teacher",
+    "tf",
+    "ode",
+    "dmd",
+    "long",
+    "reference",
+    "first_frame",
+    "rollout_decoder",
+    "range_head",
+)
 DECODER_STAGES = ("decoder", "rollout_decoder", "range_head")
 
 

@@ -3,7 +3,8 @@
 ``python -m world_model.train.recipe --out OUT [--device cuda] [--scale gpu|cpu|dry]``
 
 1. records the clips with ``m4world record`` on the machine's cores (``OUT/data``);
-2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference -> rollout_decoder -> range_head into
+2. trains vae -> decoder -> teacher -> tf -> ode -> dmd -> long -> reference -> first_frame -> rollout_decoder ->
+   range_head into
    ``OUT/run`` through :func:`world_model.train.stages.train_stage` (the training CLI's entry), each stage at the
    scale's steps and batch size, then the bundle's long-tail adapters (:data:`ADAPTERS`) on the
    bundle's own weights, from the rare object's clips (``OUT/data_rare``);
@@ -49,8 +50,9 @@ if TYPE_CHECKING:
     from world_model.train.run import StageOptions
 
 from world_model import cli_args
+from world_model.train.cli import PIPELINE
 
-CHAIN = ("vae", "decoder", "teacher", "tf", "ode", "dmd", "long", "reference", "rollout_decoder", "range_head")
+CHAIN = PIPELINE  # the training CLI's --all chain, in its order
 # The long-tail adapter of the bundle (docs/MODEL_CARD.md), trained on the bundle's own weights:
 # name -> (component adapted, extra loss weight inside the rare object's boxes). The reference
 # model is the one adapted: it draws the rare object into reset()'s first frame, where the student
@@ -111,6 +113,7 @@ SCALES = {
             "rollout_decoder": (1000, 64),
             "range_head": (1500, 64),
             "reference": (1500, 32),
+            "first_frame": (1500, 32),
             "lora": (1500, 32),
         },
         time_limit_s=540.0,
@@ -125,12 +128,13 @@ SCALES = {
             "dmd": 30,
             "long": 17,
             "reference": 30,
+            "first_frame": 30,  # not measured on a GPU yet: the reference phase's
             "rollout_decoder": 60,
             "range_head": 60,
             f"{RARE_CATEGORY}_completion": 20,
         },
     ),
-    # This 2-core CPU in about 2.5 hours: the shipped checkpoint's dataset and steps (docs/MODEL_CARD.md),
+    # This 2-core CPU in about 2.7 hours: the shipped checkpoint's dataset and steps (docs/MODEL_CARD.md),
     # with the MiniLM text encoder that is at hand here. The time limit gives each stage its share;
     # rerun the command to resume, with a larger --time-limit-s to go on toward the steps.
     "cpu": RecipeScale(
@@ -151,9 +155,10 @@ SCALES = {
             "rollout_decoder": (4500, 16),
             "range_head": (1500, 16),
             "reference": (800, 4),
+            "first_frame": (1500, 8),
             "lora": (300, 4),
         },
-        time_limit_s=9000.0,
+        time_limit_s=9720.0,
         # The shipped checkpoint's stages on this 2-core CPU (docs/MODEL_CARD.md); the adapter's
         # 10 minutes are its training alone, the clips' latents coming from the run's cache.
         phase_seconds={
@@ -165,6 +170,7 @@ SCALES = {
             "dmd": 660,
             "long": 180,
             "reference": 720,
+            "first_frame": 720,  # its pool's targets and training (the run's latents cached already)
             "rollout_decoder": 1020,
             "range_head": 900,
             f"{RARE_CATEGORY}_completion": 600,
@@ -501,7 +507,7 @@ def main(argv: list[str] | None = None) -> int:
         "--scale",
         default="gpu",
         choices=sorted(SCALES),
-        help="gpu (one H100/H200 in 9 minutes), cpu (a 2-core CPU in 2.5 hours) or dry (a CPU check)",
+        help="gpu (one H100/H200 in 9 minutes), cpu (a 2-core CPU in 2.7 hours) or dry (a CPU check)",
     )
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument(

@@ -29,7 +29,7 @@ import torch
 from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
-from world_model.model.reference import ReferenceGenerator
+from world_model.model.reference import ONE_STEP, ReferenceGenerator
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.streaming import StreamingConfig
@@ -78,10 +78,27 @@ def rollout_clip_indices(num_clips: int, wanted: int = ROLLOUT_CLIPS) -> list[in
     return [int(i) for i in np.linspace(0, num_clips - 1, wanted).round()]
 
 
-def run_reference(run: StageRun) -> MultiViewDiT | None:
-    """The run's reference model export, or None before ``--stage reference``."""
-    path = run.run_dir / "reference" / EXPORT
+def run_reference(run: StageRun, stage: str = "reference") -> MultiViewDiT | None:
+    """The run's reference model export (``stage``: or its first-frame model's), or None before
+    that stage."""
+    path = run.run_dir / stage / EXPORT
     return load_teacher(path) if path.with_suffix(".safetensors").exists() else None
+
+
+def run_first_frames(
+    run: StageRun, student: MultiViewDiT, plain: SensorVAE, streaming: StreamingConfig
+) -> tuple[ReferenceGenerator, dict]:
+    """Who draws a rollout's first frame as the env does, and the keywords of its ``sample``: the
+    run's one-step first-frame model where it has one, else its reference model (else the student)
+    at ``streaming``'s first-frame settings (:meth:`WorldModel.first_latents
+    <world_model.rollout.runtime.WorldModel.first_latents>`)."""
+    device = run.place.device
+    first = run_reference(run, "first_frame") if streaming.one_step_first_frame else None
+    if first is not None:
+        return ReferenceGenerator(first.to(device).eval().requires_grad_(False), plain), {"sampler": ONE_STEP}
+    model = (run_reference(run) or student).to(device).eval().requires_grad_(False)
+    how = {"steps": streaming.first_frame_steps, "guidance": streaming.first_frame_guidance}
+    return ReferenceGenerator(model, plain), how
 
 
 def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig]:
@@ -108,8 +125,7 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
         student, scfg = run_student(run)
         device = run.place.device
         student = student.to(device).eval().requires_grad_(False)
-        reference = run_reference(run)
-        first_frames = ReferenceGenerator((reference or student).to(device).eval().requires_grad_(False), plain)
+        first_frames, how = run_first_frames(run, student, plain, scfg.streaming)
         windows = latent_windows(clips, plain, digest, run.run_dir, run.cfg, device)
         gen = torch.Generator().manual_seed(run.tcfg.seed)
         engine = StreamingEngine(student, scfg, lambda shape: torch.randn(tuple(shape), generator=gen).to(device))
@@ -119,12 +135,7 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
         for g in range(0, len(clips), batch):
             rows = list(range(g, min(g + batch, len(clips))))
             cond = rollout_conditions(windows, rows, 0, 1, 0).to(device)
-            first = first_frames.sample(
-                cond,
-                steps=scfg.streaming.first_frame_steps,
-                seed=[run.tcfg.seed + r for r in rows],
-                guidance=scfg.streaming.first_frame_guidance,
-            )
+            first = first_frames.sample(cond, seed=[run.tcfg.seed + r for r in rows], **how)
             engine.start(first, cond)
             lengths = windows.lengths[rows]
             chunks = [first]

@@ -9,6 +9,7 @@ stages again on a shipped checkpoint whose DiTs stay as they are::
     RUN/range_head/ the bundle's VAE as it is, when it has a range head
     RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
     RUN/reference/  the reference model, under its own config
+    RUN/first_frame/  the one-step first-frame model, under its own config (the reference model's)
     RUN/lora/NAME/  the adapters
 
 Exports already in the run are kept: seeding a run that has trained since leaves its work alone.
@@ -66,9 +67,10 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
     student_stage = files.manifest["components"]["student"]["stage"]
     student_meta = {"model_config": files.model_config, "student_config": files.manifest.get("student_config") or {}}
     export(student_stage, _float32(files.tensors["student"]), student_meta)
-    if files.has("reference"):
-        reference_cfg = files.component_config("reference") or files.model_config
-        export("reference", _float32(files.tensors["reference"]), {"model_config": reference_cfg})
+    for component in ("reference", "first_frame"):
+        if files.has(component):
+            own = files.component_config(component) or files.model_config
+            export(component, _float32(files.tensors[component]), {"model_config": own})
     adapters = files.path / "adapters"
     if adapters.is_dir():
         for adapter in sorted(p for p in adapters.iterdir() if p.is_dir()):

@@ -6,6 +6,7 @@ A run directory holds one sub-directory per stage::
     RUN_DIR/teacher/   checkpoints/, latents/ (the run's latent cache, every stage), model.safetensors + model.json
     RUN_DIR/tf|ode|dmd|long/  the causal student's stages (world_model.train.student_stages)
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
+    RUN_DIR/first_frame/  the one-step first-frame model (world_model.train.first_frame_stage)
     RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
     RUN_DIR/range_head/  the VAE's range head, trained on the student's rollouts (world_model.train.range_head_stage)
     RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
@@ -35,6 +36,7 @@ from world_model.data.clips import write_json_atomic
 from world_model.model.config import ModelConfig, get_preset, without_label_decoder
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
 from world_model.train.device import TrainPlace, resolve_device
+from world_model.train.first_frame_stage import first_frame_stage
 from world_model.train.lora_stage import LORA_STEPS, LoraStageOptions, lora_setup, lora_stage, lora_stage_dir
 from world_model.train.range_head_stage import range_head_stage
 from world_model.train.reference_stage import reference_stage
@@ -113,6 +115,8 @@ REGISTRY: dict[str, Stage] = {
         _student("dmd", 2, 1e-4, 10, 50),  # each dmd/long step = 1 + critic_updates self-rollouts
         _student("long", 2, 5e-5, 10, 20),
         Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
+        # the reference model's first frames from controls in one unguided step (env.reset())
+        Stage("first_frame", first_frame_stage, 8, 1e-4, 250, config_sections="teacher", steps={"default": 1500}),
         # the decoder once more, on the trained student's own rollouts streamed as the env does
         _decoder("rollout_decoder", rollout_decoder_stage, 2e-4),
         # the VAE's range head alone, on the student's rollouts: the LiDAR at the range map's resolution
