@@ -89,10 +89,11 @@ def _pool(run: StageRun, windows: LatentWindows, reference: MultiViewDiT) -> dic
         "seeds": torch.as_tensor(seeds),
         "targets": torch.cat(targets),
     }
-    run.stage_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(pool, tmp)
-    tmp.replace(path)
+    if run.place.is_main:  # every rank samples the same pool; one writes it
+        run.stage_dir.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        torch.save(pool, tmp)
+        tmp.replace(path)
     return pool
 
 
