@@ -43,6 +43,7 @@ from world_model.model.tokens import ControlTokens
 from world_model.model.vae import SensorVAE, cameras_to_images, lidar_to_images
 from world_model.observation import ALL_SENSORS, Observation, SensorSelection
 from world_model.scene import SceneFrame
+from world_model.streaming import StreamingConfig
 
 TASKS = ("unconditional", "first_frame_all", "first_frame_single", "object_completion")
 
@@ -232,6 +233,17 @@ def task_mask(
 # How a one-step first-frame model (the ``first_frame`` stage's, distilled from a reference model's
 # guided sampler) samples: one Euler step from pure noise, its x0-prediction, unguided.
 ONE_STEP = SamplerConfig(steps=1, camera_cfg_scale=1.0, lidar_apg_scale=1.0)
+
+
+def first_frame_sampling(
+    reference: ReferenceGenerator, one_step: ReferenceGenerator | None, streaming: StreamingConfig
+) -> tuple[ReferenceGenerator, dict[str, Any]]:
+    """Who draws a first frame from controls, and the keywords of its ``sample``: the one-step
+    first-frame model in one unguided step (:data:`ONE_STEP`) where there is one and ``streaming``
+    asks for it, else the reference model at ``streaming``'s first-frame settings."""
+    if one_step is not None and streaming.one_step_first_frame:
+        return one_step, {"sampler": ONE_STEP}
+    return reference, {"steps": streaming.first_frame_steps, "guidance": streaming.first_frame_guidance}
 
 
 class _WithReference:

@@ -26,7 +26,7 @@ from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.model.imagedesc import VaeCropEncoder
-from world_model.model.reference import ONE_STEP, ReferenceGenerator, reference_model_config
+from world_model.model.reference import ReferenceGenerator, first_frame_sampling, reference_model_config
 from world_model.model.rows import split_rows
 from world_model.model.sampler import DECODE_FRAMES_PER_CALL, latents_to_observations
 from world_model.model.text import TextEncoder, make_text_encoder
@@ -203,14 +203,10 @@ class WorldModel:
             return sampler.sample(cond.frames(0, 1), seed=[int(s) for s in seeds], **how)
 
     def _first_frame_sampling(self, others: Sequence[str]) -> tuple[ReferenceGenerator, dict[str, Any]]:
-        """Who draws a first frame from controls, and the keywords of its ``sample``: the bundle's
-        first-frame model in one unguided step (:data:`ONE_STEP`) where the streaming config asks
-        for it and the reference model has no adapter in use (``others``; the first-frame model
-        has none), else the reference model at the streaming config's first-frame settings."""
-        s = self.streaming
-        if self.one_step_frames is not None and s.one_step_first_frame and not others:
-            return self.one_step_frames, {"sampler": ONE_STEP}
-        return self.first_frames, {"steps": s.first_frame_steps, "guidance": s.first_frame_guidance}
+        """:func:`~world_model.model.reference.first_frame_sampling` of this bundle: the one-step
+        first-frame model only while the reference model has no adapter in use (``others``; the
+        first-frame model has none)."""
+        return first_frame_sampling(self.first_frames, None if others else self.one_step_frames, self.streaming)
 
     def decode(
         self,

@@ -29,7 +29,7 @@ import torch
 from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
-from world_model.model.reference import ONE_STEP, ReferenceGenerator
+from world_model.model.reference import ReferenceGenerator, first_frame_sampling
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.streaming import StreamingConfig
@@ -93,12 +93,10 @@ def run_first_frames(
     at ``streaming``'s first-frame settings (:meth:`WorldModel.first_latents
     <world_model.rollout.runtime.WorldModel.first_latents>`)."""
     device = run.place.device
-    first = run_reference(run, "first_frame") if streaming.one_step_first_frame else None
-    if first is not None:
-        return ReferenceGenerator(first.to(device).eval().requires_grad_(False), plain), {"sampler": ONE_STEP}
+    first = run_reference(run, "first_frame")
+    one_step = None if first is None else ReferenceGenerator(first.to(device).eval().requires_grad_(False), plain)
     model = (run_reference(run) or student).to(device).eval().requires_grad_(False)
-    how = {"steps": streaming.first_frame_steps, "guidance": streaming.first_frame_guidance}
-    return ReferenceGenerator(model, plain), how
+    return first_frame_sampling(ReferenceGenerator(model, plain), one_step, streaming)
 
 
 def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig]:
