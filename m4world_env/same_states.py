@@ -4,14 +4,16 @@
 a second env (``gym.make`` keywords), both reset with the seed, so the traffic is the same on both;
 an episode stops when either env ends. :func:`replayed_steps` yields each step's envs and
 observations (the ground truth's ``scene_frame`` is the scene both show);
-:func:`model_env_kwargs` the world-model env observing one sensor, :func:`replay_settings` the
-settings every result records, :func:`replay_main` their shared command.
+:func:`model_env_kwargs` the world-model env observing one sensor, :func:`pooled_by_scenario` an
+episode's readings pooled over the seeds, :func:`replay_settings` the settings every result
+records, :func:`replay_main` their shared command.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -61,6 +63,21 @@ def model_env_kwargs(sensor: str, checkpoint: str | None) -> dict:
     only, the bundle ``checkpoint`` where given."""
     kw: dict = {"backend": "world_model", "config": {"observation_keys": [sensor]}}
     return {**kw, "checkpoint": checkpoint} if checkpoint else kw
+
+
+def pooled_by_scenario(
+    scenarios: Sequence[str], seeds: Sequence[int], episode: Callable[[str, int], list[Any]]
+) -> dict[str, list[Any]]:
+    """Per scenario, the readings of its episodes over ``seeds`` in one list (``episode(scenario,
+    seed)``: one episode's, a reading a frame); each episode's count reported on stderr as it ends."""
+    pooled: dict[str, list[Any]] = {}
+    for scenario in scenarios:
+        pooled[scenario] = []
+        for s in seeds:
+            found = episode(scenario, s)
+            pooled[scenario] += found
+            print(f"{scenario} seed {s}: {len(found)} frames read", file=sys.stderr, flush=True)
+    return pooled
 
 
 def replay_settings(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:

@@ -20,6 +20,7 @@ BENCHMARKS = (
     "ego_behaviour",
     "env",
     "first_frame",
+    "front_reads",
     "judge",
     "lane_markings",
     "layout",

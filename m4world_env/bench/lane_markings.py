@@ -25,7 +25,13 @@ import sys
 import numpy as np
 
 from m4world_env.agreement import FULL_SCENARIOS
-from m4world_env.same_states import model_env_kwargs, replay_main, replay_settings, replayed_steps
+from m4world_env.same_states import (
+    model_env_kwargs,
+    pooled_by_scenario,
+    replay_main,
+    replay_settings,
+    replayed_steps,
+)
 from world_model.raster.classes import CLASS_PLANE, MARKING, ROAD
 from world_model.sensors import DEFAULT_CAMERA_NAMES
 from world_model.sim.labels import LabelRasterizer
@@ -111,14 +117,8 @@ def table(results: dict[str, dict]) -> str:
 def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
     """Every episode; the figures per scenario (seeds pooled), with the settings."""
     model = model_env_kwargs("cameras", checkpoint)  # the cameras alone: no LiDAR decoded
-    results = {}
-    for scenario in scenarios:
-        pairs = []
-        for s in seeds:
-            found = episode(scenario, s, steps, model)
-            pairs += found
-            print(f"{scenario} seed {s}: {len(found)} frames read", file=sys.stderr, flush=True)
-        results[scenario] = figures(pairs)
+    pooled = pooled_by_scenario(scenarios, seeds, lambda scenario, s: episode(scenario, s, steps, model))
+    results = {scenario: figures(pairs) for scenario, pairs in pooled.items()}
     return {
         **replay_settings(scenarios, seeds, steps, checkpoint),
         "min_marking_pixels": MIN_MARKING_PIXELS,

@@ -1,0 +1,203 @@
+"""Where a camera policy finds the lane lines and the car ahead low in FRONT, on the world model and
+on the ground truth: the same pixel, or how far apart.
+
+    m4world bench front_reads --out F.json [--scenarios highway_sunny_day ...] [--seeds 0 1] \
+        [--steps 20] [--checkpoint BUNDLE]
+
+For each scenario and seed, one episode: the built-in ``lane_keeping`` policy drives
+``backend="procedural"`` (the ground truth) and its very actions are fed to ``backend="world_model"``
+(cameras only), both reset with the seed, so the traffic is the same on both. After each step, both
+FRONT views are read by the same two detectors, which see pixels only:
+
+* **Lane lines**, as the zoo's lane finder reads them (``gap_keeper``: ``perception.marking_peaks``
+  on the bottom :data:`BAND_ROWS` rows, its contrast and width): per row, the centre column of the
+  innermost painted line on each side of the view's centre; a frame's lines are as far apart as
+  the median over its (row, side) pairs with a line on either view of the two columns' difference
+  (:data:`MISSING_PX` where one view has none), the median the lane finder takes of its rows.
+* **The car ahead's bottom edge**: where the scene's label map has a vehicle in the view's central
+  columns (the ego's path, :data:`PATH_FRACTION` of the width), each of its columns is scanned up
+  from the bottom row for the first pixel unlike the road just ahead of the ego (the median colour
+  of the bottom :data:`ROAD_ROWS` rows there; unlike: a channel more than :data:`EDGE_CONTRAST`
+  levels apart); the edge is the median of those rows. The label map chooses the frames and the
+  columns, never the row.
+
+Per scenario (seeds and steps pooled): the frames read, the share of them within 1 px and within 2
+px, and the median and 95th percentile of the difference in px. The ground truth's own detected edge
+against its label map's bottom row (``edge_truth_vs_label``) says how well the detector reads. A
+bundle whose views are not the ground truth's size is read at that size (nearest pixel). A markdown
+table is printed; the JSON holds the figures and the settings.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from m4world_env.bench.lane_markings import DEFAULT_SCENARIOS, FRONT  # the same view, the same scenarios
+from m4world_env.same_states import (
+    model_env_kwargs,
+    pooled_by_scenario,
+    replay_main,
+    replay_settings,
+    replayed_steps,
+)
+from m4world_env.zoo.modular import LaneCentring
+from m4world_env.zoo.perception import marking_peaks
+from world_model.raster.classes import CLASS_PLANE, VEHICLE
+from world_model.sim.labels import LabelRasterizer
+
+LANE_FINDER = LaneCentring()  # gap_keeper's lane finder: its band, contrast and line width
+BAND_ROWS = LANE_FINDER.band_rows
+PATH_FRACTION = 0.25  # the central share of the view's width the ego drives into
+ROAD_ROWS = 3  # the bottom rows whose colour is the road's (the ego's lane just ahead)
+# Grey levels in any channel: above the road's own patches and light in the path (their 99th
+# percentile 10-37 on the ground truth's views, snowflakes aside, which both backends draw alike).
+EDGE_CONTRAST = 40
+MISSING_PX = 99.0  # a line one view has and the other has not
+TOLERANCES_PX = (1, 2)
+
+
+def line_columns(image: np.ndarray) -> np.ndarray:
+    """(BAND_ROWS, 2) float: per row of the bottom band of ``image`` (H, W, 3) uint8, the centre
+    column of the innermost line left and right of the view's centre as the lane finder sees it
+    (NaN: none)."""
+    band = image[-BAND_ROWS:].astype(np.float32).mean(axis=-1)
+    peaks = marking_peaks(band, LANE_FINDER.min_contrast, LANE_FINDER.max_width_px)
+    centre = (image.shape[1] - 1) / 2.0
+    out = np.full((BAND_ROWS, 2), np.nan)
+    for r, row in enumerate(peaks):
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+        mids = (edges[::2] + edges[1::2] - 1) / 2.0
+        left, right = mids[mids < centre], mids[mids >= centre]
+        out[r] = (left.max() if len(left) else np.nan, right.min() if len(right) else np.nan)
+    return out
+
+
+def lines_apart(truth: np.ndarray, model: np.ndarray) -> float | None:
+    """How far apart two :func:`line_columns` are: the median over the (row, side) pairs where either
+    view has a line of the column difference (MISSING_PX where the other has none), as the lane
+    finder takes the median of its rows; None where neither view has a line."""
+    seen_t, seen_m = np.isfinite(truth), np.isfinite(model)
+    either = seen_t | seen_m
+    if not either.any():
+        return None
+    apart = np.where(seen_t & seen_m, np.abs(truth - model), MISSING_PX)
+    return float(np.median(apart[either]))
+
+
+def path_vehicle_columns(classes: np.ndarray) -> tuple[np.ndarray, int] | None:
+    """The columns of the nearest vehicle in the view's central columns and its bottom row, from a
+    label map's class ids (H, W); None where no vehicle is there."""
+    w = classes.shape[1]
+    half = int(round(w * PATH_FRACTION / 2))
+    lo, hi = w // 2 - half, w // 2 + half
+    rows, cols = np.nonzero(classes[:, lo:hi] == VEHICLE)
+    if not len(rows):
+        return None
+    bottom = int(rows.max())
+    return lo + np.unique(cols[rows == bottom]), bottom
+
+
+def bottom_edge(image: np.ndarray, columns: np.ndarray) -> float | None:
+    """The row of the car's bottom edge in ``image`` (H, W, 3) uint8 over ``columns``: the median over
+    them of the first row, scanning up from the bottom, unlike the road just ahead (module
+    docstring); None where no column has one."""
+    img = image.astype(np.int16)
+    road = np.median(img[-ROAD_ROWS:, columns].reshape(-1, 3), axis=0)
+    unlike = (np.abs(img[:, columns] - road) > EDGE_CONTRAST).any(-1)  # (H, C)
+    found = [int(np.flatnonzero(col).max()) for col in unlike.T if col.any()]
+    return float(np.median(found)) if found else None
+
+
+def frame_reads(truth: np.ndarray, model: np.ndarray, classes: np.ndarray) -> dict[str, float | None]:
+    """One frame's readings of both FRONT views (H, W, 3) uint8 with the scene's class ids (H, W):
+    ``lines_px`` (:func:`lines_apart`), ``edge_px`` (the bottom edges' difference) and
+    ``edge_truth_vs_label`` (the ground truth's edge minus the label map's bottom row); None where
+    the frame has nothing to read."""
+    reads: dict[str, float | None] = {
+        "lines_px": lines_apart(line_columns(truth), line_columns(model)),
+        "edge_px": None,
+        "edge_truth_vs_label": None,
+    }
+    path = path_vehicle_columns(classes)
+    if path is not None:
+        columns, label_row = path
+        edge_t, edge_m = bottom_edge(truth, columns), bottom_edge(model, columns)
+        if edge_t is not None:
+            reads["edge_truth_vs_label"] = edge_t - label_row
+            reads["edge_px"] = MISSING_PX if edge_m is None else abs(edge_m - edge_t)
+    return reads
+
+
+def at_size(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``image`` (h, w, 3) at ``size`` (H, W), nearest pixel: a bundle whose views are not the
+    ground truth's size is read at the ground truth's."""
+    rows = np.arange(size[0]) * image.shape[0] // size[0]
+    cols = np.arange(size[1]) * image.shape[1] // size[1]
+    return image[rows][:, cols]
+
+
+def episode(scenario: str, seed: int, steps: int, model: dict) -> list[dict[str, float | None]]:
+    """Up to ``steps`` policy steps of ``scenario``: each frame's :func:`frame_reads`."""
+    rasterizer = LabelRasterizer()
+    out = []
+    for step in replayed_steps(scenario, seed, steps, model):
+        truth = step.truth_obs["cameras"][FRONT]
+        model_view = at_size(step.model_obs["cameras"][FRONT], truth.shape[:2])
+        frame = step.truth.scene_frame
+        classes = rasterizer.maps(frame, frame.rig, *truth.shape[:2])[FRONT, CLASS_PLANE]
+        out.append(frame_reads(truth, model_view, classes))
+    return out
+
+
+def summary(values: list[float]) -> dict[str, float | int | None]:
+    """Frames read, the share within each of :data:`TOLERANCES_PX`, the median and 95th percentile."""
+    if not values:
+        return {"frames": 0, **{f"within_{k}px": None for k in TOLERANCES_PX}, "median_px": None, "p95_px": None}
+    a = np.asarray(values, dtype=np.float64)
+    return {
+        "frames": len(a),
+        **{f"within_{k}px": float((a <= k).mean()) for k in TOLERANCES_PX},
+        "median_px": float(np.median(a)),
+        "p95_px": float(np.percentile(a, 95)),
+    }
+
+
+def figures(reads: list[dict[str, float | None]]) -> dict[str, dict]:
+    """:func:`summary` of each reading over a scenario's frames (those that have it)."""
+    out = {key: summary([r[key] for r in reads if r[key] is not None]) for key in ("lines_px", "edge_px")}
+    label = [abs(r["edge_truth_vs_label"]) for r in reads if r["edge_truth_vs_label"] is not None]
+    return {**out, "edge_truth_vs_label": summary(label)}
+
+
+def _cells(f: dict) -> list[str]:
+    """A :func:`summary`'s cells of :func:`table`'s row."""
+    if not f["frames"]:
+        return ["0", "-", "-", "-", "-"]
+    shares = [f"{f[f'within_{k}px']:.2f}" for k in TOLERANCES_PX]
+    return [str(f["frames"]), *shares, f"{f['median_px']:.1f}", f"{f['p95_px']:.1f}"]
+
+
+def table(results: dict[str, dict]) -> str:
+    """A markdown table: per scenario and reading, frames, the shares within each tolerance, median and p95."""
+    head = ["scenario", "reading", "frames", *(f"within {k} px" for k in TOLERANCES_PX), "median px", "p95 px"]
+    rows = [[name, key, *_cells(f)] for name, per in results.items() for key, f in per.items()]
+    return "\n".join("| " + " | ".join(row) + " |" for row in [head, ["---"] * len(head), *rows])
+
+
+def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
+    """Every episode; the figures per scenario (seeds pooled), with the settings."""
+    model = model_env_kwargs("cameras", checkpoint)  # the cameras alone: no LiDAR decoded
+    pooled = pooled_by_scenario(scenarios, seeds, lambda scenario, s: episode(scenario, s, steps, model))
+    results = {scenario: figures(reads) for scenario, reads in pooled.items()}
+    settings = {"path_fraction": PATH_FRACTION, "road_rows": ROAD_ROWS, "edge_contrast": EDGE_CONTRAST}
+    return {**replay_settings(scenarios, seeds, steps, checkpoint), **settings, "results": results}
+
+
+def main(argv: list[str] | None = None) -> int:
+    return replay_main("m4world bench front_reads", __doc__, (DEFAULT_SCENARIOS, (0, 1), 20), run, table, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

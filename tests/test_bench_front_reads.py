@@ -1,0 +1,113 @@
+"""m4world bench front_reads, small: the lane finder's lines and the car ahead's bottom edge are read
+from pixels, a lost line counts in the median of the rows, a shift of the view shows as its size in
+px, the ground truth read against itself is the same pixel, and the command writes the figures per
+scenario with the world model (the untrained tiny bundle) fed the ground truth's actions."""
+
+import json
+
+import numpy as np
+import pytest
+
+from m4world_env.bench.front_reads import (
+    BAND_ROWS,
+    MISSING_PX,
+    bottom_edge,
+    episode,
+    figures,
+    frame_reads,
+    line_columns,
+    lines_apart,
+    main,
+    path_vehicle_columns,
+)
+from world_model.raster.classes import ROAD, SKY, VEHICLE
+
+H, W = 64, 112
+ROAD_GREY, LINE_WHITE, CAR_RED = (90, 90, 90), (235, 235, 235), (200, 30, 30)
+
+
+def road_view(lines: tuple[int, ...] = (20, 90), car_rows: tuple[int, int] | None = None) -> np.ndarray:
+    """A grey road with 2-px white lines starting at ``lines`` in its bottom band, and a red car
+    across the view's centre from row ``car_rows[0]`` to ``car_rows[1]`` (inclusive)."""
+    image = np.full((H, W, 3), ROAD_GREY, np.uint8)
+    for c in lines:
+        image[-BAND_ROWS:, c : c + 2] = LINE_WHITE
+    if car_rows is not None:
+        image[car_rows[0] : car_rows[1] + 1, 46:66] = CAR_RED
+    return image
+
+
+def labels(car_rows: tuple[int, int] | None) -> np.ndarray:
+    classes = np.full((H, W), ROAD, np.uint8)
+    classes[:20] = SKY
+    if car_rows is not None:
+        classes[car_rows[0] : car_rows[1] + 1, 46:66] = VEHICLE
+    return classes
+
+
+def test_the_lines_are_the_innermost_on_each_side_of_the_centre():
+    cols = line_columns(road_view((5, 20, 90, 100)))
+    assert cols.shape == (BAND_ROWS, 2) and np.all(cols == (20.5, 90.5))
+    assert np.isnan(line_columns(road_view(()))).all()
+    assert np.isnan(line_columns(road_view((20,)))[:, 1]).all()
+
+
+def test_lines_apart_is_the_largest_shift_or_a_missing_line():
+    a = line_columns(road_view((20, 90)))
+    assert lines_apart(a, a) == 0.0
+    assert lines_apart(a, line_columns(road_view((21, 91)))) == 1.0
+    assert lines_apart(a, line_columns(road_view((20,)))) == (0.0 + MISSING_PX) / 2  # a side of rows lost
+    assert lines_apart(a, line_columns(road_view((20, 90, 100)))) == 0.0  # an outer line is not read
+    none = line_columns(road_view(()))
+    assert lines_apart(none, none) is None
+
+
+def test_the_car_ahead_is_the_nearest_vehicle_in_the_path():
+    columns, bottom = path_vehicle_columns(labels((30, 40)))
+    assert bottom == 40 and columns.min() >= 46 and columns.max() <= 65
+    side = labels(None)
+    side[30:40, :10] = VEHICLE  # beside the path: not the car ahead
+    assert path_vehicle_columns(side) is None
+
+
+def test_the_bottom_edge_is_read_from_pixels_and_a_shift_shows():
+    columns, _ = path_vehicle_columns(labels((30, 40)))
+    assert bottom_edge(road_view(car_rows=(30, 40)), columns) == 40.0
+    assert bottom_edge(road_view(), columns) is None
+    reads = frame_reads(road_view(car_rows=(30, 40)), road_view((22, 92), car_rows=(30, 42)), labels((30, 40)))
+    assert reads == {"lines_px": 2.0, "edge_px": 2.0, "edge_truth_vs_label": 0.0}
+    lost = frame_reads(road_view(car_rows=(30, 40)), road_view(), labels((30, 40)))
+    assert lost["edge_px"] == MISSING_PX
+    assert frame_reads(road_view(), road_view(), labels(None))["edge_px"] is None
+
+
+def test_figures_count_the_frames_within_each_tolerance():
+    reads = [
+        {"lines_px": 0.0, "edge_px": 1.0, "edge_truth_vs_label": -1.0},
+        {"lines_px": 2.0, "edge_px": None, "edge_truth_vs_label": None},
+        {"lines_px": None, "edge_px": 3.0, "edge_truth_vs_label": 0.0},
+    ]
+    f = figures(reads)
+    assert f["lines_px"]["frames"] == 2 and f["lines_px"]["within_1px"] == 0.5 and f["lines_px"]["within_2px"] == 1.0
+    assert f["edge_px"]["frames"] == 2 and f["edge_px"]["median_px"] == 2.0
+    assert f["edge_truth_vs_label"]["within_1px"] == 1.0
+    empty = figures([])["lines_px"]
+    assert empty["frames"] == 0 and empty["within_1px"] is None and empty["p95_px"] is None
+
+
+def test_the_ground_truth_against_itself_reads_the_same_pixels():
+    reads = episode("highway_sunny_day", 0, 3, {"backend": "procedural"})
+    assert len(reads) == 3
+    assert all(r["lines_px"] in (0.0, None) and r["edge_px"] in (0.0, None) for r in reads)
+    assert any(r["lines_px"] == 0.0 for r in reads)
+
+
+def test_the_command_writes_each_scenario(tiny_bundle, tmp_path):
+    out = tmp_path / "fr.json"
+    args = ["--scenarios", "highway_sunny_day", "--seeds", "0", "--steps", "2", "--checkpoint", str(tiny_bundle)]
+    assert main([*args, "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["steps"] == 2 and set(result["results"]) == {"highway_sunny_day"}
+    assert set(result["results"]["highway_sunny_day"]) == {"lines_px", "edge_px", "edge_truth_vs_label"}
+    with pytest.raises(SystemExit):
+        main(["--scenarios", "no_such_scenario", "--out", str(tmp_path / "x.json")])
