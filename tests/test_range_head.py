@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from world_model.model.layout import NEARNESS_LEVELS
+from world_model.model.layout import RANGE_LEVELS
 from world_model.model.range_head import RangeHead, range_loss
 from world_model.model.vae import images_to_lidar, ranges_to_image_values
 from world_model.sensors import LidarSpec
@@ -15,7 +15,7 @@ SPEC = LidarSpec(beams=8, azimuth=64, max_range=100.0)
 def test_an_untrained_head_is_the_view_stretched_as_without_it():
     torch.manual_seed(0)
     view = torch.rand(2, 3, 16, 28) * 2 - 1
-    nearness = torch.randint(0, 256, (2, SPEC.beams, SPEC.azimuth), dtype=torch.uint8)
+    nearness = torch.randint(0, RANGE_LEVELS + 1, (2, SPEC.beams, SPEC.azimuth), dtype=torch.int32).to(torch.uint16)
     out = RangeHead()(view.mean(dim=1, keepdim=True), nearness)
     assert out.shape == (2, 1, SPEC.beams, SPEC.azimuth)
     without = images_to_lidar(view, SPEC, 0.99)
@@ -30,23 +30,24 @@ def ranges_to_metres(values: torch.Tensor) -> np.ndarray:
 
 def test_a_full_share_stands_the_scene_at_the_range_maps_resolution_with_its_edges():
     """A car one column wide of the view: the head at share 1 puts its range on its own columns
-    only, and no return where nothing is in range."""
+    only, to the centimetre (a byte's 0.39 m steps would not tell 25.0 m from 25.2 m), and no return
+    where nothing is in range."""
     head = RangeHead()
     with torch.no_grad():
         head.net[-1].bias.fill_(1.0)  # share 1 everywhere
     view = torch.zeros(1, 1, 16, 28)  # 50 m everywhere
-    nearness = torch.zeros(1, SPEC.beams, SPEC.azimuth, dtype=torch.uint8)
-    nearness[0, 3:5, 30:33] = round(NEARNESS_LEVELS * (1 - 25.0 / SPEC.max_range))  # a car at 25 m
-    nearness[0, 6:] = round(NEARNESS_LEVELS * (1 - 8.0 / SPEC.max_range))  # the road at 8 m
+    nearness = torch.zeros(1, SPEC.beams, SPEC.azimuth, dtype=torch.uint16)
+    nearness[0, 3:5, 30:33] = round(RANGE_LEVELS * (1 - 25.2 / SPEC.max_range))  # a car at 25.2 m
+    nearness[0, 6:] = round(RANGE_LEVELS * (1 - 8.0 / SPEC.max_range))  # the road at 8 m
     metres = ranges_to_metres(head(view, nearness)[:, 0])[0]
-    assert np.allclose(metres[3:5, 30:33], 25.0, atol=0.4)
-    assert np.allclose(metres[6:], 8.0, atol=0.4)
+    assert np.allclose(metres[3:5, 30:33], 25.2, atol=0.01)
+    assert np.allclose(metres[6:], 8.0, atol=0.01)
     assert (metres[:3] == SPEC.no_return).all() and (metres[3:5, :30] == SPEC.no_return).all()
 
 
 def test_the_head_refuses_nearness_of_another_batch():
     with pytest.raises(ValueError, match="nearness must be"):
-        RangeHead()(torch.zeros(2, 1, 16, 28), torch.zeros(3, SPEC.beams, SPEC.azimuth, dtype=torch.uint8))
+        RangeHead()(torch.zeros(2, 1, 16, 28), torch.zeros(3, SPEC.beams, SPEC.azimuth, dtype=torch.uint16))
 
 
 def test_range_loss_weighs_the_objects_cells():

@@ -34,8 +34,9 @@ lidar_nearness     (T, H, W) uint8       the range map the scene implies on the 
                                          (``layout.decoder``,
                                          :class:`~world_model.raster.maps.SceneRaster`);
                                          H = W = 0 without it. The DiTs do not read it.
-range_nearness     (T, B, A) uint8       the same at the range map's resolution (B beams,
-                                         A azimuth columns), for the VAE's range head
+range_nearness     (T, B, A) uint16      the same at the range map's resolution (B beams,
+                                         A azimuth columns) in finer steps
+                                         (``layout.RANGE_LEVELS``), for the VAE's range head
                                          (``layout.range_head``); B = A = 0 without it.
 precipitation      (T, Vc, H, W) uint8   the alpha of the rain or snow in front of each
                                          camera (255 = opaque), blended over the decoded
@@ -392,7 +393,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     label_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
     nearness_hw = (cfg.sensors.height, cfg.sensors.width) if cfg.layout.decoder else (0, 0)
     range_hw = (cfg.sensors.lidar.beams, cfg.sensors.lidar.azimuth) if cfg.layout.range_head else (0, 0)
-    f32, u8, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(bool)
+    f32, u8, u16, b = np.dtype(np.float32), np.dtype(np.uint8), np.dtype(np.uint16), np.dtype(bool)
     return {
         "camera": FieldSpec((vc, 7, 3), f32),
         "ego": FieldSpec((t, 4, 3), f32),
@@ -410,7 +411,7 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
         "layout": FieldSpec((t, v, layout_channels, h, w), f32),
         "labels": FieldSpec((t, vc, MAP_PLANES, *label_hw), u8),
         "lidar_nearness": FieldSpec((t, *nearness_hw), u8),
-        "range_nearness": FieldSpec((t, *range_hw), u8),
+        "range_nearness": FieldSpec((t, *range_hw), u16),
         "precipitation": FieldSpec((t, vc, *label_hw), u8),
         "precipitation_rgb": FieldSpec((t, 3), u8),
     }
@@ -465,6 +466,7 @@ class Conditions:
             f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items])) for f in fields(ConditionArrays)
         }
         kw["bev"] = kw["bev"].float()
+        kw["range_nearness"] = kw["range_nearness"].int()  # torch's uint16 cannot be indexed into
         return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
 
     def apply(self, fn: Callable[[str, torch.Tensor], torch.Tensor]) -> Conditions:

@@ -7,11 +7,11 @@ The decoder's nearness gate draws the scene's ranges at the view's resolution an
 edge back. :class:`RangeHead` works at the range map's resolution instead: it reads the decoder's
 LiDAR view stretched back (bilinear, as :func:`~world_model.model.vae.images_to_lidar` reads it)
 and the range map the scene implies there, one ray per beam and column
-(:func:`~world_model.model.layout.lidar_nearness` at ``(beams, azimuth)``), and moves each cell
+(:func:`~world_model.raster.maps.range_nearness_maps`, in finer steps than the view's), and moves each cell
 toward the scene's range by a learned share::
 
     up     = bilinear(view -> beams x azimuth)              the decoder's LiDAR, in [-1, 1]
-    target = 1 - 2 * nearness / NEARNESS_LEVELS              the scene's range; +1 (no return) where
+    target = 1 - 2 * nearness / RANGE_LEVELS                 the scene's range; +1 (no return) where
                                                              nothing is in range
     share  = clamp(net([up, target, nearness > 0]), 0, 1)    3 convolutions at full resolution
     out    = up + share * (target - up)
@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from world_model.model.layout import NEARNESS_LEVELS
+from world_model.model.layout import RANGE_LEVELS
 
 # Features of the head's convolutions: three 3x3 layers see 7 x 7 cells (7 beams, 2.5 degrees of
 # azimuth), the edge of a car and the ground around it; ~0.2 GFLOP a range map.
@@ -41,7 +41,7 @@ RANGE_HEAD_WIDTH = 16
 
 
 class RangeHead(nn.Module):
-    """(N, 1, H, W) LiDAR view + (N, beams, azimuth) uint8 nearness -> (N, 1, beams, azimuth) in [-1, 1]."""
+    """(N, 1, H, W) LiDAR view + (N, beams, azimuth) uint16 nearness -> (N, 1, beams, azimuth) in [-1, 1]."""
 
     def __init__(self, width: int = RANGE_HEAD_WIDTH) -> None:
         super().__init__()
@@ -58,11 +58,12 @@ class RangeHead(nn.Module):
 
     def forward(self, view: torch.Tensor, nearness: torch.Tensor) -> torch.Tensor:
         """``view`` (N, 1, H, W): the decoder's LiDAR view in [-1, 1] (its three channels
-        averaged); ``nearness`` (N, beams, azimuth) uint8, the scene's at the range map's resolution."""
+        averaged); ``nearness`` (N, beams, azimuth) uint16, the scene's at the range map's resolution
+        (:data:`~world_model.model.layout.RANGE_LEVELS` steps)."""
         if nearness.ndim != 3 or len(nearness) != len(view):
             raise ValueError(f"nearness must be (N={len(view)}, beams, azimuth) maps, got {tuple(nearness.shape)}")
         up = F.interpolate(view.float(), size=tuple(nearness.shape[-2:]), mode="bilinear", align_corners=False)
-        near = nearness.to(device=up.device, dtype=up.dtype)[:, None] / NEARNESS_LEVELS
+        near = nearness.to(device=up.device, dtype=up.dtype)[:, None] / RANGE_LEVELS
         target = 1.0 - 2.0 * near
         # Channels-last: oneDNN's convolutions at this width run about twice as fast on a CPU.
         features = torch.cat([up, target, (near > 0).to(up.dtype)], dim=1).contiguous(memory_format=torch.channels_last)

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from world_model.model.config import ModelConfig
-from world_model.model.layout import NEARNESS_LEVELS, lidar_nearness
+from world_model.model.layout import RANGE_LEVELS, lidar_nearness
 from world_model.raster.classes import MAP_PLANES, blank_maps
 from world_model.scene import SceneFrame
 from world_model.sensors import LidarSpec
@@ -145,8 +145,9 @@ def range_nearness_maps(
     frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
 ) -> np.ndarray:
     """The ``range_nearness`` condition: the range map the scene implies at the LiDAR's own
-    resolution, every frame's, (T, beams, azimuth) uint8 in the steps of
-    :func:`~world_model.model.layout.lidar_nearness`, for a VAE with a range head
+    resolution, every frame's, (T, beams, azimuth) uint16 in
+    :data:`~world_model.model.layout.RANGE_LEVELS` steps of ``1 - range / max_range`` (0: nothing in
+    range), for a VAE with a range head
     (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`.
 
     Cast by the simulator's LiDAR (:mod:`world_model.sim.lidar`: its own beams, each box culled to
@@ -154,10 +155,10 @@ def range_nearness_maps(
     tens."""
     lidar = cfg.sensors.lidar
     if not cfg.layout.range_head:
-        return np.zeros((len(frames), 0, 0), np.uint8)
+        return np.zeros((len(frames), 0, 0), np.uint16)
     _check_labeled(frames, labeled)
     rays = _lidar_rays(lidar)
-    out = np.zeros((len(frames), lidar.beams, lidar.azimuth), np.uint8)
+    out = np.zeros((len(frames), lidar.beams, lidar.azimuth), np.uint16)
     for t, frame in enumerate(frames):
         if labeled is None or labeled[t]:
             ranges = cast(object_poses(frame, lidar.mount_height), lidar, rays, SimConfig().lidar_cull_margin_cols)
@@ -166,11 +167,11 @@ def range_nearness_maps(
 
 
 def nearness_levels(ranges: np.ndarray, lidar: LidarSpec) -> np.ndarray:
-    """Range maps in metres (``lidar.no_return`` where nothing is in range) -> uint8 nearness,
-    :data:`~world_model.model.layout.NEARNESS_LEVELS` steps of ``1 - range / max_range``, 0 for no return."""
+    """Range maps in metres (``lidar.no_return`` where nothing is in range) -> uint16 nearness,
+    :data:`~world_model.model.layout.RANGE_LEVELS` steps of ``1 - range / max_range``, 0 for no return."""
     hit = (ranges != lidar.no_return) & (ranges < lidar.max_range)
     near = np.where(hit, 1.0 - ranges / lidar.max_range, 0.0)
-    return np.rint(near * NEARNESS_LEVELS).astype(np.uint8)
+    return np.rint(near * RANGE_LEVELS).astype(np.uint16)
 
 
 @functools.lru_cache(maxsize=4)
