@@ -417,6 +417,12 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     }
 
 
+def as_held(fields: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Batched :class:`ConditionArrays` fields as :class:`Conditions` holds them: the BEV in float32,
+    the range map's nearness in int32 (torch's uint16 cannot be indexed into), the rest as they are."""
+    return {**fields, "bev": fields["bev"].float(), "range_nearness": fields["range_nearness"].int()}
+
+
 @dataclass
 class Conditions:
     """A batch of conditions as tensors: every :class:`ConditionArrays` field with a leading B,
@@ -465,9 +471,7 @@ class Conditions:
         kw = {
             f.name: torch.from_numpy(np.stack([getattr(it, f.name) for it in items])) for f in fields(ConditionArrays)
         }
-        kw["bev"] = kw["bev"].float()
-        kw["range_nearness"] = kw["range_nearness"].int()  # torch's uint16 cannot be indexed into
-        return cls(**kw, drop=torch.zeros(len(items), dtype=torch.bool))
+        return cls(**as_held(kw), drop=torch.zeros(len(items), dtype=torch.bool))
 
     def apply(self, fn: Callable[[str, torch.Tensor], torch.Tensor]) -> Conditions:
         """A new batch with ``fn(field_name, tensor)`` applied to every field."""

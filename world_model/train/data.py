@@ -19,7 +19,13 @@ from safetensors.torch import load_file, save_file
 from world_model.data import Clip, iter_clips
 from world_model.data.clips import clip_fingerprint
 from world_model.geometry import wrap_angle
-from world_model.model.conditions import ConditionArrays, ConditionOptions, Conditions, build_condition_arrays
+from world_model.model.conditions import (
+    ConditionArrays,
+    ConditionOptions,
+    Conditions,
+    as_held,
+    build_condition_arrays,
+)
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.imagedesc import ImageDescriptionEncoder
 from world_model.model.layout import NEARNESS_LEVELS, layout_sequence
@@ -428,8 +434,7 @@ class LatentWindows:
         kw = {k: torch.from_numpy(v[flat]) for k, v in self.flat_time.items()}
         kw.update({k: torch.from_numpy(v[clips]) for k, v in self.per_clip.items()})
         kw["ego"] = torch.from_numpy(relative_ego(self.ego_pose[flat], self.ego_pose[self.offsets[clips] + anchor]))
-        kw["bev"] = kw["bev"].float()
-        return x0, Conditions(**kw, drop=torch.zeros(len(clips), dtype=torch.bool))
+        return x0, Conditions(**as_held(kw), drop=torch.zeros(len(clips), dtype=torch.bool))
 
     def windows(self, clips: np.ndarray, starts: np.ndarray, frames: int) -> tuple[torch.Tensor, Conditions]:
         """Windows [start, start + frames) of ``clips``, ego relative to each window's first frame."""
