@@ -417,10 +417,10 @@ def condition_field_specs(cfg: ModelConfig, num_frames: int) -> dict[str, FieldS
     }
 
 
-def as_held(fields: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def as_held(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Batched :class:`ConditionArrays` fields as :class:`Conditions` holds them: the BEV in float32,
     the range map's nearness in int32 (torch's uint16 cannot be indexed into), the rest as they are."""
-    return {**fields, "bev": fields["bev"].float(), "range_nearness": fields["range_nearness"].int()}
+    return {**batch, "bev": batch["bev"].float(), "range_nearness": batch["range_nearness"].int()}
 
 
 @dataclass
