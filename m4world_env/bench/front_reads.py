@@ -43,7 +43,7 @@ from m4world_env.same_states import (
     replayed_steps,
 )
 from m4world_env.zoo.modular import LaneCentring
-from m4world_env.zoo.perception import marking_peaks
+from m4world_env.zoo.perception import marking_peaks, runs
 from world_model.raster.classes import CLASS_PLANE, VEHICLE
 from world_model.sim.labels import LabelRasterizer
 
@@ -67,8 +67,8 @@ def line_columns(image: np.ndarray) -> np.ndarray:
     centre = (image.shape[1] - 1) / 2.0
     out = np.full((BAND_ROWS, 2), np.nan)
     for r, row in enumerate(peaks):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
-        mids = (edges[::2] + edges[1::2] - 1) / 2.0
+        starts, stops = runs(row)
+        mids = (starts + stops - 1) / 2.0
         left, right = mids[mids < centre], mids[mids >= centre]
         out[r] = (left.max() if len(left) else np.nan, right.min() if len(right) else np.nan)
     return out

@@ -92,11 +92,16 @@ def marking_peaks(luminance: np.ndarray, min_contrast: float, max_width_px: int)
     bright = luminance - np.median(luminance, axis=1, keepdims=True) >= min_contrast
     out = np.zeros_like(bright)
     for r, row in enumerate(bright):
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
-        for start, stop in zip(edges[::2], edges[1::2], strict=True):
+        for start, stop in zip(*runs(row), strict=True):
             if stop - start <= max_width_px:
                 out[r, start:stop] = True
     return out
+
+
+def runs(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of True in a 1-D bool ``row``: their starts and their stops (exclusive)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], row.astype(np.int8), [0]])))
+    return edges[::2], edges[1::2]
 
 
 def lane_markings(
