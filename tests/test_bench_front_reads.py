@@ -1,7 +1,9 @@
-"""m4world bench front_reads, small: the lane finder's lines and the car ahead's bottom edge are read
-from pixels, a lost line counts in the median of the rows, a shift of the view shows as its size in
-px, the ground truth read against itself is the same pixel, and the command writes the figures per
-scenario with the world model (the untrained tiny bundle) fed the ground truth's actions."""
+"""m4world bench front_reads, small: the lane finder's lines are read from pixels and the car ahead's
+bottom edge from the segmenter's classes, only for a car within range, a lost line counts in the
+median of the rows, a shift of the view shows as its size in px, the ground truth read against
+itself is the same pixel and its car ahead where its label map has it, and the command writes the
+figures per scenario with the world model (the untrained tiny bundle) fed the ground truth's
+actions."""
 
 import json
 
@@ -10,17 +12,22 @@ import pytest
 
 from m4world_env.bench.front_reads import (
     BAND_ROWS,
+    LEAD_RANGE_M,
     MISSING_PX,
+    SEGMENTED_VEHICLE,
     bottom_edge,
     episode,
     figures,
     frame_reads,
+    lead_vehicle,
     line_columns,
     lines_apart,
     main,
     path_vehicle_columns,
 )
+from world_model.eval.segmenter import load_default_segmenter
 from world_model.raster.classes import ROAD, SKY, VEHICLE
+from world_model.sensors import CameraSpec
 
 H, W = 64, 112
 ROAD_GREY, LINE_WHITE, CAR_RED = (90, 90, 90), (235, 235, 235), (200, 30, 30)
@@ -70,15 +77,43 @@ def test_the_car_ahead_is_the_nearest_vehicle_in_the_path():
     assert path_vehicle_columns(side) is None
 
 
-def test_the_bottom_edge_is_read_from_pixels_and_a_shift_shows():
-    columns, _ = path_vehicle_columns(labels((30, 40)))
-    assert bottom_edge(road_view(car_rows=(30, 40)), columns) == 40.0
-    assert bottom_edge(road_view(), columns) is None
-    reads = frame_reads(road_view(car_rows=(30, 40)), road_view((22, 92), car_rows=(30, 42)), labels((30, 40)))
+def level_camera(height_px: int = H, focal_px: float = 80.0) -> CameraSpec:
+    """A forward camera at the LiDAR's height, looking level (x forward, y left, z up)."""
+    k = np.array([[focal_px, 0.0, W / 2], [0.0, focal_px, height_px / 2], [0.0, 0.0, 1.0]])
+    r = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    return CameraSpec(name="FRONT", K=k, R=r, t=np.zeros(3), width=W, height=height_px)
+
+
+def test_the_car_ahead_is_read_only_within_range():
+    camera, mount = level_camera(), 1.6
+    near_row = 32 + 10  # 80 px * 1.6 m / 10.5 px: 12 m ahead
+    assert lead_vehicle(labels((30, near_row)), camera, mount)[1] == near_row
+    far_row = 32 + int(80 * mount / (LEAD_RANGE_M * 1.5))  # half as far again as the range
+    assert lead_vehicle(labels((30, far_row)), camera, mount) is None
+    assert lead_vehicle(labels(None), camera, mount) is None
+
+
+def segments_of(car_rows: tuple[int, int] | None) -> np.ndarray:
+    """The segmenter's classes of :func:`road_view`: road, and the car where it is drawn."""
+    seg = np.ones((H, W), np.int64)
+    if car_rows is not None:
+        seg[car_rows[0] : car_rows[1] + 1, 46:66] = SEGMENTED_VEHICLE
+    return seg
+
+
+def test_the_bottom_edge_is_read_from_the_segments_and_a_shift_shows():
+    lead = path_vehicle_columns(labels((30, 40)))
+    columns, _ = lead
+    assert bottom_edge(segments_of((30, 40)), columns) == 40.0
+    assert bottom_edge(segments_of(None), columns) is None
+    shifted = np.stack([segments_of((30, 40)), segments_of((30, 42))])
+    reads = frame_reads(road_view(car_rows=(30, 40)), road_view((22, 92), car_rows=(30, 42)), lead, shifted)
     assert reads == {"lines_px": 2.0, "edge_px": 2.0, "edge_truth_vs_label": 0.0}
-    lost = frame_reads(road_view(car_rows=(30, 40)), road_view(), labels((30, 40)))
+    lost = frame_reads(road_view(), road_view(), lead, np.stack([segments_of((30, 40)), segments_of(None)]))
     assert lost["edge_px"] == MISSING_PX
-    assert frame_reads(road_view(), road_view(), labels(None))["edge_px"] is None
+    unseen = frame_reads(road_view(), road_view(), lead, np.stack([segments_of(None)] * 2))
+    assert unseen["edge_px"] is None and unseen["edge_truth_vs_label"] == MISSING_PX
+    assert frame_reads(road_view(), road_view(), None, None)["edge_px"] is None
 
 
 def test_figures_count_the_frames_within_each_tolerance():
@@ -96,10 +131,12 @@ def test_figures_count_the_frames_within_each_tolerance():
 
 
 def test_the_ground_truth_against_itself_reads_the_same_pixels():
-    reads = episode("highway_sunny_day", 0, 3, {"backend": "procedural"})
+    reads = episode("merge_cut_in", 0, 3, {"backend": "procedural"}, load_default_segmenter())
     assert len(reads) == 3
     assert all(r["lines_px"] in (0.0, None) and r["edge_px"] in (0.0, None) for r in reads)
     assert any(r["lines_px"] == 0.0 for r in reads)
+    # A car ahead within range on every frame, its bottom edge segmented where its label map has it.
+    assert all(r["edge_px"] == 0.0 and abs(r["edge_truth_vs_label"]) <= 1 for r in reads)
 
 
 def test_the_command_writes_each_scenario(tiny_bundle, tmp_path):

@@ -1,7 +1,7 @@
 """Where a camera policy finds the lane lines and the car ahead low in FRONT, on the world model and
 on the ground truth: the same pixel, or how far apart.
 
-    m4world bench front_reads --out F.json [--scenarios highway_sunny_day ...] [--seeds 0 1] \
+    m4world bench front_reads --out F.json [--scenarios highway_sunny_day ...] [--seeds 0 1 2 3] \
         [--steps 20] [--checkpoint BUNDLE]
 
 For each scenario and seed, one episode: the built-in ``lane_keeping`` policy drives
@@ -14,18 +14,20 @@ FRONT views are read by the same two detectors, which see pixels only:
   innermost painted line on each side of the view's centre; a frame's lines are as far apart as
   the median over its (row, side) pairs with a line on either view of the two columns' difference
   (:data:`MISSING_PX` where one view has none), the median the lane finder takes of its rows.
-* **The car ahead's bottom edge**: where the scene's label map has a vehicle in the view's central
-  columns (the ego's path, :data:`PATH_FRACTION` of the width), each of its columns is scanned up
-  from the bottom row for the first pixel unlike the road just ahead of the ego (the median colour
-  of the bottom :data:`ROAD_ROWS` rows there; unlike: a channel more than :data:`EDGE_CONTRAST`
-  levels apart); the edge is the median of those rows. The label map chooses the frames and the
-  columns, never the row.
+* **The car ahead's bottom edge**, as a learned perception sees it: the nearest vehicle of the
+  scene's label map in the view's central columns (the ego's path, :data:`PATH_FRACTION` of the
+  width) whose bottom lies within :data:`LEAD_RANGE_M` on the road (the car a policy keeps its
+  distance from; farther ones are a pixel or two above the horizon, in fog not drawn at all); over
+  its bottom row's columns, the lowest row that the shipped segmenter
+  (:mod:`world_model.eval.segmenter`, the scene IoU's) calls vehicle in at least half of them. The
+  label map chooses the frames and the columns, never the row.
 
 Per scenario (seeds and steps pooled): the frames read, the share of them within 1 px and within 2
-px, and the median and 95th percentile of the difference in px. The ground truth's own detected edge
-against its label map's bottom row (``edge_truth_vs_label``) says how well the detector reads. A
-bundle whose views are not the ground truth's size is read at that size (nearest pixel). A markdown
-table is printed; the JSON holds the figures and the settings.
+px, and the median and 95th percentile of the difference in px. The ground truth's own edge so read
+against its label map's bottom row (``edge_truth_vs_label``) says how well the segmenter reads
+(:data:`MISSING_PX` where it finds none). A bundle whose views are not the ground truth's size is
+read at that size (nearest pixel). A markdown table is printed; the JSON holds the figures and the
+settings.
 """
 
 from __future__ import annotations
@@ -44,16 +46,18 @@ from m4world_env.same_states import (
 )
 from m4world_env.zoo.modular import LaneCentring
 from m4world_env.zoo.perception import marking_peaks, runs
+from world_model.eval.segmenter import SCENE_CLASSES, Segmenter, load_default_segmenter
 from world_model.raster.classes import CLASS_PLANE, VEHICLE
+from world_model.sensors import PIXEL_CENTRE, CameraSpec, road_points
 from world_model.sim.labels import LabelRasterizer
 
 LANE_FINDER = LaneCentring()  # gap_keeper's lane finder: its band, contrast and line width
 BAND_ROWS = LANE_FINDER.band_rows
 PATH_FRACTION = 0.25  # the central share of the view's width the ego drives into
-ROAD_ROWS = 3  # the bottom rows whose colour is the road's (the ego's lane just ahead)
-# Grey levels in any channel: above the road's own patches and light in the path (their 99th
-# percentile 10-37 on the ground truth's views, snowflakes aside, which both backends draw alike).
-EDGE_CONTRAST = 40
+# The LiDAR criterion's objects' range: the car ahead a gap-keeping policy reads.
+LEAD_RANGE_M = 40.0
+SEGMENTED_VEHICLE = SCENE_CLASSES.index("vehicle")
+EDGE_SHARE = 0.5  # of the car's columns the segmenter must call vehicle for a row to be its
 MISSING_PX = 99.0  # a line one view has and the other has not
 TOLERANCES_PX = (1, 2)
 
@@ -99,33 +103,43 @@ def path_vehicle_columns(classes: np.ndarray) -> tuple[np.ndarray, int] | None:
     return lo + np.unique(cols[rows == bottom]), bottom
 
 
-def bottom_edge(image: np.ndarray, columns: np.ndarray) -> float | None:
-    """The row of the car's bottom edge in ``image`` (H, W, 3) uint8 over ``columns``: the median over
-    them of the first row, scanning up from the bottom, unlike the road just ahead (module
-    docstring); None where no column has one."""
-    img = image.astype(np.int16)
-    road = np.median(img[-ROAD_ROWS:, columns].reshape(-1, 3), axis=0)
-    unlike = (np.abs(img[:, columns] - road) > EDGE_CONTRAST).any(-1)  # (H, C)
-    found = [int(np.flatnonzero(col).max()) for col in unlike.T if col.any()]
-    return float(np.median(found)) if found else None
+def lead_vehicle(classes: np.ndarray, camera: CameraSpec, mount_height: float) -> tuple[np.ndarray, int] | None:
+    """:func:`path_vehicle_columns` where that vehicle's bottom meets the road within
+    :data:`LEAD_RANGE_M` of the LiDAR (``mount_height`` above the road); None otherwise."""
+    path = path_vehicle_columns(classes)
+    if path is None:
+        return None
+    columns, bottom = path
+    u, v = np.array([columns.mean() + PIXEL_CENTRE]), np.array([bottom + PIXEL_CENTRE])
+    ahead = float(road_points(camera, mount_height, u, v)[0, 0])
+    return path if np.isfinite(ahead) and 0.0 < ahead <= LEAD_RANGE_M else None
 
 
-def frame_reads(truth: np.ndarray, model: np.ndarray, classes: np.ndarray) -> dict[str, float | None]:
-    """One frame's readings of both FRONT views (H, W, 3) uint8 with the scene's class ids (H, W):
-    ``lines_px`` (:func:`lines_apart`), ``edge_px`` (the bottom edges' difference) and
-    ``edge_truth_vs_label`` (the ground truth's edge minus the label map's bottom row); None where
-    the frame has nothing to read."""
+def bottom_edge(segments: np.ndarray, columns: np.ndarray) -> float | None:
+    """The row of the car's bottom edge in a segmenter's scene classes (H, W) over ``columns``: the
+    lowest row that is vehicle in at least :data:`EDGE_SHARE` of them; None where no row is."""
+    rows = np.flatnonzero((segments[:, columns] == SEGMENTED_VEHICLE).mean(axis=1) >= EDGE_SHARE)
+    return float(rows.max()) if len(rows) else None
+
+
+def frame_reads(
+    truth: np.ndarray, model: np.ndarray, lead: tuple[np.ndarray, int] | None, segments: np.ndarray | None
+) -> dict[str, float | None]:
+    """One frame's readings of both FRONT views (H, W, 3) uint8: ``lines_px`` (:func:`lines_apart`),
+    ``edge_px`` (the bottom edges' difference) and ``edge_truth_vs_label`` (the ground truth's edge
+    minus the label map's bottom row); ``lead``: :func:`lead_vehicle` of the scene, ``segments``
+    (2, H, W) the segmenter's scene classes of ``truth`` and ``model``. None where the frame has
+    nothing to read."""
     reads: dict[str, float | None] = {
         "lines_px": lines_apart(line_columns(truth), line_columns(model)),
         "edge_px": None,
         "edge_truth_vs_label": None,
     }
-    path = path_vehicle_columns(classes)
-    if path is not None:
-        columns, label_row = path
-        edge_t, edge_m = bottom_edge(truth, columns), bottom_edge(model, columns)
+    if lead is not None:
+        columns, label_row = lead
+        edge_t, edge_m = (bottom_edge(s, columns) for s in segments)
+        reads["edge_truth_vs_label"] = MISSING_PX if edge_t is None else edge_t - label_row
         if edge_t is not None:
-            reads["edge_truth_vs_label"] = edge_t - label_row
             reads["edge_px"] = MISSING_PX if edge_m is None else abs(edge_m - edge_t)
     return reads
 
@@ -138,7 +152,7 @@ def at_size(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return image[rows][:, cols]
 
 
-def episode(scenario: str, seed: int, steps: int, model: dict) -> list[dict[str, float | None]]:
+def episode(scenario: str, seed: int, steps: int, model: dict, segmenter: Segmenter) -> list[dict[str, float | None]]:
     """Up to ``steps`` policy steps of ``scenario``: each frame's :func:`frame_reads`."""
     rasterizer = LabelRasterizer()
     out = []
@@ -147,7 +161,9 @@ def episode(scenario: str, seed: int, steps: int, model: dict) -> list[dict[str,
         model_view = at_size(step.model_obs["cameras"][FRONT], truth.shape[:2])
         frame = step.truth.scene_frame
         classes = rasterizer.maps(frame, frame.rig, *truth.shape[:2])[FRONT, CLASS_PLANE]
-        out.append(frame_reads(truth, model_view, classes))
+        lead = lead_vehicle(classes, frame.rig.cameras[FRONT], step.truth.lidar_spec.mount_height)
+        segments = segmenter.predict(np.stack([truth, model_view])) if lead is not None else None
+        out.append(frame_reads(truth, model_view, lead, segments))
     return out
 
 
@@ -189,14 +205,15 @@ def table(results: dict[str, dict]) -> str:
 def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
     """Every episode; the figures per scenario (seeds pooled), with the settings."""
     model = model_env_kwargs("cameras", checkpoint)  # the cameras alone: no LiDAR decoded
-    pooled = pooled_by_scenario(scenarios, seeds, lambda scenario, s: episode(scenario, s, steps, model))
+    segmenter = load_default_segmenter()
+    pooled = pooled_by_scenario(scenarios, seeds, lambda scenario, s: episode(scenario, s, steps, model, segmenter))
     results = {scenario: figures(reads) for scenario, reads in pooled.items()}
-    settings = {"path_fraction": PATH_FRACTION, "road_rows": ROAD_ROWS, "edge_contrast": EDGE_CONTRAST}
+    settings = {"path_fraction": PATH_FRACTION, "lead_range_m": LEAD_RANGE_M, "edge_share": EDGE_SHARE}
     return {**replay_settings(scenarios, seeds, steps, checkpoint), **settings, "results": results}
 
 
 def main(argv: list[str] | None = None) -> int:
-    return replay_main("m4world bench front_reads", __doc__, (DEFAULT_SCENARIOS, (0, 1), 20), run, table, argv)
+    return replay_main("m4world bench front_reads", __doc__, (DEFAULT_SCENARIOS, (0, 1, 2, 3), 20), run, table, argv)
 
 
 if __name__ == "__main__":
