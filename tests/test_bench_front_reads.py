@@ -1,9 +1,9 @@
-"""m4world bench front_reads, small: the lane finder's lines are read from pixels and the car ahead's
-bottom edge from the segmenter's classes, only for a car within range, a lost line counts in the
-median of the rows, a shift of the view shows as its size in px, the ground truth read against
-itself is the same pixel and its car ahead where its label map has it, and the command writes the
-figures per scenario with the world model (the untrained tiny bundle) fed the ground truth's
-actions."""
+"""m4world bench front_reads, small: the lane finder's lines are read from pixels, the markings and
+the car ahead's bottom edge from the segmenter's classes (the car only within range), a lost line
+counts in the median of the rows, a shift of the view shows as its size in px, the ground truth read
+against itself is the same pixel and its markings and car ahead where its label map has them, and
+the command writes the figures per scenario with the world model (the untrained tiny bundle) fed
+the ground truth's actions."""
 
 import json
 
@@ -14,6 +14,8 @@ from m4world_env.bench.front_reads import (
     BAND_ROWS,
     LEAD_RANGE_M,
     MISSING_PX,
+    READINGS,
+    SEGMENTED_MARKING,
     SEGMENTED_VEHICLE,
     bottom_edge,
     episode,
@@ -23,10 +25,11 @@ from m4world_env.bench.front_reads import (
     line_columns,
     lines_apart,
     main,
+    marking_columns,
     path_vehicle_columns,
 )
 from world_model.eval.segmenter import load_default_segmenter
-from world_model.raster.classes import ROAD, SKY, VEHICLE
+from world_model.raster.classes import MARKING, ROAD, SKY, VEHICLE
 from world_model.sensors import CameraSpec
 
 H, W = 64, 112
@@ -44,9 +47,12 @@ def road_view(lines: tuple[int, ...] = (20, 90), car_rows: tuple[int, int] | Non
     return image
 
 
-def labels(car_rows: tuple[int, int] | None) -> np.ndarray:
+def labels(car_rows: tuple[int, int] | None, lines: tuple[int, ...] = (20, 90)) -> np.ndarray:
+    """The label map of :func:`road_view`."""
     classes = np.full((H, W), ROAD, np.uint8)
     classes[:20] = SKY
+    for c in lines:
+        classes[-BAND_ROWS:, c : c + 2] = MARKING
     if car_rows is not None:
         classes[car_rows[0] : car_rows[1] + 1, 46:66] = VEHICLE
     return classes
@@ -93,12 +99,20 @@ def test_the_car_ahead_is_read_only_within_range():
     assert lead_vehicle(labels(None), camera, mount) is None
 
 
-def segments_of(car_rows: tuple[int, int] | None) -> np.ndarray:
-    """The segmenter's classes of :func:`road_view`: road, and the car where it is drawn."""
+def segments_of(car_rows: tuple[int, int] | None, lines: tuple[int, ...] = (20, 90)) -> np.ndarray:
+    """The segmenter's classes of :func:`road_view`: road, its markings, and the car where it is drawn."""
     seg = np.ones((H, W), np.int64)
+    for c in lines:
+        seg[-BAND_ROWS:, c : c + 2] = SEGMENTED_MARKING
     if car_rows is not None:
         seg[car_rows[0] : car_rows[1] + 1, 46:66] = SEGMENTED_VEHICLE
     return seg
+
+
+def test_the_markings_are_read_from_the_segments_as_from_a_label_map():
+    assert np.all(marking_columns(segments_of(None, (5, 20, 90)), SEGMENTED_MARKING) == (20.5, 90.5))
+    assert np.all(marking_columns(labels(None, (20, 90, 100)), MARKING) == (20.5, 90.5))
+    assert np.isnan(marking_columns(segments_of(None, ()), SEGMENTED_MARKING)).all()
 
 
 def test_the_bottom_edge_is_read_from_the_segments_and_a_shift_shows():
@@ -106,21 +120,31 @@ def test_the_bottom_edge_is_read_from_the_segments_and_a_shift_shows():
     columns, _ = lead
     assert bottom_edge(segments_of((30, 40)), columns) == 40.0
     assert bottom_edge(segments_of(None), columns) is None
-    shifted = np.stack([segments_of((30, 40)), segments_of((30, 42))])
-    reads = frame_reads(road_view(car_rows=(30, 40)), road_view((22, 92), car_rows=(30, 42)), lead, shifted)
-    assert reads == {"lines_px": 2.0, "edge_px": 2.0, "edge_truth_vs_label": 0.0}
-    lost = frame_reads(road_view(), road_view(), lead, np.stack([segments_of((30, 40)), segments_of(None)]))
-    assert lost["edge_px"] == MISSING_PX
-    unseen = frame_reads(road_view(), road_view(), lead, np.stack([segments_of(None)] * 2))
+    views = np.stack([road_view(car_rows=(30, 40)), road_view((22, 92), car_rows=(30, 42))])
+    segments = np.stack([segments_of((30, 40)), segments_of((30, 42), (23, 93))])
+    reads = frame_reads(views, labels((30, 40)), segments, lead)
+    assert reads == {
+        "lines_px": 2.0,
+        "lines_truth_vs_label": 0.0,
+        "markings_px": 3.0,
+        "markings_truth_vs_label": 0.0,
+        "edge_px": 2.0,
+        "edge_truth_vs_label": 0.0,
+    }
+    plain = np.stack([road_view()] * 2)
+    lost = frame_reads(plain, labels((30, 40)), np.stack([segments_of((30, 40)), segments_of(None, ())]), lead)
+    assert lost["edge_px"] == MISSING_PX and lost["markings_px"] == MISSING_PX
+    unseen = frame_reads(plain, labels((30, 40)), np.stack([segments_of(None)] * 2), lead)
     assert unseen["edge_px"] is None and unseen["edge_truth_vs_label"] == MISSING_PX
-    assert frame_reads(road_view(), road_view(), None, None)["edge_px"] is None
+    assert frame_reads(plain, labels(None), np.stack([segments_of(None)] * 2), None)["edge_px"] is None
 
 
 def test_figures_count_the_frames_within_each_tolerance():
+    nothing = {"lines_truth_vs_label": None, "markings_px": None, "markings_truth_vs_label": None}
     reads = [
-        {"lines_px": 0.0, "edge_px": 1.0, "edge_truth_vs_label": -1.0},
-        {"lines_px": 2.0, "edge_px": None, "edge_truth_vs_label": None},
-        {"lines_px": None, "edge_px": 3.0, "edge_truth_vs_label": 0.0},
+        {"lines_px": 0.0, "edge_px": 1.0, "edge_truth_vs_label": -1.0, **nothing},
+        {"lines_px": 2.0, "edge_px": None, "edge_truth_vs_label": None, **nothing},
+        {"lines_px": None, "edge_px": 3.0, "edge_truth_vs_label": 0.0, **nothing},
     ]
     f = figures(reads)
     assert f["lines_px"]["frames"] == 2 and f["lines_px"]["within_1px"] == 0.5 and f["lines_px"]["within_2px"] == 1.0
@@ -133,8 +157,9 @@ def test_figures_count_the_frames_within_each_tolerance():
 def test_the_ground_truth_against_itself_reads_the_same_pixels():
     reads = episode("merge_cut_in", 0, 3, {"backend": "procedural"}, load_default_segmenter())
     assert len(reads) == 3
-    assert all(r["lines_px"] in (0.0, None) and r["edge_px"] in (0.0, None) for r in reads)
+    assert all(r[key] in (0.0, None) for r in reads for key in ("lines_px", "markings_px", "edge_px"))
     assert any(r["lines_px"] == 0.0 for r in reads)
+    assert all(r["markings_truth_vs_label"] <= 1 for r in reads)  # the segmenter finds the painted lines
     # A car ahead within range on every frame, its bottom edge segmented where its label map has it.
     assert all(r["edge_px"] == 0.0 and abs(r["edge_truth_vs_label"]) <= 1 for r in reads)
 
@@ -145,6 +170,6 @@ def test_the_command_writes_each_scenario(tiny_bundle, tmp_path):
     assert main([*args, "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     assert result["steps"] == 2 and set(result["results"]) == {"highway_sunny_day"}
-    assert set(result["results"]["highway_sunny_day"]) == {"lines_px", "edge_px", "edge_truth_vs_label"}
+    assert set(result["results"]["highway_sunny_day"]) == set(READINGS)
     with pytest.raises(SystemExit):
         main(["--scenarios", "no_such_scenario", "--out", str(tmp_path / "x.json")])

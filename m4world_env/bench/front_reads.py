@@ -7,27 +7,31 @@ on the ground truth: the same pixel, or how far apart.
 For each scenario and seed, one episode: the built-in ``lane_keeping`` policy drives
 ``backend="procedural"`` (the ground truth) and its very actions are fed to ``backend="world_model"``
 (cameras only), both reset with the seed, so the traffic is the same on both. After each step, both
-FRONT views are read by the same two detectors, which see pixels only:
+FRONT views are read the same ways, from their pixels only:
 
-* **Lane lines**, as the zoo's lane finder reads them (``gap_keeper``: ``perception.marking_peaks``
-  on the bottom :data:`BAND_ROWS` rows, its contrast and width): per row, the centre column of the
-  innermost painted line on each side of the view's centre; a frame's lines are as far apart as
-  the median over its (row, side) pairs with a line on either view of the two columns' difference
-  (:data:`MISSING_PX` where one view has none), the median the lane finder takes of its rows.
-* **The car ahead's bottom edge**, as a learned perception sees it: the nearest vehicle of the
-  scene's label map in the view's central columns (the ego's path, :data:`PATH_FRACTION` of the
-  width) whose bottom lies within :data:`LEAD_RANGE_M` on the road (the car a policy keeps its
-  distance from; farther ones are a pixel or two above the horizon, in fog not drawn at all); over
-  its bottom row's columns, the lowest row that the shipped segmenter
-  (:mod:`world_model.eval.segmenter`, the scene IoU's) calls vehicle in at least half of them. The
-  label map chooses the frames and the columns, never the row.
+* **Lane lines**, as the zoo's lane finder reads them (``lines_px``; ``gap_keeper``:
+  ``perception.marking_peaks`` on the bottom :data:`BAND_ROWS` rows, its contrast and width): per
+  row, the centre column of the innermost bright line on each side of the view's centre; a frame's
+  lines are as far apart as the median over its (row, side) pairs with a line on either view of
+  the two columns' difference (:data:`MISSING_PX` where one view has none), the median the lane
+  finder takes of its rows. In rain and snow the lane finder also reads the streaks and flakes
+  blended over both views, where they stand out from the road.
+* **Lane markings**, where they are drawn (``markings_px``): the same, over the pixels the shipped
+  segmenter (:mod:`world_model.eval.segmenter`, the scene IoU's) calls marking.
+* **The car ahead's bottom edge**, as a learned perception sees it (``edge_px``): the nearest
+  vehicle of the scene's label map in the view's central columns (the ego's path,
+  :data:`PATH_FRACTION` of the width) whose bottom lies within :data:`LEAD_RANGE_M` on the road (the
+  car a policy keeps its distance from; farther ones are a pixel or two above the horizon, in fog
+  not drawn at all); over its bottom row's columns, the lowest row that the segmenter calls vehicle
+  in at least half of them. The label map chooses the frames and the columns, never the row.
 
 Per scenario (seeds and steps pooled): the frames read, the share of them within 1 px and within 2
-px, and the median and 95th percentile of the difference in px. The ground truth's own edge so read
-against its label map's bottom row (``edge_truth_vs_label``) says how well the segmenter reads
-(:data:`MISSING_PX` where it finds none). A bundle whose views are not the ground truth's size is
-read at that size (nearest pixel). A markdown table is printed; the JSON holds the figures and the
-settings.
+px, and the median and 95th percentile of the difference in px. The ground truth's own lines,
+segmented markings and edge against its label map's (``lines_truth_vs_label``,
+``markings_truth_vs_label``, ``edge_truth_vs_label``) say what each reading finds
+(:data:`MISSING_PX` where it finds nothing). A bundle whose views
+are not the ground truth's size is read at that size (nearest pixel). A markdown table is printed;
+the JSON holds the figures and the settings.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from m4world_env.same_states import (
 from m4world_env.zoo.modular import LaneCentring
 from m4world_env.zoo.perception import marking_peaks, runs
 from world_model.eval.segmenter import SCENE_CLASSES, Segmenter, load_default_segmenter
-from world_model.raster.classes import CLASS_PLANE, VEHICLE
+from world_model.raster.classes import CLASS_PLANE, MARKING, VEHICLE
 from world_model.sensors import PIXEL_CENTRE, CameraSpec, road_points
 from world_model.sim.labels import LabelRasterizer
 
@@ -57,25 +61,44 @@ PATH_FRACTION = 0.25  # the central share of the view's width the ego drives int
 # The LiDAR criterion's objects' range: the car ahead a gap-keeping policy reads.
 LEAD_RANGE_M = 40.0
 SEGMENTED_VEHICLE = SCENE_CLASSES.index("vehicle")
+SEGMENTED_MARKING = SCENE_CLASSES.index("marking")
 EDGE_SHARE = 0.5  # of the car's columns the segmenter must call vehicle for a row to be its
 MISSING_PX = 99.0  # a line one view has and the other has not
+READINGS = (
+    "lines_px",
+    "lines_truth_vs_label",
+    "markings_px",
+    "markings_truth_vs_label",
+    "edge_px",
+    "edge_truth_vs_label",
+)
 TOLERANCES_PX = (1, 2)
 
 
-def line_columns(image: np.ndarray) -> np.ndarray:
-    """(BAND_ROWS, 2) float: per row of the bottom band of ``image`` (H, W, 3) uint8, the centre
-    column of the innermost line left and right of the view's centre as the lane finder sees it
-    (NaN: none)."""
-    band = image[-BAND_ROWS:].astype(np.float32).mean(axis=-1)
-    peaks = marking_peaks(band, LANE_FINDER.min_contrast, LANE_FINDER.max_width_px)
-    centre = (image.shape[1] - 1) / 2.0
-    out = np.full((BAND_ROWS, 2), np.nan)
-    for r, row in enumerate(peaks):
+def innermost_columns(band: np.ndarray) -> np.ndarray:
+    """(rows, 2) float: per row of ``band`` (rows, W) bool, the centre column of the innermost run
+    left and right of the view's centre (NaN: none)."""
+    centre = (band.shape[1] - 1) / 2.0
+    out = np.full((band.shape[0], 2), np.nan)
+    for r, row in enumerate(band):
         starts, stops = runs(row)
         mids = (starts + stops - 1) / 2.0
         left, right = mids[mids < centre], mids[mids >= centre]
         out[r] = (left.max() if len(left) else np.nan, right.min() if len(right) else np.nan)
     return out
+
+
+def line_columns(image: np.ndarray) -> np.ndarray:
+    """(BAND_ROWS, 2): :func:`innermost_columns` of the lines the lane finder sees in the bottom band
+    of ``image`` (H, W, 3) uint8."""
+    band = image[-BAND_ROWS:].astype(np.float32).mean(axis=-1)
+    return innermost_columns(marking_peaks(band, LANE_FINDER.min_contrast, LANE_FINDER.max_width_px))
+
+
+def marking_columns(classes: np.ndarray, marking: int) -> np.ndarray:
+    """(BAND_ROWS, 2): :func:`innermost_columns` of the class ``marking`` in the bottom band of a
+    class map (H, W): the segmenter's (:data:`SEGMENTED_MARKING`) or a label map's (``MARKING``)."""
+    return innermost_columns(classes[-BAND_ROWS:] == marking)
 
 
 def lines_apart(truth: np.ndarray, model: np.ndarray) -> float | None:
@@ -123,15 +146,24 @@ def bottom_edge(segments: np.ndarray, columns: np.ndarray) -> float | None:
 
 
 def frame_reads(
-    truth: np.ndarray, model: np.ndarray, lead: tuple[np.ndarray, int] | None, segments: np.ndarray | None
+    views: np.ndarray, classes: np.ndarray, segments: np.ndarray, lead: tuple[np.ndarray, int] | None
 ) -> dict[str, float | None]:
-    """One frame's readings of both FRONT views (H, W, 3) uint8: ``lines_px`` (:func:`lines_apart`),
-    ``edge_px`` (the bottom edges' difference) and ``edge_truth_vs_label`` (the ground truth's edge
-    minus the label map's bottom row); ``lead``: :func:`lead_vehicle` of the scene, ``segments``
-    (2, H, W) the segmenter's scene classes of ``truth`` and ``model``. None where the frame has
+    """One frame's readings of both FRONT views, ``views`` (2, H, W, 3) uint8 the ground truth's and
+    the world model's, ``classes`` the scene's label map (H, W), ``segments`` (2, H, W) the
+    segmenter's scene classes of the two views, ``lead`` :func:`lead_vehicle` of the scene:
+    ``lines_px`` and ``markings_px`` (:func:`lines_apart` of the lane finder's lines and of the
+    segmented markings), ``edge_px`` (the bottom edges' difference), and how far the ground truth's
+    lines, segmented markings and edge are from its label map's (``lines_truth_vs_label``,
+    ``markings_truth_vs_label``, ``edge_truth_vs_label``, the edge signed). None where the frame has
     nothing to read."""
+    truth_lines, model_lines = (line_columns(v) for v in views)
+    truth_marks, model_marks = (marking_columns(s, SEGMENTED_MARKING) for s in segments)
+    painted = marking_columns(classes, MARKING)
     reads: dict[str, float | None] = {
-        "lines_px": lines_apart(line_columns(truth), line_columns(model)),
+        "lines_px": lines_apart(truth_lines, model_lines),
+        "lines_truth_vs_label": lines_apart(painted, truth_lines),
+        "markings_px": lines_apart(truth_marks, model_marks),
+        "markings_truth_vs_label": lines_apart(painted, truth_marks),
         "edge_px": None,
         "edge_truth_vs_label": None,
     }
@@ -162,8 +194,8 @@ def episode(scenario: str, seed: int, steps: int, model: dict, segmenter: Segmen
         frame = step.truth.scene_frame
         classes = rasterizer.maps(frame, frame.rig, *truth.shape[:2])[FRONT, CLASS_PLANE]
         lead = lead_vehicle(classes, frame.rig.cameras[FRONT], step.truth.lidar_spec.mount_height)
-        segments = segmenter.predict(np.stack([truth, model_view])) if lead is not None else None
-        out.append(frame_reads(truth, model_view, lead, segments))
+        views = np.stack([truth, model_view])
+        out.append(frame_reads(views, classes, segmenter.predict(views), lead))
     return out
 
 
@@ -182,9 +214,7 @@ def summary(values: list[float]) -> dict[str, float | int | None]:
 
 def figures(reads: list[dict[str, float | None]]) -> dict[str, dict]:
     """:func:`summary` of each reading over a scenario's frames (those that have it)."""
-    out = {key: summary([r[key] for r in reads if r[key] is not None]) for key in ("lines_px", "edge_px")}
-    label = [abs(r["edge_truth_vs_label"]) for r in reads if r["edge_truth_vs_label"] is not None]
-    return {**out, "edge_truth_vs_label": summary(label)}
+    return {key: summary([abs(r[key]) for r in reads if r[key] is not None]) for key in READINGS}
 
 
 def _cells(f: dict) -> list[str]:
