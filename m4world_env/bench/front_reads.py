@@ -102,9 +102,9 @@ def marking_columns(classes: np.ndarray, marking: int) -> np.ndarray:
 
 
 def lines_apart(truth: np.ndarray, model: np.ndarray) -> float | None:
-    """How far apart two :func:`line_columns` are: the median over the (row, side) pairs where either
-    view has a line of the column difference (MISSING_PX where the other has none), as the lane
-    finder takes the median of its rows; None where neither view has a line."""
+    """How far apart two :func:`innermost_columns` are: the median over the (row, side) pairs where
+    either view has a line of the column difference (MISSING_PX where the other has none), as the
+    lane finder takes the median of its rows; None where neither view has a line."""
     seen_t, seen_m = np.isfinite(truth), np.isfinite(model)
     either = seen_t | seen_m
     if not either.any():
