@@ -35,6 +35,7 @@ class ReplayStep(NamedTuple):
     truth_obs: dict
     model: Any
     model_obs: dict
+    truth_info: dict  # the ground truth's step info (the ego's speed: the same on both)
 
 
 def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterator[ReplayStep]:
@@ -50,7 +51,7 @@ def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterato
             action = act(obs, info)
             obs, _r, t_term, t_trunc, info = truth_env.step(action)
             model_obs, _r, m_term, m_trunc, _ = model_env.step(action)
-            yield ReplayStep(truth_env.unwrapped, obs, model_env.unwrapped, model_obs)
+            yield ReplayStep(truth_env.unwrapped, obs, model_env.unwrapped, model_obs, info)
             if t_term or t_trunc or m_term or m_trunc:
                 break
     finally:

@@ -28,7 +28,7 @@ from m4world_env.bench.front_reads import (
     marking_columns,
     path_vehicle_columns,
 )
-from world_model.eval.segmenter import load_default_segmenter
+from world_model.eval.segmenter import SCENE_CLASSES, load_default_segmenter
 from world_model.raster.classes import MARKING, ROAD, SKY, VEHICLE
 from world_model.sensors import CameraSpec
 
@@ -47,14 +47,21 @@ def road_view(lines: tuple[int, ...] = (20, 90), car_rows: tuple[int, int] | Non
     return image
 
 
-def labels(car_rows: tuple[int, int] | None, lines: tuple[int, ...] = (20, 90)) -> np.ndarray:
-    """The label map of :func:`road_view`."""
-    classes = np.full((H, W), ROAD, np.uint8)
-    classes[:20] = SKY
+def class_map(car_rows: tuple[int, int] | None, lines: tuple[int, ...], ids: tuple[int, int, int]) -> np.ndarray:
+    """The classes of :func:`road_view`, ``ids`` those of the road, a marking and a vehicle."""
+    road, marking, vehicle = ids
+    classes = np.full((H, W), road, np.int64)
     for c in lines:
-        classes[-BAND_ROWS:, c : c + 2] = MARKING
+        classes[-BAND_ROWS:, c : c + 2] = marking
     if car_rows is not None:
-        classes[car_rows[0] : car_rows[1] + 1, 46:66] = VEHICLE
+        classes[car_rows[0] : car_rows[1] + 1, 46:66] = vehicle
+    return classes
+
+
+def labels(car_rows: tuple[int, int] | None, lines: tuple[int, ...] = (20, 90)) -> np.ndarray:
+    """The label map of :func:`road_view`, its top rows sky."""
+    classes = class_map(car_rows, lines, (ROAD, MARKING, VEHICLE))
+    classes[:20] = SKY
     return classes
 
 
@@ -101,12 +108,7 @@ def test_the_car_ahead_is_read_only_within_range():
 
 def segments_of(car_rows: tuple[int, int] | None, lines: tuple[int, ...] = (20, 90)) -> np.ndarray:
     """The segmenter's classes of :func:`road_view`: road, its markings, and the car where it is drawn."""
-    seg = np.ones((H, W), np.int64)
-    for c in lines:
-        seg[-BAND_ROWS:, c : c + 2] = SEGMENTED_MARKING
-    if car_rows is not None:
-        seg[car_rows[0] : car_rows[1] + 1, 46:66] = SEGMENTED_VEHICLE
-    return seg
+    return class_map(car_rows, lines, (SCENE_CLASSES.index("road"), SEGMENTED_MARKING, SEGMENTED_VEHICLE))
 
 
 def test_the_markings_are_read_from_the_segments_as_from_a_label_map():

@@ -28,6 +28,7 @@ BENCHMARKS = (
     "lidar_sectors",
     "longtail",
     "model",
+    "policy_reads",
     "precision",
     "record",
     "render",
