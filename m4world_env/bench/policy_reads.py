@@ -42,7 +42,7 @@ def episode(scenario: str, seed: int, steps: int, model: dict, members: Sequence
     for step in replayed_steps(scenario, seed, steps, model):
         if not copies:  # the members read the env's own geometry
             geometry = zoo.SensorGeometry.of_env(step.truth)
-            copies = [(zoo.member(m).build(geometry, seed), zoo.member(m).build(geometry, seed)) for m in members]
+            copies = [(m.build(geometry, seed), m.build(geometry, seed)) for m in map(zoo.member, members)]
         info = {"speed": step.truth_info["speed"]}
         apart = [on_model(step.model_obs, info) - on_truth(step.truth_obs, info) for on_truth, on_model in copies]
         out.append(np.stack(apart))

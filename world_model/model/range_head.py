@@ -7,8 +7,8 @@ The decoder's nearness gate draws the scene's ranges at the view's resolution an
 edge back. :class:`RangeHead` works at the range map's resolution instead: it reads the decoder's
 LiDAR view stretched back (bilinear, as :func:`~world_model.model.vae.images_to_lidar` reads it)
 and the range map the scene implies there, one ray per beam and column
-(:func:`~world_model.raster.maps.range_nearness_maps`, in finer steps than the view's), and moves each cell
-toward the scene's range by a learned share::
+(:func:`~world_model.raster.maps.range_nearness_maps`, in finer steps than the view's), and moves
+each cell toward the scene's range by a learned share::
 
     up     = bilinear(view -> beams x azimuth)              the decoder's LiDAR, in [-1, 1]
     target = 1 - 2 * nearness / RANGE_LEVELS                 the scene's range; +1 (no return) where

@@ -145,10 +145,9 @@ def range_nearness_maps(
     frames: Sequence[SceneFrame], cfg: ModelConfig, labeled: Sequence[bool] | None = None
 ) -> np.ndarray:
     """The ``range_nearness`` condition: the range map the scene implies at the LiDAR's own
-    resolution, every frame's, (T, beams, azimuth) uint16 in
-    :data:`~world_model.model.layout.RANGE_LEVELS` steps of ``1 - range / max_range`` (0: nothing in
-    range), for a VAE with a range head
-    (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as :func:`camera_labels`.
+    resolution, every frame's, (T, beams, azimuth) uint16 in :func:`nearness_levels`' steps, for a VAE
+    with a range head (``layout.range_head``); (T, 0, 0) without one. ``labeled`` as
+    :func:`camera_labels`.
 
     Cast by the simulator's LiDAR (:mod:`world_model.sim.lidar`: its own beams, each box culled to
     the sector it can hit), a few milliseconds a frame where a ray per cell against every box takes
