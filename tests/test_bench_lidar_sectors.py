@@ -22,6 +22,7 @@ def test_the_ground_truth_against_itself_reads_every_object_exactly():
         f = same[band]
         assert f["median_error_m"] in (0.0, None) and f["phantom"] == 0.0
         assert f["farther_or_missed"] in (0.0, None) and f["missed"] in (0.0, None)
+        assert f["close_off"] in (0.0, None)
     # a model that reports no return anywhere misses every object; one 10 m farther is farther (or
     # misses those whose pushed returns sink into the road)
     blind = figures(compare(truths, [np.full_like(t, spec.no_return) for t in truths], spec))["all"]
@@ -29,6 +30,9 @@ def test_the_ground_truth_against_itself_reads_every_object_exactly():
     far = [np.where(t != spec.no_return, t + 10.0, t) for t in truths]
     pushed = figures(compare(truths, far, spec))["all"]
     assert pushed["farther_or_missed"] == 1.0 and pushed["median_error_m"] > 9.99  # float32 ranges
+    # a tenth of a metre nearer is off in the close field only
+    nearer = figures(compare(truths, [np.where(t != spec.no_return, t - 0.15, t) for t in truths], spec))["all"]
+    assert nearer["farther_or_missed"] == 0.0 and (nearer["close_objects"] == 0 or nearer["close_off"] == 1.0)
     with pytest.raises(ValueError):  # one range map short
         compare(truths, models[:-1], spec)
 

@@ -10,6 +10,7 @@ import pytest
 
 from world_model.eval.decisions import (
     BEAM_BANDS,
+    CLOSE_RANGE_M,
     MARKING,
     VEHICLE,
     ClipDecisions,
@@ -117,19 +118,32 @@ def test_a_car_ahead_drawn_at_28_m_instead_of_10_m():
     near = nearest_object_range_per_sector(truth, SPEC, HORIZON)
     assert near[0] == 10.0 and np.isnan(near[1:]).all()
     assert np.isnan(nearest_object_range_per_sector(truth, SPEC, LOW)).all()  # the low beams see the road
-    expected = SectorSums(errors_m=(18.0,), objects=1, farther=1, missed=0, empty=11, phantom=0)
+    expected = SectorSums(errors_m=(18.0,), objects=1, farther=1, missed=0, empty=11, phantom=0, close=1, close_off=1)
     assert sector_range_errors(truth, model, SPEC, HORIZON) == expected
     assert sector_range_errors(truth, model, SPEC, ALL) == expected
     assert sector_range_errors(truth, model, SPEC, LOW) == SectorSums(objects=0, empty=12)
     # 4 m farther is within the tolerance: an error, not a "farther"
     close = sector_range_errors(truth, with_box(road, HORIZON_ROWS, AHEAD, 14.0), SPEC, HORIZON)
-    assert close == SectorSums(errors_m=(4.0,), objects=1, farther=0, empty=11)
+    assert close == SectorSums(errors_m=(4.0,), objects=1, farther=0, empty=11, close=1, close_off=1)
+
+
+def test_the_close_field_is_read_to_a_tenth_of_a_metre():
+    road = flat_road()
+    truth = with_box(road, HORIZON_ROWS, AHEAD, 3.0)  # a car 3 m away, as one alongside is
+    for model_m, off in ((2.85, 1), (3.05, 0), (3.0, 0)):
+        sums = sector_range_errors(truth, with_box(road, HORIZON_ROWS, AHEAD, model_m), SPEC, HORIZON)
+        assert (sums.close, sums.close_off) == (1, off), model_m
+    # beyond CLOSE_RANGE_M a tenth of a metre is no matter; missing a close object is
+    far = with_box(road, HORIZON_ROWS, AHEAD, CLOSE_RANGE_M + 1.0)
+    assert sector_range_errors(far, with_box(road, HORIZON_ROWS, AHEAD, CLOSE_RANGE_M + 1.5), SPEC, HORIZON).close == 0
+    assert sector_range_errors(truth, road, SPEC, HORIZON).close_off == 1
 
 
 def test_a_missing_object_and_a_phantom():
     road = flat_road()
     truth = with_box(road, HORIZON_ROWS, AHEAD, 10.0)
-    assert sector_range_errors(truth, road, SPEC, HORIZON) == SectorSums(objects=1, missed=1, empty=11)
+    missed = SectorSums(objects=1, missed=1, empty=11, close=1, close_off=1)
+    assert sector_range_errors(truth, road, SPEC, HORIZON) == missed
     assert sector_range_errors(road, truth, SPEC, HORIZON) == SectorSums(objects=0, empty=12, phantom=1)
     # An object beyond 40 m is not scored; the row drawing it 12 m nearer (at 33 m) is a phantom.
     far = with_box(road, HORIZON_ROWS, AHEAD, 45.0)
@@ -143,12 +157,13 @@ def test_the_nearest_return_of_a_sector_counts():
     truth = with_box(with_box(road, HORIZON_ROWS, slice(475, 480), 10.0), HORIZON_ROWS, slice(540, 545), 30.0)
     model = with_box(with_box(road, HORIZON_ROWS, slice(475, 480), 35.0), HORIZON_ROWS, slice(540, 545), 12.0)
     # one sector, two objects: the nearest one is read (10 m), the row's nearest is 12 m
-    assert sector_range_errors(truth, model, SPEC, HORIZON) == SectorSums(errors_m=(2.0,), objects=1, empty=11)
+    expected = SectorSums(errors_m=(2.0,), objects=1, empty=11, close=1, close_off=1)
+    assert sector_range_errors(truth, model, SPEC, HORIZON) == expected
     left = with_box(truth, slice(12, 14), slice(250, 260), 6.0)  # +90 deg, on two low beams
     sums = lidar_decisions(left, road, SPEC)
-    assert sums.sectors["horizon"] == SectorSums(objects=1, missed=1, empty=11)
-    assert sums.sectors["low"] == SectorSums(objects=1, missed=1, empty=11)
-    assert sums.sectors["all"] == SectorSums(objects=2, missed=2, empty=10)
+    assert sums.sectors["horizon"] == SectorSums(objects=1, missed=1, empty=11, close=1, close_off=1)
+    assert sums.sectors["low"] == SectorSums(objects=1, missed=1, empty=11, close=1, close_off=1)
+    assert sums.sectors["all"] == SectorSums(objects=2, missed=2, empty=10, close=2, close_off=2)
 
 
 # -------------------------------------------------------------------------------- FRONT view
@@ -264,7 +279,8 @@ def _clip_decisions() -> ClipDecisions:
 def test_readings_pool_over_frames_and_seconds():
     clip = _clip_decisions()
     horizon = clip.overall.sectors["horizon"]
-    assert horizon == SectorSums(errors_m=(18.0, 0.0), objects=3, farther=1, missed=1, empty=33)
+    expected = SectorSums(errors_m=(18.0, 0.0), objects=3, farther=1, missed=1, empty=33, close=3, close_off=2)
+    assert horizon == expected
     figures = decision_figures(clip.overall)
     h = figures.sectors["horizon"]
     assert (h.objects, h.error_p50_m, h.error_p95_m) == (3, 9.0, pytest.approx(17.1))  # 0 + 0.95 x 18

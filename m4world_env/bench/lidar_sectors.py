@@ -16,8 +16,10 @@ Per scenario (its seeds pooled) and over all of them, per beam band: ``objects``
 absolute range error of the objects the world model also reports (``median_error_m``),
 ``farther_or_missed`` (its return more than ``FAR_ERROR_M`` farther, or none), ``missed``, and
 ``phantom`` (of the sectors without an object, those where it reports one within range and more
-than ``FAR_ERROR_M`` nearer than the ground truth). A markdown table is printed; the JSON holds the
-figures and the run's settings.
+than ``FAR_ERROR_M`` nearer than the ground truth); and of the objects within ``CLOSE_RANGE_M``
+(``close_objects``: a car alongside, one cutting in), ``close_off``: those the world model misses or
+reads more than ``CLOSE_ERROR_M`` off, where a policy that keeps a corridor clear decides by tenths
+of a metre. A markdown table is printed; the JSON holds the figures and the run's settings.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ import numpy as np
 from m4world_env.same_states import model_env_kwargs, replay_main, replay_settings, replayed_steps
 from world_model.eval.decisions import (
     BEAM_BANDS,
+    CLOSE_ERROR_M,
+    CLOSE_RANGE_M,
     FAR_ERROR_M,
     OBJECT_RANGE_M,
     P50,
@@ -49,7 +53,7 @@ DEFAULT_SCENARIOS = (
     "intersection_pedestrian_night",
 )
 ALL = "all scenarios"  # the row pooled over every scenario
-COLUMNS = ("objects", "median_error_m", "farther_or_missed", "missed", "phantom")
+COLUMNS = ("objects", "median_error_m", "farther_or_missed", "missed", "phantom", "close_objects", "close_off")
 
 
 def world_model_kwargs(checkpoint: str | None) -> dict:
@@ -92,6 +96,8 @@ def figures(sums: DecisionSums) -> dict[str, dict]:
             "missed": share(s.missed, s.objects),
             "phantom": share(s.phantom, s.empty),
             "empty": s.empty,
+            "close_objects": s.close,
+            "close_off": share(s.close_off, s.close),
         }
     return out
 
@@ -99,10 +105,12 @@ def figures(sums: DecisionSums) -> dict[str, dict]:
 def table(results: dict[str, dict[str, dict]]) -> str:
     """A markdown table of :func:`figures` per row name (scenario, or all of them) and band."""
     head = ["scenario", "band", "objects", "median error (m)", "farther or missed", "missed", "phantom"]
+    head += [f"within {CLOSE_RANGE_M:g} m", f"of those off > {CLOSE_ERROR_M:g} m"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for name, bands in results.items():
         for band, f in bands.items():
-            cells = [name, band, str(f["objects"]), *(_cell(f[k]) for k in COLUMNS[1:])]
+            cells = [name, band, str(f["objects"]), *(_cell(f[k]) for k in COLUMNS[1:5])]
+            cells += [str(f["close_objects"]), _cell(f["close_off"])]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -129,6 +137,8 @@ def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | No
         **replay_settings(scenarios, seeds, steps, checkpoint),
         "object_range_m": OBJECT_RANGE_M,
         "far_error_m": FAR_ERROR_M,
+        "close_range_m": CLOSE_RANGE_M,
+        "close_error_m": CLOSE_ERROR_M,
         "steps_run": steps_run,
         "results": {**results, ALL: figures(pooled)},
     }

@@ -46,6 +46,11 @@ OBJECT_RANGE_M = 40.0
 GROUND_CLEARANCE_M = 0.3
 # More than a car length (4.5 m) farther: the policy's gap to the object is off by a whole car.
 FAR_ERROR_M = 5.0
+# The close field: a car alongside in the next lane (2-3 m) or cutting in. There a policy decides
+# by tenths of a metre (is the car inside the corridor it keeps clear?), so a reading more than
+# CLOSE_ERROR_M off is a wrong one.
+CLOSE_RANGE_M = 10.0
+CLOSE_ERROR_M = 0.1
 # The percentiles the report shows: the typical error and the bad tail.
 P50, P95 = 50.0, 95.0
 
@@ -169,6 +174,8 @@ class SectorSums:
     missed: int = 0  # no non-road return in the row's sector
     empty: int = 0
     phantom: int = 0  # empty sectors where the row reports a return within range, FAR_ERROR_M nearer
+    close: int = 0  # objects within CLOSE_RANGE_M
+    close_off: int = 0  # of those, missed or read more than CLOSE_ERROR_M off
 
     def __add__(self, other: SectorSums) -> SectorSums:
         return SectorSums(
@@ -178,6 +185,8 @@ class SectorSums:
             self.missed + other.missed,
             self.empty + other.empty,
             self.phantom + other.phantom,
+            self.close + other.close,
+            self.close_off + other.close_off,
         )
 
 
@@ -193,7 +202,8 @@ def sector_range_errors(
 ) -> SectorSums:
     """One frame's sector readings: the recording's range map ``truth`` and the row's ``model``,
     both (beams, azimuth) m. A sector holds an object when ``truth``'s nearest non-road return on
-    the band is within ``range_m``; the row's reading of it is its own nearest one there."""
+    the band is within ``range_m``; the row's reading of it is its own nearest one there. Objects
+    within :data:`CLOSE_RANGE_M` are also held to :data:`CLOSE_ERROR_M`."""
     t = nearest_object_range_per_sector(truth, spec, band, sector_deg, clearance_m)
     m = nearest_object_range_per_sector(model, spec, band, sector_deg, clearance_m)
     with np.errstate(invalid="ignore"):
@@ -201,6 +211,8 @@ def sector_range_errors(
         seen = present & ~np.isnan(m)
         farther = seen & (m - t > far_m)
         phantom = ~present & (m <= range_m) & (np.isnan(t) | (t - m > far_m))
+        close = present & (t <= CLOSE_RANGE_M)
+        close_off = close & (np.isnan(m) | (np.abs(m - t) > CLOSE_ERROR_M))
     return SectorSums(
         errors_m=tuple(np.abs(m[seen] - t[seen]).tolist()),
         objects=int(present.sum()),
@@ -208,6 +220,8 @@ def sector_range_errors(
         missed=int((present & np.isnan(m)).sum()),
         empty=int((~present).sum()),
         phantom=int(phantom.sum()),
+        close=int(close.sum()),
+        close_off=int(close_off.sum()),
     )
 
 
