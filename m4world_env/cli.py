@@ -311,6 +311,20 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_tune_range_head(args: argparse.Namespace) -> int:
+    from m4world_env.range_tuning import tune
+
+    _check_out(args.out, "folder")
+    record = tune(args.checkpoint, Path(args.out), args.seeds, args.steps, args.train_steps)
+    print(json.dumps(record, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+# m4world tune-range-head's episodes: seeds apart from the benchmarks' and the agreement report's (0-15).
+TUNING_SEEDS = (100, 101, 102, 103)
+
+
 # How m4world streaming spells each streaming setting in error messages.
 STREAMING_FLAGS = {
     "denoising_steps": "--denoising-steps",
@@ -587,6 +601,19 @@ def _add_export_parser(sub: argparse._SubParsersAction) -> None:
     x.set_defaults(func=_cmd_export)
 
 
+def _add_tune_range_head_parser(sub: argparse._SubParsersAction) -> None:
+    t = sub.add_parser(
+        "tune-range-head",
+        help="tune a bundle's LiDAR range head on the env's own rollouts (m4world_env/range_tuning.py)",
+    )
+    t.add_argument("--checkpoint", default=None, help="the bundle to tune (default: the shipped one)")
+    t.add_argument("--out", required=True, help="folder of the new bundle (may be --checkpoint's)")
+    t.add_argument("--seeds", type=_seed, nargs="+", default=list(TUNING_SEEDS), help="one episode per scenario each")
+    t.add_argument("--steps", type=_positive_int, default=40, help="policy steps per episode (at most)")
+    t.add_argument("--train-steps", type=_positive_int, default=1000)
+    t.set_defaults(func=_cmd_tune_range_head)
+
+
 def _add_streaming_parser(sub: argparse._SubParsersAction) -> None:
     st = sub.add_parser(
         "streaming",
@@ -758,6 +785,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_eval_parser(sub)
     _add_train_parser(sub)
     _add_export_parser(sub)
+    _add_tune_range_head_parser(sub)
     _add_streaming_parser(sub)
     _add_bench_parser(sub)
     _add_text_embeddings_parser(sub)
