@@ -50,7 +50,7 @@ from world_model.sensors import LidarSpec
 from world_model.train.range_head_stage import OBJECT_WEIGHT, RangeExamples
 
 BATCH = 8  # range maps a training step
-LEARNING_RATE = 3e-4  # Adam; the head is ~5k weights, tuned from the bundle's
+LEARNING_RATE = 3e-4  # Adam, from the bundle's head (2.9 k weights)
 HEAD_PREFIX = "range_head."  # the head's weights in the VAE's state dict
 EVAL_BATCH = 32
 
