@@ -210,3 +210,39 @@ def test_cells_in_parallel_processes_give_the_same_episodes(finished_run, active
         one = json.loads((out / name).read_text())["records"]
         two = json.loads((tmp_path / "parallel" / name).read_text())["records"]
         assert one == two
+
+
+KILLED_RUN = """
+import multiprocessing, os
+from concurrent.futures import ProcessPoolExecutor
+from m4world_env.agreement.run import exit_with_parent
+
+if __name__ == "__main__":
+    pool = ProcessPoolExecutor(1, multiprocessing.get_context("spawn"), exit_with_parent, (os.getpid(),))
+    print(pool.submit(os.getpid).result(), flush=True)
+    os._exit(0)  # gone without a shutdown, as a killed run is
+"""
+
+
+def test_a_cell_worker_ends_when_the_run_is_killed(tmp_path):
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    script = tmp_path / "killed_run.py"
+    script.write_text(KILLED_RUN)
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120, check=True)
+    worker = int(done.stdout.split()[-1])
+
+    def running(pid: int) -> bool:  # a zombie has ended; only its parent has not reaped it
+        status = Path(f"/proc/{pid}/status")
+        try:
+            return "\nState:\tZ" not in status.read_text()
+        except FileNotFoundError:
+            return False
+
+    deadline = time.monotonic() + 10 * agreement_run.PARENT_POLL_SECONDS
+    while running(worker) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not running(worker), f"cell worker {worker} outlived the run's process"

@@ -31,6 +31,7 @@ import json
 import math
 import os
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
@@ -55,6 +56,7 @@ from world_model.bundle import load_bundle_files, resolve_bundle
 
 BACKEND_PAIR = ("procedural", "world_model")
 PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
+PARENT_POLL_SECONDS = 2.0  # how often a cell worker checks that the run's process is still there
 SHIPPED_CHECKPOINT = "shipped"  # how a plan names the bundle that comes with the package
 TRUTH_NOISE_MAX = 64.0  # grey levels: beyond this the cameras are mostly noise
 
@@ -299,6 +301,19 @@ class Progress:
         )
 
 
+def exit_with_parent(parent: int) -> None:
+    """A cell worker's initializer: a daemon thread ends the worker once ``parent``, the run's
+    process, is gone (killed, say, at the end of a session), so that no orphan goes on computing cells
+    and holding a world model's memory. The cells already written stay; the next run resumes."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 def timed_cell(cell: Cell, plan: AgreementPlan, out: Path, rollout_threads: int | None = None) -> dict[str, Any]:
     """Run ``cell`` and write its result (records and seconds) to its file; returns the result."""
     started = time.perf_counter()
@@ -351,7 +366,8 @@ def run_agreement(
         import multiprocessing
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(jobs, context, exit_with_parent, (os.getpid(),)) as pool:
             running = {pool.submit(timed_cell, c, plan, out, groups): c for c in left}
             try:
                 while running:
