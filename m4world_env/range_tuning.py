@@ -77,7 +77,7 @@ def episode_frames(
     taken: list[tuple[torch.Tensor, torch.Tensor]] = []
     frames, hook = [], None
     try:
-        for step in replayed_steps(scenario, seed, steps, model_env_kwargs("lidar", checkpoint)):
+        for step in replayed_steps(scenario, seed, steps, model_env_kwargs(("lidar",), checkpoint)):
             if hook is None:
                 hook = step.model.backend.wm.vae.range_head.register_forward_pre_hook(lambda _m, a: taken.append(a))
                 continue

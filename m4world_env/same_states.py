@@ -4,7 +4,7 @@
 a second env (``gym.make`` keywords), both reset with the seed, so the traffic is the same on both;
 an episode stops when either env ends. :func:`replayed_steps` yields each step's envs and
 observations (the ground truth's ``scene_frame`` is the scene both show);
-:func:`model_env_kwargs` the world-model env observing one sensor, :func:`pooled_by_scenario` an
+:func:`model_env_kwargs` the world-model env observing some sensors, :func:`pooled_by_scenario` an
 episode's readings pooled over the seeds, :func:`replay_settings` the settings every result
 records, :func:`replay_main` their shared command.
 """
@@ -59,10 +59,10 @@ def replayed_steps(scenario: str, seed: int, steps: int, model: dict) -> Iterato
         model_env.close()
 
 
-def model_env_kwargs(sensor: str, checkpoint: str | None) -> dict:
-    """gym.make keywords of the world-model env that observes ``sensor`` ("cameras" or "lidar")
+def model_env_kwargs(sensors: Sequence[str], checkpoint: str | None) -> dict:
+    """gym.make keywords of the world-model env that observes ``sensors`` ("cameras", "lidar")
     only, the bundle ``checkpoint`` where given."""
-    kw: dict = {"backend": "world_model", "config": {"observation_keys": [sensor]}}
+    kw: dict = {"backend": "world_model", "config": {"observation_keys": list(sensors)}}
     return {**kw, "checkpoint": checkpoint} if checkpoint else kw
 
 

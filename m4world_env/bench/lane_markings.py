@@ -116,7 +116,7 @@ def table(results: dict[str, dict]) -> str:
 
 def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
     """Every episode; the figures per scenario (seeds pooled), with the settings."""
-    model = model_env_kwargs("cameras", checkpoint)  # the cameras alone: no LiDAR decoded
+    model = model_env_kwargs(("cameras",), checkpoint)  # the cameras alone: no LiDAR decoded
     pooled = pooled_by_scenario(scenarios, seeds, lambda scenario, s: episode(scenario, s, steps, model))
     results = {scenario: figures(pairs) for scenario, pairs in pooled.items()}
     return {

@@ -58,7 +58,7 @@ COLUMNS = ("objects", "median_error_m", "farther_or_missed", "missed", "phantom"
 
 def world_model_kwargs(checkpoint: str | None) -> dict:
     """gym.make keywords of the world-model env: LiDAR only, ``checkpoint`` where given."""
-    return model_env_kwargs("lidar", checkpoint)
+    return model_env_kwargs(("lidar",), checkpoint)
 
 
 def compare(truths: Iterable[np.ndarray], models: Iterable[np.ndarray], spec: LidarSpec) -> DecisionSums:

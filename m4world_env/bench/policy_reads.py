@@ -29,7 +29,13 @@ import numpy as np
 
 from m4world_env import zoo
 from m4world_env.bench.lane_markings import DEFAULT_SCENARIOS  # the agreement report's scenarios
-from m4world_env.same_states import pooled_by_scenario, replay_main, replay_settings, replayed_steps
+from m4world_env.same_states import (
+    model_env_kwargs,
+    pooled_by_scenario,
+    replay_main,
+    replay_settings,
+    replayed_steps,
+)
 
 ROWS_SHOWN = 6  # of each scenario's members in the printed table, the largest differences first
 
@@ -80,9 +86,7 @@ def table(results: dict[str, dict]) -> str:
 def run(scenarios: list[str], seeds: list[int], steps: int, checkpoint: str | None) -> dict:
     """Every episode; the figures per scenario (seeds pooled), with the settings."""
     members = list(zoo.members())
-    model: dict = {"backend": "world_model", "config": {"observation_keys": ["cameras", "lidar"]}}
-    if checkpoint:
-        model["checkpoint"] = checkpoint
+    model = model_env_kwargs(("cameras", "lidar"), checkpoint)
     pooled = pooled_by_scenario(scenarios, seeds, lambda s, seed: episode(s, seed, steps, model, members))
     results = {scenario: figures(differences, members) for scenario, differences in pooled.items()}
     return {**replay_settings(scenarios, seeds, steps, checkpoint), "members": members, "results": results}
