@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import pytest
 import torch
 
@@ -22,6 +23,8 @@ from world_model.train.recipe import (
     ADAPTERS,
     BUNDLE_RESERVE_S,
     CHAIN,
+    DEFAULT_PHASES,
+    OPTIONAL_PHASES,
     PHASES,
     SCALES,
     join_files,
@@ -50,7 +53,7 @@ def dry_recipe(tmp_path_factory):
 def test_the_gpu_recipe_dry_run_records_trains_the_chain_and_writes_a_split_bundle(dry_recipe, tmp_path):
     out = dry_recipe
     summary = json.loads((out / "recipe.json").read_text())
-    assert summary["clips"] == 9 and set(summary["final_loss"]) == set(PHASES)
+    assert summary["clips"] == 9 and set(summary["final_loss"]) == set(DEFAULT_PHASES)
     assert all(v == v for v in summary["final_loss"].values())  # finite, not NaN
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
     assert {"vae", "student", "reference"} <= set(manifest["components"])
@@ -97,7 +100,7 @@ def test_each_scale_trains_the_layout_design_with_a_text_encoder_its_machine_has
         cfg = recipe_config(spec)
         assert cfg.layout.enabled and cfg.layout.supersample == LAYOUT_SUPERSAMPLE, name
         assert cfg.text.dim == get_preset(spec.preset).text.dim, name
-        assert set(spec.stages) == {*CHAIN, "lora"}, name
+        assert set(spec.stages) == {*CHAIN, *OPTIONAL_PHASES, "lora"}, name
     # the GPU machine cannot download MiniLM; this CPU has it and keeps the preset's encoder
     assert recipe_config(SCALES["gpu"]).text.encoder == "hash"
     assert recipe_config(SCALES["cpu"]).text.encoder == get_preset("default").text.encoder == "minilm"
@@ -126,7 +129,7 @@ def test_every_stage_trains_with_the_model_on_another_device(dry_recipe, tmp_pat
         monkeypatch.setattr(Trainer, draw, lambda self, *a, _real=real: _real(self, *a).to(self.place.device))
     work = tmp_path / "recipe"
     shutil.copytree(dry_recipe, work, symlinks=True)
-    stage = phase if phase in CHAIN else "lora"
+    stage = "lora" if phase in ADAPTERS else phase
     for p in (work / "run" / stage).glob("*"):  # the stage trains anew; the run's caches stay
         if p.name not in ("latents", "layouts", "labels", "rollouts.pt"):
             shutil.rmtree(p) if p.is_dir() else p.unlink()
@@ -169,3 +172,41 @@ def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_wa
     assert seed_run(source, out / "run") == []  # a seeded run keeps what it has
     with pytest.raises(ValueError, match="--phases"):
         run_recipe(out, replace(options, from_bundle=None, phases=("paint",)))
+    with pytest.raises(ValueError, match="--episodes must be a positive integer, got 0"):
+        run_recipe(out, replace(options, episodes=0))
+
+
+def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_path):
+    from safetensors.torch import load_file
+
+    from world_model.bundle import reseal_bundle
+    from world_model.train.recipe import RecipeOptions, run_recipe
+
+    out = tmp_path / "steps"
+    shutil.copytree(dry_recipe / "data", out / "data")
+    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
+    source = shutil.copytree(dry_recipe / "bundle", tmp_path / "source")
+    manifest_path = source / "manifest.json"  # the shipped bundle's range head records its tuning
+    manifest = json.loads(manifest_path.read_text())
+    manifest["components"]["vae"]["tuned"] = {"command": "m4world tune-range-head", "frames": 3}
+    manifest_path.write_text(json.dumps(manifest))
+    reseal_bundle(source)
+    options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("steps",), episodes=1)
+    summary = run_recipe(out, options)
+    assert summary["steps"] == {"steps": 2} and summary["clips"] == 9
+    teacher = json.loads((out / "run" / "teacher" / "model.json").read_text())
+    assert teacher["cut_from"] == "reference" and teacher["model_config"]["dit"]["in_channels_extra"] == 0
+    manifest = json.loads((out / "bundle" / "manifest.json").read_text())
+    assert manifest["components"]["student"]["stage"] == "steps"
+    assert manifest["components"]["vae"]["tuned"] == {"command": "m4world tune-range-head", "frames": 3}
+    assert "tuned" not in manifest["components"]["student"]
+    assert manifest["student_config"]["streaming"]["denoising_steps"] == 2  # half the long student's 4
+    streaming = json.loads((out / "bundle" / "streaming.json").read_text())
+    assert streaming["denoising_steps"] == 2 and streaming["refresh_steps"] == [-2, -1]
+    old, new = (load_file(str(b / "student.safetensors")) for b in (source, out / "bundle"))
+    assert any(not torch.equal(old[k], new[k]) for k in old)
+    env = gym.make("M4World-v0", scenario="highway_sunny_day", backend="world_model", checkpoint=str(out / "bundle"))
+    obs, _ = env.reset(seed=0)
+    obs, *_ = env.step(env.action_space.sample())
+    assert np.isfinite(obs["lidar"]).all()
+    env.close()

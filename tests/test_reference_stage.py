@@ -96,3 +96,21 @@ def test_killed_reference_run_resumes_from_last_checkpoint(dataset, tmp_path):
         "reference", dataset, run, stage_options("reference", preset="tiny", steps=ck.step + 2, ckpt_every=2), QUIET
     )
     assert out["resumed_from"] == ck.step and out["step"] == ck.step + 2
+
+
+def test_a_reference_model_cut_to_the_teachers_input_is_the_reference_model_with_nothing_observed():
+    from world_model.model.reference import expand_teacher, teacher_from_reference
+
+    reference = perturbed(expand_teacher(perturbed(MultiViewDiT(CFG))), seed=1, scale=0.05)
+    teacher = teacher_from_reference(reference)
+    assert teacher.cfg == CFG and not teacher.training
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 3, *CFG.latent_shape(1)[1:], generator=gen)
+    nothing = torch.zeros(2, 3, CFG.sensors.num_views, reference_channels(CFG), *CFG.latent_hw)
+    t, cond = torch.rand(2, generator=gen), tiny_conditions(CFG, 3, batch=2)
+    with torch.no_grad():
+        assert torch.equal(teacher(x, t, cond), reference(torch.cat([x, nothing], dim=3), t, cond))
+        observed = torch.cat([x, torch.ones_like(nothing)], dim=3)  # the cut channels were in use
+        assert not torch.allclose(teacher(x, t, cond), reference(observed, t, cond))
+    with pytest.raises(ValueError, match="extra input channels, got 0"):
+        teacher_from_reference(teacher)

@@ -161,14 +161,16 @@ def test_m4world_train_passes_the_student_flags_to_the_stage(tmp_path, monkeypat
     from world_model.train import stages
 
     seen = []
-    monkeypatch.setattr(stages, "train_stage", lambda *a: seen.append((a[3].student, a[4].dtype)) or {})
+    monkeypatch.setattr(
+        stages, "train_stage", lambda *a: seen.append((a[3].student, a[4].dtype, a[3].denoising_steps)) or {}
+    )
     args = ["train", "--stage", "long", "--data", str(tmp_path), "--run", str(tmp_path), "--preset", "tiny"]
     flags = ["--long-skip-chunks", "3", "--denoise-loss-prob", "0.5", "--dmd-guidance-scale", "1.5"]
-    flags += ["--dtype", "float32"]
+    flags += ["--dtype", "float32", "--denoising-steps", "2"]
     assert m4world([*args, *flags]) == 0
     assert m4world(args) == 0
     want = StudentConfig(long_skip_chunks=3, denoise_loss_prob=0.5, dmd_guidance_scale=1.5)
-    assert seen == [(want, "float32"), (StudentConfig(), "auto")]  # no flag: the stage's defaults
+    assert seen == [(want, "float32", 2), (StudentConfig(), "auto", None)]  # no flag: the stage's defaults
 
 
 def test_dmd_real_score_guidance_scale_replaces_the_teachers_and_reaches_the_loss():
@@ -248,3 +250,35 @@ def test_ode_targets_of_a_batch_are_each_rows_own_under_guidance():
         row_points, row_end = ode_targets(model, history[row : row + 1], alone, noise[row : row + 1], scfg)
         assert torch.allclose(end[row : row + 1], row_end, atol=1e-6), (row, (end[row] - row_end[0]).abs().max())
         assert torch.allclose(points[:, row : row + 1], row_points, atol=1e-6)
+
+
+def test_steps_stage_teaches_the_long_student_fewer_steps_and_resumes_only_at_them(run, tmp_path):
+    from world_model.student import StudentConfig
+
+    data, mine = _run_through_ode(run, tmp_path)
+    scfg = StudentConfig(long_frames=4)
+    for stage in ("dmd", "long"):
+        train_stage(stage, data, mine, stage_options(stage, preset="tiny", steps=1, batch_size=1, student=scfg), QUIET)
+
+    def steps(total: int, denoising_steps: int | None) -> dict:
+        options = stage_options(
+            "steps",
+            preset="tiny",
+            steps=total,
+            batch_size=1,
+            ckpt_every=1,
+            student=scfg,
+            denoising_steps=denoising_steps,
+        )
+        return train_stage("steps", data, mine, options, QUIET)
+
+    with pytest.raises(ValueError, match="fewer denoising steps than .*long/model's 4, not 4"):
+        steps(1, 4)
+    out = steps(2, None)  # half the long student's 4
+    assert out["step"] == 2 and torch.isfinite(torch.tensor(out["final_loss"])).all()
+    student, taught = load_student(mine / "steps" / "model")
+    assert taught.num_steps == 2 and taught.streaming.refresh_steps == scfg.streaming.refresh_steps
+    assert (mine / "steps" / "critic.safetensors").exists()
+    with pytest.raises(ValueError, match="denoising_steps=2 up to step 2, not 1"):
+        steps(3, 1)
+    assert steps(3, 2)["resumed_from"] == 2

@@ -8,7 +8,7 @@ Layout::
                                differs (the reference model: wider input, teacher depth)
       vae.safetensors          the shared camera/LiDAR autoencoder (stage ``range_head``, else ``rollout_decoder``, else
                                ``decoder``, else ``vae``)
-      student.safetensors      the causal few-step student (stage ``long``, else ``dmd``)
+      student.safetensors      the causal few-step student (stage ``steps``, else ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       first_frame.safetensors  the one-step first-frame model (stage ``first_frame``), optional
       streaming.json           how the student streams at inference (denoising steps, context
@@ -37,6 +37,7 @@ from safetensors.torch import load_file
 from world_model.data.clips import sha256_file, write_json_atomic
 from world_model.lora import META, WEIGHTS
 from world_model.streaming import STREAMING_FILE, StreamingConfig
+from world_model.student.config import StudentConfig
 
 BUNDLE_FORMAT = "m4world-bundle"
 BUNDLE_VERSION = 1
@@ -44,7 +45,7 @@ DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
     "vae": ("range_head", "rollout_decoder", "decoder", "vae"),
-    "student": ("long", "dmd", "ode"),
+    "student": ("steps", "long", "dmd", "ode"),
     "reference": ("reference",),
     "first_frame": ("first_frame",),
 }
@@ -54,6 +55,7 @@ DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields an
 BF16_COMPONENTS = ("student", "reference", "first_frame")  # DiTs; the VAE stays float32
 # May differ from the student's config (input width, depth); the first-frame model has the reference model's.
 OWN_CONFIG_COMPONENTS = ("reference", "first_frame")
+BUNDLE_RECORD = "bundle_record"  # a seeded export's metadata: its component's manifest record (bundle_record)
 
 
 class CheckpointError(ValueError):
@@ -89,7 +91,8 @@ class BundleFiles:
 
 def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: StreamingConfig | None = None) -> Path:
     """Collect the stage exports of ``run_dir`` into a bundle at ``out_dir`` (replaced atomically),
-    with ``streaming`` (default: :class:`StreamingConfig`'s defaults) as its ``streaming.json``."""
+    with ``streaming`` as its ``streaming.json`` (default: :class:`StreamingConfig`'s defaults at the
+    denoising steps the student was taught)."""
     run_dir, out_dir = Path(run_dir), Path(out_dir)
     found: dict[str, tuple[str, Path]] = {}
     for component, stages in COMPONENT_STAGES.items():
@@ -134,11 +137,12 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
         else:
             shutil.copyfile(file, dst)
         own = _export_config(file) if component in OWN_CONFIG_COMPONENTS else None
-        components[component] = _entry(dst, stage, config, own)
+        components[component] = {**_entry(dst, stage, config, own), **_export_meta(file).get(BUNDLE_RECORD, {})}
     adapters = run_dir / "lora"
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=_adapter_files_only)
-    _write_streaming(tmp, streaming or StreamingConfig())
+    taught = StudentConfig.from_dict(student_meta.get("student_config") or {}).num_steps
+    _write_streaming(tmp, streaming or StreamingConfig().override({"denoising_steps": taught}))
     _write_manifest(tmp, config, components, student_meta.get("student_config"))
     if out_dir.exists():
         shutil.rmtree(out_dir)
@@ -168,9 +172,20 @@ def _check_range_head(run_dir: Path) -> None:
             return
 
 
-def _export_config(file: Path) -> dict | None:
+def _export_meta(file: Path) -> dict:
     meta = file.with_suffix(".json")
-    return json.loads(meta.read_text()).get("model_config") if meta.exists() else None
+    return json.loads(meta.read_text()) if meta.exists() else {}
+
+
+def _export_config(file: Path) -> dict | None:
+    return _export_meta(file).get("model_config")
+
+
+def bundle_record(entry: dict) -> dict:
+    """What a manifest's component ``entry`` records beyond its file and config (how the component
+    was made, e.g. the range head's ``tuned``): a run seeded from the bundle keeps it in the export
+    it seeds (:data:`BUNDLE_RECORD`), and a bundle exported from that untouched export carries it."""
+    return {k: v for k, v in entry.items() if k not in ("file", "sha256", "bytes", "stage", "model_config")}
 
 
 def _entry(file: Path, stage: str, bundle_config: dict, own_config: dict | None) -> dict:

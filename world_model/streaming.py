@@ -58,9 +58,10 @@ class StreamingConfigError(ValueError):
 
 @dataclass(frozen=True)
 class StreamingConfig:
-    """Inference settings of the causal student (the defaults: the shipped bundle's)."""
+    """Inference settings of the causal student (the defaults: the shipped bundle's but its
+    ``denoising_steps``, 2: a bundle's export writes the steps its student was taught)."""
 
-    denoising_steps: int = 4  # evenly spaced from pure noise: 4 -> 1000, 750, 500, 250
+    denoising_steps: int = 4  # the student stages' count; evenly spaced from pure noise: 4 -> 1000, 750, 500, 250
     context_refresh: bool = True  # §4.2 latent context refresh of the previous chunk's last frame
     # With context_refresh: the denoising steps that refresh the context frame; the others attend
     # to the cache's copy. 0 = the first, -1 = the last; "all": every step (the paper's). The last

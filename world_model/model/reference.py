@@ -100,6 +100,22 @@ def expand_teacher(teacher: MultiViewDiT) -> MultiViewDiT:
     return model.train(teacher.training)
 
 
+def teacher_from_reference(reference: MultiViewDiT) -> MultiViewDiT:
+    """The inverse of :func:`expand_teacher`: ``reference`` without its reference input channels, a
+    model of the teacher's config that computes exactly the reference model's velocity on an
+    all-zero reference and mask (its ``unconditional`` task). A bundle carries no teacher; this
+    stands in for it where a teacher scores the student's samples (the ``steps`` stage)."""
+    cfg = reference.cfg
+    extra = cfg.dit.in_channels_extra
+    if extra != reference_channels(cfg):
+        raise ValueError(f"expected a reference model with {reference_channels(cfg)} extra input channels, got {extra}")
+    model = MultiViewDiT(replace(cfg, dit=replace(cfg.dit, in_channels_extra=0)))
+    state = dict(reference.state_dict())
+    state["patch_in.weight"] = state["patch_in.weight"][:, : model.patch_in.weight.shape[1]].clone()
+    model.load_state_dict(state)
+    return model.train(reference.training)
+
+
 def reference_input(latents: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """(B, T, V, C, h, w) latents + (B, T, V, 1, h, w) mask -> (B, T, V, C + 1, h, w) extra channels."""
     if mask.shape[:3] != latents.shape[:3] or mask.shape[3] != 1 or mask.shape[4:] != latents.shape[4:]:

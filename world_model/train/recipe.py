@@ -59,7 +59,10 @@ CHAIN = PIPELINE  # the training CLI's --all chain, in its order
 # streams on from (docs/experiments.md weighs a student adapter).
 RARE_CATEGORY = "tree_truck"
 ADAPTERS = {f"{RARE_CATEGORY}_completion": ("reference", 9.0)}
-PHASES = CHAIN + tuple(ADAPTERS)
+# Phases the recipe trains only when asked (--phases): the student taught fewer denoising steps.
+OPTIONAL_PHASES = ("steps",)
+PHASES = CHAIN + OPTIONAL_PHASES + tuple(ADAPTERS)
+DEFAULT_PHASES = CHAIN + tuple(ADAPTERS)
 MIB = 1 << 20
 
 
@@ -110,6 +113,7 @@ SCALES = {
             "ode": (400, 16),
             "dmd": (300, 8),
             "long": (100, 8),
+            "steps": (300, 8),
             "rollout_decoder": (1000, 64),
             "range_head": (1500, 64),
             "reference": (1500, 32),
@@ -127,6 +131,7 @@ SCALES = {
             "ode": 22,
             "dmd": 30,
             "long": 17,
+            "steps": 30,  # not measured on a GPU yet: long's steps at its own steps
             "reference": 30,
             "first_frame": 30,  # not measured on a GPU yet: the reference phase's
             "rollout_decoder": 60,
@@ -152,6 +157,7 @@ SCALES = {
             "ode": (80, 4),
             "dmd": (50, 2),
             "long": (20, 2),
+            "steps": (150, 2),
             "rollout_decoder": (4500, 16),
             "range_head": (1500, 16),
             "reference": (800, 4),
@@ -169,6 +175,7 @@ SCALES = {
             "ode": 420,
             "dmd": 660,
             "long": 180,
+            "steps": 780,  # 150 steps at 0.19 a second on the 2-core Xeon (AMX), the latents cached
             "reference": 720,
             "first_frame": 720,  # its pool's targets and training (the run's latents cached already)
             "rollout_decoder": 1020,
@@ -185,7 +192,7 @@ SCALES = {
         scenarios_per_process=9,
         duration_s=0.6,
         rare_episodes=1,
-        stages={stage: (2, 2) for stage in (*CHAIN, "lora")},
+        stages={stage: (2, 2) for stage in (*CHAIN, *OPTIONAL_PHASES, "lora")},
     ),
 }
 
@@ -338,7 +345,8 @@ class RecipeOptions:
     progress: bool = True
     time_limit_s: float | None = None  # None: the scale's
     from_bundle: str | Path | None = None  # start the run from this bundle's components
-    phases: tuple[str, ...] = PHASES  # the phases to train
+    phases: tuple[str, ...] = DEFAULT_PHASES  # the phases to train
+    episodes: int | None = None  # clips per scenario and seed; None: the scale's
 
 
 def check_run_options(out: Path, options: RecipeOptions) -> None:
@@ -352,6 +360,8 @@ def check_run_options(out: Path, options: RecipeOptions) -> None:
     unknown = [p for p in options.phases if p not in PHASES]
     if unknown or not options.phases:
         raise ValueError(f"--phases takes one or more of {', '.join(PHASES)}, got {', '.join(unknown) or 'none'}")
+    if options.episodes is not None and not (isinstance(options.episodes, int) and options.episodes >= 1):
+        raise ValueError(f"--episodes must be a positive integer, got {options.episodes!r}")
     time_limit_s = options.time_limit_s
     if time_limit_s is not None and not 0 < time_limit_s < math.inf:
         raise ValueError(f"--time-limit-s must be a finite number above 0, got {time_limit_s}")
@@ -386,7 +396,7 @@ def phase_options(
     or an adapter (:data:`ADAPTERS`) of ``bundle``'s own weights, from the rare clips beside ``data``."""
     from world_model.train.stages import stage_options
 
-    stage = phase if phase in CHAIN else "lora"
+    stage = "lora" if phase in ADAPTERS else phase
     steps, batch = spec.stages[stage]
     settings = {"preset": spec.preset, "config": config, "steps": steps, "batch_size": batch, "seed": seed}
     if phase in ADAPTERS:
@@ -442,7 +452,7 @@ def _train_phases(
         if phase == next((p for p in phases if p in ADAPTERS), None):  # adapters adapt the bundle's own (bf16) weights
             export_bundle(run, bundle)
         runtime = StageRuntime(progress=options.progress, device=options.device, time_limit_s=limit)
-        summary = train_stage(phase if phase in CHAIN else "lora", data, run, stage_options, runtime)
+        summary = train_stage("lora" if phase in ADAPTERS else phase, data, run, stage_options, runtime)
         if phase in ADAPTERS:
             rename_adapter(Path(summary["stage_dir"]), phase)
         results.seconds[phase], results.losses[phase] = time.perf_counter() - t, summary["final_loss"]
@@ -462,6 +472,8 @@ def run_recipe(out: Path, options: RecipeOptions) -> dict:
     spec = SCALES[options.scale]
     if options.time_limit_s is not None:
         spec = replace(spec, time_limit_s=options.time_limit_s)
+    if options.episodes is not None:
+        spec = replace(spec, episodes=options.episodes)
     out.mkdir(parents=True, exist_ok=True)
     data, run = out / "data", out / "run"
     data.mkdir(exist_ok=True)
@@ -521,9 +533,19 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="the whole recipe's wall time (default: the scale's)",
     )
+    p.add_argument(
+        "--episodes",
+        type=cli_args.positive_int,
+        default=None,
+        help="clips recorded per scenario and seed (default: the scale's); each clip is the same whatever the "
+        "number, so fewer are the first of the scale's (a quicker retraining of some phases)",
+    )
     p.add_argument("--from-bundle", default=None, help="start the run from this bundle's components (with --phases)")
     p.add_argument(
-        "--phases", nargs="+", default=list(PHASES), help=f"the phases to train (default: all: {' '.join(PHASES)})"
+        "--phases",
+        nargs="+",
+        default=list(DEFAULT_PHASES),
+        help=f"the phases to train, of {' '.join(PHASES)} (default: all but {' '.join(OPTIONAL_PHASES)})",
     )
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--join", nargs=2, metavar=("PARTS", "DEST"), help="rebuild a bundle from bundle_parts/")
@@ -546,6 +568,7 @@ def main(argv: list[str] | None = None) -> int:
             time_limit_s=a.time_limit_s,
             from_bundle=a.from_bundle,
             phases=tuple(a.phases),
+            episodes=a.episodes,
         )
         summary = run_recipe(Path(a.out), options)
     except (FileNotFoundError, ValueError, RuntimeError) as e:

@@ -9,10 +9,16 @@ stages again on a shipped checkpoint whose DiTs stay as they are::
     RUN/range_head/ the bundle's VAE as it is, when it has a range head
     RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
     RUN/reference/  the reference model, under its own config
+    RUN/teacher/    the reference model without its reference channels (a bundle has no teacher:
+                    :func:`~world_model.model.reference.teacher_from_reference`), the real score of
+                    the ``steps`` stage
     RUN/first_frame/  the one-step first-frame model, under its own config (the reference model's)
     RUN/lora/NAME/  the adapters
 
-Exports already in the run are kept: seeding a run that has trained since leaves its work alone.
+Each export keeps what its component's manifest entry records of how it was made (the range head's
+tuning, :func:`~world_model.bundle.bundle_record`), which a bundle exported from the run carries on
+while the export is the seeded one. Exports already in the run are kept: seeding a run that has
+trained since leaves its work alone.
 """
 
 from __future__ import annotations
@@ -23,9 +29,11 @@ from pathlib import Path
 
 import torch
 
-from world_model.bundle import load_bundle_files
+from world_model.bundle import BUNDLE_RECORD, bundle_record, load_bundle_files
 from world_model.model.config import ModelConfig, without_label_decoder
+from world_model.model.dit import MultiViewDiT
 from world_model.model.range_head import finished_digest
+from world_model.model.reference import teacher_from_reference
 from world_model.model.vae import SensorVAE
 from world_model.train.checkpoint import export_weights
 from world_model.train.exports import EXPORT
@@ -55,8 +63,10 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
         written.append(stage)
 
     vae = files.tensors["vae"]
+    records = {c: {BUNDLE_RECORD: bundle_record(e)} for c, e in files.manifest["components"].items()}
     if cfg.layout.range_head:
-        export("range_head", vae, {"model_config": cfg.to_dict(), "finishes": finished_digest(vae)})
+        meta = {"model_config": cfg.to_dict(), "finishes": finished_digest(vae), **records["vae"]}
+        export("range_head", vae, meta)
     if cfg.layout.decoder:
         decoder_cfg = replace(cfg, layout=replace(cfg.layout, range_head=False))
         decoder = SensorVAE(decoder_cfg).state_dict()
@@ -65,12 +75,21 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
     plain = SensorVAE(plain_cfg).state_dict()
     export("vae", {k: vae[k] for k in plain}, {"model_config": plain_cfg.to_dict()})
     student_stage = files.manifest["components"]["student"]["stage"]
-    student_meta = {"model_config": files.model_config, "student_config": files.manifest.get("student_config") or {}}
+    student_meta = {
+        "model_config": files.model_config,
+        "student_config": files.manifest.get("student_config") or {},
+        **records["student"],
+    }
     export(student_stage, _float32(files.tensors["student"]), student_meta)
     for component in ("reference", "first_frame"):
         if files.has(component):
             own = files.component_config(component) or files.model_config
-            export(component, _float32(files.tensors[component]), {"model_config": own})
+            export(component, _float32(files.tensors[component]), {"model_config": own, **records[component]})
+    if files.has("reference"):
+        reference = MultiViewDiT(ModelConfig.from_dict(files.component_config("reference") or files.model_config))
+        reference.load_state_dict(_float32(files.tensors["reference"]))
+        teacher = teacher_from_reference(reference)
+        export("teacher", teacher.state_dict(), {"model_config": teacher.cfg.to_dict(), "cut_from": "reference"})
     adapters = files.path / "adapters"
     if adapters.is_dir():
         for adapter in sorted(p for p in adapters.iterdir() if p.is_dir()):

@@ -4,7 +4,7 @@ A run directory holds one sub-directory per stage::
 
     RUN_DIR/vae/       checkpoints/, model.safetensors + model.json (EMA weights), metrics.json
     RUN_DIR/teacher/   checkpoints/, latents/ (the run's latent cache, every stage), model.safetensors + model.json
-    RUN_DIR/tf|ode|dmd|long/  the causal student's stages (world_model.train.student_stages)
+    RUN_DIR/tf|ode|dmd|long|steps/  the causal student's stages (world_model.train.student_stages)
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
     RUN_DIR/first_frame/  the one-step first-frame model (world_model.train.first_frame_stage)
     RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
@@ -114,6 +114,8 @@ REGISTRY: dict[str, Stage] = {
         _student("ode", 4, 5e-4, 20, 80),  # an ode step runs a 20-step guided ODE: checkpoint often
         _student("dmd", 2, 1e-4, 10, 50),  # each dmd/long step = 1 + critic_updates self-rollouts
         _student("long", 2, 5e-5, 10, 20),
+        # long's objective at fewer denoising steps, from the long student (or a bundle's)
+        _student("steps", 2, 5e-5, 10, 150),
         Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
         # the reference model's first frames from controls in one unguided step (env.reset())
         Stage("first_frame", first_frame_stage, 8, 1e-4, 250, config_sections="teacher", steps={"default": 1500}),

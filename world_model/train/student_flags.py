@@ -100,6 +100,13 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
         "clip is trained); lets a short tuning run reach a rollout's late frames",
     )
     p.add_argument(
+        "--denoising-steps",
+        type=cli_args.positive_int,
+        default=None,
+        help="student stages: the denoising steps the student streams at while trained (default: 4; the "
+        "steps stage: half its predecessor's)",
+    )
+    p.add_argument(
         "--denoise-loss-prob",
         type=cli_args.probability,
         default=None,

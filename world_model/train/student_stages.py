@@ -20,6 +20,9 @@ long     RUN/dmd/model (+ RUN/dmd/critic)              one self-rollout of ``lon
                                                        denoising loss on a real window;
                                                        ``long_skip_chunks`` untrained chunks between
                                                        trained clips reach late frames in fewer steps
+steps    RUN/long/model (+ RUN/long/critic); real      long's objective with the student streaming at
+         score RUN/teacher/model                       fewer denoising steps (``denoising_steps``, by
+                                                       default half the long student's): a faster env
 =======  ===========================================  ===================================================
 
 Every stage uses the shared :class:`Trainer` (atomic checkpoints, resume, EMA export, NaN guard);
@@ -27,7 +30,10 @@ Every stage uses the shared :class:`Trainer` (atomic checkpoints, resume, EMA ex
 state are checkpointed together. Under ``torchrun`` each rank rolls out its shard of the global
 batch, drawing its noise as its rows of the global batch's (:meth:`Trainer.shard`), and both the
 critic's and the generator's gradients are averaged over the ranks before their updates.
-A resumed ``long`` run starts a fresh self-rollout.
+A resumed ``long`` or ``steps`` run starts a fresh self-rollout. A run started from a bundle
+(:func:`world_model.train.seed_run.seed_run`) has the bundle's student as ``RUN/long`` and its
+reference model, cut to the teacher's input, as ``RUN/teacher``: the ``steps`` stage then teaches the
+shipped student fewer steps with no training run at hand.
 Long rollouts need controls for ``long_frames`` frames: clips shorter than that are played
 back and forth (reflected), which keeps consecutive frames physically adjacent.
 """
@@ -35,14 +41,15 @@ back and forth (reflected), which keeps consecutive frames physically adjacent.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from world_model.model.conditions import Conditions
-from world_model.model.config import ModelConfig
+from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
 from world_model.model.flow import predict_x0, sample_timesteps
 from world_model.student.config import StudentConfig
@@ -61,12 +68,14 @@ from world_model.student.training import (
 )
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
-from world_model.train.exports import CRITIC, EXPORT, load_teacher, require_export
+from world_model.train.exports import CRITIC, EXPORT, load_student, load_teacher, require_export
 from world_model.train.rollouts import rollout_conditions, rollout_starts
 from world_model.train.run import StageOptions, StageRun
 from world_model.train.trainer import Trainer, TrainingDivergedError
 
-PREDECESSOR = {"tf": "teacher", "ode": "tf", "dmd": "ode", "long": "dmd"}
+PREDECESSOR = {"tf": "teacher", "ode": "tf", "dmd": "ode", "long": "dmd", "steps": "long"}
+# A resumed student stage must stream at the denoising steps its checkpoint was trained at.
+RESUME_KEYS = {"denoising_steps": StudentConfig().num_steps}
 
 
 class _Pair(nn.Module):
@@ -78,10 +87,14 @@ class _Pair(nn.Module):
 
 
 def _load_same(path: Path, stage: str, cfg: ModelConfig) -> MultiViewDiT:
-    """The export at ``path`` (of ``stage``), checked against ``cfg``: exactly for a student;
-    under :meth:`ModelConfig.teacher_settings` for the teacher (and the critic, its copy)."""
+    """The export at ``path`` (of ``stage``), checked against ``cfg``: a student without the decoder's
+    settings (it never reads the label maps or the range head: a bundle's student has its decoder's);
+    the teacher (and the critic, its copy) under :meth:`ModelConfig.teacher_settings`."""
     model = load_teacher(require_export(path, stage))
-    same = model.cfg.teacher_settings() == cfg.teacher_settings() if stage == "teacher" else model.cfg == cfg
+    if stage == "teacher":
+        same = model.cfg.teacher_settings() == cfg.teacher_settings()
+    else:
+        same = without_label_decoder(model.cfg) == without_label_decoder(cfg)
     if not same:
         raise ValueError(f"{path} was trained with preset {model.cfg.name!r} / another config; use the same preset")
     return model
@@ -109,6 +122,11 @@ def _row_noise(tr: Trainer):  # noqa: ANN202 - the engine's NoiseSource
     return lambda shape: tr.shard(tr.randn(shape[0] * world, *shape[1:]))
 
 
+def _trainer(run: StageRun, model: nn.Module, stage: str, scfg: StudentConfig) -> Trainer:
+    """The stage's trainer; a resume must keep the denoising steps (:data:`RESUME_KEYS`)."""
+    return run.trainer(model, stage, RESUME_KEYS, denoising_steps=scfg.num_steps)
+
+
 def _export(stage_dir: Path, trainer: Trainer, state: dict, cfg: ModelConfig, scfg: StudentConfig, stage: str) -> None:
     meta = {"stage": stage, "step": trainer.step, "model_config": cfg.to_dict(), "student_config": scfg.to_dict()}
     export_weights(stage_dir / EXPORT, state, meta)
@@ -122,7 +140,7 @@ def _tf_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dic
     teacher = _load_same(run.run_dir / "teacher" / EXPORT, "teacher", cfg)
     model = student_from_teacher(teacher, cfg.for_student()).train().requires_grad_(True)
     del teacher
-    trainer = run.trainer(model, "tf")
+    trainer = _trainer(run, model, "tf", scfg)
     c, kmax = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
@@ -146,7 +164,7 @@ def _ode_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> di
     tf_path = run.run_dir / "tf" / EXPORT
     ode_teacher = _frozen(_load_same(tf_path, "tf", cfg.for_student()), run.device)
     student = _load_same(tf_path, "tf", cfg.for_student()).train().requires_grad_(True)
-    trainer = run.trainer(student, "ode")
+    trainer = _trainer(run, student, "ode", scfg)
     c, kmax, times = cfg.clip.chunk_frames, _max_chunks(windows, cfg, scfg), scfg.times().to(run.device)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
@@ -227,7 +245,7 @@ def _dmd_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> di
     cfg, tcfg = run.cfg, run.tcfg
     pair, real = _pair(run, "ode")
     guidance = real_score_guidance(real, scfg)
-    trainer = run.trainer(pair, "dmd")
+    trainer = _trainer(run, pair, "dmd", scfg)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     chunks = _max_chunks(windows, cfg, scfg)
     engine = StreamingEngine(pair.generator, scfg, _row_noise(trainer))
@@ -254,11 +272,13 @@ def _dmd_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> di
     return summary
 
 
-def _long_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> dict:
+def _long_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig, stage: str = "long") -> dict:
+    """LongLive's continuing self-rollout (``long``), or the same from the long student at fewer
+    denoising steps (``steps``)."""
     cfg, tcfg = run.cfg, run.tcfg
-    pair, real = _pair(run, "dmd")
+    pair, real = _pair(run, PREDECESSOR[stage])
     guidance = real_score_guidance(real, scfg)
-    trainer = run.trainer(pair, "long")
+    trainer = _trainer(run, pair, stage, scfg)
     c, p = cfg.clip.chunk_frames, scfg.prefix_frames
     clip_frames = scfg.long_clip_chunks * c
     skip_frames = scfg.long_skip_chunks * c
@@ -313,13 +333,19 @@ def _long_stage(run: StageRun, windows: LatentWindows, scfg: StudentConfig) -> d
             loss = loss + _denoising_loss(tr, pair.generator, x0, cond, scfg)
         return loss, clip.shape[0] * clip_frames
 
-    summary = trainer.run(step, "long")
+    summary = trainer.run(step, stage)
     if run.place.is_main:
-        _export_pair(run.stage_dir, trainer, pair, scfg, "long")
+        _export_pair(run.stage_dir, trainer, pair, scfg, stage)
     return {**summary, "rollout_frames": engine.position}
 
 
-STUDENT_STAGE_FNS = {"tf": _tf_stage, "ode": _ode_stage, "dmd": _dmd_stage, "long": _long_stage}
+STUDENT_STAGE_FNS = {
+    "tf": _tf_stage,
+    "ode": _ode_stage,
+    "dmd": _dmd_stage,
+    "long": _long_stage,
+    "steps": partial(_long_stage, stage="steps"),
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -327,17 +353,35 @@ class StudentStageOptions(StageOptions):
     """The student stages' options: :class:`StageOptions` and the student's config."""
 
     student: StudentConfig = field(default_factory=StudentConfig)
+    # The denoising steps the student streams at while trained (None: the student config's; for the
+    # ``steps`` stage half its predecessor's, at least one).
+    denoising_steps: int | None = None
 
 
 def student_setup(options: StudentStageOptions) -> dict:
     """The keyword arguments of :func:`student_stage` from the stage's options."""
-    return {"scfg": options.student}
+    return {"scfg": options.student, "denoising_steps": options.denoising_steps}
 
 
-def student_stage(stage: str, run: StageRun, scfg: StudentConfig) -> dict:
-    """Train (or resume) student stage ``stage`` (tf, ode, dmd, long) of ``run`` with the student
-    config ``scfg`` (module docstring)."""
-    require_export(run.run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
+def taught_steps(scfg: StudentConfig, denoising_steps: int | None, stage: str, predecessor: Path) -> StudentConfig:
+    """``scfg`` streaming at the stage's denoising steps (:class:`StudentStageOptions`); the ``steps``
+    stage refuses as many steps as its predecessor's or more."""
+    before = load_student(predecessor)[1].num_steps if stage == "steps" else None
+    if denoising_steps is None:
+        denoising_steps = scfg.num_steps if before is None else max(1, before // 2)
+    if before is not None and denoising_steps >= before:
+        raise ValueError(
+            f"the steps stage teaches fewer denoising steps than {predecessor}'s {before}, not {denoising_steps}: "
+            f"give --denoising-steps below {before}"
+        )
+    return replace(scfg, streaming=replace(scfg.streaming, denoising_steps=denoising_steps))
+
+
+def student_stage(stage: str, run: StageRun, scfg: StudentConfig, denoising_steps: int | None = None) -> dict:
+    """Train (or resume) student stage ``stage`` (tf, ode, dmd, long, steps) of ``run`` with the
+    student config ``scfg`` at ``denoising_steps`` (:func:`taught_steps`; module docstring)."""
+    predecessor = require_export(run.run_dir / PREDECESSOR[stage] / EXPORT, PREDECESSOR[stage])
+    scfg = taught_steps(scfg, denoising_steps, stage, predecessor)
     windows = run.latents(stage)
     torch.manual_seed(run.tcfg.seed)
     return STUDENT_STAGE_FNS[stage](run, windows, scfg)
