@@ -23,6 +23,10 @@ weights); ``--scale cpu`` keeps the preset's MiniLM. ``--scale dry`` runs the ve
 at the tiny preset and a few steps per stage (the CPU check, ``tests/test_gpu_recipe.py``).
 Rerunning resumes: recorded clips are skipped and each stage resumes from its last checkpoint.
 
+``--phases steps`` (not in the default chain) teaches the student to stream in half its denoising
+steps (:mod:`world_model.train.student_stages`); ``--episodes N`` records the first N of the scale's
+clips per scenario (a quicker run of a few phases).
+
 ``--from-bundle BUNDLE --phases P [P ...]`` retrains some phases of a finished bundle at the scale:
 ``OUT/run`` starts from the bundle's components as stage exports
 (:func:`world_model.train.seed_run.seed_run`), only the phases named train, and the bundle is
@@ -131,7 +135,7 @@ SCALES = {
             "ode": 22,
             "dmd": 30,
             "long": 17,
-            "steps": 30,  # not measured on a GPU yet: long's steps at its own steps
+            "steps": 30,  # not measured on a GPU yet: the long phase's, at its steps
             "reference": 30,
             "first_frame": 30,  # not measured on a GPU yet: the reference phase's
             "rollout_decoder": 60,
