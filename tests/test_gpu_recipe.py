@@ -205,6 +205,9 @@ def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_pa
     assert streaming["denoising_steps"] == 2 and streaming["refresh_steps"] == [-2, -1]
     old, new = (load_file(str(b / "student.safetensors")) for b in (source, out / "bundle"))
     assert any(not torch.equal(old[k], new[k]) for k in old)
+    again = run_recipe(tmp_path / "again", replace(options, from_bundle=out / "bundle"))  # halved once more
+    assert again["steps"] == {"steps": 2}
+    assert json.loads((tmp_path / "again" / "bundle" / "streaming.json").read_text())["denoising_steps"] == 1
     env = gym.make("M4World-v0", scenario="highway_sunny_day", backend="world_model", checkpoint=str(out / "bundle"))
     obs, _ = env.reset(seed=0)
     obs, *_ = env.step(env.action_space.sample())

@@ -7,7 +7,8 @@ stages again on a shipped checkpoint whose DiTs stay as they are::
     RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start),
                     without its range head
     RUN/range_head/ the bundle's VAE as it is, when it has a range head
-    RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config
+    RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config;
+                    a student of the ``steps`` stage also as ``RUN/long`` (the stage it starts from)
     RUN/reference/  the reference model, under its own config
     RUN/teacher/    the reference model without its reference channels (a bundle has no teacher:
                     :func:`~world_model.model.reference.teacher_from_reference`), the real score of
@@ -81,6 +82,8 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
         **records["student"],
     }
     export(student_stage, _float32(files.tensors["student"]), student_meta)
+    if student_stage == "steps":  # the steps stage starts from RUN/long: a taught student can be halved again
+        export("long", _float32(files.tensors["student"]), student_meta)
     for component in ("reference", "first_frame"):
         if files.has(component):
             own = files.component_config(component) or files.model_config
