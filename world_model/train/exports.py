@@ -66,11 +66,15 @@ def load_teacher(path: str | Path) -> MultiViewDiT:
     return model.eval()
 
 
+def export_student_config(path: str | Path) -> StudentConfig:
+    """The :class:`StudentConfig` a student export was trained with, read from its metadata alone."""
+    meta = json.loads(Path(path).with_suffix("").with_suffix(".json").read_text())
+    return StudentConfig.from_dict(meta.get("student_config", {}))
+
+
 def load_student(path: str | Path) -> tuple[MultiViewDiT, StudentConfig]:
-    """A student exported by ``tf``/``ode``/``dmd``/``long``, with its :class:`StudentConfig`."""
-    path = Path(path).with_suffix("")
-    meta = json.loads(path.with_suffix(".json").read_text())
-    return load_teacher(path), StudentConfig.from_dict(meta.get("student_config", {}))
+    """A student exported by ``tf``/``ode``/``dmd``/``long``/``steps``, with its :class:`StudentConfig`."""
+    return load_teacher(Path(path).with_suffix("")), export_student_config(path)
 
 
 def require_export(path: Path, stage: str) -> Path:

@@ -68,7 +68,7 @@ from world_model.student.training import (
 )
 from world_model.train.checkpoint import export_weights
 from world_model.train.data import LatentWindows
-from world_model.train.exports import CRITIC, EXPORT, load_student, load_teacher, require_export
+from world_model.train.exports import CRITIC, EXPORT, export_student_config, load_teacher, require_export
 from world_model.train.rollouts import rollout_conditions, rollout_starts
 from world_model.train.run import StageOptions, StageRun
 from world_model.train.trainer import Trainer, TrainingDivergedError
@@ -366,7 +366,7 @@ def student_setup(options: StudentStageOptions) -> dict:
 def taught_steps(scfg: StudentConfig, denoising_steps: int | None, stage: str, predecessor: Path) -> StudentConfig:
     """``scfg`` streaming at the stage's denoising steps (:class:`StudentStageOptions`); the ``steps``
     stage refuses as many steps as its predecessor's or more."""
-    before = load_student(predecessor)[1].num_steps if stage == "steps" else None
+    before = export_student_config(predecessor).num_steps if stage == "steps" else None
     if denoising_steps is None:
         denoising_steps = scfg.num_steps if before is None else max(1, before // 2)
     if before is not None and denoising_steps >= before:
