@@ -21,10 +21,10 @@ import numpy as np
 STREAMING_FILE = "streaming.json"
 DIFFUSION_STEPS = 1000  # the scale the denoising steps are written on (1000 = pure noise)
 REFRESH_EVERY_STEP = "all"  # refresh_steps: refresh the context frame at every denoising step (the paper's)
-# Each denoising step is one forward pass of the student per chunk: a step of the env costs about
-# denoising_steps / 4 times the shipped setting's. 50 (12x the 4 the student is distilled for,
-# 2.5x the teacher's 20-step sampler) keeps a step within seconds on a CPU; the schedule itself
-# has DIFFUSION_STEPS levels, so more than that could not even be told apart.
+# Each denoising step is one forward pass of the student per chunk, beside the chunk's one cache
+# write. 50 (12x the 4 the recipe's student stages distil at, 2.5x the teacher's 20-step sampler)
+# keeps a step within seconds on a CPU; the schedule itself has DIFFUSION_STEPS levels, so more
+# than that could not even be told apart.
 MAX_DENOISING_STEPS = 50
 # The KV cache holds sink + window frames of keys and values per rollout, allocated at its first
 # commit (about 1 MB a frame for the shipped student in bf16), and every denoising pass attends to
@@ -58,15 +58,15 @@ class StreamingConfigError(ValueError):
 
 @dataclass(frozen=True)
 class StreamingConfig:
-    """Inference settings of the causal student (the defaults: the shipped bundle's but its
-    ``denoising_steps``, 2: a bundle's export writes the steps its student was taught)."""
+    """Inference settings of the causal student (the defaults are the shipped bundle's but for
+    ``denoising_steps``, which a bundle's export writes as the steps its student was taught)."""
 
     denoising_steps: int = 4  # the student stages' count; evenly spaced from pure noise: 4 -> 1000, 750, 500, 250
     context_refresh: bool = True  # §4.2 latent context refresh of the previous chunk's last frame
     # With context_refresh: the denoising steps that refresh the context frame; the others attend
     # to the cache's copy. 0 = the first, -1 = the last; "all": every step (the paper's). The last
-    # two scored like every step on the shipped checkpoint for 12 frame passes a chunk instead of
-    # 14 (docs/MODEL_CARD.md).
+    # two scored like every step on the 4-step student for 12 frame passes a chunk instead of 14
+    # (docs/experiments.md).
     refresh_steps: tuple[int, ...] | str = (-2, -1)
     # The first frames of a rollout kept in context beside the rolling window (an attention sink,
     # StreamingLLM / Deep Forcing); one frame lowers the shipped checkpoint's long-rollout errors.
@@ -110,7 +110,7 @@ class StreamingConfig:
         """A copy with the settings of ``changes`` replaced (the others stay this config's), checked
         as :func:`check_changes` does and against this config: refresh steps given while this
         config's refresh is off are refused, and refresh steps left out are this config's, less
-        those that name no step of a changed ``denoising_steps`` (the shipped ``[-2, -1]``, the last
+        those that name no step of a changed ``denoising_steps`` (the default ``[-2, -1]``, the last
         two steps, is ``[-1]`` with one step), refused when none is left."""
         name = _names(names)
         new = check_changes(changes, names)
