@@ -12,6 +12,7 @@ from world_model.model import MultiViewDiT, SensorVAE, generate, get_preset
 from world_model.model.config import with_layout
 from world_model.model.vae import (
     LABEL_DECODER_WEIGHTS,
+    LabelModulation,
     cameras_to_images,
     images_to_cameras,
     images_to_lidar,
@@ -207,3 +208,17 @@ def test_the_nearness_gate_learns_to_move_the_lidar_to_the_scenes_ranges_and_lea
         far = (near == 0)[:, None].expand_as(lidar)
         assert torch.allclose(lidar[~far], scene[~far], atol=1e-5) and torch.equal(lidar[far], lidar_before[far])
         assert torch.equal(vae.decode(z, labels, style), cams_before)  # a camera reads no nearness
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_label_modulation_pools_each_cell_as_the_area_mean(dtype):
+    """The label maps reach each level as the mean over its cells, bit for bit adaptive pooling's."""
+    torch.manual_seed(0)
+    mod = LabelModulation(label_channels=5, channels=4).to(dtype)
+    torch.nn.init.normal_(mod.conv.weight)
+    labels = torch.rand(3, 5, 16, 28).to(dtype)
+    for h, w in ((2, 4), (4, 7), (8, 14), (16, 28)):
+        x = torch.randn(3, 4, h, w).to(dtype)
+        pooled = torch.nn.functional.adaptive_avg_pool2d(labels, (h, w))
+        gamma, beta = mod.conv(pooled).chunk(2, dim=1)
+        torch.testing.assert_close(mod(x, labels), x * (1.0 + gamma) + beta, rtol=0, atol=0)
