@@ -253,6 +253,7 @@ def _cmd_agreement(args: argparse.Namespace) -> int:
         steps=args.steps or base.steps,
         checkpoint=args.checkpoint,
         truth_noise=args.truth_noise,
+        dtype=args.dtype,
     )
     for name in scenarios:
         load_scenario(name)  # an unknown or broken scenario is refused now, not after the first cells
@@ -761,6 +762,13 @@ def _add_agreement_parser(sub: argparse._SubParsersAction) -> None:
         metavar="SIGMA",
         help="in the world model's place, the ground truth with its cameras seen through Gaussian noise of "
         "SIGMA grey levels: how far two ground truths no policy should tell apart score apart (the floor)",
+    )
+    ag.add_argument(
+        "--dtype",
+        default="auto",
+        choices=DTYPES,
+        help="the world model's DiTs' precision, as the env's config model.dtype (auto: bf16 where the CPU "
+        "multiplies it natively)",
     )
     ag.set_defaults(func=_cmd_agreement)
 

@@ -107,6 +107,7 @@ def test_plans_name_every_cell_and_refuse_what_cannot_run():
         ("--truth-noise", {"truth_noise": float("nan")}),
         ("--truth-noise", {"truth_noise": 65.0}),
         ("--truth-noise", {"truth_noise": True}),
+        ("--dtype", {"dtype": "float16"}),
     ):
         with pytest.raises(ValueError, match=flag):
             AgreementPlan(**{"policies": ("a",), "scenarios": ("s",), "seeds": (0,), "steps": 2, **kwargs})
@@ -148,6 +149,17 @@ def test_the_noisy_ground_truth_takes_the_world_models_place_seen_through_camera
         assert 1.0 < float(diff.std()) < 3.0
     again = run_agreement(noisy, tmp_path / "again", progress=False)
     assert again["agreement"] == summary["agreement"] and again["policies"] == summary["policies"]
+
+
+def test_a_run_in_another_precision_runs_its_world_model_in_it_and_says_so(active_bundle, tmp_path, monkeypatch):
+    built = []
+    real = M4WorldVectorEnv.__init__
+    monkeypatch.setattr(M4WorldVectorEnv, "__init__", lambda self, *a, **kw: built.append(kw) or real(self, *a, **kw))
+    fp32 = replace(plan(active_bundle, steps=2), policies=("gap_keeper",), dtype="float32")
+    summary = run_agreement(fp32, tmp_path / "fp32", videos=0, progress=False)
+    assert [kw["config"]["model"]["dtype"] for kw in built] == ["float32", "float32"]  # both cells
+    assert summary["checkpoint"] == f"{active_bundle.resolve()} (float32)"
+    assert fp32.to_json()["dtype"] == "float32" and "dtype" not in replace(fp32, dtype="auto").to_json()
 
 
 def test_noisy_cameras_keeps_uint8_within_its_range():

@@ -4,6 +4,7 @@
     m4world agreement --full --out out/agreement_full  # 6 scenarios x 4 seeds
     m4world agreement --checkpoint MY_BUNDLE --out out/agreement_mine
     m4world agreement --truth-noise 2 --out out/agreement_floor  # the ground truth against itself
+    m4world agreement --dtype float32 --out out/agreement_fp32  # the DiTs in float32 on any machine
 
 The work is cut into cells, one per (backend, scenario, seed). A cell runs every policy at once in
 one vector env (one row per policy, one batched world-model call per step): every row starts from
@@ -53,6 +54,7 @@ from m4world_env.agreement.plot import scatter_plot
 from m4world_env.agreement.render import DEFAULT_TOP_K, RunHeader, build_summary, markdown_report
 from m4world_env.zoo.base import SENSOR_KEYS
 from world_model.bundle import load_bundle_files, resolve_bundle
+from world_model.precision import DTYPES
 
 BACKEND_PAIR = ("procedural", "world_model")
 PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
@@ -65,7 +67,8 @@ TRUTH_NOISE_MAX = 64.0  # grey levels: beyond this the cameras are mostly noise
 class AgreementPlan:
     """What a run covers. ``checkpoint``: a bundle path, or None for the shipped one.
     ``truth_noise``: None, the world model; else the ground truth seen through camera noise of that
-    many grey levels in its place (module docstring)."""
+    many grey levels in its place (module docstring). ``dtype``: the world model's DiTs' precision,
+    the env's ``config.model.dtype`` ("auto": as the machine's hardware chooses)."""
 
     policies: tuple[str, ...]
     scenarios: tuple[str, ...]
@@ -73,6 +76,7 @@ class AgreementPlan:
     steps: int
     checkpoint: str | None = None
     truth_noise: float | None = None
+    dtype: str = "auto"
 
     def __post_init__(self) -> None:
         if not self.policies or not self.scenarios or not self.seeds:
@@ -90,6 +94,8 @@ class AgreementPlan:
             isinstance(noise, bool) or not isinstance(noise, int | float) or not 0 < noise <= TRUTH_NOISE_MAX
         ):
             raise ValueError(f"--truth-noise must be grey levels in (0, {TRUTH_NOISE_MAX:g}], got {noise!r}")
+        if self.dtype not in DTYPES:
+            raise ValueError(f"--dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
 
     def to_json(self) -> dict[str, Any]:
         """The plan as ``plan.json`` keeps it: with each member's citation and the digests of its
@@ -103,15 +109,17 @@ class AgreementPlan:
         d["citations"] = [m.citation for m in members]
         d["member_files"] = {m.name: [_digest(f) for f in m.files] for m in members if m.files}
         d["checkpoint_manifest"] = _digest(resolve_bundle(self.checkpoint) / "manifest.json")
-        if self.truth_noise is None:  # a world-model run's plan as it always was: its runs resume
-            del d["truth_noise"]
+        for key, default in (("truth_noise", None), ("dtype", "auto")):
+            if d[key] == default:  # a plan as it was before the option: its runs resume
+                del d[key]
         return d
 
     @property
     def model_side(self) -> str:
         """What the report compares with the ground truth: the bundle, or the noisy ground truth."""
         if self.truth_noise is None:
-            return bundle_name(self.checkpoint)
+            name = bundle_name(self.checkpoint)
+            return name if self.dtype == "auto" else f"{name} ({self.dtype})"
         return f"the ground truth, its cameras seen through noise of {self.truth_noise:g} grey levels"
 
 
@@ -205,7 +213,10 @@ def run_cell(
         scenario=cell.scenario,
         backend=backend,
         checkpoint=plan.checkpoint if backend == "world_model" else None,
-        config={"observation_keys": list(SENSOR_KEYS), "model": {"rollout_threads": rollout_threads}},
+        config={
+            "observation_keys": list(SENSOR_KEYS),
+            "model": {"rollout_threads": rollout_threads, "dtype": plan.dtype},
+        },
     )
 
     def seen(row: dict[str, np.ndarray], i: int, t: int) -> dict[str, np.ndarray]:
@@ -414,7 +425,9 @@ def write_videos(
     for ep in episodes:
         path = folder / f"{ep['policy']}__{ep['scenario']}__seed{ep['seed']}.mp4"
         if not path.exists():
-            side_by_side_video(ep["policy"], ep["scenario"], int(ep["seed"]), plan.steps, plan.checkpoint, path)
+            side_by_side_video(
+                ep["policy"], ep["scenario"], int(ep["seed"]), plan.steps, plan.checkpoint, path, dtype=plan.dtype
+            )
         out[ep["key"]] = path.relative_to(relative_to).as_posix()
     return out
 

@@ -28,8 +28,11 @@ TEXT_COLOUR = (255, 255, 255)
 FAIL_COLOUR = (255, 90, 90)
 
 
-def _episode(policy: str, scenario: str, seed: int, steps: int, backend: str, checkpoint: str | None) -> list[dict]:
-    """Every step of one episode: the observation and what the policy did after seeing it."""
+def _episode(
+    policy: str, scenario: str, seed: int, steps: int, backend: str, checkpoint: str | None, dtype: str = "auto"
+) -> list[dict]:
+    """Every step of one episode: the observation and what the policy did after seeing it (``dtype``:
+    the world model's ``config.model.dtype``)."""
     import gymnasium as gym
 
     import m4world_env  # noqa: F401  (registers M4World-v0)
@@ -41,7 +44,7 @@ def _episode(policy: str, scenario: str, seed: int, steps: int, backend: str, ch
         scenario=scenario,
         backend=backend,
         checkpoint=checkpoint if backend == "world_model" else None,
-        config={"observation_keys": list(SENSOR_KEYS)},
+        config={"observation_keys": list(SENSOR_KEYS), "model": {"dtype": dtype}},
     )
     geometry = None
     try:
@@ -98,17 +101,18 @@ def _panel(row: dict, label: str, size: tuple[int, int] | None = None) -> np.nda
 
 
 def side_by_side_video(
-    policy: str, scenario: str, seed: int, steps: int, checkpoint: str | None, path: str | Path
+    policy: str, scenario: str, seed: int, steps: int, checkpoint: str | None, path: str | Path, dtype: str = "auto"
 ) -> Path:
     """Write the side-by-side video of ``policy`` on ``scenario`` / ``seed`` for up to ``steps``
-    steps to ``path`` (mp4, written whole or not at all); returns the path."""
+    steps to ``path`` (mp4, written whole or not at all; ``dtype``: the world model's
+    ``config.model.dtype``); returns the path."""
     import imageio.v2 as imageio
 
     from m4world_env.scenario import load_scenario
 
     path = Path(path)
     truth = _episode(policy, scenario, seed, steps, "procedural", None)
-    model = _episode(policy, scenario, seed, steps, "world_model", checkpoint)
+    model = _episode(policy, scenario, seed, steps, "world_model", checkpoint, dtype)
     fps = load_scenario(scenario).policy_frequency
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.stem}.partial{path.suffix}")
