@@ -1,12 +1,16 @@
 """Which precision the DiTs run in on the device at hand.
 
-A checkpoint trained with ``dit.autocast_bf16`` may run its DiTs in bfloat16, but bf16 is only
-faster where the hardware multiplies it natively: CUDA GPUs that support it, and CPUs with
-AVX512-BF16 or AMX tiles. Elsewhere (AVX2 laptops, AVX512 CPUs without the BF16 extension)
-PyTorch emulates bf16 matrix products and they run several times *slower* than float32
-(``m4world bench model`` measures both peaks). ``dtype="auto"`` therefore picks bf16 only
-where it is fast. Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
-:func:`dit_precision`.
+A checkpoint trained with ``dit.autocast_bf16`` may run its DiTs in bfloat16. Where PyTorch
+emulates bf16 (AVX2 laptops, AVX512 CPUs without the BF16 extension) its matrix products run
+several times *slower* than float32 (``m4world bench model`` measures both peaks), so
+``dtype="auto"`` picks bf16 only where the hardware multiplies it natively: CUDA GPUs that support
+it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: a Xeon with AVX512-BF16
+but no AMX multiplied the DiT's (4704 x 128) @ (128 x 512) products at 74 GFLOP/s a thread in bf16
+against 115 in float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps
+bf16 there, the precision the shipped checkpoint's agreement figures are measured in: float32 moved
+them within their intervals but put more world-model collisions in the rainy dusk
+(docs/experiments.md). Training stages resolve the same choice (``StageRuntime(dtype="auto")``)
+through :func:`dit_precision`.
 """
 
 from __future__ import annotations
@@ -59,7 +63,8 @@ def resolve_device(name: str | torch.device) -> torch.device:
 
 
 def bf16_is_fast(device: torch.device | str) -> bool:
-    """Whether bf16 matrix products on ``device`` run at native speed (faster than float32)."""
+    """Whether ``device`` multiplies bf16 natively (not emulated, which is several times slower than
+    float32)."""
     import torch
 
     kind = torch.device(device).type
