@@ -110,7 +110,7 @@ class AgreementPlan:
         d["member_files"] = {m.name: [_digest(f) for f in m.files] for m in members if m.files}
         d["checkpoint_manifest"] = _digest(resolve_bundle(self.checkpoint) / "manifest.json")
         for key, default in (("truth_noise", None), ("dtype", "auto")):
-            if d[key] == default:  # a plan as it was before the option: its runs resume
+            if d[key] == default:  # defaults left out: a default run keeps the plan.json it resumes from
                 del d[key]
         return d
 
