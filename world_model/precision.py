@@ -4,13 +4,13 @@ A checkpoint trained with ``dit.autocast_bf16`` may run its DiTs in bfloat16. Wh
 emulates bf16 (AVX2 laptops, AVX512 CPUs without the BF16 extension) its matrix products run
 several times *slower* than float32 (``m4world bench model`` measures both peaks), so
 ``dtype="auto"`` picks bf16 only where the hardware multiplies it natively: CUDA GPUs that support
-it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: a Xeon with AVX512-BF16
-but no AMX multiplied the DiT's (4704 x 128) @ (128 x 512) products at 74 GFLOP/s a thread in bf16
-against 115 in float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps
-bf16 there, the precision the shipped checkpoint's agreement figures are measured in: float32 moved
-them within their intervals but put more world-model collisions in the rainy dusk
-(docs/experiments.md). Training stages resolve the same choice (``StageRuntime(dtype="auto")``)
-through :func:`dit_precision`.
+it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: on a Xeon with AVX512-BF16
+but no AMX, ``m4world bench model`` measured a matmul peak of 70 GFLOP/s in bf16 against 119 in
+float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps bf16 there, the
+precision the shipped checkpoint's agreement figures are measured in: float32 moved them within
+their intervals but put more world-model collisions in the rainy dusk (docs/experiments.md).
+Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
+:func:`dit_precision`.
 """
 
 from __future__ import annotations
