@@ -54,7 +54,7 @@ from m4world_env.agreement.plot import scatter_plot
 from m4world_env.agreement.render import DEFAULT_TOP_K, RunHeader, build_summary, markdown_report
 from m4world_env.zoo.base import SENSOR_KEYS
 from world_model.bundle import load_bundle_files, resolve_bundle
-from world_model.precision import DTYPES
+from world_model.precision import check_dtype
 
 BACKEND_PAIR = ("procedural", "world_model")
 PROGRESS_SECONDS = 10.0  # how often progress.json is rewritten while cells run in other processes
@@ -94,8 +94,10 @@ class AgreementPlan:
             isinstance(noise, bool) or not isinstance(noise, int | float) or not 0 < noise <= TRUTH_NOISE_MAX
         ):
             raise ValueError(f"--truth-noise must be grey levels in (0, {TRUTH_NOISE_MAX:g}], got {noise!r}")
-        if self.dtype not in DTYPES:
-            raise ValueError(f"--dtype must be one of {', '.join(DTYPES)}, got {self.dtype!r}")
+        try:
+            check_dtype(self.dtype)
+        except ValueError as e:  # named as the command line's flag, as the checks above
+            raise ValueError(f"--{e}") from None
 
     def to_json(self) -> dict[str, Any]:
         """The plan as ``plan.json`` keeps it: with each member's citation and the digests of its
