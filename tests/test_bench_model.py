@@ -76,3 +76,14 @@ def test_each_heap_runs_in_a_fresh_process_with_its_own_setting(monkeypatch):
     assert [c[c.index("--heaps") + 1] for c in calls] == ["retain", "default"] * 2
     assert all(c[:3] == [sys.executable, "-m", "m4world_env.bench.model"] for c in calls)
     assert merged["presets"][0]["speedup_vs_default"] == pytest.approx(3.0)
+
+
+def test_a_chunk_counts_its_refreshed_steps_one_frame_longer_and_the_cache_write():
+    from world_model.streaming import StreamingConfig
+
+    one_step = StreamingConfig(denoising_steps=1, refresh_steps=(-1,))
+    assert bench_model.chunk_forwards(one_step, 2) == 1.5 + 1
+    four_steps = StreamingConfig(denoising_steps=4, refresh_steps=(-2, -1))
+    assert bench_model.chunk_forwards(four_steps, 2) == 2 * 1.5 + 2 + 1
+    unrefreshed = StreamingConfig(denoising_steps=4, context_refresh=False)
+    assert bench_model.chunk_forwards(unrefreshed, 2) == 4 + 1

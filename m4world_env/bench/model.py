@@ -1,8 +1,10 @@
 """World-model core benchmark: parameters, analytic FLOPs, DiT forward speed vs the CPU's matmul peak.
 
 One causal chunk of the gym env = ``clip.chunk_frames`` new frames for 8 batched envs x all views,
-attending to ``clip.context_frames`` cached frames: 4 denoising forwards + 1 cache-write forward
-of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does. This script
+attending to ``clip.context_frames`` cached frames: the denoising forwards of the shipped bundle's
+streaming config (one frame longer where they refresh the context frame) + 1 cache-write forward
+of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does
+(:func:`chunk_forwards`; ``env_step_estimate_s``). This script
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
 when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
 ``--compile`` adds rows with the blocks compiled (env ``config.model.compile``).
@@ -35,15 +37,16 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from world_model.bundle import DEFAULT_BUNDLE
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
 from world_model.precision import resolve_bf16, resolve_device
 from world_model.sim.demo import demo_frame, straight_road
+from world_model.streaming import STREAMING_FILE, StreamingConfig
 from world_model.train.heap import retain_freed_memory
 
 ENVS = 8  # batched envs of one vector-env step
-DENOISE_FORWARDS = 4  # the 4-step causal student
 CACHE_FORWARDS = 1  # one forward on the clean chunk to write the KV cache
 PEAK_SIZE = 4096
 CPU = torch.device("cpu")
@@ -110,6 +113,21 @@ def synthetic_conditions(cfg: ModelConfig, frames: int, batch: int) -> Condition
     return Conditions.collate([arr] * batch)
 
 
+def chunk_forwards(streaming: StreamingConfig, chunk_frames: int) -> float:
+    """The DiT forwards of one chunk, in forwards of ``chunk_frames`` frames: each denoising step,
+    one frame longer where it refreshes the context frame, and the cache write. Attention grows
+    a little faster than the frames: an estimate."""
+    refreshed = len(streaming.resolved_refresh_steps())
+    longer = (chunk_frames + 1) / chunk_frames
+    return refreshed * longer + (streaming.denoising_steps - refreshed) + CACHE_FORWARDS
+
+
+def shipped_streaming() -> StreamingConfig:
+    """How the shipped bundle's student streams (its ``streaming.json``)."""
+    file = DEFAULT_BUNDLE / STREAMING_FILE
+    return StreamingConfig.from_dict(json.loads(file.read_text()), str(file))
+
+
 @torch.no_grad()
 def bench_config(
     cfg: ModelConfig,
@@ -173,7 +191,7 @@ def bench_config(
         "fraction_of_peak": achieved / peaks[dtype_name],
         "vae_decode_s": dec,
         "vae_decode_ms_per_frame": 1e3 * dec / (ENVS * v),
-        "env_step_estimate_s": (DENOISE_FORWARDS + CACHE_FORWARDS) * fwd + dec,
+        "env_step_estimate_s": chunk_forwards(shipped_streaming(), chunk) * fwd + dec,
     }
 
 
