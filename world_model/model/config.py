@@ -156,7 +156,7 @@ class DitConfig:
     dim: int = 128
     depth: int = 10
     # Depth of the causal student the env runs (None: the teacher's ``depth``). The student does
-    # every forward of an env step, so its depth sets the env's speed (m4world bench env);
+    # every DiT forward of an env step, so its depth sets the env's speed (m4world bench env);
     # a shallower one starts from evenly spaced teacher blocks (world_model.student.init) while the
     # teacher and the reference model keep all ``depth`` blocks. Fewer blocks trade image quality
     # for speed: long-video tuning can collapse a shallow student's cameras to a grey mean scene.

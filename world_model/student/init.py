@@ -1,6 +1,6 @@
 """The causal student's starting weights: the teacher's, with fewer blocks when the preset asks.
 
-The env runs the student's every forward of a step, so the student may be shallower than
+Every DiT forward of an env step is the student's, so the student may be shallower than
 the teacher (``DitConfig.student_depth``). It starts from the teacher's embeddings, head and an
 evenly spaced subset of its blocks (first and last always kept) — the usual layer-dropping
 initialization of compressed diffusion models — and the ``tf`` stage then adapts it. Cross-view
