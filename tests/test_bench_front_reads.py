@@ -132,17 +132,24 @@ def test_the_bottom_edge_is_read_from_the_segments_and_a_shift_shows():
         "markings_truth_vs_label": 0.0,
         "edge_px": 2.0,
         "edge_truth_vs_label": 0.0,
+        "edge_model_vs_label": 2.0,
     }
     plain = np.stack([road_view()] * 2)
     lost = frame_reads(plain, labels((30, 40)), np.stack([segments_of((30, 40)), segments_of(None, ())]), lead)
     assert lost["edge_px"] == MISSING_PX and lost["markings_px"] == MISSING_PX
     unseen = frame_reads(plain, labels((30, 40)), np.stack([segments_of(None)] * 2), lead)
     assert unseen["edge_px"] is None and unseen["edge_truth_vs_label"] == MISSING_PX
+    assert unseen["edge_model_vs_label"] == MISSING_PX
     assert frame_reads(plain, labels(None), np.stack([segments_of(None)] * 2), None)["edge_px"] is None
 
 
 def test_figures_count_the_frames_within_each_tolerance():
-    nothing = {"lines_truth_vs_label": None, "markings_px": None, "markings_truth_vs_label": None}
+    nothing = {
+        "lines_truth_vs_label": None,
+        "markings_px": None,
+        "markings_truth_vs_label": None,
+        "edge_model_vs_label": None,
+    }
     reads = [
         {"lines_px": 0.0, "edge_px": 1.0, "edge_truth_vs_label": -1.0, **nothing},
         {"lines_px": 2.0, "edge_px": None, "edge_truth_vs_label": None, **nothing},
@@ -164,6 +171,7 @@ def test_the_ground_truth_against_itself_reads_the_same_pixels():
     assert all(r["markings_truth_vs_label"] <= 1 for r in reads)  # the segmenter finds the painted lines
     # A car ahead within range on every frame, its bottom edge segmented where its label map has it.
     assert all(r["edge_px"] == 0.0 and abs(r["edge_truth_vs_label"]) <= 1 for r in reads)
+    assert all(r["edge_model_vs_label"] == r["edge_truth_vs_label"] for r in reads)
 
 
 def test_the_command_writes_each_scenario(tiny_bundle, tmp_path):

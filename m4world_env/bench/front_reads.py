@@ -29,7 +29,9 @@ Per scenario (seeds and steps pooled): the frames read, the share of them within
 px, and the median and 95th percentile of the difference in px. The ground truth's own lines,
 segmented markings and edge against its label map's (``lines_truth_vs_label``,
 ``markings_truth_vs_label``, ``edge_truth_vs_label``) say what each reading finds
-(:data:`MISSING_PX` where it finds nothing). A bundle whose views
+(:data:`MISSING_PX` where it finds nothing); the world model's edge against the label map
+(``edge_model_vs_label``) holds both views to the scene's own edge, where the segmenter's reading
+of the ground truth errs too. A bundle whose views
 are not the ground truth's size is read at that size (nearest pixel). A markdown table is printed;
 the JSON holds the figures and the settings.
 """
@@ -71,6 +73,7 @@ READINGS = (
     "markings_truth_vs_label",
     "edge_px",
     "edge_truth_vs_label",
+    "edge_model_vs_label",
 )
 TOLERANCES_PX = (1, 2)
 
@@ -154,8 +157,8 @@ def frame_reads(
     ``lines_px`` and ``markings_px`` (:func:`lines_apart` of the lane finder's lines and of the
     segmented markings), ``edge_px`` (the bottom edges' difference), and how far the ground truth's
     lines, segmented markings and edge are from its label map's (``lines_truth_vs_label``,
-    ``markings_truth_vs_label``, ``edge_truth_vs_label``, the edge signed). None where the frame has
-    nothing to read."""
+    ``markings_truth_vs_label``, ``edge_truth_vs_label``, the edge signed), and the world model's edge
+    from the label map's (``edge_model_vs_label``, signed). None where the frame has nothing to read."""
     truth_lines, model_lines = (line_columns(v) for v in views)
     truth_marks, model_marks = (marking_columns(s, SEGMENTED_MARKING) for s in segments)
     painted = marking_columns(classes, MARKING)
@@ -166,11 +169,13 @@ def frame_reads(
         "markings_truth_vs_label": lines_apart(painted, truth_marks),
         "edge_px": None,
         "edge_truth_vs_label": None,
+        "edge_model_vs_label": None,
     }
     if lead is not None:
         columns, label_row = lead
         edge_t, edge_m = (bottom_edge(s, columns) for s in segments)
         reads["edge_truth_vs_label"] = MISSING_PX if edge_t is None else edge_t - label_row
+        reads["edge_model_vs_label"] = MISSING_PX if edge_m is None else edge_m - label_row
         if edge_t is not None:
             reads["edge_px"] = MISSING_PX if edge_m is None else abs(edge_m - edge_t)
     return reads
