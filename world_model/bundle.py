@@ -378,10 +378,10 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
         bad = [k for k, t in tensors[name].items() if t.is_floating_point() and not torch.isfinite(t).all()]
         if bad:
             raise CheckpointError(f"checkpoint file {file} holds non-finite weights (NaN or inf) in {bad[:5]}")
-    return BundleFiles(path=root, manifest=manifest, tensors=tensors, streaming=_read_streaming(root))
+    return BundleFiles(path=root, manifest=manifest, tensors=tensors, streaming=read_streaming(root))
 
 
-def _read_streaming(root: Path) -> dict | None:
+def read_streaming(root: Path) -> dict | None:
     """``streaming.json``'s content (covered by the manifest's digest), or None for a bundle without one."""
     file = root / STREAMING_FILE
     if not file.exists():

@@ -37,7 +37,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from world_model.bundle import DEFAULT_BUNDLE
+from world_model.bundle import DEFAULT_BUNDLE, read_streaming
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
@@ -124,8 +124,7 @@ def chunk_forwards(streaming: StreamingConfig, chunk_frames: int) -> float:
 
 def shipped_streaming() -> StreamingConfig:
     """How the shipped bundle's student streams (its ``streaming.json``)."""
-    file = DEFAULT_BUNDLE / STREAMING_FILE
-    return StreamingConfig.from_dict(json.loads(file.read_text()), str(file))
+    return StreamingConfig.from_dict(read_streaming(DEFAULT_BUNDLE) or {}, str(DEFAULT_BUNDLE / STREAMING_FILE))
 
 
 @torch.no_grad()
