@@ -381,6 +381,12 @@ def load_bundle_files(path: str | Path | None = None) -> BundleFiles:
     return BundleFiles(path=root, manifest=manifest, tensors=tensors, streaming=read_streaming(root))
 
 
+def streaming_config(root: Path, content: dict | None) -> StreamingConfig:
+    """The :class:`StreamingConfig` of bundle ``root``'s ``streaming.json`` ``content``
+    (:func:`read_streaming`; None: the defaults), a bad setting named by the file's path and key."""
+    return StreamingConfig.from_dict(content or {}, str(root / STREAMING_FILE))
+
+
 def read_streaming(root: Path) -> dict | None:
     """``streaming.json``'s content (covered by the manifest's digest), or None for a bundle without one."""
     file = root / STREAMING_FILE

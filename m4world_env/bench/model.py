@@ -37,13 +37,13 @@ from dataclasses import replace
 import numpy as np
 import torch
 
-from world_model.bundle import DEFAULT_BUNDLE, read_streaming
+from world_model.bundle import DEFAULT_BUNDLE, read_streaming, streaming_config
 from world_model.model import Conditions, HashTextEncoder, MultiViewDiT, SensorVAE, build_condition_arrays
 from world_model.model.config import ModelConfig, get_preset
 from world_model.model.flops import dit_forward_flops
 from world_model.precision import resolve_bf16, resolve_device
 from world_model.sim.demo import demo_frame, straight_road
-from world_model.streaming import STREAMING_FILE, StreamingConfig
+from world_model.streaming import StreamingConfig
 from world_model.train.heap import retain_freed_memory
 
 ENVS = 8  # batched envs of one vector-env step
@@ -124,7 +124,7 @@ def chunk_forwards(streaming: StreamingConfig, chunk_frames: int) -> float:
 
 def shipped_streaming() -> StreamingConfig:
     """How the shipped bundle's student streams (its ``streaming.json``)."""
-    return StreamingConfig.from_dict(read_streaming(DEFAULT_BUNDLE) or {}, str(DEFAULT_BUNDLE / STREAMING_FILE))
+    return streaming_config(DEFAULT_BUNDLE, read_streaming(DEFAULT_BUNDLE))
 
 
 @torch.no_grad()

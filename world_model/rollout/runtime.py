@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from world_model.bundle import CheckpointError, load_bundle_files, save_bundle
+from world_model.bundle import CheckpointError, load_bundle_files, save_bundle, streaming_config
 from world_model.lora import loaded_adapters, only_adapters
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig, with_student_settings
@@ -36,7 +36,7 @@ from world_model.precision import check_dtype, dit_precision, resolve_bf16, reso
 from world_model.rollout.builder import ConditionBuilder
 from world_model.scene import CATEGORIES, SceneFrame
 from world_model.sensors import CameraRig
-from world_model.streaming import STREAMING_FILE, StreamingConfig, StreamingConfigError
+from world_model.streaming import StreamingConfig, StreamingConfigError
 from world_model.student.config import StudentConfig
 
 __all__ = ["WorldModel", "load_world_model", "save_untrained_bundle"]
@@ -271,7 +271,7 @@ def load_world_model(
         raise ValueError(f"context_frames must be >= 1, got {context_frames}")
     files = load_bundle_files(path)
     try:
-        streaming = StreamingConfig.from_dict(files.streaming or {}, f"{files.path / STREAMING_FILE}")
+        streaming = streaming_config(files.path, files.streaming)
     except StreamingConfigError as e:  # a setting out of bounds, named by the file's path and key
         raise CheckpointError(str(e)) from e
     try:
