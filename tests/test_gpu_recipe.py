@@ -152,14 +152,16 @@ def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_wa
     shutil.copytree(dry_recipe / "data", out / "data")  # recorded: the recipe skips them
     shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
     source = dry_recipe / "bundle"
-    phases = ("rollout_decoder", "range_head")
-    with pytest.raises(ValueError, match="--phases rollout_decoder range_head"):  # the head finishes its decoder
-        run_recipe(out, RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=phases[:1]))
+    phases = ("rollout_decoder", "range_head", "camera_decoder")
+    for cut, refused in ((1, "range_head"), (2, "camera_decoder")):  # each finishes or keeps the one before
+        with pytest.raises(ValueError, match=f"--phases {' '.join(phases[:cut])} {refused}"):
+            options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=phases[:cut])
+            run_recipe(out, options)
     options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=phases)
     summary = run_recipe(out, options)
     assert summary["phases"] == list(phases) and set(summary["final_loss"]) == set(phases)
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
-    assert manifest["components"]["vae"]["stage"] == "range_head"
+    assert manifest["components"]["vae"]["stage"] == "camera_decoder"
     for component in ("student", "reference"):  # untouched: the same tensors as the bundle it started from
         old, new = (load_file(str(b / f"{component}.safetensors")) for b in (source, out / "bundle"))
         assert old.keys() == new.keys() and all(torch.equal(old[k], new[k]) for k in old)
@@ -213,3 +215,35 @@ def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_pa
     obs, *_ = env.step(env.action_space.sample())
     assert np.isfinite(obs["lidar"]).all()
     env.close()
+
+
+def test_the_camera_decoder_of_a_finished_bundle_retrains_leaving_the_lidar_bit_for_bit(dry_recipe, tmp_path):
+    from safetensors.torch import load_file
+
+    from world_model.bundle import reseal_bundle
+    from world_model.train.recipe import RecipeOptions, run_recipe
+
+    out = tmp_path / "cameras"
+    shutil.copytree(dry_recipe / "data", out / "data")
+    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
+    source = shutil.copytree(dry_recipe / "bundle", tmp_path / "source")
+    manifest_path = source / "manifest.json"  # the shipped bundle's range head records its tuning
+    manifest = json.loads(manifest_path.read_text())
+    manifest["components"]["vae"]["tuned"] = {"command": "m4world tune-range-head", "frames": 3}
+    manifest_path.write_text(json.dumps(manifest))
+    reseal_bundle(source)
+    options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("camera_decoder",))
+    run_recipe(out, options)
+    manifest = json.loads((out / "bundle" / "manifest.json").read_text())
+    assert manifest["components"]["vae"]["stage"] == "camera_decoder"
+    assert manifest["components"]["vae"]["tuned"] == {"command": "m4world tune-range-head", "frames": 3}  # its head's
+    assert manifest["model_config"]["layout"]["camera_decoder"] and manifest["model_config"]["layout"]["range_head"]
+    old, new = (load_file(str(b / "vae.safetensors")) for b in (source, out / "bundle"))
+    assert old.keys() == new.keys()
+    lidar_path = [k for k in old if not k.startswith("camera_decoder.")]
+    assert all(torch.equal(old[k], new[k]) for k in lidar_path)  # encoder, LiDAR decoder, range head
+    # a copy of the LiDAR's decoder, trained (the dry run's few frames may show no vehicle, which
+    # leaves it as it was: tests/test_camera_decoder.py checks what it learns)
+    cameras = [k for k in new if k.startswith("camera_decoder.")]
+    assert cameras and all(new[k].shape == new[k.replace("camera_", "", 1)].shape for k in cameras)
+    assert json.loads((out / "recipe.json").read_text())["steps"]["camera_decoder"] > 0

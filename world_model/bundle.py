@@ -6,8 +6,8 @@ Layout::
       manifest.json            format, version, the student's model config, and per component: file,
                                sha256, bytes, stage, and ``model_config`` where the component's
                                differs (the reference model: wider input, teacher depth)
-      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``range_head``, else ``rollout_decoder``, else
-                               ``decoder``, else ``vae``)
+      vae.safetensors          the shared camera/LiDAR autoencoder (stage ``camera_decoder``, else
+                               ``range_head``, else ``rollout_decoder``, else ``decoder``, else ``vae``)
       student.safetensors      the causal few-step student (stage ``steps``, else ``long``, else ``dmd``)
       reference.safetensors    the reference-conditioned first-frame model (stage ``reference``), optional
       first_frame.safetensors  the one-step first-frame model (stage ``first_frame``), optional
@@ -44,13 +44,15 @@ BUNDLE_VERSION = 1
 DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
-    "vae": ("range_head", "rollout_decoder", "decoder", "vae"),
+    "vae": ("camera_decoder", "range_head", "rollout_decoder", "decoder", "vae"),
     "student": ("steps", "long", "dmd", "ode"),
     "reference": ("reference",),
     "first_frame": ("first_frame",),
 }
 REQUIRED = ("vae", "student")
 RANGE_HEAD_STAGE = "range_head"  # finishes the decoder it was trained on (model.json: "finishes")
+CAMERA_DECODER_STAGE = "camera_decoder"  # the VAE it started from, every weight of it kept
+LABEL_DECODER_STAGES = ("rollout_decoder", "decoder")  # a range head's decoder: the first exported
 DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields and the bundle's other JSON files
 BF16_COMPONENTS = ("student", "reference", "first_frame")  # DiTs; the VAE stays float32
 # May differ from the student's config (input width, depth); the first-frame model has the reference model's.
@@ -106,18 +108,25 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
         raise CheckpointError(
             f"{run_dir} has no export for {missing}: train stages {[COMPONENT_STAGES[c] for c in missing]} first"
         )
-    if found["vae"][0] == RANGE_HEAD_STAGE:
+    if found["vae"][0] == CAMERA_DECODER_STAGE:
+        _check_camera_decoder(run_dir)
+    if found["vae"][0] in (CAMERA_DECODER_STAGE, RANGE_HEAD_STAGE) and (run_dir / RANGE_HEAD_STAGE).is_dir():
         _check_range_head(run_dir)
     student_meta = json.loads(found["student"][1].with_suffix(".json").read_text())
     config = student_meta["model_config"]
     # The decoder is the one component whose config may differ from the student's (the DiTs do
-    # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it, and
-    # finishes the LiDAR with a range head exactly when the range_head stage did.
+    # not depend on it): the bundle's VAE draws the scene exactly when a decoder stage made it,
+    # finishes the LiDAR with a range head exactly when the range_head stage did (the camera
+    # decoder keeps the head of the VAE it started from), and draws the cameras with a decoder of
+    # their own exactly when the camera_decoder stage made it.
     vae_stage = found["vae"][0]
     layout = config.get("layout", {})
+    vae_layout = (_export_config(found["vae"][1]) or {}).get("layout", {})
     drawn = {
-        "decoder": vae_stage in ("range_head", "rollout_decoder", "decoder"),
-        "range_head": vae_stage == "range_head",
+        "decoder": vae_stage in (CAMERA_DECODER_STAGE, RANGE_HEAD_STAGE, *LABEL_DECODER_STAGES),
+        "range_head": vae_stage == RANGE_HEAD_STAGE
+        or (vae_stage == CAMERA_DECODER_STAGE and bool(vae_layout.get("range_head", False))),
+        "camera_decoder": vae_stage == CAMERA_DECODER_STAGE,
     }
     changed = {key: value for key, value in drawn.items() if layout.get(key, False) != value}
     if changed:
@@ -161,13 +170,29 @@ def _check_range_head(run_dir: Path) -> None:
     from world_model.model.range_head import finished_digest
 
     head_meta = json.loads((run_dir / RANGE_HEAD_STAGE / "model.json").read_text())
-    for stage in COMPONENT_STAGES["vae"][1:]:
+    for stage in LABEL_DECODER_STAGES:
         file = run_dir / stage / "model.safetensors"
         if file.exists():
             if head_meta.get("finishes") != finished_digest(load_file(str(file))):
                 raise CheckpointError(
                     f"{run_dir / RANGE_HEAD_STAGE} was trained on another decoder than {run_dir / stage}'s: "
                     f"train --stage {RANGE_HEAD_STAGE} again"
+                )
+            return
+
+
+def _check_camera_decoder(run_dir: Path) -> None:
+    """Refuse a camera decoder trained on another VAE than the run's latest one (a range head or a
+    label decoder trained again after it): every weight of that VAE must be in it unchanged."""
+    camera = load_file(str(run_dir / CAMERA_DECODER_STAGE / "model.safetensors"))
+    for stage in (RANGE_HEAD_STAGE, *LABEL_DECODER_STAGES):
+        file = run_dir / stage / "model.safetensors"
+        if file.exists():
+            source = load_file(str(file))
+            if any(key not in camera or not torch.equal(camera[key], value) for key, value in source.items()):
+                raise CheckpointError(
+                    f"{run_dir / CAMERA_DECODER_STAGE} was trained on another VAE than {run_dir / stage}'s: "
+                    f"train --stage {CAMERA_DECODER_STAGE} again"
                 )
             return
 

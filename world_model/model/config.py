@@ -130,12 +130,18 @@ class LayoutConfig:
     ``range_head``: the LiDAR is finished at the range map's own resolution by a
     :class:`~world_model.model.range_head.RangeHead` reading the decoder's LiDAR view and the
     range map the scene implies at that resolution, so an object stands with its own edges however
-    few columns of the view it had (its stage trains the head alone)."""
+    few columns of the view it had (its stage trains the head alone).
+
+    ``camera_decoder``: the cameras are drawn by a decoder of their own, a copy of ``decoder``
+    tuned on the cameras' frames alone (:mod:`world_model.train.camera_decoder_stage`), while the
+    LiDAR view keeps ``decoder`` and the range head that finishes it: what the cameras learn moves
+    no LiDAR return."""
 
     enabled: bool = False
     supersample: int = 4  # rays per latent cell side; a channel holds the covered fraction of the cell
     decoder: bool = False
     range_head: bool = False
+    camera_decoder: bool = False
 
     @property
     def channels(self) -> int:
@@ -418,7 +424,7 @@ def with_layout(cfg: ModelConfig, enabled: bool | None) -> ModelConfig:
 def without_label_decoder(cfg: ModelConfig) -> ModelConfig:
     """``cfg`` with a plain VAE decoder: the autoencoder the ``vae`` stage trains, and the
     conditions the DiTs train on (they never read the label maps), without a range head."""
-    return replace(cfg, layout=replace(cfg.layout, decoder=False, range_head=False))
+    return replace(cfg, layout=replace(cfg.layout, decoder=False, range_head=False, camera_decoder=False))
 
 
 def with_vae_object_weight(cfg: ModelConfig, weight: float | None) -> ModelConfig:

@@ -73,9 +73,10 @@ class RangeHead(nn.Module):
 
 def finished_digest(vae_state: Mapping[str, torch.Tensor]) -> str:
     """What a range head was trained to finish: a digest of a VAE's weights but the head's own
-    (``range_head.*``). A head trained on one decoder does not finish another."""
+    (``range_head.*``) and the cameras' decoder's (``camera_decoder.*``, which draws no LiDAR). A
+    head trained on one decoder does not finish another."""
     h = hashlib.sha256()
-    for key in sorted(k for k in vae_state if not k.startswith("range_head.")):
+    for key in sorted(k for k in vae_state if not k.startswith(("range_head.", "camera_decoder."))):
         h.update(key.encode())
         h.update(vae_state[key].detach().cpu().float().contiguous().numpy().tobytes())
     return "vae-" + h.hexdigest()[:16]

@@ -215,6 +215,11 @@ class SensorVAE(nn.Module):
         self.encoder = Encoder(cfg.vae)
         draws = cfg.layout.decoder
         self.decoder = Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim if draws else 0, nearness_gate=draws)
+        if cfg.layout.camera_decoder and not draws:
+            raise ValueError("a camera decoder of its own is a label decoder's copy: it needs layout.decoder")
+        self.camera_decoder = (
+            Decoder(cfg.vae, cfg.layout.label_channels, cfg.text.dim) if cfg.layout.camera_decoder else None
+        )
         self.range_head = RangeHead() if cfg.layout.range_head else None
         c = cfg.vae.latent_channels
         self.register_buffer("latent_mean", torch.zeros(c))
@@ -304,6 +309,7 @@ class SensorVAE(nn.Module):
         labels: torch.Tensor | None = None,
         style: torch.Tensor | None = None,
         nearness: torch.Tensor | None = None,
+        lidar: bool | torch.Tensor = False,
     ) -> torch.Tensor:
         """Normalized latents (N, C, h, w) -> images (N, 3, H, W), roughly in [-1, 1].
 
@@ -311,12 +317,28 @@ class SensorVAE(nn.Module):
         (:attr:`draws_labels`); None there means no layout (the LiDAR view). ``style``: (N, S) the
         scene's style (:func:`~world_model.model.conditions.prompt_style`), required with labels
         when the decoder draws them. ``nearness``: (N, H, W) uint8, the LiDAR view's range map the
-        scene implies, read when the decoder draws the labels; None there means none (a camera)."""
+        scene implies, read when the decoder draws the labels; None there means none (a camera).
+        ``lidar``: whether the latents are the LiDAR view's, True/False for all or (N,) bool per
+        latent, on the CPU: the LiDAR view is drawn by :attr:`decoder`, a camera by
+        :attr:`camera_decoder` when the VAE has one (``layout.camera_decoder``)."""
         z = latents * self.latent_std[:, None, None] + self.latent_mean[:, None, None]
         # Channels-last input: oneDNN's CPU convolutions for these few channels run about twice as
         # fast in NHWC (m4world bench model's vae_decode_ms_per_frame); same values to ~1e-6.
         z = z.contiguous(memory_format=torch.channels_last)
-        return self.decoder(z, self._label_inputs(labels, z, nearness), self._style(style, labels, z))
+        inputs, style = self._label_inputs(labels, z, nearness), self._style(style, labels, z)
+        if self.camera_decoder is None:
+            return self.decoder(z, inputs, style)
+        is_lidar = torch.as_tensor(lidar, dtype=torch.bool).expand(len(z))
+        if bool(is_lidar.all()) or not bool(is_lidar.any()):
+            return (self.decoder if bool(is_lidar.all()) else self.camera_decoder)(z, inputs, style)
+        drawn = []
+        for decoder, rows in ((self.camera_decoder, ~is_lidar), (self.decoder, is_lidar)):
+            index = rows.nonzero()[:, 0].to(z.device)
+            drawn.append((index, decoder(z[index], inputs[index], style[index])))
+        out = drawn[0][1].new_empty(len(z), *drawn[0][1].shape[1:])
+        for index, images in drawn:
+            out.index_copy_(0, index, images.to(out.dtype))
+        return out
 
     @torch.no_grad()
     def set_latent_stats(self, images: torch.Tensor) -> None:
@@ -391,7 +413,7 @@ class SensorVAE(nn.Module):
     ) -> np.ndarray:
         """The LiDAR view's latents (T, C, h, w) -> metres (T, beams, azimuth): the view decoded,
         then finished at the range map's resolution by the :attr:`range_head` when there is one."""
-        view = self.decode(latents, nearness=nearness)
+        view = self.decode(latents, nearness=nearness, lidar=True)
         fraction = self.cfg.vae.lidar_no_return_fraction
         if self.range_head is None:
             return images_to_lidar(view, spec, fraction)

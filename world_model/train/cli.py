@@ -47,8 +47,9 @@ PIPELINE = (
     "first_frame",
     "rollout_decoder",
     "range_head",
+    "camera_decoder",
 )
-DECODER_STAGES = ("decoder", "rollout_decoder", "range_head")
+DECODER_STAGES = ("decoder", "rollout_decoder", "range_head", "camera_decoder")
 
 
 def add_train_arguments(p: argparse.ArgumentParser) -> None:

@@ -161,11 +161,12 @@ class FrameSampler:
             self._boxes[key] = object_boxes(fr, view)
         return torch.from_numpy(object_pixel_weights(fr, view, s.height, s.width, extra, self._boxes.get(key)))[None]
 
-    def pick(self, rng: np.random.Generator, batch: int) -> list[tuple[int, int, int]]:
-        """``batch`` random (clip, frame, view) triples (the view may be the LiDAR map)."""
+    def pick(self, rng: np.random.Generator, batch: int, views: int | None = None) -> list[tuple[int, int, int]]:
+        """``batch`` random (clip, frame, view) triples of the first ``views`` views (None: all of
+        them; the view may then be the LiDAR map, the last)."""
         ci = rng.integers(len(self.clips), size=batch)
         fi = [int(rng.integers(self.clips[c].num_frames)) for c in ci]
-        vi = rng.integers(self.cfg.sensors.num_views, size=batch)
+        vi = rng.integers(self.cfg.sensors.num_views if views is None else views, size=batch)
         return list(zip(ci.tolist(), fi, vi.tolist(), strict=True))
 
     def batch(self, picks: Sequence[tuple[int, int, int]]) -> FrameBatch:
@@ -193,11 +194,11 @@ def file_digest(path: Path) -> str:
 
 def encoder_digest(vae: SensorVAE) -> str:
     """What a clip's latents depend on: the encoder's weights and the latent normalization, not
-    the decoder nor its range head (the decoder stages change them alone) nor the file they were
+    the decoders nor the range head (the decoder stages change them alone) nor the file they were
     stored in (a bundle keeps the run's VAE)."""
     h = hashlib.sha256()
     state = vae.state_dict()
-    for key in sorted(k for k in state if not k.startswith(("decoder.", "range_head."))):
+    for key in sorted(k for k in state if not k.startswith(("decoder.", "camera_decoder.", "range_head."))):
         h.update(key.encode())
         h.update(state[key].detach().cpu().float().contiguous().numpy().tobytes())
     return "encoder-" + h.hexdigest()[:16]

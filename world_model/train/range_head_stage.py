@@ -94,7 +94,7 @@ def range_examples(
         n = len(latents)
         for s in range(0, n, DECODE_BATCH):
             z = latents[s : s + DECODE_BATCH, view].float()
-            images = vae.decode(z, nearness=torch.from_numpy(np.asarray(near[s : s + DECODE_BATCH])))
+            images = vae.decode(z, nearness=torch.from_numpy(np.asarray(near[s : s + DECODE_BATCH])), lidar=True)
             views.append(images.mean(dim=1, keepdim=True))
         nearness.append(torch.from_numpy(range_nearness_maps(clip.frames[:n], cfg)))
         recorded = np.asarray(clip.lidar[:n], np.float32)

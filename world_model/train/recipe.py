@@ -120,6 +120,7 @@ SCALES = {
             "steps": (300, 8),
             "rollout_decoder": (1000, 64),
             "range_head": (1500, 64),
+            "camera_decoder": (1000, 64),
             "reference": (1500, 32),
             "first_frame": (1500, 32),
             "lora": (1500, 32),
@@ -140,6 +141,7 @@ SCALES = {
             "first_frame": 30,  # not measured on a GPU yet: the reference phase's
             "rollout_decoder": 60,
             "range_head": 60,
+            "camera_decoder": 60,
             f"{RARE_CATEGORY}_completion": 20,
         },
     ),
@@ -164,6 +166,7 @@ SCALES = {
             "steps": (150, 2),
             "rollout_decoder": (4500, 16),
             "range_head": (1500, 16),
+            "camera_decoder": (4500, 16),
             "reference": (800, 4),
             "first_frame": (1500, 8),
             "lora": (300, 4),
@@ -184,6 +187,7 @@ SCALES = {
             "first_frame": 720,  # its pool's targets and training (the run's latents cached already)
             "rollout_decoder": 1020,
             "range_head": 900,
+            "camera_decoder": 1020,
             f"{RARE_CATEGORY}_completion": 600,
         },
         text_encoder=None,
@@ -385,11 +389,18 @@ def check_run_options(out: Path, options: RecipeOptions) -> None:
             )  # a folder that is no bundle is named now, not after the recording
         except CheckpointError as e:
             raise ValueError(f"--from-bundle: {e}") from None
+        layout = files.model_config.get("layout", {})
         decoders = [p for p in ("decoder", "rollout_decoder") if p in options.phases]
-        if decoders and "range_head" not in options.phases and files.model_config.get("layout", {}).get("range_head"):
+        if decoders and "range_head" not in options.phases and layout.get("range_head"):
             raise ValueError(
                 f"--phases {' '.join(options.phases)}: the bundle's range head finishes the decoder it was trained "
                 f"on; train it again after {decoders[-1]}: --phases {' '.join(options.phases)} range_head"
+            )
+        decoders += [p for p in ("range_head",) if p in options.phases]
+        if decoders and "camera_decoder" not in options.phases and layout.get("camera_decoder"):
+            raise ValueError(
+                f"--phases {' '.join(options.phases)}: the bundle's camera decoder keeps the VAE it was trained on; "
+                f"train it again after {decoders[-1]}: --phases {' '.join(options.phases)} camera_decoder"
             )
 
 

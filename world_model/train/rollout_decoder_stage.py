@@ -20,7 +20,8 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +151,62 @@ def student_rollouts(run: StageRun, clips: list[Clip], plain: SensorVAE, digest:
     return torch.load(cache, weights_only=True)
 
 
+@dataclass
+class RolloutData:
+    """What a decoder learns from on the student's rollouts: the run's ``clips``, their
+    ``sampler``, encoder ``latents`` (T, V, C, h, w) each, camera ``labels`` and LiDAR ``nearness``
+    maps (:func:`decoder_maps`), and the ``rollouts`` (T, V, C, h, w) of the clips ``picked``
+    (rollout r streams clip ``picked[r]``)."""
+
+    clips: list[Clip]
+    sampler: FrameSampler
+    latents: list[torch.Tensor]
+    labels: list[np.ndarray]
+    nearness: list[np.ndarray] | None
+    picked: list[int]
+    rollouts: list[torch.Tensor]
+
+
+def rollout_data(run: StageRun, cfg: ModelConfig, plain: SensorVAE, digest: str) -> RolloutData:
+    """The run's :class:`RolloutData`: ``plain`` (the run's VAE, of :func:`encoder_digest`
+    ``digest``) encodes the clips, the student rolls out :data:`ROLLOUT_CLIPS` of them."""
+    clips = load_clips(run.data_dir, cfg)
+    picked = rollout_clip_indices(len(clips))
+    rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
+    latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
+    labels, nearness = decoder_maps(run, clips)
+    return RolloutData(clips, FrameSampler(clips, cfg), latents, labels, nearness, picked, rollouts)
+
+
+def rollout_batches(
+    vae: SensorVAE, data: RolloutData, batch_size: int, views: int | None = None
+) -> Callable[[Trainer], tuple[list[tuple[int, int, int]], torch.Tensor]]:
+    """A decoder's batches: ``draw(trainer)`` gives ``batch_size`` (clip, frame, view) picks of the
+    first ``views`` views (None: all, the LiDAR view too) and the latents (N, C, h, w) they are
+    decoded from. :data:`ROLLOUT_SHARE` of them come from the rollouts, the rest are the
+    encoder's latents with the decoder stage's jitter and drift."""
+    sampler, latents, rollouts, picked = data.sampler, data.latents, data.rollouts, data.picked
+    from_rollouts = round(batch_size * ROLLOUT_SHARE)
+    rollout_views = sampler.cfg.sensors.num_views if views is None else views
+    clip_lengths, rollout_lengths = [len(x) for x in latents], [len(x) for x in rollouts]
+
+    def draw(tr: Trainer) -> tuple[list[tuple[int, int, int]], torch.Tensor]:
+        own = sampler.pick(tr.rng, batch_size - from_rollouts, views)
+        frames = decoded_frames(tr.rng, vae, own, clip_lengths)
+        z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(own, frames, strict=True)]).float()
+        z = jittered_latents(tr, z, vae.draws_labels)
+        rolled = []  # (rollout, frame, view)
+        for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
+            frame = int(tr.rng.integers(len(rollouts[r])))
+            rolled.append((r, frame, int(tr.rng.integers(rollout_views))))
+        frames = decoded_frames(tr.rng, vae, rolled, rollout_lengths)
+        z_rolled = torch.stack([rollouts[r][g, v] for (r, _, v), g in zip(rolled, frames, strict=True)])
+        picks = own + [(picked[r], f, v) for r, f, v in rolled]
+        return picks, torch.cat([z, z_rolled.float().to(z.device)])
+
+    return draw
+
+
 def load_decoder_export(run_dir: Path, cfg: ModelConfig) -> SensorVAE:
     """The ``decoder`` stage's VAE, checked against ``cfg`` (sensors, VAE, layout)."""
     vae = load_vae(require_export(run_dir / "decoder" / EXPORT, "decoder"))
@@ -167,45 +224,23 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     check_decoder_config(cfg)
     plain, digest = run_vae(run.run_dir, without_label_decoder(cfg), STAGE)
     vae = load_decoder_export(run.run_dir, cfg)
-    clips = load_clips(run.data_dir, cfg)
-    picked = rollout_clip_indices(len(clips))
-    rollouts = student_rollouts(run, [clips[i] for i in picked], plain, digest)
-    sampler = FrameSampler(clips, cfg)
-    latents = run_latents(clips, plain, digest, run.run_dir, run.place.device)
-    labels, nearness = decoder_maps(run, clips)
+    data = rollout_data(run, cfg, plain, digest)
     torch.manual_seed(tcfg.seed)
     vae.train().requires_grad_(True)
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, STAGE)
     raster = LabelRasterizer()
-    styles = clip_styles(vae, clips)
-    from_rollouts = round(tcfg.batch_size * ROLLOUT_SHARE)
+    styles = clip_styles(vae, data.clips)
     # The LiDAR view too: the rollouts teach it to stand the returns where the scene's nearness map
     # says however the student's range latents lag.
-    views = cfg.sensors.num_views
-    clip_lengths, rollout_lengths = [len(x) for x in latents], [len(x) for x in rollouts]
-
-    def rollout_picks(tr: Trainer) -> list[tuple[int, int, int, int]]:
-        """(clip, frame, view, rollout) of the rollouts' share of the batch."""
-        out = []
-        for r in tr.rng.integers(len(rollouts), size=from_rollouts).tolist():
-            frame = int(tr.rng.integers(len(rollouts[r])))
-            out.append((picked[r], frame, int(tr.rng.integers(views)), r))
-        return out
+    draw = rollout_batches(vae, data, tcfg.batch_size)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
-        own = sampler.pick(tr.rng, tcfg.batch_size - from_rollouts)
-        frames = decoded_frames(tr.rng, vae, own, clip_lengths)
-        z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(own, frames, strict=True)]).float()
-        z = jittered_latents(tr, z, styles is not None)
-        rolled = rollout_picks(tr)
-        frames = decoded_frames(tr.rng, vae, [(r, f, v) for _, f, v, r in rolled], rollout_lengths)
-        z_rolled = torch.stack([rollouts[r][g, v] for (_, _, v, r), g in zip(rolled, frames, strict=True)])
-        z = torch.cat([z, z_rolled.float().to(z.device)])
-        return decoder_loss(tr, vae, sampler, labels, nearness, own + [(c, f, v) for c, f, v, _ in rolled], z, styles)
+        picks, z = draw(tr)
+        return decoder_loss(tr, vae, data.sampler, data.labels, data.nearness, picks, z, styles)
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:
         return summary
-    metrics = export_decoder(run, STAGE, trainer, vae, plain, sampler, raster, styles)
-    return {**summary, "rollout_clips": len(rollouts), "metrics": metrics}
+    metrics = export_decoder(run, STAGE, trainer, vae, plain, data.sampler, raster, styles)
+    return {**summary, "rollout_clips": len(data.rollouts), "metrics": metrics}

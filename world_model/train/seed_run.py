@@ -6,7 +6,8 @@ stages again on a shipped checkpoint whose DiTs stay as they are::
     RUN/vae/        the bundle's encoder with its decoder's plain trunk (the latents every stage reads)
     RUN/decoder/    the bundle's VAE as it is, label modulations included (a decoder stage's start),
                     without its range head
-    RUN/range_head/ the bundle's VAE as it is, when it has a range head
+    RUN/camera_decoder/ the bundle's VAE as it is, when it draws the cameras with a decoder of their own
+    RUN/range_head/ the bundle's VAE without a camera decoder, when it has a range head
     RUN/<stage>/    the student, under the stage that exported it (``long``), with its student config;
                     a student of the ``steps`` stage also as ``RUN/long`` (the stage it starts from)
     RUN/reference/  the reference model, under its own config
@@ -65,6 +66,10 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
 
     vae = files.tensors["vae"]
     records = {c: {BUNDLE_RECORD: bundle_record(e)} for c, e in files.manifest["components"].items()}
+    if cfg.layout.camera_decoder:
+        export("camera_decoder", vae, {"model_config": cfg.to_dict()})
+        cfg = replace(cfg, layout=replace(cfg.layout, camera_decoder=False))
+        vae = {k: v for k, v in vae.items() if not k.startswith("camera_decoder.")}
     if cfg.layout.range_head:
         meta = {"model_config": cfg.to_dict(), "finishes": finished_digest(vae), **records["vae"]}
         export("range_head", vae, meta)

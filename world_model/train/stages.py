@@ -9,6 +9,7 @@ A run directory holds one sub-directory per stage::
     RUN_DIR/first_frame/  the one-step first-frame model (world_model.train.first_frame_stage)
     RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
     RUN_DIR/range_head/  the VAE's range head, trained on the student's rollouts (world_model.train.range_head_stage)
+    RUN_DIR/camera_decoder/  the cameras' own decoder, on the rollouts (world_model.train.camera_decoder_stage)
     RUN_DIR/lora/CASE/ one LoRA adapter per long-tail case (world_model.train.lora_stage)
 
 Each stage reads the exports of the stages before it. Rerunning a command resumes from the stage's
@@ -35,6 +36,7 @@ from typing import Any
 from world_model.data.clips import write_json_atomic
 from world_model.model.config import ModelConfig, get_preset, without_label_decoder
 from world_model.precision import check_dtype, dit_precision, resolve_bf16
+from world_model.train.camera_decoder_stage import camera_decoder_stage
 from world_model.train.device import TrainPlace, resolve_device
 from world_model.train.first_frame_stage import first_frame_stage
 from world_model.train.lora_stage import LORA_STEPS, LoraStageOptions, lora_setup, lora_stage, lora_stage_dir
@@ -123,6 +125,8 @@ REGISTRY: dict[str, Stage] = {
         _decoder("rollout_decoder", rollout_decoder_stage, 2e-4),
         # the VAE's range head alone, on the student's rollouts: the LiDAR at the range map's resolution
         _decoder("range_head", range_head_stage, 1e-3),
+        # the cameras' own copy of the decoder, on the rollouts' camera frames: the LiDAR stays as it is
+        _decoder("camera_decoder", camera_decoder_stage, 2e-4),
         Stage(
             "lora",
             lora_stage,

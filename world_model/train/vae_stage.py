@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -37,7 +38,7 @@ from world_model.model.vae import (
     kl_loss,
     weighted_l1,
 )
-from world_model.raster.classes import blank_maps
+from world_model.raster.classes import CLASS_PLANE, VEHICLE, blank_maps
 from world_model.raster.maps import lidar_nearness_maps
 from world_model.scene import SceneFrame
 from world_model.sim.labels import LabelRasterizer
@@ -94,7 +95,8 @@ def vae_metrics(
         ids = view_labels(labels, clip.frames[f], cfg, views).to(device) if labels else None
         near = view_nearness(clip.frames[f], cfg, views).to(device) if vae.draws_labels else None
         style = None if styles is None else torch.from_numpy(styles[ci]).to(device).expand(len(x), -1)
-        rec = vae.decode(vae.encode(x), ids, style, near).float().cpu()
+        lidar = torch.arange(len(x)) == cfg.sensors.lidar_view
+        rec = vae.decode(vae.encode(x), ids, style, near, lidar).float().cpu()
         se += float(((images_to_cameras(rec[:-1]).astype(np.float64) - cams) ** 2).sum())
         count += cams.size
         truth = np.asarray(clip.lidar[f], dtype=np.float32)
@@ -249,11 +251,13 @@ def decoder_loss(
     picks: Sequence[tuple[int, int, int]],
     latents: torch.Tensor,
     styles: Sequence[np.ndarray] | None,
+    cameras_about_vehicles: CameraTuning | None = None,
 ) -> tuple[torch.Tensor, int]:
     """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
     with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; its LiDAR
     ``nearness`` maps, :func:`cached_nearness_maps`; and their
-    clips' ``styles``), and the batch size."""
+    clips' ``styles``), and the batch size. With ``cameras_about_vehicles`` the cameras' own
+    decoder learns the recording about the vehicles only (:class:`CameraTuning`)."""
     cfg = vae.cfg
     batch = sampler.batch(picks)
     images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
@@ -262,8 +266,49 @@ def decoder_loss(
     near = None
     if nearness is not None:
         near = tr.shard(torch.from_numpy(np.stack([picked_nearness(nearness, c, f, v, cfg) for c, f, v in picks])))
-    err = weighted_l1(vae.decode(tr.shard(latents), ids, style, near), images, weights)
+    place = tr.place
+    own_lidar = batch.is_lidar[place.local_rows(len(picks))] if place.distributed else batch.is_lidar
+    z = tr.shard(latents)
+    drawn = vae.decode(z, ids, style, near, own_lidar)
+    if cameras_about_vehicles is not None:
+        with torch.no_grad():
+            shared = vae.decode(z, ids, style, near, True)  # every latent drawn by the shared decoder
+        images, weights = cameras_about_vehicles.targets(images, shared.to(images.dtype), weights, ids)
+    err = weighted_l1(drawn, images, weights)
     return (err * torch.where(is_lidar, cfg.vae.lidar_loss_weight, 1.0)).mean(), len(images)
+
+
+@dataclass(frozen=True)
+class CameraTuning:
+    """What the cameras' own decoder learns: the recording where the label map has a vehicle, within
+    ``margin`` pixels of one, and about its bottom edge (the lowest vehicle pixel of a column's
+    run and the road under it, ``edge_rows`` rows either way), those edge pixels weighing
+    ``edge_weight`` times any other; elsewhere the shared decoder's own drawing of the same
+    latents, so that the road and its markings stay as the lane finders read them. Where the car
+    ahead stands on the road is a few rows of a few columns, and a camera policy reads its range
+    from them."""
+
+    edge_weight: float = 10.0
+    edge_rows: int = 2
+    margin: int = 1
+
+    def targets(
+        self, images: torch.Tensor, shared: torch.Tensor, weights: torch.Tensor, labels: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Targets (N, 3, H, W) and per-pixel weights (N, 1, H, W) from the recorded ``images``,
+        the ``shared`` decoder's drawing, the batch's ``weights`` and label maps ``labels`` (N, 3, H, W)."""
+        vehicle = (labels[:, CLASS_PLANE : CLASS_PLANE + 1] == VEHICLE).float()
+        edge = bottom_edge_band(vehicle, self.edge_rows)
+        zone = F.max_pool2d(torch.maximum(vehicle, edge), 2 * self.margin + 1, stride=1, padding=self.margin) > 0
+        return torch.where(zone, images, shared), weights * (1.0 + (self.edge_weight - 1.0) * edge)
+
+
+def bottom_edge_band(mask: torch.Tensor, rows: int) -> torch.Tensor:
+    """(N, 1, H, W) float 0/1: the pixels within ``rows`` rows of the bottom edge of ``mask``'s
+    runs (N, 1, H, W, 0/1), the edge being the first pixel under a run."""
+    above = F.pad(mask[:, :, :-1], (0, 0, 1, 0))  # the mask one row up
+    under = (1.0 - mask) * above
+    return F.max_pool2d(under, kernel_size=(2 * rows + 1, 1), stride=1, padding=(rows, 0))
 
 
 def export_decoder(
