@@ -178,21 +178,31 @@ def test_phases_of_a_finished_bundle_retrain_from_it_and_leave_the_rest_as_it_wa
         run_recipe(out, replace(options, episodes=0))
 
 
+TUNED = {"command": "m4world tune-range-head", "frames": 3}  # a range head's record, as the shipped bundle's
+
+
+def recorded_run_from_a_tuned_bundle(dry_recipe: Path, out: Path) -> tuple[Path, Path]:
+    """``out`` with the dry recipe's recorded clips (the recipe skips recording them), and a copy of
+    its bundle whose manifest records its range head's tuning, beside ``out``."""
+    from world_model.bundle import reseal_bundle
+
+    shutil.copytree(dry_recipe / "data", out / "data")
+    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
+    source = shutil.copytree(dry_recipe / "bundle", out.with_name(out.name + "_source"))
+    manifest_path = source / "manifest.json"
+    manifest = json.loads(manifest_path.read_text())
+    manifest["components"]["vae"]["tuned"] = TUNED
+    manifest_path.write_text(json.dumps(manifest))
+    reseal_bundle(source)
+    return out, source
+
+
 def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_path):
     from safetensors.torch import load_file
 
-    from world_model.bundle import reseal_bundle
     from world_model.train.recipe import RecipeOptions, run_recipe
 
-    out = tmp_path / "steps"
-    shutil.copytree(dry_recipe / "data", out / "data")
-    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
-    source = shutil.copytree(dry_recipe / "bundle", tmp_path / "source")
-    manifest_path = source / "manifest.json"  # the shipped bundle's range head records its tuning
-    manifest = json.loads(manifest_path.read_text())
-    manifest["components"]["vae"]["tuned"] = {"command": "m4world tune-range-head", "frames": 3}
-    manifest_path.write_text(json.dumps(manifest))
-    reseal_bundle(source)
+    out, source = recorded_run_from_a_tuned_bundle(dry_recipe, tmp_path / "steps")
     options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("steps",), episodes=1)
     summary = run_recipe(out, options)
     assert summary["steps"] == {"steps": 2} and summary["clips"] == 9
@@ -200,7 +210,7 @@ def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_pa
     assert teacher["cut_from"] == "reference" and teacher["model_config"]["dit"]["in_channels_extra"] == 0
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
     assert manifest["components"]["student"]["stage"] == "steps"
-    assert manifest["components"]["vae"]["tuned"] == {"command": "m4world tune-range-head", "frames": 3}
+    assert manifest["components"]["vae"]["tuned"] == TUNED
     assert "tuned" not in manifest["components"]["student"]
     assert manifest["student_config"]["streaming"]["denoising_steps"] == 2  # half the long student's 4
     streaming = json.loads((out / "bundle" / "streaming.json").read_text())
@@ -220,23 +230,14 @@ def test_a_finished_bundle_taught_fewer_steps_streams_at_them(dry_recipe, tmp_pa
 def test_the_camera_decoder_of_a_finished_bundle_retrains_leaving_the_lidar_bit_for_bit(dry_recipe, tmp_path):
     from safetensors.torch import load_file
 
-    from world_model.bundle import reseal_bundle
     from world_model.train.recipe import RecipeOptions, run_recipe
 
-    out = tmp_path / "cameras"
-    shutil.copytree(dry_recipe / "data", out / "data")
-    shutil.copytree(rare_dir(dry_recipe / "data"), rare_dir(out / "data"))
-    source = shutil.copytree(dry_recipe / "bundle", tmp_path / "source")
-    manifest_path = source / "manifest.json"  # the shipped bundle's range head records its tuning
-    manifest = json.loads(manifest_path.read_text())
-    manifest["components"]["vae"]["tuned"] = {"command": "m4world tune-range-head", "frames": 3}
-    manifest_path.write_text(json.dumps(manifest))
-    reseal_bundle(source)
+    out, source = recorded_run_from_a_tuned_bundle(dry_recipe, tmp_path / "cameras")
     options = RecipeOptions("dry", "cpu", workers=1, progress=False, from_bundle=source, phases=("camera_decoder",))
     run_recipe(out, options)
     manifest = json.loads((out / "bundle" / "manifest.json").read_text())
     assert manifest["components"]["vae"]["stage"] == "camera_decoder"
-    assert manifest["components"]["vae"]["tuned"] == {"command": "m4world tune-range-head", "frames": 3}  # its head's
+    assert manifest["components"]["vae"]["tuned"] == TUNED  # its head's
     assert manifest["model_config"]["layout"]["camera_decoder"] and manifest["model_config"]["layout"]["range_head"]
     old, new = (load_file(str(b / "vae.safetensors")) for b in (source, out / "bundle"))
     assert old.keys() == new.keys()

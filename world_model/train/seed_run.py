@@ -67,7 +67,7 @@ def seed_run(bundle: str | Path, run_dir: str | Path) -> list[str]:
     vae = files.tensors["vae"]
     records = {c: {BUNDLE_RECORD: bundle_record(e)} for c, e in files.manifest["components"].items()}
     if cfg.layout.camera_decoder:
-        export("camera_decoder", vae, {"model_config": cfg.to_dict()})
+        export("camera_decoder", vae, {"model_config": cfg.to_dict(), **records["vae"]})
         cfg = replace(cfg, layout=replace(cfg.layout, camera_decoder=False))
         vae = {k: v for k, v in vae.items() if not k.startswith("camera_decoder.")}
     if cfg.layout.range_head:
