@@ -34,7 +34,7 @@ SCENE_CLASSES_CHECKED = ("road", "marking", "vehicle")
 # where they are costs (without the VAE's range head: 0.46 m MAE, 5.2 m on the object rays, the car
 # ahead farther on the horizon beams); the LiDAR's also fail a range head that leaves the close field
 # a tenth of a metre off (LiDAR MAE 0.038 m, object rays 0.058 m, the sectors' median 0.013 m).
-CARD_IOU = {"road": 0.995, "marking": 0.999, "vehicle": 0.981}
+CARD_IOU = {"road": 0.995, "marking": 0.999, "vehicle": 0.980}
 IOU_MARGIN = 0.02
 CARD_LIDAR_MAE_M = 0.004
 LIDAR_MAE_MARGIN_M = 0.02
