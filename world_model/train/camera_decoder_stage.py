@@ -35,6 +35,7 @@ from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 from world_model.train.vae_stage import (
     CameraTuning,
+    DecoderTargets,
     check_decoder_config,
     clip_styles,
     decoder_loss,
@@ -88,10 +89,11 @@ def camera_decoder_stage(run: StageRun) -> dict:
     decoder = vae.camera_decoder.train().requires_grad_(True)
     trainer = run.trainer(decoder, STAGE, model_config=cfg.to_dict())
     draw = rollout_batches(vae, data, tcfg.batch_size, cfg.sensors.num_cameras)
+    targets = DecoderTargets(data.sampler, data.labels, data.nearness, styles)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks, z = draw(tr)
-        return decoder_loss(tr, vae, data.sampler, data.labels, data.nearness, picks, z, styles, CameraTuning())
+        return decoder_loss(tr, vae, targets, picks, z, CameraTuning())
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:

@@ -51,6 +51,7 @@ from world_model.train.rollouts import rollout_conditions
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 from world_model.train.vae_stage import (
+    DecoderTargets,
     check_decoder_config,
     clip_styles,
     decoded_frames,
@@ -234,10 +235,11 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     # The LiDAR view too: the rollouts teach it to stand the returns where the scene's nearness map
     # says however the student's range latents lag.
     draw = rollout_batches(vae, data, tcfg.batch_size)
+    targets = DecoderTargets(data.sampler, data.labels, data.nearness, styles)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks, z = draw(tr)
-        return decoder_loss(tr, vae, data.sampler, data.labels, data.nearness, picks, z, styles)
+        return decoder_loss(tr, vae, targets, picks, z)
 
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:

@@ -202,13 +202,14 @@ def decoder_stage(run: StageRun) -> dict:
     raster = LabelRasterizer()
     styles = clip_styles(vae, clips)
     lengths = [len(x) for x in latents]
+    targets = DecoderTargets(sampler, labels, nearness, styles)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks = sampler.pick(tr.rng, tcfg.batch_size)
         frames = decoded_frames(tr.rng, vae, picks, lengths)
         z = torch.stack([latents[c][g, v] for (c, _, v), g in zip(picks, frames, strict=True)]).float()
         z = jittered_latents(tr, z, styles is not None)
-        return decoder_loss(tr, vae, sampler, labels, nearness, picks, z, styles)
+        return decoder_loss(tr, vae, targets, picks, z)
 
     summary = trainer.run(step, "decoder")
     if not run.place.is_main:
@@ -242,24 +243,31 @@ def jittered_latents(tr: Trainer, z: torch.Tensor, drift: bool) -> torch.Tensor:
     return z + style_drift(tr, len(z), z.shape[1:]) if drift else z
 
 
+@dataclass(frozen=True)
+class DecoderTargets:
+    """What a label decoder learns to draw, per clip of the run: its frames (``sampler``), camera
+    ``labels`` (:func:`cached_label_maps`), LiDAR ``nearness`` maps (:func:`cached_nearness_maps`)
+    and prompt ``styles`` (:func:`clip_styles`; None for a decoder without a style)."""
+
+    sampler: FrameSampler
+    labels: Sequence[np.ndarray]
+    nearness: Sequence[np.ndarray] | None
+    styles: Sequence[np.ndarray] | None
+
+
 def decoder_loss(
     tr: Trainer,
     vae: SensorVAE,
-    sampler: FrameSampler,
-    labels: Sequence[np.ndarray],
-    nearness: Sequence[np.ndarray] | None,
+    targets: DecoderTargets,
     picks: Sequence[tuple[int, int, int]],
     latents: torch.Tensor,
-    styles: Sequence[np.ndarray] | None,
     cameras_about_vehicles: CameraTuning | None = None,
 ) -> tuple[torch.Tensor, int]:
-    """The label decoder's loss on (clip, frame, view) ``picks`` decoded from ``latents`` (N, C, h, w)
-    with their label maps (each clip's camera ``labels``, :func:`cached_label_maps`; its LiDAR
-    ``nearness`` maps, :func:`cached_nearness_maps`; and their
-    clips' ``styles``), and the batch size. With ``cameras_about_vehicles`` the cameras' own
+    """The label decoder's loss on (clip, frame, view) ``picks`` of ``targets`` decoded from
+    ``latents`` (N, C, h, w), and the batch size. With ``cameras_about_vehicles`` the cameras' own
     decoder learns the recording about the vehicles only (:class:`CameraTuning`)."""
-    cfg = vae.cfg
-    batch = sampler.batch(picks)
+    cfg, styles, labels, nearness = vae.cfg, targets.styles, targets.labels, targets.nearness
+    batch = targets.sampler.batch(picks)
     images, is_lidar, weights = tr.shard(batch.images), tr.shard(batch.is_lidar), tr.shard(batch.weights)
     style = None if styles is None else tr.shard(torch.from_numpy(np.stack([styles[c] for c, _, _ in picks])))
     ids = tr.shard(torch.from_numpy(np.stack([picked_labels(labels, c, f, v, cfg) for c, f, v in picks])))
