@@ -53,6 +53,7 @@ REQUIRED = ("vae", "student")
 RANGE_HEAD_STAGE = "range_head"  # finishes the decoder it was trained on (model.json: "finishes")
 CAMERA_DECODER_STAGE = "camera_decoder"  # the VAE it started from, every weight of it kept
 LABEL_DECODER_STAGES = ("rollout_decoder", "decoder")  # a range head's decoder: the first exported
+CAMERA_DECODER_SOURCES = (RANGE_HEAD_STAGE, *LABEL_DECODER_STAGES)  # a camera decoder's VAE: the first exported
 DIGEST_KEY = "digest"  # manifest.json: sha256 of the manifest's other fields and the bundle's other JSON files
 BF16_COMPONENTS = ("student", "reference", "first_frame")  # DiTs; the VAE stays float32
 # May differ from the student's config (input width, depth); the first-frame model has the reference model's.
@@ -185,7 +186,7 @@ def _check_camera_decoder(run_dir: Path) -> None:
     """Refuse a camera decoder trained on another VAE than the run's latest one (a range head or a
     label decoder trained again after it): every weight of that VAE must be in it unchanged."""
     camera = load_file(str(run_dir / CAMERA_DECODER_STAGE / "model.safetensors"))
-    for stage in (RANGE_HEAD_STAGE, *LABEL_DECODER_STAGES):
+    for stage in CAMERA_DECODER_SOURCES:
         file = run_dir / stage / "model.safetensors"
         if file.exists():
             source = load_file(str(file))

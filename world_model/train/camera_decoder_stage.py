@@ -25,7 +25,7 @@ from dataclasses import replace
 
 import torch
 
-from world_model.bundle import BUNDLE_RECORD
+from world_model.bundle import BUNDLE_RECORD, CAMERA_DECODER_SOURCES
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
@@ -44,7 +44,6 @@ from world_model.train.vae_stage import (
 )
 
 STAGE = "camera_decoder"
-SOURCE_STAGES = ("range_head", "rollout_decoder", "decoder")  # the VAE copied from: the first exported
 
 
 def with_camera_decoder(cfg: ModelConfig) -> ModelConfig:
@@ -53,11 +52,12 @@ def with_camera_decoder(cfg: ModelConfig) -> ModelConfig:
 
 
 def load_source(run: StageRun) -> tuple[SensorVAE, dict]:
-    """The run's latest label decoder (the first export of :data:`SOURCE_STAGES`), range head and
-    all, gaining a camera decoder that starts as a copy of its decoder; and the source export's
-    bundle record (how its range head was tuned), which holds for the copy's export too: every weight
-    but the camera decoder's stays the source's."""
-    for stage in SOURCE_STAGES:
+    """The run's latest label decoder (the first export of
+    :data:`~world_model.bundle.CAMERA_DECODER_SOURCES`), range head and all, gaining a camera
+    decoder that starts as a copy of its decoder; and the source export's bundle record (how its
+    range head was tuned), which holds for the copy's export too: every weight but the camera
+    decoder's stays the source's."""
+    for stage in CAMERA_DECODER_SOURCES:
         path = run.run_dir / stage / EXPORT
         if path.with_suffix(".safetensors").exists():
             source = load_vae(path)
@@ -71,7 +71,7 @@ def load_source(run: StageRun) -> tuple[SensorVAE, dict]:
             vae.camera_decoder.load_state_dict(source.decoder.state_dict(), strict=False)
             meta = json.loads(path.with_suffix(".json").read_text())
             return vae, {BUNDLE_RECORD: meta[BUNDLE_RECORD]} if BUNDLE_RECORD in meta else {}
-    require_export(run.run_dir / SOURCE_STAGES[-1] / EXPORT, SOURCE_STAGES[-1])
+    require_export(run.run_dir / CAMERA_DECODER_SOURCES[-1] / EXPORT, CAMERA_DECODER_SOURCES[-1])
     raise AssertionError("unreachable: require_export raises")
 
 

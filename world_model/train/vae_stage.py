@@ -275,6 +275,8 @@ def decoder_loss(
     if nearness is not None:
         near = tr.shard(torch.from_numpy(np.stack([picked_nearness(nearness, c, f, v, cfg) for c, f, v in picks])))
     place = tr.place
+    # This rank's rows from the host's batch: which decoder draws a row is read on the CPU, never
+    # copied back from the training device.
     own_lidar = batch.is_lidar[place.local_rows(len(picks))] if place.distributed else batch.is_lidar
     z = tr.shard(latents)
     drawn = vae.decode(z, ids, style, near, own_lidar)
