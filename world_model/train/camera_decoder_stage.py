@@ -30,14 +30,12 @@ from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
 from world_model.train.exports import EXPORT, load_vae, require_export, run_vae
-from world_model.train.rollout_decoder_stage import rollout_batches, rollout_data
+from world_model.train.rollout_decoder_stage import rollout_batches, rollout_data, rollout_targets
 from world_model.train.run import StageRun
 from world_model.train.trainer import Trainer
 from world_model.train.vae_stage import (
     CameraTuning,
-    DecoderTargets,
     check_decoder_config,
-    clip_styles,
     decoder_loss,
     export_vae,
     vae_metrics,
@@ -84,12 +82,11 @@ def camera_decoder_stage(run: StageRun) -> dict:
     vae = source.to(run.place.device).eval().requires_grad_(False)
     cfg = vae.cfg
     data = rollout_data(run, cfg, plain, digest)
-    styles = clip_styles(vae, data.clips)
+    targets = rollout_targets(vae, data)
     torch.manual_seed(tcfg.seed)
     decoder = vae.camera_decoder.train().requires_grad_(True)
     trainer = run.trainer(decoder, STAGE, model_config=cfg.to_dict())
     draw = rollout_batches(vae, data, tcfg.batch_size, cfg.sensors.num_cameras)
-    targets = DecoderTargets(data.sampler, data.labels, data.nearness, styles)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks, z = draw(tr)
@@ -101,6 +98,6 @@ def camera_decoder_stage(run: StageRun) -> dict:
     decoder.load_state_dict(trainer.ema.model_state(decoder))
     vae = vae.cpu().eval()
     metrics = export_vae(
-        run, STAGE, vae, trainer.step, vae_metrics(vae, data.sampler, LabelRasterizer(), styles), **record
+        run, STAGE, vae, trainer.step, vae_metrics(vae, data.sampler, LabelRasterizer(), targets.styles), **record
     )
     return {**summary, "rollout_clips": len(data.rollouts), "metrics": metrics}

@@ -179,6 +179,12 @@ def rollout_data(run: StageRun, cfg: ModelConfig, plain: SensorVAE, digest: str)
     return RolloutData(clips, FrameSampler(clips, cfg), latents, labels, nearness, picked, rollouts)
 
 
+def rollout_targets(vae: SensorVAE, data: RolloutData) -> DecoderTargets:
+    """What a decoder tuned on the rollouts learns to draw: the run's clips' frames, label and
+    nearness maps, and their prompts' styles for ``vae``'s decoder."""
+    return DecoderTargets(data.sampler, data.labels, data.nearness, clip_styles(vae, data.clips))
+
+
 def rollout_batches(
     vae: SensorVAE, data: RolloutData, batch_size: int, views: int | None = None
 ) -> Callable[[Trainer], tuple[list[tuple[int, int, int]], torch.Tensor]]:
@@ -231,11 +237,10 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     vae.encoder.requires_grad_(False)
     trainer = run.trainer(vae, STAGE)
     raster = LabelRasterizer()
-    styles = clip_styles(vae, data.clips)
+    targets = rollout_targets(vae, data)
     # The LiDAR view too: the rollouts teach it to stand the returns where the scene's nearness map
     # says however the student's range latents lag.
     draw = rollout_batches(vae, data, tcfg.batch_size)
-    targets = DecoderTargets(data.sampler, data.labels, data.nearness, styles)
 
     def step(tr: Trainer) -> tuple[torch.Tensor, int]:
         picks, z = draw(tr)
@@ -244,5 +249,5 @@ def rollout_decoder_stage(run: StageRun) -> dict:
     summary = trainer.run(step, STAGE)
     if not run.place.is_main:
         return summary
-    metrics = export_decoder(run, STAGE, trainer, vae, plain, data.sampler, raster, styles)
+    metrics = export_decoder(run, STAGE, trainer, vae, plain, data.sampler, raster, targets.styles)
     return {**summary, "rollout_clips": len(data.rollouts), "metrics": metrics}
