@@ -7,8 +7,9 @@ several times *slower* than float32 (``m4world bench model`` measures both peaks
 it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: on a Xeon with AVX512-BF16
 but no AMX, ``m4world bench model`` measured a matmul peak of 70 GFLOP/s in bf16 against 119 in
 float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps bf16 there, the
-precision the shipped checkpoint's agreement figures are measured in: float32 moved them within
-their intervals but put more world-model collisions in the rainy dusk (docs/experiments.md).
+precision the shipped checkpoint's headline figures are measured in; at sixteen seeds float32 ranks
+the agreement report's zoo as well (docs/experiments.md), so ``dtype="float32"`` is the faster
+choice on such a CPU.
 Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
 :func:`dit_precision`.
 """
