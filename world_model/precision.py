@@ -5,7 +5,7 @@ emulates bf16 (AVX2 laptops, AVX512 CPUs without the BF16 extension) its matrix 
 several times *slower* than float32 (``m4world bench model`` measures both peaks), so
 ``dtype="auto"`` picks bf16 only where the hardware multiplies it natively: CUDA GPUs that support
 it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: on a Xeon with AVX512-BF16
-but no AMX, ``m4world bench model`` measured a matmul peak of 70 GFLOP/s in bf16 against 119 in
+but no AMX, ``m4world bench model`` measured a matmul peak of 90 GFLOP/s in bf16 against 224 in
 float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps bf16 there, the
 precision the shipped checkpoint's headline figures are measured in; at sixteen seeds float32 ranks
 the agreement report's zoo as well (docs/experiments.md), so ``dtype="float32"`` is the faster
