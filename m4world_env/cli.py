@@ -551,7 +551,7 @@ def _add_eval_report_arguments(e: argparse.ArgumentParser) -> None:
         default="auto",
         choices=DTYPES,
         help="--report: the DiTs' precision, as the env's config model.dtype (auto: bf16 only where the CPU "
-        "multiplies it natively); part of each cached row's key",
+        "multiplies it faster than float32); part of each cached row's key",
     )
     e.add_argument(
         "--context-frames",
@@ -768,7 +768,7 @@ def _add_agreement_parser(sub: argparse._SubParsersAction) -> None:
         default="auto",
         choices=DTYPES,
         help="the world model's DiTs' precision, as the env's config model.dtype (auto: bf16 where the CPU "
-        "multiplies it natively)",
+        "multiplies it faster than float32)",
     )
     ag.set_defaults(func=_cmd_agreement)
 

@@ -80,8 +80,9 @@ class ModelBackendConfig:
     # Where the model runs: "cpu", "cuda", "cuda:N", or "auto" (CUDA when torch sees it, else CPU).
     device: str = "cpu"
     # DiT weights and activations (and the camera decoder): "auto" = bf16 where the checkpoint was
-    # trained for it (the default preset) and the device computes bf16 natively (AVX512-BF16/AMX
-    # CPUs, bf16 GPUs), else float32; or force "float32" / "bfloat16". LiDAR decodes in float32.
+    # trained for it (the default preset) and the device multiplies bf16 faster than float32 (bf16
+    # GPUs, AMX CPUs, AVX512-BF16 but Intel's: world_model/precision.py), else float32; or force
+    # "float32" / "bfloat16". LiDAR decodes in float32.
     dtype: str = "auto"
     # torch.compile the student's blocks (see MultiViewDiT.compile_blocks): faster steps after
     # a one-off compilation of tens of seconds at the first steps; needs a C++ compiler.

@@ -1,4 +1,4 @@
-"""The DiTs' precision: "auto" runs bf16 only where the device multiplies it natively."""
+"""The DiTs' precision: "auto" runs bf16 only where the device multiplies it faster than float32."""
 
 from __future__ import annotations
 
@@ -19,15 +19,45 @@ from world_model.rollout.runtime import load_world_model
 
 def test_forced_dtypes_ignore_the_hardware(monkeypatch):
     for native in (False, True):
-        monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda native=native: native)
+        monkeypatch.setattr(precision, "cpu_bf16_is_fast", lambda native=native: native)
         for trained in (False, True):
             assert resolve_bf16("bfloat16", trained, "cpu") is True
             assert resolve_bf16("float32", trained, "cpu") is False
 
 
-def test_auto_needs_a_bf16_checkpoint_and_native_bf16(monkeypatch):
+@pytest.mark.parametrize(
+    ("amx", "avx512_bf16", "vendor", "fast"),
+    [
+        (True, True, precision.INTEL, True),
+        (False, True, precision.INTEL, False),  # slower than float32 there (the module docstring)
+        (False, True, "AuthenticAMD", True),
+        (False, True, "", True),
+        (False, False, "AuthenticAMD", False),  # emulated
+        (False, False, precision.INTEL, False),
+    ],
+)
+def test_a_cpu_runs_bf16_with_amx_or_avx512_bf16_not_intels(monkeypatch, amx, avx512_bf16, vendor, fast):
+    probes = {"_is_amx_tile_supported": amx, "_is_avx512_bf16_supported": avx512_bf16}
+    for name, value in probes.items():
+        monkeypatch.setattr(torch.cpu, name, lambda value=value: value, raising=False)
+    monkeypatch.setattr(precision, "cpu_vendor", lambda: vendor)
+    assert precision.cpu_has_native_bf16() is (amx or avx512_bf16)
+    assert bf16_is_fast("cpu") is fast
+
+
+def test_the_cpu_vendor_is_read_from_linux():
+    vendor = precision.cpu_vendor()
+    assert isinstance(vendor, str)
+    try:
+        with open("/proc/cpuinfo") as info:
+            assert vendor in info.read()
+    except OSError:
+        assert vendor == ""
+
+
+def test_auto_needs_a_bf16_checkpoint_and_fast_bf16(monkeypatch):
     for native in (False, True):
-        monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda native=native: native)
+        monkeypatch.setattr(precision, "cpu_bf16_is_fast", lambda native=native: native)
         assert bf16_is_fast("cpu") is native
         assert resolve_bf16("auto", True, "cpu") is native
         assert resolve_bf16("auto", False, "cpu") is False
@@ -62,8 +92,8 @@ def bf16_trained_bundle(tmp_path_factory):
 
 
 @pytest.mark.parametrize("native", [False, True])
-def test_auto_loads_bf16_weights_only_on_native_bf16(monkeypatch, bf16_trained_bundle, native):
-    monkeypatch.setattr(precision, "cpu_has_native_bf16", lambda: native)
+def test_auto_loads_bf16_weights_only_where_bf16_is_fast(monkeypatch, bf16_trained_bundle, native):
+    monkeypatch.setattr(precision, "cpu_bf16_is_fast", lambda: native)
     wm = load_world_model(bf16_trained_bundle, dtype="auto")
     want = torch.bfloat16 if native else torch.float32
     for dit in (wm.student, wm.reference):

@@ -3,13 +3,13 @@
 A checkpoint trained with ``dit.autocast_bf16`` may run its DiTs in bfloat16. Where PyTorch
 emulates bf16 (AVX2 laptops, AVX512 CPUs without the BF16 extension) its matrix products run
 several times *slower* than float32 (``m4world bench model`` measures both peaks), so
-``dtype="auto"`` picks bf16 only where the hardware multiplies it natively: CUDA GPUs that support
-it, and CPUs with AVX512-BF16 or AMX tiles. Native is not always faster: on a Xeon with AVX512-BF16
-but no AMX, ``m4world bench model`` measured a matmul peak of 90 GFLOP/s in bf16 against 224 in
-float32, and one env stepped faster in float32 (docs/performance.md). "auto" keeps bf16 there, the
-precision the shipped checkpoint's headline figures are measured in; at sixteen seeds float32 ranks
-the agreement report's zoo as well (docs/experiments.md), so ``dtype="float32"`` is the faster
-choice on such a CPU.
+``dtype="auto"`` picks bf16 only where the hardware multiplies it faster than float32: CUDA GPUs
+that support it, CPUs with AMX tiles, and CPUs whose AVX512-BF16 is not Intel's. Without AMX,
+Intel's AVX512-BF16 multiplies bf16 slower than float32: on a 2-core Xeon with AVX512-BF16 and no
+AMX, the bf16 matmul peak was 90 GFLOP/s against float32's 224 (``m4world bench model``), and one
+env stepped in 213 ms in float32 against 299 in bf16 (docs/performance.md); at
+sixteen seeds float32 ranks the agreement report's zoo as well as bf16 (the same note). Other
+vendors' AVX512-BF16 (AMD's Zen 4) keeps bf16: no such CPU has been timed in both precisions.
 Training stages resolve the same choice (``StageRuntime(dtype="auto")``) through
 :func:`dit_precision`.
 """
@@ -35,12 +35,41 @@ def check_dtype(dtype: str) -> None:
         raise ValueError(f"dtype must be one of {', '.join(DTYPES)}, got {dtype!r}")
 
 
-def cpu_has_native_bf16() -> bool:
-    """Whether this CPU multiplies bf16 natively (AVX512-BF16 or AMX), as PyTorch detects it."""
+def _cpu_probe(name: str) -> bool:
     import torch
 
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    return any(getattr(torch.cpu, name, lambda: False)() for name in checks)
+    return bool(getattr(torch.cpu, name, lambda: False)())
+
+
+def cpu_has_amx() -> bool:
+    """Whether this CPU has AMX tiles, as PyTorch detects them."""
+    return _cpu_probe("_is_amx_tile_supported")
+
+
+def cpu_has_native_bf16() -> bool:
+    """Whether this CPU multiplies bf16 natively (AVX512-BF16 or AMX), as PyTorch detects it."""
+    return _cpu_probe("_is_avx512_bf16_supported") or cpu_has_amx()
+
+
+INTEL = "GenuineIntel"
+
+
+def cpu_vendor() -> str:
+    """The CPU's vendor id as Linux reports it (``INTEL``, "AuthenticAMD"); "" where unknown."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("vendor_id"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def cpu_bf16_is_fast() -> bool:
+    """Whether this CPU multiplies bf16 faster than float32: AMX tiles, or AVX512-BF16 not Intel's
+    (see the module docstring)."""
+    return cpu_has_amx() or (cpu_has_native_bf16() and cpu_vendor() != INTEL)
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
@@ -64,13 +93,12 @@ def resolve_device(name: str | torch.device) -> torch.device:
 
 
 def bf16_is_fast(device: torch.device | str) -> bool:
-    """Whether ``device`` multiplies bf16 natively (not emulated, which is several times slower than
-    float32)."""
+    """Whether ``device`` multiplies bf16 faster than float32 (natively, and not at a lower rate)."""
     import torch
 
     kind = torch.device(device).type
     if kind == "cpu":
-        return cpu_has_native_bf16()
+        return cpu_bf16_is_fast()
     if kind == "cuda":
         return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
     return False
@@ -78,7 +106,7 @@ def bf16_is_fast(device: torch.device | str) -> bool:
 
 def resolve_bf16(dtype: str, trained_bf16: bool, device: torch.device | str) -> bool:
     """Run the DiTs in bf16? ``dtype``: "auto" (bf16 when the checkpoint was trained with bf16
-    autocast *and* the device computes bf16 natively), "float32" or "bfloat16" (forced)."""
+    autocast *and* the device computes bf16 faster than float32), "float32" or "bfloat16" (forced)."""
     check_dtype(dtype)
     if dtype == "auto":
         return trained_bf16 and bf16_is_fast(device)

@@ -6,7 +6,7 @@ streaming config (one frame longer where they refresh the context frame) + 1 cac
 of the DiT, then VAE decoding of the newest frame (8 envs x views), as the env does
 (:func:`chunk_forwards`; ``env_step_estimate_s``). This script
 times one DiT forward and that decode the way the env runs them (``--dtypes auto``: bf16 weights
-when ``dit.autocast_bf16`` and the CPU multiplies bf16 natively; ``fp32``/``bf16`` force one);
+when ``dit.autocast_bf16`` and the CPU multiplies bf16 faster than float32; ``fp32``/``bf16`` force one);
 ``--compile`` adds rows with the blocks compiled (env ``config.model.compile``).
 ``--device`` times another device than the CPU (cuda[:N], or auto: CUDA when available; its
 peak and rows alike). ``--heaps``: the process's allocator as the train CLIs set it on CPU (``retain``:
@@ -91,7 +91,7 @@ def matmul_peak(dtype: torch.dtype, repeats: int, device: torch.device = CPU) ->
 
 def row_dtype(cfg: ModelConfig, dtype_name: str, device: torch.device) -> str:
     """The precision a row of ``dtype_name`` runs in: "auto" as the env's dtype "auto" (bf16 only where
-    the checkpoint was trained for it and the device multiplies it natively)."""
+    the checkpoint was trained for it and the device multiplies it faster than float32)."""
     if dtype_name == "auto":
         return "bf16" if resolve_bf16("auto", cfg.dit.autocast_bf16, device) else "fp32"
     return dtype_name

@@ -288,7 +288,7 @@ def main(argv: list[str] | None = None) -> None:
         default="auto",
         choices=DTYPES,
         help="the DiTs' precision, as the env's config={'model': {'dtype': ...}} (auto: bf16 only "
-        "where the device multiplies it natively)",
+        "where the device multiplies it faster than float32)",
     )
     p.add_argument("--device", default="cpu", help="cpu, cuda[:N] or auto (CUDA when available)")
     p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=[*SECTIONS, *OPTIONAL_SECTIONS])

@@ -179,7 +179,7 @@ class DitConfig:
     timestep_freq_dim: int = 256  # sinusoidal features of the timestep
     timestep_scale: float = 1000.0  # t in [0, 1] is scaled to the usual diffusion-step range first
     rope_theta: float = 10000.0
-    autocast_bf16: bool = True  # CPU bf16 autocast: ~2x matmul throughput on AVX512-BF16
+    autocast_bf16: bool = True  # trained for bf16 autocast: run in it where bf16 is fast (world_model/precision.py)
 
     def __post_init__(self) -> None:
         if self.heads < 1 or self.dim % self.heads:

@@ -262,7 +262,7 @@ def load_world_model(
     """Load and verify a checkpoint bundle (default: the shipped one), streaming as its
     ``streaming.json`` says. ``student`` replaces the student's settings, streaming included. ``dtype`` of the
     DiTs: "auto" (bf16 when the checkpoint was trained with ``dit.autocast_bf16`` and ``device``
-    computes bf16 natively, else float32: :func:`world_model.precision.resolve_bf16`),
+    multiplies bf16 faster than float32, else float32: :func:`world_model.precision.resolve_bf16`),
     "float32" or "bfloat16". ``context_frames`` runs the student with another rolling window than
     the one it was trained with (None: the bundle's ``clip.context_frames``): a study knob."""
     check_dtype(dtype)

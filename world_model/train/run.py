@@ -40,7 +40,7 @@ class StageRuntime:
     record.
 
     ``dtype``: the DiTs' autocast, "auto" (bf16 when the config asks for it and the device
-    multiplies bf16 natively: elsewhere bf16 is emulated and several times slower), "float32" or
+    multiplies bf16 faster than float32, :func:`world_model.precision.bf16_is_fast`), "float32" or
     "bfloat16". ``device``: ``auto``, ``cpu``, ``cuda`` or ``cuda:N``; ``place`` (a process of a
     ``torchrun`` group, :func:`world_model.train.device.init_place`) overrides it.
     ``compile_model``: ``torch.compile`` the trained networks. ``time_limit_s``: the stage stops this

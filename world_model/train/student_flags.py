@@ -65,7 +65,7 @@ def add_student_flags(p: argparse.ArgumentParser | argparse._ArgumentGroup, long
         choices=DTYPES,
         default="auto",
         help="the DiTs' autocast while training (default auto: bf16 when the preset asks for it and this CPU "
-        "multiplies bf16 natively, else float32; checkpoints do not record it)",
+        "multiplies bf16 faster than float32, else float32; checkpoints do not record it)",
     )
     p.add_argument(
         "--default-heap",
