@@ -51,6 +51,24 @@ def one_thread():
     torch.set_num_threads(before)
 
 
+def test_group_threads_run_torch_on_the_process_thread_count(tiny_bundle, one_thread):
+    """A fresh thread's first small GEMM would use OpenMP's default thread count (a thread per
+    core) and round differently from the main thread's; the groups' and the decoder's threads
+    start on the process's count."""
+    gen = torch.Generator().manual_seed(0)
+    x, w = torch.randn(6, 256, generator=gen), torch.randn(128, 256, generator=gen)
+    main = torch.nn.functional.linear(x, w)
+    wm = load_world_model(tiny_bundle, dtype="float32")
+    rollouts = ShardedRollouts(wm, 2, 2)
+    beside = RolloutBatch(wm, 1, decode_beside=True)
+    try:
+        for pool in (rollouts._pool, beside._beside):
+            firsts = [pool.submit(torch.nn.functional.linear, x, w).result() for _ in range(2)]
+            assert all(torch.equal(first, main) for first in firsts)
+    finally:
+        rollouts.close()
+
+
 def _episode(bundle, rollout_threads: int) -> tuple[list, type]:
     """Observations, rewards and flags of a 3-env vector env over a reset, 6 steps, a reset of sub-env
     1 alone (one group's row) and 24 more steps, in which sub-env 0 leaves the road and restarts

@@ -51,6 +51,14 @@ def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
     return digest.digest()
 
 
+def same_torch_threads() -> None:
+    """A thread pool's initializer: the thread runs torch's CPU kernels on the process's thread
+    count. A new thread starts from OpenMP's default, a thread per core, which torch's GEMMs and
+    convolutions read until one of torch's own parallel loops sets it: they would spread over
+    threads that contend with the other groups' (and split a small GEMM, so round it, otherwise)."""
+    torch.set_num_threads(torch.get_num_threads())
+
+
 def check_starts(rows: Sequence[int], frames: Sequence[SceneFrame], seeds: Sequence[int], arrays: Sequence) -> None:
     """A ``start_rows`` call's arguments: distinct rows, one frame, seed and arrays per row."""
     if not len(rows) == len(frames) == len(seeds) == len(arrays) or len(set(rows)) != len(rows):
@@ -85,7 +93,7 @@ class RolloutBatch:
         self.wm = wm
         self.n = num_rollouts
         self.restart_in_place = num_rollouts > 1 if restart_in_place is None else restart_in_place
-        self._beside = ThreadPoolExecutor(1, thread_name_prefix="decode") if decode_beside else None
+        self._beside = ThreadPoolExecutor(1, "decode", initializer=same_torch_threads) if decode_beside else None
         self.every_frame = every_frame
         self.sensors = sensors
         self.timer = timer

@@ -25,7 +25,7 @@ import numpy as np
 
 from world_model.model.conditions import ConditionArrays
 from world_model.observation import ALL_SENSORS, Observation, SensorSelection
-from world_model.rollout.batch import RolloutBatch, check_starts
+from world_model.rollout.batch import RolloutBatch, check_starts, same_torch_threads
 from world_model.rollout.runtime import WorldModel
 from world_model.rollout.timing import StageTimer, timed
 from world_model.scene import SceneFrame
@@ -76,7 +76,7 @@ class ShardedRollouts:
             for g in self.groups
         ]
         self.timer: StageTimer | None = None
-        self._pool = ThreadPoolExecutor(shards, thread_name_prefix="rollouts")
+        self._pool = ThreadPoolExecutor(shards, "rollouts", initializer=same_torch_threads)
 
     def close(self) -> None:
         """Stop the groups' threads (they also stop when this object is collected)."""
