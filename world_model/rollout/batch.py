@@ -53,9 +53,9 @@ def start_key(arrays: ConditionArrays, seed: int, frame: SceneFrame) -> bytes:
 
 def same_torch_threads() -> None:
     """A thread pool's initializer: the thread runs torch's CPU kernels on the process's thread
-    count. A new thread starts from OpenMP's default, a thread per core, which torch's GEMMs and
-    convolutions read until one of torch's own parallel loops sets it: they would spread over
-    threads that contend with the other groups' (and split a small GEMM, so round it, otherwise)."""
+    count from its first op. A new thread starts from OpenMP's default, a thread per core, until
+    one of torch's ops sets it: its first small GEMM would split over the cores, and round
+    otherwise than the same product on another thread."""
     torch.set_num_threads(torch.get_num_threads())
 
 
