@@ -67,6 +67,7 @@ def test_group_threads_run_torch_on_the_process_thread_count(tiny_bundle, one_th
             assert all(torch.equal(first, main) for first in firsts)
     finally:
         rollouts.close()
+        beside._beside.shutdown()
 
 
 def _episode(bundle, rollout_threads: int) -> tuple[list, type]:
