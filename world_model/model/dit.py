@@ -42,6 +42,7 @@ from world_model.model.attention import (
 from world_model.model.conditions import Conditions
 from world_model.model.config import ModelConfig
 from world_model.model.rope import rope_tables, rotation_tables
+from world_model.model.rows import whole_if_split_free
 from world_model.model.tokens import ControlTokenizer, ControlTokens, frame_rows
 from world_model.precision import bf16_autocast, built_autocast_bf16
 
@@ -428,11 +429,15 @@ class MultiViewDiT(nn.Module):
         kvs: list[KV] = []
         last = len(self.blocks) - 1
         out_run = run.frames_from(hooks.context_only_frames) if hooks.context_only_frames else None
-        for i, block in enumerate(self.blocks):
-            ctx = None if hooks.kv_context is None else hooks.kv_context[i]
-            h, kv = block(h, run, ctx, cross[i], out_run if i == last else None)
-            if hooks.return_kv:
-                kvs.append(kv)
+        # What shapes the blocks' linears and attention products (adapters' linears see the same rows).
+        context = None if hooks.kv_context is None else tuple(hooks.kv_context[0][0].shape)
+        shapes = (tuple(h.shape), hooks.context_only_frames, context, *(tuple(kv[0].shape) for kv in cross[0]))
+        with whole_if_split_free(self, shapes):
+            for i, block in enumerate(self.blocks):
+                ctx = None if hooks.kv_context is None else hooks.kv_context[i]
+                h, kv = block(h, run, ctx, cross[i], out_run if i == last else None)
+                if hooks.return_kv:
+                    kvs.append(kv)
         return h, kvs
 
     def _velocity(self, h: torch.Tensor, temb: torch.Tensor, run: _Run, first: int) -> torch.Tensor:

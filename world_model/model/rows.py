@@ -18,6 +18,12 @@ alone (the QK-norm's: each vector is reduced by itself). ``m4world bench row_ind
 --no-split`` shows which ops differ; ``tests/test_vector_equality.py`` holds a vector env's rows
 to its single envs' bit for bit.
 
+The interception has a cost of its own: the DiT's blocks make thousands of calls a forward,
+nearly all passed through whole (an 8-env vector step 10% slower than unsplit with every call
+through the mode, 4% with the blocks run plainly; ``m4world bench row_independence --rows 8 --time
+4``). :func:`whole_if_split_free` runs the blocks without the mode once a run of the same shapes
+split nothing: the mode decides from operand shapes alone, so the same shapes split nothing again.
+
 The tensors of a batched forward are laid out row-major: dim 0 is ``B * k`` with each rollout's
 ``k`` entries contiguous (``(B, ...)``, ``(B * V, ...)``, ``(B * T, ...)``), so a call's operands
 are cut along dim 0 into ``B`` equal blocks. Operands whose dim 0 is not a multiple of ``B``
@@ -26,8 +32,10 @@ are cut along dim 0 into ``B`` equal blocks. Operands whose dim 0 is not a multi
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import weakref
+from collections.abc import Hashable, Iterator
 from contextlib import contextmanager
+from contextvars import ContextVar
 
 import torch
 import torch.nn.functional as F
@@ -69,6 +77,7 @@ class _SplitRows(TorchFunctionMode):
     def __init__(self, rows: int) -> None:
         super().__init__()
         self.rows = rows
+        self.splits = 0  # calls cut into row blocks so far
 
     def __torch_function__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204 (torch's protocol)
         kwargs = kwargs or {}
@@ -76,7 +85,7 @@ class _SplitRows(TorchFunctionMode):
             return func(*args, **kwargs)
         first, b = args[0], self.rows
         n = first.shape[0] if first.ndim else 0
-        if first.device.type != "cpu" or n == 0 or n % b or _reduces_dim0(func, args, kwargs):
+        if first.device.type != "cpu" or n == 0 or first.numel() == 0 or n % b or _reduces_dim0(func, args, kwargs):
             return func(*args, **kwargs)
         if _reduces_last_dim_only(func, args, kwargs):
             return func(*args, **kwargs)
@@ -92,8 +101,15 @@ class _SplitRows(TorchFunctionMode):
             rows_per_block = first.numel() // max(1, first.shape[-1]) // b
             if rows_per_block >= MIN_CONSISTENT_GEMM_ROWS:
                 return func(*args, **kwargs)
+        self.splits += 1
         parts = [list(a.chunk(b)) if cut else [a] * b for a, cut in zip(args, batched, strict=True)]
         return torch.cat([func(*(p[i] for p in parts), **kwargs) for i in range(b)])
+
+
+# The mode of the innermost split_rows of this thread (torch's mode stack is per thread too).
+_ACTIVE: ContextVar[_SplitRows | None] = ContextVar("split_rows", default=None)
+# Per owner (a module), the (rows, key) pairs whose stretch split nothing under the mode.
+_SPLIT_FREE: weakref.WeakKeyDictionary[object, set[Hashable]] = weakref.WeakKeyDictionary()
 
 
 def _reduced_dims(func: object, args: tuple, kwargs: dict) -> tuple[int, ...] | None:
@@ -127,5 +143,32 @@ def split_rows(rows: int) -> Iterator[None]:
     if rows <= 1:
         yield
         return
-    with _SplitRows(rows):
+    mode = _SplitRows(rows)
+    token = _ACTIVE.set(mode)
+    try:
+        with mode:
+            yield
+    finally:
+        _ACTIVE.reset(token)
+
+
+@contextmanager
+def whole_if_split_free(owner: object, key: Hashable) -> Iterator[None]:
+    """Inside :func:`split_rows`, the block's ops run as plain calls, without the mode, when an
+    earlier run of ``owner``'s block with the same ``key`` split none of them; a run that split
+    something stays under the mode every time. ``key`` must determine the shape of every operand
+    the block hands to :data:`ROW_DEPENDENT_OPS` (the mode's decisions depend on nothing else).
+    Plain calls hide the block's ops from every other torch-function mode too."""
+    mode = _ACTIVE.get()
+    if mode is None:
         yield
+        return
+    seen = _SPLIT_FREE.setdefault(owner, set())
+    if (mode.rows, key) in seen:
+        with torch._C.DisableTorchFunction():
+            yield
+        return
+    before = mode.splits
+    yield
+    if mode.splits == before:
+        seen.add((mode.rows, key))
