@@ -13,10 +13,12 @@ from world_model.model.text import MiniLMTextEncoder
 KEYS = {"observation_keys": ["cameras", "lidar", "state"]}
 ACTIONS = np.array([[0.3, 0.0], [0.0, 0.0], [-0.3, 0.0]], np.float32)
 
-# Torch threads 1 vs 2 on CPU: the LiDAR decoder's fp32 convolutions and group norms split their
-# reductions by thread, so ranges move by up to ~1e-4 m (5 steps of the shipped checkpoint);
-# cameras (uint8) and everything else stayed identical. Equality holds at one thread count.
-THREADS_LIDAR_ATOL_M = 1e-3
+# Torch threads 1 vs 2 on CPU: CPU kernels split their work and reductions by thread, so the
+# shipped checkpoint's frames move a little (the sunny highway, seed 3, 6 frames on a 2-core AMD
+# EPYC: pixels by up to 2 levels, ranges by up to 1.03e-3 m); the traffic state stays identical.
+# Equality holds at one thread count.
+THREADS_CAMERA_ATOL = 4
+THREADS_LIDAR_ATOL_M = 5e-3
 
 
 def _singles(scenario, bundle, cfg, n):
@@ -111,17 +113,18 @@ def test_shipped_checkpoint_vector_rows_equal_single_envs_exactly(one_thread):
 def test_thread_count_moves_lidar_within_the_documented_tolerance():
     def episode(threads: int) -> list[dict]:
         before = torch.get_num_threads()
-        torch.set_num_threads(threads)
-        try:
-            env = M4WorldEnv("merge_cut_in", backend="world_model", config=KEYS)
-            out = [env.reset(seed=5)[0]]
+        try:  # the env sets the process's thread count from its config
+            env = M4WorldEnv("highway_sunny_day", backend="world_model", config={**KEYS, "model": {"threads": threads}})
+            assert torch.get_num_threads() == threads
+            out = [env.reset(seed=3)[0]]
             out += [env.step(ACTIONS[0])[0] for _ in range(5)]
             return out
         finally:
             torch.set_num_threads(before)
 
     for a, b in zip(episode(1), episode(2), strict=True):
-        assert np.array_equal(a["cameras"], b["cameras"]) and np.array_equal(a["state"], b["state"])
+        assert np.array_equal(a["state"], b["state"])
+        assert np.abs(a["cameras"].astype(int) - b["cameras"]).max() <= THREADS_CAMERA_ATOL
         assert np.abs(a["lidar"] - b["lidar"]).max() <= THREADS_LIDAR_ATOL_M
 
 
