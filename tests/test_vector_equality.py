@@ -13,10 +13,10 @@ from world_model.model.text import MiniLMTextEncoder
 KEYS = {"observation_keys": ["cameras", "lidar", "state"]}
 ACTIONS = np.array([[0.3, 0.0], [0.0, 0.0], [-0.3, 0.0]], np.float32)
 
-# Torch threads 1 vs 2 on CPU: CPU kernels split their work and reductions by thread, so the
-# shipped checkpoint's frames move a little (the sunny highway, seed 3, 6 frames on a 2-core AMD
-# EPYC: pixels by up to 2 levels, ranges by up to 1.03e-3 m); the traffic state stays identical.
-# Equality holds at one thread count.
+# Torch threads 1 vs 2 on CPU: float32 kernels split their reductions by thread (the text
+# encoder's object descriptions, the LiDAR decoder), so the shipped checkpoint's frames move a
+# little (the sunny highway, seed 3, 6 frames on a 2-core AMD EPYC: pixels by up to 2 levels,
+# ranges by up to 1.03e-3 m); the traffic state stays identical. Equality holds at one thread count.
 THREADS_CAMERA_ATOL = 4
 THREADS_LIDAR_ATOL_M = 5e-3
 
