@@ -110,7 +110,7 @@ def test_shipped_checkpoint_vector_rows_equal_single_envs_exactly(one_thread):
 
 
 @pytest.mark.slow
-def test_thread_count_moves_lidar_within_the_documented_tolerance():
+def test_thread_count_moves_frames_within_the_documented_tolerance():
     def episode(threads: int) -> list[dict]:
         before = torch.get_num_threads()
         try:  # the env sets the process's thread count from its config
