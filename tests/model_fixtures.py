@@ -172,3 +172,17 @@ def train_cli(*args: str) -> dict:
     out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     return json.loads(out.stdout)
+
+
+def one_streamed_chunk(student, scfg, batch: int = 2):  # noqa: ANN201 - a torch.Tensor
+    """The first chunk an exported ``student`` streams with its student config ``scfg`` after an
+    all-zero first frame, under synthetic conditions: (batch, 1, V, C, h, w)."""
+    import torch
+
+    from world_model.student import StreamingEngine
+
+    cond = tiny_conditions(student.cfg, 2, batch=batch)
+    engine = StreamingEngine(student, scfg, torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        engine.start(torch.zeros(batch, *student.cfg.latent_shape(1)), cond.frames(0, 1))
+        return engine.step(cond.frames(1, 2))

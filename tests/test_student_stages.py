@@ -9,12 +9,11 @@ import torch
 from tests.cli_status import exit_status
 from tests.model_fixtures import QUIET
 from world_model.model import get_preset
-from world_model.student import StreamingEngine
 from world_model.train import stage_options, train_stage
 from world_model.train.exports import load_student
 from world_model.train.rollouts import reflected_index
 
-from .model_fixtures import make_dataset, tiny_conditions, train_cli
+from .model_fixtures import make_dataset, one_streamed_chunk, tiny_conditions, train_cli
 
 
 @pytest.fixture(scope="module")
@@ -43,13 +42,8 @@ def test_student_stages_end_to_end_from_the_cli_and_resume(run):
     # The exported student streams with the engine.
     student, scfg = load_student(rundir / "long" / "model")
     assert scfg.num_steps == 4
-    cfg = student.cfg
-    cond = tiny_conditions(cfg, 3, batch=2)
-    eng = StreamingEngine(student, scfg, torch.Generator().manual_seed(0))
-    with torch.no_grad():
-        eng.start(torch.zeros(2, *cfg.latent_shape(1)), cond.frames(0, 1))
-        out = eng.step(cond.frames(1, 2))
-    assert out.shape == (2, *cfg.latent_shape(1)) and torch.isfinite(out).all()
+    out = one_streamed_chunk(student, scfg)
+    assert out.shape == (2, *student.cfg.latent_shape(1)) and torch.isfinite(out).all()
 
 
 def test_student_stage_needs_its_predecessor(run, tmp_path):

@@ -36,7 +36,7 @@ from safetensors.torch import load_file
 
 from world_model.data.clips import sha256_file, write_json_atomic
 from world_model.lora import META, WEIGHTS
-from world_model.streaming import STREAMING_FILE, StreamingConfig
+from world_model.streaming import STREAMING_FILE, StreamingConfig, taught_streaming
 from world_model.student.config import StudentConfig
 
 BUNDLE_FORMAT = "m4world-bundle"
@@ -45,7 +45,7 @@ DEFAULT_BUNDLE = Path(__file__).parent / "checkpoints" / "default"
 # Component -> the run stages that may provide it, preferred first.
 COMPONENT_STAGES = {
     "vae": ("camera_decoder", "range_head", "rollout_decoder", "decoder", "vae"),
-    "student": ("steps", "long", "dmd", "ode"),
+    "student": ("shallow", "steps", "long", "dmd", "ode"),
     "reference": ("reference",),
     "first_frame": ("first_frame",),
 }
@@ -152,7 +152,7 @@ def export_bundle(run_dir: str | Path, out_dir: str | Path, streaming: Streaming
     if adapters.is_dir():
         shutil.copytree(adapters, tmp / "adapters", ignore=_adapter_files_only)
     taught = StudentConfig.from_dict(student_meta.get("student_config") or {}).num_steps
-    _write_streaming(tmp, streaming or StreamingConfig().override({"denoising_steps": taught}))
+    _write_streaming(tmp, streaming or taught_streaming(taught))
     _write_manifest(tmp, config, components, student_meta.get("student_config"))
     if out_dir.exists():
         shutil.rmtree(out_dir)

@@ -154,6 +154,13 @@ class StreamingConfig:
         return cls(**values)
 
 
+def taught_streaming(denoising_steps: int) -> StreamingConfig:
+    """How a bundle streams a student taught ``denoising_steps`` unless it is told otherwise (the
+    ``streaming.json`` that :func:`~world_model.bundle.export_bundle` writes): the defaults at those
+    steps. The training stages that stream a run's student as the env would stream it use it too."""
+    return StreamingConfig().override({"denoising_steps": denoising_steps})
+
+
 def check_changes(changes: Mapping[str, Any], names: Mapping[str, str] | None = None) -> dict[str, Any]:
     """``changes`` to a streaming config in their one form (:func:`check_setting`), checked against
     each other as far as they go without the config they change: refresh steps within denoising steps

@@ -20,13 +20,14 @@ if TYPE_CHECKING:
 
 DESCRIPTION = "Train world-model stages into a run directory (resumable: rerun the same command)."
 EPILOG = """\
-stages: vae, decoder, teacher, tf, ode, dmd, long, steps, reference, first_frame, rollout_decoder, range_head,
-lora
+stages: vae, decoder, teacher, tf, ode, dmd, long, steps, shallow, reference, first_frame, rollout_decoder,
+range_head, camera_decoder, lora
 (each writes RUN/<stage>/; lora RUN/lora/CASE/); first_frame teaches a copy of the reference model to
 draw reset()'s first frame in one step; decoder (with --layout) fine-tunes the VAE's decoder to draw the
 layout's label maps, rollout_decoder fine-tunes it again on the trained student's own rollouts,
 range_head trains the VAE's range head (the LiDAR at the range map's resolution) on them; steps teaches
-the long student to stream at fewer denoising steps (--denoising-steps; a faster env).
+the long student to stream at fewer denoising steps (--denoising-steps; a faster env), shallow distils the
+finished student into --student-depth blocks (a faster env again).
 --all trains vae -> [decoder] -> teacher -> tf -> ode -> dmd -> long -> reference -> first_frame ->
 [rollout_decoder -> range_head]
 at the preset's steps, then writes

@@ -24,8 +24,9 @@ at the tiny preset and a few steps per stage (the CPU check, ``tests/test_gpu_re
 Rerunning resumes: recorded clips are skipped and each stage resumes from its last checkpoint.
 
 ``--phases steps`` (not in the default chain) teaches the student to stream in half its denoising
-steps (:mod:`world_model.train.student_stages`); ``--episodes N`` records the first N of the scale's
-clips per scenario (a quicker run of a few phases).
+steps (:mod:`world_model.train.student_stages`), ``--phases shallow`` distils it into the scale's
+``shallow_depth`` blocks (:mod:`world_model.train.shallow_stage`); ``--episodes N`` records the
+first N of the scale's clips per scenario (a quicker run of a few phases).
 
 ``--from-bundle BUNDLE --phases P [P ...]`` retrains some phases of a finished bundle at the scale:
 ``OUT/run`` starts from the bundle's components as stage exports
@@ -63,8 +64,9 @@ CHAIN = PIPELINE  # the training CLI's --all chain, in its order
 # streams on from (docs/experiments.md weighs a student adapter).
 RARE_CATEGORY = "tree_truck"
 ADAPTERS = {f"{RARE_CATEGORY}_completion": ("reference", 9.0)}
-# Phases the recipe trains only when asked (--phases): the student taught fewer denoising steps.
-OPTIONAL_PHASES = ("steps",)
+# Phases the recipe trains only when asked (--phases), after the chain: the student taught fewer
+# denoising steps, then distilled into fewer blocks.
+OPTIONAL_PHASES = ("steps", "shallow")
 PHASES = CHAIN + OPTIONAL_PHASES + tuple(ADAPTERS)
 DEFAULT_PHASES = CHAIN + tuple(ADAPTERS)
 MIB = 1 << 20
@@ -94,6 +96,8 @@ class RecipeScale:
     phase_seconds: dict[str, float] = field(default_factory=dict)
     # "hash" where the MiniLM weights cannot travel (a GPU machine); None: the preset's (MiniLM)
     text_encoder: str | None = "hash"
+    # The shallow phase's student blocks, of the default preset's 10: the shipped student's.
+    shallow_depth: int = 5
 
 
 SCALES = {
@@ -118,6 +122,7 @@ SCALES = {
             "dmd": (300, 8),
             "long": (100, 8),
             "steps": (300, 8),
+            "shallow": (1000, 16),
             "rollout_decoder": (1000, 64),
             "range_head": (1500, 64),
             "camera_decoder": (1000, 64),
@@ -137,6 +142,7 @@ SCALES = {
             "dmd": 30,
             "long": 17,
             "steps": 30,  # not measured on a GPU yet: the long phase's, at its steps
+            "shallow": 30,  # not measured on a GPU yet
             "reference": 30,
             "first_frame": 30,  # not measured on a GPU yet: the reference phase's
             "rollout_decoder": 60,
@@ -164,6 +170,7 @@ SCALES = {
             "dmd": (50, 2),
             "long": (20, 2),
             "steps": (150, 2),
+            "shallow": (3000, 4),
             "rollout_decoder": (4500, 16),
             "range_head": (1500, 16),
             "camera_decoder": (4500, 16),
@@ -183,6 +190,7 @@ SCALES = {
             "dmd": 660,
             "long": 180,
             "steps": 780,  # 150 steps at 0.19 a second on the 2-core Xeon (AMX), the latents cached
+            "shallow": 1500,
             "reference": 720,
             "first_frame": 720,  # its pool's targets and training (the run's latents cached already)
             "rollout_decoder": 1020,
@@ -201,6 +209,7 @@ SCALES = {
         duration_s=0.6,
         rare_episodes=1,
         stages={stage: (2, 2) for stage in (*CHAIN, *OPTIONAL_PHASES, "lora")},
+        shallow_depth=1,  # of the tiny preset's 2
     ),
 }
 
@@ -409,10 +418,13 @@ def phase_options(
 ) -> StageOptions:
     """The stage options of ``phase``: a stage of the chain at the scale's steps and global batch,
     or an adapter (:data:`ADAPTERS`) of ``bundle``'s own weights, from the rare clips beside ``data``."""
+    from world_model.model.config import with_student_settings
     from world_model.train.stages import stage_options
 
     stage = "lora" if phase in ADAPTERS else phase
     steps, batch = spec.stages[stage]
+    if phase == "shallow":
+        config = with_student_settings(config, spec.shallow_depth)
     settings = {"preset": spec.preset, "config": config, "steps": steps, "batch_size": batch, "seed": seed}
     if phase in ADAPTERS:
         component, box_weight = ADAPTERS[phase]

@@ -6,7 +6,8 @@ within a second, and a decoder that never saw such latents draws what they say. 
 student (its ``long`` export, else ``dmd``, else ``ode``) streams :data:`ROLLOUT_CLIPS` training
 clips once as the env does: the first frame from the run's reference model (else the student, as
 a bundle without one), then chunk by chunk with the env's streaming settings
-(:class:`StreamingConfig`'s defaults); the decoder then learns to draw each recorded frame from the student's
+(:func:`~world_model.streaming.taught_streaming`: the defaults at the student's taught denoising
+steps, as the run's bundle streams it); the decoder then learns to draw each recorded frame from the student's
 latents of it, the frame's label maps and the prompt's style. :data:`ROLLOUT_SHARE` of every batch
 comes from these rollouts, the rest is the decoder stage's batch, so that the decoder keeps
 following the latents rather than drawing the scene from the label maps alone.
@@ -33,7 +34,7 @@ from world_model.model.dit import MultiViewDiT
 from world_model.model.reference import ReferenceGenerator, first_frame_sampling
 from world_model.model.vae import SensorVAE
 from world_model.sim.labels import LabelRasterizer
-from world_model.streaming import StreamingConfig
+from world_model.streaming import StreamingConfig, taught_streaming
 from world_model.student.config import StudentConfig
 from world_model.student.engine import StreamingEngine
 from world_model.train.data import FrameSampler, load_clips
@@ -107,7 +108,7 @@ def run_student(run: StageRun) -> tuple[MultiViewDiT, StudentConfig]:
         path = run.run_dir / stage / EXPORT
         if path.with_suffix(".safetensors").exists():
             student, scfg = load_student(path)
-            return student, replace(scfg, streaming=StreamingConfig())
+            return student, replace(scfg, streaming=taught_streaming(scfg.num_steps))
     raise FileNotFoundError(
         f"--stage {STAGE} rolls out the run's student: train --stage {STUDENT_STAGES[-1]} (or a later student "
         f"stage) with the same --run first"

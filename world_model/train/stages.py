@@ -5,6 +5,7 @@ A run directory holds one sub-directory per stage::
     RUN_DIR/vae/       checkpoints/, model.safetensors + model.json (EMA weights), metrics.json
     RUN_DIR/teacher/   checkpoints/, latents/ (the run's latent cache, every stage), model.safetensors + model.json
     RUN_DIR/tf|ode|dmd|long|steps/  the causal student's stages (world_model.train.student_stages)
+    RUN_DIR/shallow/   the finished student in fewer blocks (world_model.train.shallow_stage)
     RUN_DIR/reference/ the reference-conditioned model (world_model.train.reference_stage)
     RUN_DIR/first_frame/  the one-step first-frame model (world_model.train.first_frame_stage)
     RUN_DIR/rollout_decoder/  the decoder fine-tuned on the student's rollouts (world_model.train.rollout_decoder_stage)
@@ -44,6 +45,7 @@ from world_model.train.range_head_stage import range_head_stage
 from world_model.train.reference_stage import reference_stage
 from world_model.train.rollout_decoder_stage import rollout_decoder_stage
 from world_model.train.run import StageOptions, StageRun, StageRuntime
+from world_model.train.shallow_stage import shallow_stage
 from world_model.train.student_stages import StudentStageOptions, student_setup, student_stage
 from world_model.train.teacher_stage import teacher_stage
 from world_model.train.trainer import LoopOptions, TrainConfig
@@ -118,6 +120,8 @@ REGISTRY: dict[str, Stage] = {
         _student("long", 2, 5e-5, 10, 20),
         # long's objective at fewer denoising steps, from the long student (or a bundle's)
         _student("steps", 2, 5e-5, 10, 150),
+        # the finished student distilled into dit.student_depth blocks: a cheaper env step
+        Stage("shallow", shallow_stage, 4, 1e-4, 100, steps={"default": 3000}),
         Stage("reference", reference_stage, 4, 5e-4, 100, config_sections="teacher", steps={"default": 800}),
         # the reference model's first frames from controls in one unguided step (env.reset())
         Stage("first_frame", first_frame_stage, 8, 1e-4, 250, config_sections="teacher", steps={"default": 1500}),
