@@ -12,7 +12,7 @@ def test_default_bundle_is_package_data_and_verifies():
     files = load_bundle_files(None)  # None = the shipped bundle; checks every sha256 of the manifest
     assert files.path == DEFAULT_BUNDLE
     assert {"vae", "student", "reference"} <= set(files.tensors)
-    assert files.manifest["components"]["student"]["stage"] in ("steps", "long", "dmd")
+    assert files.manifest["components"]["student"]["stage"] in ("shallow", "steps", "long", "dmd")
     size = sum(p.stat().st_size for p in DEFAULT_BUNDLE.rglob("*") if p.is_file())
     assert size <= 100 * 2**20  # the shipped weights stay under 100 MB
 
