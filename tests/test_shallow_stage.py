@@ -133,3 +133,9 @@ def test_the_run_student_streams_as_its_bundle_would(run, tmp_path):
     assert stage == "long"
     assert deep_scfg.streaming == rolled_scfg.streaming == taught_streaming(1) != StreamingConfig()
     assert taught_streaming(1).sink_frames == StreamingConfig().sink_frames == 1
+
+    # The decoder stages roll out the student the run's bundle carries: a shallow one where there is one.
+    shutil.copytree(mine / "long", mine / "shallow")
+    meta["student_config"]["streaming"]["denoising_steps"] = 2
+    (mine / "shallow" / "model.json").write_text(json.dumps(meta))
+    assert run_student(SimpleNamespace(run_dir=mine))[1].streaming == taught_streaming(2)

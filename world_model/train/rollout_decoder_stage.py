@@ -3,14 +3,15 @@
 The ``decoder`` stage learns from the encoder's latents, with noise and a synthetic drift added.
 The trained student's latents drift in their own way: on some clips a grey sky turns dusk-orange
 within a second, and a decoder that never saw such latents draws what they say. Here the run's
-student (its ``long`` export, else ``dmd``, else ``ode``) streams :data:`ROLLOUT_CLIPS` training
-clips once as the env does: the first frame from the run's reference model (else the student, as
-a bundle without one), then chunk by chunk with the env's streaming settings
-(:func:`~world_model.streaming.taught_streaming`: the defaults at the student's taught denoising
-steps, as the run's bundle streams it); the decoder then learns to draw each recorded frame from the student's
-latents of it, the frame's label maps and the prompt's style. :data:`ROLLOUT_SHARE` of every batch
-comes from these rollouts, the rest is the decoder stage's batch, so that the decoder keeps
-following the latents rather than drawing the scene from the label maps alone.
+student (the one its bundle carries: its ``shallow`` export, else ``steps``, ``long``, ...)
+streams :data:`ROLLOUT_CLIPS` training clips once as the env does: the first frame from the run's
+reference model (else the student, as a bundle without one), then chunk by chunk with the env's
+streaming settings (:func:`~world_model.streaming.taught_streaming`: the defaults at the student's
+taught denoising steps, as the run's bundle streams it); the decoder then learns to draw each
+recorded frame from the student's latents of it, the frame's label maps and the prompt's style.
+:data:`ROLLOUT_SHARE` of every batch comes from these rollouts, the rest is the decoder stage's
+batch, so that the decoder keeps following the latents rather than drawing the scene from the label
+maps alone.
 
     RUN/rollout_decoder/rollouts.pt     the student's latents of the rolled-out clips (bf16), reused on resume
     RUN/rollout_decoder/progress.json   clips rolled out so far, then the training's progress
@@ -28,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from world_model.bundle import COMPONENT_STAGES
 from world_model.data.clips import Clip, write_json_atomic
 from world_model.model.config import ModelConfig, without_label_decoder
 from world_model.model.dit import MultiViewDiT
@@ -63,7 +65,8 @@ from world_model.train.vae_stage import (
 )
 
 STAGE = "rollout_decoder"
-STUDENT_STAGES = ("long", "dmd", "ode")  # the student rolled out: the first that has an export
+# The student rolled out: the one a bundle exported from the run carries (the first that has an export).
+STUDENT_STAGES = COMPONENT_STAGES["student"]
 ROLLOUT_CLIPS = 32  # training clips rolled out, spread evenly over the dataset (minutes on a CPU)
 # Clips streamed together on a CPU, where the work is the same at any batch and a smaller one
 # holds less memory; on a GPU a step of a few clips is bound by kernel launches, so all of them
