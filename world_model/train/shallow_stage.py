@@ -7,7 +7,7 @@ Each block of the student runs twice an env step (the chunk's denoising pass and
 so its depth sets most of a world-model step's time. The run's student (``RUN/steps``, else
 ``RUN/long``: a taught or a seeded bundle's) and a copy of it keeping ``dit.student_depth`` evenly
 spaced blocks (:func:`~world_model.student.init.student_from_teacher`) stream the run's clips side
-by side, as the env streams (the export's student config): the same controls, the same noise, each
+by side as the env would (:func:`~world_model.streaming.taught_streaming`): the same controls, the same noise, each
 its own KV cache of the same context. Per chunk the shallow student's latents regress onto the deep
 one's (:func:`mimic_loss`), and the chunk then enters both caches: the shallow student's own with
 probability :data:`OWN_CONTEXT_SHARE`, so that it learns from the contexts it makes itself, else the
@@ -16,7 +16,7 @@ deep one's. A rollout runs :data:`ROLLOUT_CHUNKS` chunks, then starts again on o
 Mimicking the deep student, not learning the data anew, keeps the rest of a bundle valid: the VAE's
 decoders and range head were tuned on the deep student's rollouts and draw the shallow one's as they
 draw those (the first frames are the first-frame model's, untouched). The recipe's ``tf`` ... ``steps``
-chain at fewer blocks loses against it (docs/experiments.md).
+chain run at fewer blocks ranked the policy zoo worse (docs/experiments.md).
 """
 
 from __future__ import annotations
