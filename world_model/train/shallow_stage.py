@@ -26,7 +26,7 @@ from pathlib import Path
 
 import torch
 
-from world_model.model.config import ModelConfig
+from world_model.model.config import ModelConfig, with_student_settings
 from world_model.model.dit import MultiViewDiT
 from world_model.streaming import taught_streaming
 from world_model.student.config import StudentConfig
@@ -74,7 +74,7 @@ def shallow_config(cfg: ModelConfig, deep: ModelConfig) -> ModelConfig:
             f"--stage {STAGE} keeps fewer blocks than the run's student's {deep.dit.depth}: give --student-depth "
             f"below {deep.dit.depth} (dit.student_depth), got {depth}"
         )
-    return replace(deep, dit=replace(deep.dit, student_depth=depth))
+    return with_student_settings(deep, depth)
 
 
 def shallow_stage(run: StageRun) -> dict:
